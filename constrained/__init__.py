@@ -1,0 +1,25 @@
+"""constrained: particles under holonomic constraints, constraint forces as Lagrange multipliers."""
+
+from .analysis import ConstraintReport, constraint_report, degrees_of_freedom
+from .constraints import Curve, Custom, Distance, Pin, Plane, Surface
+from .effects import Central, Damping, Electromagnetic, Force, Gravity, Potential, Spring
+from .errors import ConstrainedError, InconsistentStateError, InputError, SimulationError
+from .model import Model, assemble
+from .simulate import simulate
+from .system import Particle, System
+from .trajectory import Trajectory
+
+
+def load_scene(path, overrides=None):
+    """Load a TOML scene: a Scene with ``.system``, ``.settings``, ``.outputs``."""
+    from .scene import load_scene as _load
+
+    return _load(path, overrides)
+
+
+__all__ = [
+    "Central", "ConstrainedError", "ConstraintReport", "Curve", "Custom", "Damping", "Distance",
+    "Electromagnetic", "Force", "Gravity", "InconsistentStateError", "InputError", "Model",
+    "Particle", "Pin", "Plane", "Potential", "SimulationError", "Spring", "Surface", "System",
+    "Trajectory", "assemble", "constraint_report", "degrees_of_freedom", "load_scene", "simulate",
+]

@@ -1,0 +1,121 @@
+"""Analysis of the constraints: rank, degrees of freedom, redundancy, singular configurations."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+
+from .model import Model, assemble
+
+#: Relative pivot size below which a row of the (row-normalized) Jacobian counts as dependent.
+RANK_TOL = 1e-9
+
+
+class SingularConfigurationWarning(UserWarning):
+    """The rank of J at this state is lower than at nearby states."""
+
+
+@dataclass
+class ConstraintReport:
+    """What the constraints say at one state (x, t).
+
+    ``degrees_of_freedom = n_coordinates − rank``; ``redundant`` names rows implied by
+    the others; ``singular`` is True when the rank here is below the generic rank (the
+    rank at nearby, perturbed states), so the count here overstates the freedom.
+    """
+
+    n_coordinates: int
+    n_constraints: int
+    rank: int
+    generic_rank: int
+    labels: list[str]
+    residuals: np.ndarray
+    redundant: list[str] = field(default_factory=list)
+
+    @property
+    def degrees_of_freedom(self) -> int:
+        return self.n_coordinates - self.rank
+
+    @property
+    def generic_degrees_of_freedom(self) -> int:
+        return self.n_coordinates - self.generic_rank
+
+    @property
+    def singular(self) -> bool:
+        return self.rank < self.generic_rank
+
+    @property
+    def max_residual(self) -> float:
+        return float(np.max(np.abs(self.residuals), initial=0.0))
+
+    @property
+    def worst(self) -> str | None:
+        if not len(self.residuals):
+            return None
+        return self.labels[int(np.argmax(np.abs(self.residuals)))]
+
+
+def jacobian_rank(J: np.ndarray) -> tuple[int, np.ndarray]:
+    """Rank of J and the pivot order of its rows (QR with column pivoting on Jᵀ).
+
+    Rows are normalized first, so the rank does not depend on the units of each constraint.
+    Returns (rank, order): ``order[:rank]`` are independent rows.
+    """
+    C = J.shape[0]
+    if C == 0:
+        return 0, np.zeros(0, dtype=int)
+    norms = np.linalg.norm(J, axis=1)
+    Jn = J / np.where(norms > 0, norms, 1.0)[:, None]
+    _, R, order = sla.qr(Jn.T, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    if diag.size == 0 or diag[0] == 0:
+        return 0, order
+    rank = int(np.sum(diag > RANK_TOL * diag[0]))
+    return rank, order
+
+
+def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = None, samples: int = 3,
+                      seed: int = 0) -> ConstraintReport:
+    """Rank of J = ∂f/∂x at (x, t) (default: the system's initial positions), redundancy,
+    and the generic rank from ``samples`` random perturbations of x (seeded)."""
+    model = model or assemble(system)
+    x = (system.positions if x is None else np.asarray(x, float)).ravel()
+    f, J = model.jacobian(x, t)
+    f = np.asarray(f).ravel()
+    J = np.asarray(J)
+    rank, order = jacobian_rank(J)
+    # rows beyond the rank: implied by the others; report them in scene order
+    redundant_rows = sorted(order[rank:].tolist())
+    rng = np.random.default_rng(seed)
+    size = system.size()
+    generic = rank
+    for _ in range(samples):
+        xp = x + 0.1 * size * rng.standard_normal(x.shape)
+        generic = max(generic, jacobian_rank(np.asarray(model.jacobian(xp, t + rng.uniform())[1]))[0])
+    return ConstraintReport(
+        n_coordinates=model.n_coordinates,
+        n_constraints=model.n_constraints,
+        rank=rank,
+        generic_rank=generic,
+        labels=list(model.constraint_labels),
+        residuals=f,
+        redundant=[model.constraint_labels[k] for k in redundant_rows],
+    )
+
+
+def degrees_of_freedom(system, x=None, t: float = 0.0) -> int:
+    """3N − rank J at (x, t). Warns (SingularConfigurationWarning) when the configuration is
+    singular, i.e. the rank is lower here than nearby and the count overstates the freedom."""
+    report = constraint_report(system, x, t)
+    if report.singular:
+        warnings.warn(
+            f"singular configuration: rank J is {report.rank} here but {report.generic_rank} at "
+            f"nearby states, so 3N − rank = {report.degrees_of_freedom} overstates the freedom "
+            f"({report.generic_degrees_of_freedom} away from this configuration)",
+            SingularConfigurationWarning,
+            stacklevel=2,
+        )
+    return report.degrees_of_freedom

@@ -1,0 +1,189 @@
+"""The holonomic constraint library: each constraint yields rows of f(x, t) = 0.
+
+Every constraint is a small object with ``rows(symbols) -> list[(expr, label)]``. One
+object may give several scalar rows (a pin gives three, a plane one per particle); each
+row gets its own multiplier. Residuals are kept in metres where the geometry allows
+(distance as |d| - L, planes with a unit normal), so multipliers are forces in newtons.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import casadi as ca
+
+from .errors import InputError
+
+
+def _fmt(value) -> str:
+    if isinstance(value, str):
+        return value
+    if isinstance(value, Sequence):
+        return "(" + ", ".join(_fmt(v) for v in value) + ")"
+    return f"{value:g}"
+
+
+def _as_list(value, where: str, what: str) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if not isinstance(value, Sequence) or not value or not all(isinstance(p, str) for p in value):
+        raise InputError(f"{what} must be a particle name or a non-empty list of names", where=where)
+    return list(value)
+
+
+class Constraint:
+    """Base class: ``rows(s)`` returns [(CasADi scalar f_k(x, t), label_k), ...]."""
+
+    name: str | None = None
+    where: str | None = None
+
+    @property
+    def label(self) -> str:
+        raise NotImplementedError
+
+    def _where(self) -> str:
+        return self.where or f"constraint {self.label!r}"
+
+    def rows(self, s) -> list[tuple]:
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.label})"
+
+
+class Distance(Constraint):
+    """|x_a − x_b| − length = 0, or |x_a − point(t)| − length = 0 (moving anchor allowed).
+
+    The multiplier is the force along the outward direction: tension = −λ.
+    """
+
+    def __init__(self, a: str, b: str | None = None, *, point=None, length, name=None, where=None):
+        self.a, self.b, self.point, self.length = a, b, point, length
+        self.name, self.where = name, where
+        if (b is None) == (point is None):
+            raise InputError("give exactly one of 'b' (a particle) or 'point'", where=self._where())
+
+    @property
+    def label(self) -> str:
+        other = self.b if self.b is not None else _fmt(self.point)
+        return self.name or f"distance {self.a}–{other} = {_fmt(self.length)} m"
+
+    def rows(self, s):
+        where = self._where()
+        xa = s.position(self.a, where)
+        xb = s.position(self.b, where) if self.b is not None else s.point(self.point, f"{where}.point")
+        length = s.time_function(self.length, f"{where}.length")
+        d = xa - xb
+        return [(ca.sqrt(ca.dot(d, d)) - length, self.label)]
+
+
+class Pin(Constraint):
+    """x_a − point(t) = 0: a fixed position, or a prescribed path when entries depend on t."""
+
+    def __init__(self, a: str, point, *, name=None, where=None):
+        self.a, self.point, self.name, self.where = a, point, name, where
+
+    @property
+    def label(self) -> str:
+        return self.name or f"pin {self.a} at {_fmt(self.point)}"
+
+    def rows(self, s):
+        where = self._where()
+        d = s.position(self.a, where) - s.point(self.point, f"{where}.point")
+        return [(d[k], f"{self.label} ({axis})") for k, axis in enumerate("xyz")]
+
+
+class Plane(Constraint):
+    """n(t)·x_i − offset(t) = 0 for each listed particle, scaled by 1/|n| (metres)."""
+
+    def __init__(self, particles, normal, offset=0.0, *, name=None, where=None):
+        self.particles = _as_list(particles, where or "plane", "'particles'")
+        self.normal, self.offset, self.name, self.where = normal, offset, name, where
+        if (
+            isinstance(normal, Sequence)
+            and not isinstance(normal, str)
+            and all(isinstance(c, int | float) and c == 0 for c in normal)
+        ):
+            raise InputError("the normal vector is zero", where=f"{self._where()}.normal")
+
+    @property
+    def label(self) -> str:
+        return self.name or f"plane n={_fmt(self.normal)}, offset {_fmt(self.offset)}"
+
+    def rows(self, s):
+        where = self._where()
+        n = s.point(self.normal, f"{where}.normal")
+        offset = s.time_function(self.offset, f"{where}.offset")
+        norm = ca.sqrt(ca.dot(n, n))
+        return [
+            ((ca.dot(n, s.position(p, where)) - offset) / norm, f"{self.label} [{p}]")
+            for p in self.particles
+        ]
+
+
+class Surface(Constraint):
+    """g(x, y, z, t) = 0 for each listed particle; ``expr`` is a formula in x, y, z, t."""
+
+    def __init__(self, particles, expr: str, *, name=None, where=None):
+        self.particles = _as_list(particles, where or "surface", "'particles'")
+        self.expr, self.name, self.where = expr, name, where
+
+    @property
+    def label(self) -> str:
+        return self.name or f"surface {self.expr} = 0"
+
+    def rows(self, s):
+        where = self._where()
+        return [
+            (s.parse_field(self.expr, f"{where}.expr", s.position(p, where)), f"{self.label} [{p}]")
+            for p in self.particles
+        ]
+
+
+class Curve(Constraint):
+    """A curve as the intersection of two surfaces g1 = g2 = 0, for each listed particle."""
+
+    def __init__(self, particles, exprs: Sequence[str], *, name=None, where=None):
+        self.particles = _as_list(particles, where or "curve", "'particles'")
+        if isinstance(exprs, str) or len(exprs) != 2:
+            raise InputError(
+                "a curve needs 'expr' as a list of two surface formulas", where=where or "curve"
+            )
+        self.exprs, self.name, self.where = list(exprs), name, where
+
+    @property
+    def label(self) -> str:
+        return self.name or f"curve {self.exprs[0]} = 0, {self.exprs[1]} = 0"
+
+    def rows(self, s):
+        where = self._where()
+        out = []
+        for p in self.particles:
+            at = s.position(p, where)
+            for k, e in enumerate(self.exprs):
+                out.append((s.parse_field(e, f"{where}.expr[{k}]", at), f"{self.label} [{p}, {k + 1}]"))
+        return out
+
+
+class Custom(Constraint):
+    """Any formula in particle coordinates x_NAME, y_NAME, z_NAME and t, equal to zero."""
+
+    def __init__(self, expr: str, *, name=None, where=None):
+        self.expr, self.name, self.where = expr, name, where
+
+    @property
+    def label(self) -> str:
+        return self.name or f"{self.expr} = 0"
+
+    def rows(self, s):
+        return [(s.parse(self.expr, f"{self._where()}.expr"), self.label)]
+
+
+CONSTRAINT_TYPES = {
+    "distance": Distance,
+    "pin": Pin,
+    "plane": Plane,
+    "surface": Surface,
+    "curve": Curve,
+    "custom": Custom,
+}

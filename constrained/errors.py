@@ -1,0 +1,38 @@
+"""Exceptions a user of constrained can meet, each with a message a physicist understands."""
+
+from __future__ import annotations
+
+
+class ConstrainedError(Exception):
+    """Base class of every error this package raises on purpose."""
+
+
+class InputError(ConstrainedError, ValueError):
+    """Bad input: a scene key, an argument or a formula that cannot be used.
+
+    ``where`` names the place (file and key, or argument) so the message can say it.
+    """
+
+    def __init__(self, message: str, *, where: str | None = None):
+        self.where = where
+        self.reason = message
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class ExpressionError(InputError):
+    """A formula string that the whitelisted parser refuses."""
+
+
+class InconsistentStateError(InputError):
+    """An initial state too far from the constraints, or constraints that cannot all hold."""
+
+
+class SimulationError(ConstrainedError, RuntimeError):
+    """A run that had to stop (step size collapse, non-finite values).
+
+    ``trajectory`` holds what was computed before the stop, when anything was.
+    """
+
+    def __init__(self, message: str, trajectory=None):
+        self.trajectory = trajectory
+        super().__init__(message)

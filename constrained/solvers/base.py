@@ -1,0 +1,48 @@
+"""The solver contract: every method is a short class with the same ``run`` and counters.
+
+A Solver takes an assembled Model (never the scene), a consistent start (x0, v0, t0) and
+returns a Solution: output times and states, plus counters in ``stats`` —
+``steps``, ``nfev`` (right-hand sides), ``njev`` (constraint Jacobians),
+``nlu`` (factorizations), ``projections``; methods that know it add ``rejected``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+
+
+@dataclass
+class Solution:
+    t: np.ndarray
+    x: np.ndarray  # (T, 3N)
+    v: np.ndarray  # (T, 3N)
+    stats: dict = field(default_factory=dict)
+    failure: str | None = None  # why the run stopped early, if it did
+
+
+class Solver:
+    """Base class. Subclasses set ``name`` and implement ``run``."""
+
+    name = ""
+    adaptive = True
+
+    def __init__(self, model, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None, **options):
+        for key, value in (("rtol", rtol), ("atol", atol)):
+            if not (isinstance(value, int | float) and np.isfinite(value) and 0 < value < 1):
+                raise InputError(f"{key} must be a number between 0 and 1, got {value!r}")
+        if dt is not None and not (isinstance(dt, int | float) and np.isfinite(dt) and dt > 0):
+            raise InputError(f"dt must be a positive number of seconds, got {dt!r}")
+        if options:
+            raise InputError(
+                f"method '{self.name}' does not take the option(s) {', '.join(sorted(options))}"
+            )
+        self.model = model
+        self.rtol, self.atol, self.dt = float(rtol), float(atol), dt
+        self.stats = {"steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "projections": 0}
+
+    def run(self, x0, v0, t0: float, t_end: float, t_eval=None) -> Solution:
+        raise NotImplementedError

@@ -1,0 +1,89 @@
+"""Symbols: the CasADi variables of one assembled system, handed to constraints and effects.
+
+Assembly is the only place CasADi symbols are made. A constraint or an effect receives a
+Symbols object and returns expressions in ``x`` (3N positions), ``v`` (3N velocities) and
+``t``; formula strings are parsed here, with exactly the names the context allows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import casadi as ca
+
+from . import expressions
+from .errors import ExpressionError, InputError
+
+
+class Symbols:
+    """CasADi SX symbols ``x``, ``v``, ``t`` for a System, plus the scene's parameters."""
+
+    def __init__(self, system):
+        self.system = system
+        n = system.n_particles
+        self.x = ca.SX.sym("x", 3 * n)
+        self.v = ca.SX.sym("v", 3 * n)
+        self.t = ca.SX.sym("t")
+        self.masses = system.masses
+        self._index = {p.name: i for i, p in enumerate(system.particles)}
+        self.parameters = dict(system.parameters)
+        base = {"t": self.t, **self.parameters}
+        self.position_names = dict(base)
+        self.state_names = dict(base)
+        for name, i in self._index.items():
+            for k, axis in enumerate("xyz"):
+                self.position_names[f"{axis}_{name}"] = self.x[3 * i + k]
+                self.state_names[f"{axis}_{name}"] = self.x[3 * i + k]
+                self.state_names[f"v{axis}_{name}"] = self.v[3 * i + k]
+
+    def index(self, name: str, where: str) -> int:
+        if not isinstance(name, str) or name not in self._index:
+            known = ", ".join(self._index) or "(none)"
+            raise InputError(f"names unknown particle {name!r} (particles: {known})", where=where)
+        return self._index[name]
+
+    def position(self, name: str, where: str):
+        i = self.index(name, where)
+        return self.x[3 * i : 3 * i + 3]
+
+    def velocity(self, name: str, where: str):
+        i = self.index(name, where)
+        return self.v[3 * i : 3 * i + 3]
+
+    def parse(self, text, where: str, *, velocities: bool = False, extra: dict | None = None):
+        """Parse a formula in particle coordinates (and velocities if allowed), t, parameters."""
+        names = dict(self.state_names if velocities else self.position_names)
+        if extra:
+            names.update(extra)
+        try:
+            return expressions.parse(text, names, where=where)
+        except ExpressionError:
+            if not velocities and isinstance(text, str):
+                used = expressions.free_names(text)
+                vel = sorted(n for n in used if n in self.state_names and n not in names)
+                if vel:
+                    raise ExpressionError(
+                        f"velocities ({', '.join(vel)}) are not allowed in this formula",
+                        where=where,
+                    ) from None
+            raise
+
+    def parse_field(self, text, where: str, at, *, velocity=None):
+        """Parse a field formula in x, y, z, t (and parameters) evaluated at the point ``at``."""
+        extra = {"x": at[0], "y": at[1], "z": at[2], "t": self.t, **self.parameters}
+        if velocity is not None:
+            extra.update({"vx": velocity[0], "vy": velocity[1], "vz": velocity[2]})
+        return expressions.parse(text, extra, where=where)
+
+    def time_function(self, text, where: str):
+        """A formula of t (and parameters) only: moving anchors, plane offsets."""
+        return expressions.parse(text, {"t": self.t, **self.parameters}, where=where)
+
+    def point(self, entries: Sequence, where: str):
+        """A 3-vector whose entries are numbers or formula strings of t."""
+        if isinstance(entries, str) or not isinstance(entries, Sequence) or len(entries) != 3:
+            raise InputError(
+                f"must be a list of 3 entries (numbers or formulas of t), got {entries!r}",
+                where=where,
+            )
+        return ca.vertcat(*[self.time_function(e, f"{where}[{k}]") for k, e in enumerate(entries)])

@@ -1,0 +1,135 @@
+"""Trajectory: the arrays of one run, and saving/loading them as ``.npz``."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+#: Arrays a Trajectory may carry besides t, x, v (in the order files list them).
+QUANTITIES = (
+    "multipliers",
+    "constraint_forces",
+    "energy",
+    "constraint_residual",
+    "velocity_residual",
+)
+
+
+@dataclass
+class Trajectory:
+    """One run. Shapes: t (T,), x and v (T, N, 3), multipliers (T, C),
+    constraint_forces (T, N, 3), energy / residuals (T,). Quantities a run was not asked
+    for are None. ``stats`` holds the solver's counters and wall time.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    multipliers: np.ndarray | None = None
+    constraint_forces: np.ndarray | None = None
+    energy: np.ndarray | None = None
+    constraint_residual: np.ndarray | None = None
+    velocity_residual: np.ndarray | None = None
+    particle_names: list[str] = field(default_factory=list)
+    constraint_labels: list[str] = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_particles(self) -> int:
+        return self.x.shape[1]
+
+    def particle(self, name: str) -> int:
+        """Index of the particle called ``name``."""
+        try:
+            return self.particle_names.index(name)
+        except ValueError:
+            raise InputError(
+                f"no particle '{name}' in this trajectory ({', '.join(self.particle_names)})"
+            ) from None
+
+    def arrays(self, quantities=None) -> dict[str, np.ndarray]:
+        """``t, x, v`` and the requested quantities that were computed, by contract name."""
+        out = {"t": self.t, "x": self.x, "v": self.v}
+        for name in QUANTITIES if quantities is None else quantities:
+            value = getattr(self, name)
+            if value is not None:
+                out[name] = value
+        return out
+
+    def save(self, path, quantities=None) -> Path:
+        """Write an ``.npz`` atomically (temporary file in the same folder, then rename)."""
+        path = Path(path)
+        arrays = self.arrays(quantities)
+        meta = {
+            "particle_names": self.particle_names,
+            "constraint_labels": self.constraint_labels,
+            "stats": _jsonable(self.stats),
+            "info": _jsonable(self.info),
+        }
+        arrays["meta"] = np.array(json.dumps(meta))
+        atomic_write(path, lambda f: np.savez(f, **arrays))
+        return path
+
+    @classmethod
+    def load(cls, path) -> Trajectory:
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"no such file: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path} is not a trajectory file written by constrained ({exc})") from None
+        missing = [k for k in ("t", "x", "v") if k not in arrays]
+        if missing:
+            raise InputError(f"{path} lacks the arrays {', '.join(missing)}")
+        meta = json.loads(str(arrays.pop("meta"))) if "meta" in arrays else {}
+        return cls(
+            **{k: arrays.get(k) for k in ("t", "x", "v", *QUANTITIES)},
+            particle_names=meta.get("particle_names", []),
+            constraint_labels=meta.get("constraint_labels", []),
+            stats=meta.get("stats", {}),
+            info=meta.get("info", {}),
+        )
+
+    def __repr__(self) -> str:
+        have = [k for k in QUANTITIES if getattr(self, k) is not None]
+        return (
+            f"Trajectory({len(self.t)} samples, t = {self.t[0]:g}..{self.t[-1]:g} s, "
+            f"{self.n_particles} particles, with {', '.join(have) or 'positions only'})"
+        )
+
+
+def atomic_write(path: Path, write) -> None:
+    """Call ``write(fileobj)`` on a temporary file beside ``path``, then rename it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value

@@ -1,0 +1,36 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import constrained as C
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIOS = ROOT / "scenarios"
+
+
+def planar_pendulum(theta0: float, omega0: float = 0.0, *, m=1.0, l=1.0, g=9.81) -> C.System:
+    """A particle on a rod of length l from the origin, in the plane z = 0, gravity along −y."""
+    s = C.System(name="pendulum")
+    s.add_particle("bob", m, [l * np.sin(theta0), -l * np.cos(theta0), 0.0],
+                   [l * omega0 * np.cos(theta0), l * omega0 * np.sin(theta0), 0.0])
+    s.add(C.Distance("bob", point=[0, 0, 0], length=l), C.Plane("bob", [0, 0, 1]),
+          C.Gravity([0, -g, 0]))
+    return s
+
+
+def double_pendulum(th1: float = 2.0, th2: float = 2.5) -> C.System:
+    """The DESIGN.md double pendulum started from the exact angles."""
+    s = C.System(name="double pendulum")
+    s.add_particle("p1", 1.0, [np.sin(th1), -np.cos(th1), 0.0])
+    s.add_particle("p2", 1.0, [np.sin(th1) + np.sin(th2), -np.cos(th1) - np.cos(th2), 0.0])
+    s.add(C.Distance("p1", point=[0, 0, 0], length=1.0), C.Distance("p1", "p2", length=1.0),
+          C.Plane(["p1", "p2"], [0, 0, 1], 0.0), C.Gravity([0, -9.81, 0]))
+    return s
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)

@@ -1,0 +1,45 @@
+"""The repository's promises: README commands, CI script, style."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+
+from conftest import ROOT
+
+
+def readme_command(marker: str) -> str:
+    text = (ROOT / "README.md").read_text()
+    match = re.search(rf"<!-- {marker} -->\s*```bash\n(.+?)\n```", text)
+    assert match, f"README.md lacks the {marker} block"
+    return match.group(1)
+
+
+def test_readme_run_command_names_a_bundled_scene():
+    cmd = readme_command("run-command")
+    scene = re.search(r"constrained run (\S+)", cmd).group(1)
+    assert (ROOT / scene).is_file()
+    assert "pip install ." in cmd
+
+
+def test_ci_runs_the_readme_test_command():
+    cmd = readme_command("test-command")
+    assert "pytest" in cmd and 'pip install ".[test]"' in cmd
+    script = (ROOT / ".ci" / "run").read_text()
+    assert "test-command" in script
+
+
+def test_code_is_ruff_clean():
+    ruff = shutil.which("ruff") or str(ROOT / ".venv" / "bin" / "ruff")
+    result = subprocess.run([ruff, "check", "constrained", "tests"], cwd=ROOT,
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_no_eval_or_exec_in_the_package():
+    for path in (ROOT / "constrained").rglob("*.py"):
+        source = path.read_text()
+        assert not re.search(r"(?<![\w.])(eval|exec)\(", source), path
+    assert sys.version_info >= (3, 11)
