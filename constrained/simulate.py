@@ -134,10 +134,7 @@ def simulate(
     )
     solver = METHODS[method](model, rtol=rtol, atol=atol, dt=dt, **options)
     started = time.perf_counter()
-    try:
-        solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
-    except KeyboardInterrupt:
-        raise SimulationError("the run was interrupted") from None
+    solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
     wall = time.perf_counter() - started
     stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time, "method": method}
     traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
@@ -151,6 +148,9 @@ def simulate(
             "active_terms": sorted(model.active_terms),
         }
     )
+    if solution.failure and solution.failure.startswith("interrupted"):
+        raise SimulationError(f"the run was {solution.failure}; what was computed is kept",
+                              trajectory=traj)
     if solution.failure:
         raise SimulationError(
             f"the run stopped early: {solution.failure}; the last good state is at "

@@ -70,6 +70,9 @@ class Projection(Solver):
             except _NonFinite as exc:
                 failure = f"non-finite accelerations at t = {exc.args[0]:.6g} s"
                 break
+            except KeyboardInterrupt:
+                failure = f"interrupted at t = {integ.t:.6g} s"
+                break
             if integ.status == "failed":
                 failure = f"the step size collapsed at t = {integ.t:.6g} s ({message})"
                 break

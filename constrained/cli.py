@@ -1,0 +1,437 @@
+"""The ``constrained`` command: ``run`` and ``check`` a scene file.
+
+Exit status: 0 success, 1 a run that had to stop (what it computed is saved), 2 bad input
+(one-paragraph message naming the file and the key, nothing written), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import inspect
+import io
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InconsistentStateError, InputError, SimulationError
+from .scene import _KEY_RE, SIMULATE_DEFAULTS, Scene, SceneError, load_scene
+from .trajectory import QUANTITIES, Trajectory, atomic_write
+
+__all__ = ["main", "build_parser", "time_grid", "trajectory_csv"]
+
+PROG = "constrained"
+
+EPILOG = """\
+verbs:
+  run     simulate a scene; write DIR/trajectory.npz (and .csv, plots) as the scene asks
+            constrained run scenarios/double_pendulum.toml --out out/dp --set simulate.t_end=2
+  check   validate a scene and print DOF, rank, redundancy, initial-state consistency
+            constrained check scenarios/double_pendulum.toml
+
+--set KEY=VALUE overrides one scene key (repeatable): simulate.t_end=2,
+particles.p1.mass=2 or particles[0].mass=2, parameters.k=3, effects[0].k=5.
+VALUE is read as TOML (2, [1, 0, 0], "sin(t)"); a bare word is a string.
+
+exit status: 0 done, 1 the run had to stop (partial trajectory saved),
+2 bad input (nothing written), 130 interrupted.
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-paragraph errors (``constrained: error: ...``) and exit status 2."""
+
+    def error(self, message: str):
+        verb = self.prog.split()[-1] if " " in self.prog else None
+        where = f"{verb}: " if verb else ""
+        _say_error(f"{where}{message} (see '{PROG} --help')")
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``constrained`` command."""
+    parser = _Parser(
+        prog=PROG,
+        description="Simulate particles under holonomic constraints (constraint forces as "
+        "Lagrange multipliers).",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
+
+    run = verbs.add_parser(
+        "run",
+        help="simulate a scene and write its trajectory and plots",
+        description="Simulate SCENE and write DIR/trajectory.npz (plus trajectory.csv and the "
+        "plots the scene's [outputs] asks for).",
+        epilog=f"example:\n  {PROG} run scenarios/double_pendulum.toml --out out/dp --set simulate.t_end=2",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    run.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
+    run.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
+    _add_set(run)
+    run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+    check = verbs.add_parser(
+        "check",
+        help="validate a scene; print DOF, redundancy and initial-state consistency",
+        description="Validate SCENE without simulating: particles, constraint rows, degrees of "
+        "freedom, rank and redundancy, singular configuration, consistency of the initial state, "
+        "and the terms the model assembles.",
+        epilog=f"example:\n  {PROG} check scenarios/double_pendulum.toml",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    check.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
+    _add_set(check)
+    return parser
+
+
+def _add_set(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a scene key, e.g. simulate.t_end=2 (repeatable)",
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    try:
+        if args.verb == "run":
+            return _run(args)
+        return _check(args)
+    except InputError as exc:
+        _say_error(str(exc))
+        return 2
+    except OSError as exc:  # writing the outputs: permissions, a full disk
+        target = exc.filename or getattr(args, "out", None) or "the output directory"
+        _say_error(f"cannot write {target}: {exc.strerror or exc}")
+        return 1
+    except KeyboardInterrupt:
+        _say_error("interrupted")
+        return 130
+
+
+# --- run -------------------------------------------------------------------------------------
+
+
+def _run(args) -> int:
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    s = scene.settings
+    if s["t_end"] is None:
+        raise SceneError(
+            "no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
+            file=file,
+            key="simulate.t_end",
+        )
+    out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} exists and is not a directory")
+    quantities = _contract_quantities(scene.outputs["quantities"])
+    kinds = list(scene.outputs["plots"])
+    save_figures = None
+    if kinds:
+        try:
+            from .plot import save_figures
+        except ImportError as exc:
+            _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
+            kinds = []
+
+    from .simulate import simulate
+
+    kwargs = dict(
+        method=s["method"],
+        rtol=s["rtol"],
+        atol=s["atol"],
+        dt=s["dt"],
+        t_start=s["t_start"],
+        t_eval=time_grid(s["t_start"], s["t_end"], output_dt=s["output_dt"], samples=s["samples"]),
+        outputs=set(quantities),
+        max_initial_correction=s["max_initial_correction"],
+    )
+    if _takes_base(s["method"]):
+        kwargs["base"] = s["base"]
+
+    try:
+        # The solvers detect non-finite values themselves and stop with a SimulationError;
+        # NumPy's floating-point warnings on the way there would only repeat it, noisily.
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            trajectory = simulate(scene.system, s["t_end"], **kwargs)
+    except SimulationError as exc:
+        message = f"scene file {file}: {exc}"
+        partial = exc.trajectory
+        if partial is not None and len(partial.t):
+            path = partial.save(out_dir / "trajectory.npz", quantities=quantities)
+            message += f"; what was computed up to t = {partial.t[-1]:.6g} s is saved in {path}"
+        _say_error(message)
+        return 1
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+
+    written = [trajectory.save(out_dir / "trajectory.npz", quantities=quantities)]
+    if "csv" in scene.outputs["formats"]:
+        path = out_dir / "trajectory.csv"
+        text = trajectory_csv(trajectory, quantities)
+        atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+        written.append(path)
+    if kinds and save_figures is not None:
+        written.extend(save_figures(trajectory, kinds, out_dir))
+    if not args.quiet:
+        _summary(scene, file, trajectory, written)
+    return 0
+
+
+def _takes_base(method: str) -> bool:
+    """Whether the solver of ``method`` accepts a ``base`` integrator option."""
+    from .solvers import METHODS
+
+    cls = METHODS.get(method)
+    return cls is not None and "base" in inspect.signature(cls.__init__).parameters
+
+
+def _contract_quantities(names: Sequence[str]) -> list[str]:
+    """Scene output names -> contract array names besides t, x, v (always written)."""
+    return [q for q in QUANTITIES if q in names]
+
+
+def time_grid(t_start: float, t_end: float, *, output_dt=None, samples=None) -> np.ndarray | None:
+    """Output times: every ``output_dt`` from t_start (t_end included), or ``samples`` points."""
+    if samples is not None:
+        return np.linspace(t_start, t_end, int(samples))
+    if output_dt is None:
+        return None
+    n = int(np.floor((t_end - t_start) / output_dt + 1e-9))
+    grid = t_start + output_dt * np.arange(n + 1)
+    if t_end - grid[-1] > 1e-9 * max(1.0, abs(t_end)):
+        grid = np.append(grid, t_end)
+    else:
+        grid[-1] = t_end
+    return grid
+
+
+def trajectory_csv(trajectory: Trajectory, quantities: Sequence[str]) -> str:
+    """The trajectory as CSV text: ``t``, positions, velocities, then the requested quantities."""
+    tr = trajectory
+    names = tr.particle_names or [f"p{i}" for i in range(tr.n_particles)]
+    header = ["t"]
+    columns = [tr.t.reshape(-1, 1)]
+    header += [f"{a}_{n}" for n in names for a in "xyz"]
+    columns.append(tr.x.reshape(len(tr.t), -1))
+    header += [f"v{a}_{n}" for n in names for a in "xyz"]
+    columns.append(tr.v.reshape(len(tr.t), -1))
+    for q in quantities:
+        value = getattr(tr, q, None)
+        if value is None:
+            continue
+        if q == "multipliers":
+            labels = tr.constraint_labels or [str(k) for k in range(value.shape[1])]
+            header += [f"lambda[{label}]" for label in labels]
+            columns.append(value.reshape(len(tr.t), -1))
+        elif q == "constraint_forces":
+            header += [f"Fc{a}_{n}" for n in names for a in "xyz"]
+            columns.append(value.reshape(len(tr.t), -1))
+        else:
+            header.append(q)
+            columns.append(value.reshape(-1, 1))
+    data = np.hstack(columns)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in data:
+        w.writerow([repr(float(v)) for v in row])
+    return buf.getvalue()
+
+
+def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> None:
+    s = scene.settings
+    lines = [f"scene: {scene.name} ({file})"]
+    dof = tr.info.get("degrees_of_freedom")
+    if dof is None:
+        dof = _degrees_of_freedom(scene)
+    lines.append(
+        f"particles {scene.system.n_particles}, constraint rows {len(tr.constraint_labels)}, "
+        f"degrees of freedom {dof if dof is not None else '?'}"
+    )
+    lines.append(
+        f"method {s['method']}, rtol {s['rtol']:g}, atol {s['atol']:g}, "
+        f"t = {tr.t[0]:g} .. {tr.t[-1]:g} s, {len(tr.t)} samples"
+    )
+    corr = tr.info.get("initial_correction")
+    if corr is not None:
+        lines.append(f"initial-state correction: {_fmt_correction(corr)}")
+    if tr.stats:
+        stats = ", ".join(f"{k} {_fmt_value(v)}" for k, v in tr.stats.items() if np.isscalar(v))
+        lines.append(f"solver: {stats}")
+    if tr.energy is not None and len(tr.energy):
+        drift = float(np.max(np.abs(tr.energy - tr.energy[0])))
+        text = f"energy drift: max |E - E0| = {drift:.3g} J"
+        if tr.energy[0] != 0:
+            text += f" (relative {drift / abs(float(tr.energy[0])):.3g})"
+        lines.append(text)
+    if tr.constraint_residual is not None and len(tr.constraint_residual):
+        lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g}")
+    if tr.velocity_residual is not None and len(tr.velocity_residual):
+        lines.append(f"max velocity residual: {float(np.max(tr.velocity_residual)):.3g}")
+    lines.append("wrote: " + ", ".join(str(p) for p in written))
+    print("\n".join(lines))
+
+
+def _degrees_of_freedom(scene: Scene):
+    try:
+        from .analysis import constraint_report
+    except ImportError:
+        return None
+    return constraint_report(scene.system).degrees_of_freedom
+
+
+# --- check -----------------------------------------------------------------------------------
+
+
+def _check(args) -> int:
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    from .analysis import constraint_report
+    from .model import assemble
+
+    try:
+        model = assemble(scene.system)
+        report = constraint_report(scene.system)
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+
+    sysm = scene.system
+    out = [f"scene: {scene.name} ({file})"]
+    if scene.description:
+        out.append(f"  {scene.description}")
+    out.append(f"particles ({sysm.n_particles}):")
+    for p in sysm.particles:
+        out.append(
+            f"  {p.name}: mass {p.mass:g} kg, position {_vec(p.position)} m, velocity {_vec(p.velocity)} m/s"
+        )
+    labels = list(getattr(report, "labels", None) or getattr(model, "constraint_labels", []))
+    out.append(f"constraints ({len(sysm.constraints)} given, {len(labels)} scalar rows):")
+    for k, label in enumerate(labels):
+        out.append(f"  [{k}] {label}")
+    generic = getattr(report, "generic_rank", None)
+    rank_text = f"rank {report.rank}"
+    if generic is not None and generic != report.rank:
+        rank_text += f" (generic rank {generic})"
+    out.append(
+        f"coordinates {report.n_coordinates}, constraint rows {report.n_constraints}, "
+        f"{rank_text}, degrees of freedom {report.degrees_of_freedom}"
+        + (f" ({report.generic_degrees_of_freedom} away from this configuration)" if report.singular else "")
+    )
+    redundant = list(report.redundant)
+    out.append("redundant constraints: " + ("; ".join(redundant) if redundant else "none"))
+    out.append(
+        "configuration: "
+        + ("SINGULAR (the constraint Jacobian loses rank here)" if report.singular else "regular")
+    )
+    if labels:
+        text = f"initial state: max constraint residual {report.max_residual:.3g}"
+        if report.worst is not None and report.max_residual > 0:
+            text += f" (worst: {report.worst})"
+        out.append(text)
+        out.append(_projection_preview(model, scene))
+    else:
+        out.append("initial state: no constraints")
+    terms = sorted(getattr(model, "active_terms", ()))
+    out.append("model terms: " + (", ".join(terms) if terms else "none"))
+    print("\n".join(out))
+    return 0
+
+
+def _projection_preview(model, scene: Scene) -> str:
+    """What the start-up projection of ``run`` would do to the initial state."""
+    from .simulate import consistent_state
+
+    sysm, s = scene.system, scene.settings
+    try:
+        _, _, corr = consistent_state(
+            model,
+            sysm.positions,
+            sysm.velocities,
+            s["t_start"],
+            max_correction=math.inf,
+            size=sysm.size(),
+        )
+    except InconsistentStateError as exc:
+        return f"projection: FAILS, run would refuse this start: {exc}"
+    limit = s["max_initial_correction"] * sysm.size()
+    verdict = "within" if corr["position"] <= limit else "MORE than"
+    return (
+        f"projection would move positions by {corr['position']:.3g} m ({verdict} the allowed "
+        f"{limit:.3g} m = simulate.max_initial_correction x system size) and velocities by "
+        f"{corr['velocity']:.3g} m/s"
+    )
+
+
+def _fmt_correction(corr) -> str:
+    if isinstance(corr, dict) and "position" in corr:
+        text = f"positions moved by {corr['position']:.3g} m"
+        if "velocity" in corr:
+            text += f", velocities by {corr['velocity']:.3g} m/s"
+        if corr.get("worst_constraint") and corr.get("max_residual_before"):
+            text += (
+                f" (largest violation before: {corr['max_residual_before']:.3g} in "
+                f"'{corr['worst_constraint']}')"
+            )
+        return text
+    return _fmt_value(corr)
+
+
+# --- messages --------------------------------------------------------------------------------
+
+
+def _scene_error(exc: InputError, file: str) -> SceneError:
+    """An InputError raised after loading (simulate, assemble) -> SceneError naming the file."""
+    where = getattr(exc, "where", None)
+    reason = getattr(exc, "reason", None) or str(exc)
+    key = None
+    if where in SIMULATE_DEFAULTS:
+        key = f"simulate.{where}"
+    elif where and _KEY_RE.fullmatch(where):
+        key = where
+    elif where:
+        reason = f"{where}: {reason}"
+    if key is None and isinstance(exc, InconsistentStateError):
+        key = "particles"
+    return SceneError(reason, file=file, key=key)
+
+
+def _say_error(message: str) -> None:
+    print(f"{PROG}: error: " + " ".join(str(message).split()), file=sys.stderr)
+
+
+def _say(message: str, *, always: bool = False) -> None:
+    print(message, file=sys.stderr if always else sys.stdout)
+
+
+def _vec(v) -> str:
+    return "(" + ", ".join(f"{float(c):.6g}" for c in v) + ")"
+
+
+def _fmt_value(v) -> str:
+    if isinstance(v, float | np.floating):
+        return f"{float(v):.3g}"
+    return str(v)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,850 @@
+"""TOML scene files: read, apply ``--set`` overrides, validate, build a System.
+
+``load_scene(path)`` returns a :class:`Scene` with the assembled-ready ``system``, the run
+``settings`` (the ``[simulate]`` table with defaults), the requested ``outputs``, the
+optional ``[reduced]`` coordinates and the raw ``[expect]`` table. Every problem is a
+:class:`SceneError` whose one-paragraph message names the file, the key path
+(``particles[1].mass``, ``constraints[2].a``, ``simulate.rtol``) and what is wrong.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import inspect
+import math
+import re
+import sys
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from . import expressions
+from .constraints import CONSTRAINT_TYPES
+from .effects import EFFECT_TYPES
+from .errors import InputError
+from .symbols import Symbols
+from .system import Particle, System
+
+__all__ = [
+    "Scene",
+    "SceneError",
+    "load_scene",
+    "build_scene",
+    "apply_overrides",
+    "parse_override",
+    "TOP_LEVEL_TABLES",
+    "SIMULATE_DEFAULTS",
+    "OUTPUT_QUANTITIES",
+    "OUTPUT_PLOTS",
+    "OUTPUT_FORMATS",
+]
+
+TOP_LEVEL_TABLES = (
+    "scene",
+    "particles",
+    "constraints",
+    "effects",
+    "parameters",
+    "simulate",
+    "outputs",
+    "reduced",
+    "expect",
+)
+
+SIMULATE_DEFAULTS: dict[str, Any] = {
+    "t_end": None,
+    "t_start": 0.0,
+    "method": "projection",
+    "rtol": 1e-8,
+    "atol": 1e-10,
+    "dt": None,
+    "output_dt": None,
+    "samples": None,
+    "base": "DOP853",
+    "max_initial_correction": 1e-3,
+}
+
+OUTPUT_QUANTITIES = (
+    "positions",
+    "velocities",
+    "multipliers",
+    "constraint_forces",
+    "energy",
+    "constraint_residual",
+    "velocity_residual",
+)
+OUTPUT_PLOTS = (
+    "trajectory",
+    "energy",
+    "constraint_residual",
+    "constraint_forces",
+    "multipliers",
+    "phase",
+)
+OUTPUT_FORMATS = ("npz", "csv")
+OUTPUT_DEFAULTS: dict[str, list[str]] = {
+    "quantities": ["multipliers", "constraint_forces", "energy", "constraint_residual"],
+    "plots": [],
+    "formats": ["npz"],
+}
+
+# Scene keys of each constraint / effect type: (required, optional), besides type and name.
+CONSTRAINT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "distance": (("a", "length"), ("b", "point")),
+    "pin": (("a", "point"), ()),
+    "plane": (("particles", "normal"), ("offset",)),
+    "surface": (("particles", "expr"), ()),
+    "curve": (("particles", "expr"), ()),
+    "custom": (("expr",), ()),
+}
+EFFECT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "gravity": (("g",), ("particles",)),
+    "spring": (("a", "k"), ("b", "point", "rest")),
+    "potential": (("expr",), ()),
+    "central": (("a", "expr"), ("b", "point")),
+    "damping": (("coefficient",), ("particles", "a", "b")),
+    "force": (("particle", "expr"), ()),
+    "electromagnetic": (("charges",), ("phi", "A")),
+}
+# Names a parameter or a reduced coordinate may not take (they mean something in formulas).
+RESERVED_NAMES = frozenset(
+    {"t", "x", "y", "z", "r", "vx", "vy", "vz"} | set(expressions.FUNCTIONS) | set(expressions.CONSTANTS)
+)
+
+
+class SceneError(InputError):
+    """A scene that cannot be used: ``file``, ``key`` (a key path) and ``reason``.
+
+    ``str(error)`` is one paragraph: ``scene file F, key K: reason``.
+    """
+
+    def __init__(self, reason: str, *, file: str | Path | None = None, key: str | None = None):
+        self.file = None if file is None else str(file)
+        self.key = key
+        reason = _one_line(reason)
+        parts = []
+        if self.file is not None:
+            parts.append(f"scene file {self.file}")
+        if key:
+            parts.append(f"key {key}")
+        super().__init__(reason, where=", ".join(parts) or None)
+        self.reason = reason
+
+
+@dataclass
+class Scene:
+    """A loaded scene: the System to simulate and what to do with it."""
+
+    path: Path | None
+    name: str
+    system: System
+    settings: dict
+    outputs: dict
+    reduced: dict | None
+    raw: dict
+    expect: dict | None = None
+    description: str = ""
+
+    def __repr__(self) -> str:
+        return f"Scene({self.name!r}, {self.system!r})"
+
+
+# --- public entry points ---------------------------------------------------------------------
+
+
+def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scene:
+    """Read the TOML scene at ``path``, apply ``--set`` style ``overrides``, validate, build."""
+    path = Path(path)
+    file = str(path)
+    if not path.exists():
+        raise SceneError("no such file", file=file)
+    if path.is_dir():
+        raise SceneError("is a directory, not a scene file", file=file)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SceneError(f"cannot read the file ({exc.strerror or exc})", file=file) from None
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"not valid TOML: {exc}", file=file) from None
+    raw, set_paths = _apply_overrides(raw, list(overrides or []), file)
+    try:
+        return build_scene(raw, path=path)
+    except SceneError as exc:
+        origin = _override_origin(exc.key, set_paths)
+        if origin is None:
+            raise
+        raise SceneError(f"{exc.reason} (value given by --set {origin})", file=file, key=exc.key) from None
+
+
+def build_scene(raw: Mapping, path: str | Path | None = None) -> Scene:
+    """Validate a parsed scene dictionary (TOML layout) and build the Scene."""
+    return _Builder(raw, None if path is None else Path(path)).build()
+
+
+def apply_overrides(raw: Mapping, overrides: Iterable[str] | None, *, file=None) -> dict:
+    """A deep copy of ``raw`` with ``--set`` overrides ``"KEY=VALUE"`` applied.
+
+    KEY is a dotted path (``simulate.t_end``, ``parameters.k``, ``reduced.initial.th1``);
+    entries of ``[[particles]]``, ``[[constraints]]``, ``[[effects]]`` are addressed by index
+    (``particles[0].mass``) or by their ``name`` (``particles.p1.mass``). VALUE is read as a
+    TOML value (``2``, ``[1, 0, 0]``, ``"sin(t)"``); a bare word that is not TOML is a string.
+    Keys that do not exist are added, so that validation refuses them like keys in the file.
+    """
+    out, _ = _apply_overrides(raw, list(overrides or []), None if file is None else str(file))
+    return out
+
+
+def parse_override(text: str, *, file=None) -> tuple[list[str | int], Any]:
+    """Split ``"KEY=VALUE"`` into the key path (names and indices) and the parsed value."""
+    if not isinstance(text, str) or "=" not in text:
+        raise SceneError(
+            f"--set {text!r}: expected KEY=VALUE, e.g. simulate.t_end=2",
+            file=file,
+            key=text.strip() if isinstance(text, str) and text.strip() else None,
+        )
+    key, value = text.split("=", 1)
+    key = key.strip()
+    if not _KEY_RE.fullmatch(key):
+        raise SceneError(
+            f"--set {text!r}: {key!r} is not a key path (write e.g. simulate.t_end, "
+            "particles.p1.mass or particles[0].mass)",
+            file=file,
+            key=key or None,
+        )
+    tokens: list[str | int] = []
+    for name, index in _TOKEN_RE.findall(key):
+        tokens.append(name if name else int(index))
+    return tokens, _parse_value(value.strip())
+
+
+# --- overrides -------------------------------------------------------------------------------
+
+_SEG = r"[A-Za-z0-9_\-]+(?:\[\d+\])*"
+_KEY_RE = re.compile(rf"{_SEG}(?:\.{_SEG})*")
+_TOKEN_RE = re.compile(r"([A-Za-z0-9_\-]+)|\[(\d+)\]")
+
+
+def _parse_value(text: str):
+    try:
+        return tomllib.loads(f"value = {text}")["value"]
+    except tomllib.TOMLDecodeError:
+        pass
+    try:
+        return float(text) if any(c in text for c in ".eE") or text.lower() in ("inf", "nan") else int(text)
+    except ValueError:
+        return text
+
+
+def _apply_overrides(raw: Mapping, overrides: list[str], file: str | None):
+    """Apply overrides; returns the new dict and [(canonical key path, override text)]."""
+    out = copy.deepcopy(dict(raw))
+    applied: list[tuple[str, str]] = []
+    for text in overrides:
+        tokens, value = parse_override(text, file=file)
+        key = text.split("=", 1)[0].strip()
+        cur: Any = out
+        canon = ""
+        for pos, tok in enumerate(tokens):
+            last = pos == len(tokens) - 1
+            if isinstance(tok, int):
+                if not isinstance(cur, list):
+                    raise SceneError(
+                        f"--set {text}: {canon or 'the scene'} is not a list, it cannot be indexed",
+                        file=file,
+                        key=key,
+                    )
+                if tok >= len(cur):
+                    raise SceneError(
+                        f"--set {text}: index {tok} is out of range ({canon} has {len(cur)} entries)",
+                        file=file,
+                        key=key,
+                    )
+                canon = f"{canon}[{tok}]"
+                if last:
+                    cur[tok] = value
+                else:
+                    cur = cur[tok]
+                continue
+            if isinstance(cur, list):
+                found = [i for i, e in enumerate(cur) if isinstance(e, dict) and e.get("name") == tok]
+                if not found:
+                    names = [e.get("name") for e in cur if isinstance(e, dict) and "name" in e]
+                    listed = ", ".join(map(str, names)) or "none has a name"
+                    raise SceneError(
+                        f"--set {text}: {canon} has no entry named '{tok}' ({listed}); "
+                        f"address entries by name or by index, e.g. {canon}[0]",
+                        file=file,
+                        key=key,
+                    )
+                canon = f"{canon}[{found[0]}]"
+                if last:
+                    cur[found[0]] = value
+                else:
+                    cur = cur[found[0]]
+                continue
+            if not isinstance(cur, dict):
+                raise SceneError(
+                    f"--set {text}: {canon} is a value ({cur!r}), not a table",
+                    file=file,
+                    key=key,
+                )
+            canon = f"{canon}.{tok}" if canon else tok
+            if last:
+                cur[tok] = value
+            else:
+                if tok not in cur:
+                    if isinstance(tokens[pos + 1], int):
+                        raise SceneError(
+                            f"--set {text}: the scene has no list '{canon}' to index",
+                            file=file,
+                            key=key,
+                        )
+                    cur[tok] = {}
+                cur = cur[tok]
+        applied.append((canon, text.strip()))
+    return out, applied
+
+
+def _override_origin(key: str | None, applied: list[tuple[str, str]]) -> str | None:
+    if not key:
+        return None
+    for canon, text in reversed(applied):
+        if key == canon or any(a.startswith(b + c) for a, b in ((key, canon), (canon, key)) for c in ".["):
+            return text
+    return None
+
+
+# --- validation ------------------------------------------------------------------------------
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _join(prefix: str, key: str | int) -> str:
+    if isinstance(key, int):
+        return f"{prefix}[{key}]"
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _suggest(word: str, choices: Iterable[str]) -> str:
+    close = difflib.get_close_matches(str(word), list(choices), n=1)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+_SINGULAR = {"quantities": "quantity", "plots": "plot", "formats": "format"}
+
+
+def _name_or_value(value) -> str:
+    return f"'{value}'" if isinstance(value, str) else _describe(value)
+
+
+def _describe(value) -> str:
+    if isinstance(value, dict):
+        return "a table"
+    if isinstance(value, list):
+        return f"a list {value!r}" if len(repr(value)) < 60 else "a list"
+    if isinstance(value, str):
+        return f"the string {value!r}"
+    if isinstance(value, bool):
+        return f"the boolean {str(value).lower()}"
+    return repr(value)
+
+
+class _Builder:
+    def __init__(self, raw: Mapping, path: Path | None):
+        self.raw = dict(raw)
+        self.path = path
+        self.file = None if path is None else str(path)
+        self.names: list[str] = []
+
+    def fail(self, key: str | None, reason: str):
+        raise SceneError(reason, file=self.file, key=key)
+
+    # small checkers ---------------------------------------------------------------------
+    def table(self, value, key: str, what: str = "a table") -> dict:
+        if not isinstance(value, dict):
+            self.fail(key, f"must be {what}, got {_describe(value)}")
+        return value
+
+    def keys(
+        self,
+        table: dict,
+        key: str,
+        allowed: Iterable[str],
+        required: Iterable[str] = (),
+        what: str = "",
+    ) -> None:
+        allowed = list(allowed)
+        for k in table:
+            if k not in allowed:
+                self.fail(
+                    _join(key, k),
+                    f"unknown key '{k}'{' in ' + what if what else ''} "
+                    f"(allowed keys: {', '.join(allowed)}){_suggest(k, allowed)}",
+                )
+        for k in required:
+            if k not in table:
+                self.fail(_join(key, k), f"missing required key '{k}'{' of ' + what if what else ''}")
+
+    def number(self, value, key: str, what: str = "a number") -> float:
+        if not _is_number(value):
+            self.fail(key, f"must be {what}, got {_describe(value)}")
+        if not math.isfinite(value):
+            self.fail(key, f"must be a finite number, got {value!r}")
+        return float(value)
+
+    def positive(self, value, key: str, what: str = "a finite positive number") -> float:
+        x = self.number(value, key, what)
+        if x <= 0:
+            self.fail(key, f"must be {what}, got {value!r}")
+        return x
+
+    def string(self, value, key: str, what: str = "a string") -> str:
+        if not isinstance(value, str) or not value.strip():
+            self.fail(key, f"must be {what} (non-empty), got {_describe(value)}")
+        return value
+
+    def identifier(self, value, key: str, what: str) -> str:
+        if not isinstance(value, str) or not value.isidentifier():
+            self.fail(
+                key,
+                f"{what} must be a plain identifier (letters, digits, underscore; not starting "
+                f"with a digit), got {_describe(value)}",
+            )
+        return value
+
+    def particle(self, value, key: str) -> str:
+        if not isinstance(value, str):
+            self.fail(key, f"must be a particle name, got {_describe(value)}")
+        if value not in self.names:
+            known = ", ".join(self.names)
+            self.fail(
+                key,
+                f"names unknown particle '{value}' (particles: {known}){_suggest(value, self.names)}",
+            )
+        return value
+
+    def particle_list(self, value, key: str) -> list[str]:
+        if isinstance(value, str):
+            return [self.particle(value, key)]
+        if not isinstance(value, list) or not value:
+            self.fail(key, f"must be a particle name or a non-empty list of names, got {_describe(value)}")
+        out = [self.particle(v, _join(key, i)) for i, v in enumerate(value)]
+        for i, name in enumerate(out):
+            if name in out[:i]:
+                self.fail(_join(key, i), f"particle '{name}' is listed twice")
+        return out
+
+    def formula(self, value, key: str):
+        """A number or a formula string (parsed later, with the names of its context)."""
+        if _is_number(value):
+            return self.number(value, key)
+        if not isinstance(value, str) or not value.strip():
+            self.fail(key, f"must be a number or a formula string, got {_describe(value)}")
+        return value
+
+    def formulas(self, value, key: str, n: int, what: str) -> list:
+        if not isinstance(value, list) or len(value) != n:
+            got = f"{len(value)} entries" if isinstance(value, list) else _describe(value)
+            self.fail(key, f"must be a list of {n} {what}, got {got}")
+        return [self.formula(v, _join(key, i)) for i, v in enumerate(value)]
+
+    def vector(self, value, key: str) -> list:
+        return self.formulas(value, key, 3, "entries (numbers or formulas of t)")
+
+    def string_list(self, value, key: str, allowed: tuple[str, ...], what: str) -> list[str]:
+        if not isinstance(value, list):
+            self.fail(key, f"must be a list of {what}, got {_describe(value)}")
+        out: list[str] = []
+        for i, v in enumerate(value):
+            if not isinstance(v, str) or v not in allowed:
+                self.fail(
+                    _join(key, i),
+                    f"unknown {_SINGULAR.get(what, what)} {_name_or_value(v)} "
+                    f"(allowed: {', '.join(allowed)}){_suggest(v, allowed)}",
+                )
+            if v not in out:
+                out.append(v)
+        return out
+
+    def finite_everywhere(self, value, key: str) -> None:
+        if isinstance(value, float) and not math.isfinite(value):
+            self.fail(key, f"the number {value!r} is not finite (inf and nan are not accepted)")
+        if isinstance(value, dict):
+            for k, v in value.items():
+                self.finite_everywhere(v, _join(key, k))
+        elif isinstance(value, list):
+            for i, v in enumerate(value):
+                self.finite_everywhere(v, _join(key, i))
+
+    def array_of_tables(self, name: str) -> list[dict]:
+        value = self.raw.get(name, [])
+        if isinstance(value, dict):
+            self.fail(name, f"must be an array of tables, written [[{name}]] (double brackets)")
+        if not isinstance(value, list):
+            self.fail(name, f"must be an array of tables [[{name}]], got {_describe(value)}")
+        for i, item in enumerate(value):
+            self.table(item, _join(name, i), f"a table (one [[{name}]] entry)")
+        return value
+
+    # sections ---------------------------------------------------------------------------
+    def build(self) -> Scene:
+        for k in self.raw:
+            if k not in TOP_LEVEL_TABLES:
+                self.fail(
+                    k,
+                    f"unknown top-level table '{k}' (allowed: {', '.join(TOP_LEVEL_TABLES)})"
+                    f"{_suggest(k, TOP_LEVEL_TABLES)}",
+                )
+        for k in ("scene", "parameters", "simulate", "outputs", "reduced", "expect"):
+            if k in self.raw:
+                self.table(self.raw[k], k, f"a table [{k}]")
+        for k in TOP_LEVEL_TABLES:
+            if k in self.raw and k != "expect":
+                self.finite_everywhere(self.raw[k], k)
+
+        name, description = self.scene_section()
+        particles = self.particles()
+        parameters = self.parameters()
+        constraints = [
+            self.item(i, item, "constraints") for i, item in enumerate(self.array_of_tables("constraints"))
+        ]
+        effects = [self.item(i, item, "effects") for i, item in enumerate(self.array_of_tables("effects"))]
+        try:
+            system = System(particles, constraints, effects, parameters, name)
+        except InputError as exc:
+            self.fail(exc.where, exc.reason)
+        self.check_formulas(system)
+        settings = self.simulate()
+        outputs = self.outputs()
+        reduced = self.reduced(parameters)
+        expect = self.raw.get("expect")
+        return Scene(
+            path=self.path,
+            name=name,
+            system=system,
+            settings=settings,
+            outputs=outputs,
+            reduced=reduced,
+            raw=self.raw,
+            expect=None if expect is None else copy.deepcopy(expect),
+            description=description,
+        )
+
+    def scene_section(self) -> tuple[str, str]:
+        table = self.raw.get("scene", {})
+        self.keys(table, "scene", ("name", "description"), what="[scene]")
+        default = self.path.stem if self.path is not None else "scene"
+        name = self.string(table["name"], "scene.name") if "name" in table else default
+        description = table.get("description", "")
+        if not isinstance(description, str):
+            self.fail("scene.description", f"must be a string, got {_describe(description)}")
+        return name, description
+
+    def particles(self) -> list[Particle]:
+        items = self.array_of_tables("particles")
+        if not items:
+            self.fail("particles", "the scene has no particles; add at least one [[particles]] table")
+        out = []
+        seen: dict[str, int] = {}
+        for i, item in enumerate(items):
+            key = _join("particles", i)
+            self.keys(
+                item,
+                key,
+                ("name", "mass", "position", "velocity"),
+                ("name", "mass", "position"),
+                what="a particle",
+            )
+            name = self.identifier(item["name"], f"{key}.name", "a particle name")
+            if name in seen:
+                self.fail(
+                    f"{key}.name",
+                    f"duplicate particle name '{name}' (also particles[{seen[name]}])",
+                )
+            seen[name] = i
+            mass = self.positive(item["mass"], f"{key}.mass", "a finite positive number (kg)")
+            position = self.numbers3(item["position"], f"{key}.position")
+            velocity = self.numbers3(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity")
+            try:
+                out.append(Particle(name, mass, position, velocity, where=key))
+            except InputError as exc:
+                self.fail(exc.where or key, exc.reason)
+        self.names = list(seen)
+        return out
+
+    def numbers3(self, value, key: str) -> list[float]:
+        if not isinstance(value, list) or len(value) != 3:
+            got = f"{len(value)} entries" if isinstance(value, list) else _describe(value)
+            self.fail(key, f"must be a list of 3 numbers (x, y, z), got {got}")
+        return [self.number(v, _join(key, i)) for i, v in enumerate(value)]
+
+    def reserved_for_formulas(self) -> set[str]:
+        names = set(RESERVED_NAMES)
+        for p in self.names:
+            for axis in "xyz":
+                names |= {f"{axis}_{p}", f"v{axis}_{p}"}
+        return names
+
+    def parameters(self) -> dict[str, float]:
+        table = self.raw.get("parameters", {})
+        reserved = self.reserved_for_formulas()
+        out = {}
+        for k, v in table.items():
+            key = _join("parameters", k)
+            self.identifier(k, key, "a parameter name")
+            if k in reserved:
+                self.fail(
+                    key,
+                    f"the parameter name '{k}' is taken (it already means something in formulas)",
+                )
+            out[k] = self.number(v, key, "a number")
+        return out
+
+    def item(self, i: int, item: dict, section: str):
+        """One [[constraints]] or [[effects]] entry -> the library object."""
+        key = _join(section, i)
+        kind = "constraint" if section == "constraints" else "effect"
+        types = CONSTRAINT_TYPES if section == "constraints" else EFFECT_TYPES
+        schema = CONSTRAINT_KEYS if section == "constraints" else EFFECT_KEYS
+        if "type" not in item:
+            self.fail(
+                f"{key}.type",
+                f"missing required key 'type' (known {kind} types: {', '.join(types)})",
+            )
+        typ = item["type"]
+        if not isinstance(typ, str) or typ not in types:
+            self.fail(
+                f"{key}.type",
+                f"unknown {kind} type {_name_or_value(typ)} (known types: {', '.join(types)})"
+                f"{_suggest(typ, types)}",
+            )
+        if typ not in schema:
+            self.fail(f"{key}.type", f"the {kind} type '{typ}' cannot be used from scene files yet")
+        required, optional = schema[typ]
+        self.keys(item, key, ("type", "name", *required, *optional), required, what=f"a {typ} {kind}")
+        name = self.string(item["name"], f"{key}.name", "a name") if "name" in item else None
+        args = {k: self.value(typ, k, v, f"{key}.{k}") for k, v in item.items() if k not in ("type", "name")}
+        self.pairing(typ, args, key)
+        cls = types[typ]
+        try:
+            return self.construct(cls, typ, args, name=name, where=key)
+        except InputError as exc:
+            self.fail(exc.where or key, exc.reason)
+
+    def value(self, typ: str, k: str, v, key: str):
+        if k in ("a", "b", "particle"):
+            return self.particle(v, key)
+        if k == "particles":
+            return self.particle_list(v, key)
+        if k in ("point", "normal", "g", "A"):
+            return self.vector(v, key)
+        if k == "expr":
+            if typ == "curve":
+                return self.formulas(v, key, 2, "surface formulas")
+            if typ == "force":
+                return self.formulas(v, key, 3, "force formulas (Fx, Fy, Fz)")
+            return self.formula(v, key)
+        if k == "charges":
+            self.table(v, key, "a table particle name -> charge")
+            if not v:
+                self.fail(key, "must name at least one particle")
+            return {
+                self.particle(name, _join(key, name)): self.formula(q, _join(key, name))
+                for name, q in v.items()
+            }
+        return self.formula(v, key)  # length, offset, k, rest, coefficient, phi
+
+    def pairing(self, typ: str, args: dict, key: str) -> None:
+        if typ in ("distance", "spring", "central"):
+            if ("b" in args) == ("point" in args):
+                self.fail(key, "give exactly one of 'b' (a particle) or 'point'")
+        if typ == "damping":
+            if ("a" in args) != ("b" in args):
+                self.fail(key, "pairwise damping needs both 'a' and 'b'")
+            if "a" in args and "particles" in args:
+                self.fail(key, "give either 'particles' or the pair 'a', 'b', not both")
+        if "a" in args and args.get("b") == args["a"]:
+            self.fail(f"{key}.b", f"'a' and 'b' name the same particle '{args['a']}'")
+
+    @staticmethod
+    def construct(cls, typ: str, args: dict, *, name, where):
+        a = dict(args)
+        if typ == "curve":
+            return cls(a.pop("particles"), exprs=a.pop("expr"), name=name, where=where)
+        if typ == "pin":
+            return cls(a.pop("a"), a.pop("point"), name=name, where=where)
+        if typ == "plane":
+            return cls(a.pop("particles"), a.pop("normal"), a.pop("offset", 0.0), name=name, where=where)
+        if typ == "surface":
+            return cls(a.pop("particles"), a.pop("expr"), name=name, where=where)
+        if typ in ("distance", "spring", "central"):
+            return cls(a.pop("a"), a.pop("b", None), **a, name=name, where=where)
+        if typ == "gravity":
+            return cls(a.pop("g"), a.pop("particles", None), name=name, where=where)
+        if typ == "damping":
+            return cls(a.pop("coefficient"), a.pop("particles", None), **a, name=name, where=where)
+        if typ == "force":
+            return cls(a.pop("particle"), a.pop("expr"), name=name, where=where)
+        if typ == "electromagnetic":
+            return cls(a.pop("charges"), **a, name=name, where=where)
+        return cls(**a, name=name, where=where)  # custom, potential: expr
+
+    def check_formulas(self, system: System) -> None:
+        """Parse every formula now (cheap), so a bad one is reported at load time."""
+        s = Symbols(system)
+        for section, items, call in (
+            ("constraints", system.constraints, lambda c: c.rows(s)),
+            ("effects", system.effects, lambda e: e.term(s)),
+        ):
+            for i, obj in enumerate(items):
+                key = _join(section, i)
+                try:
+                    call(obj)
+                except InputError as exc:
+                    self.fail(exc.where or key, exc.reason)
+                except (RuntimeError, TypeError, ZeroDivisionError) as exc:
+                    self.fail(key, f"cannot be built: {exc}")
+
+    def simulate(self) -> dict:
+        table = self.raw.get("simulate", {})
+        self.keys(table, "simulate", SIMULATE_DEFAULTS, what="[simulate]")
+        s = dict(SIMULATE_DEFAULTS)
+        s.update(table)
+        k = "simulate."
+        if s["t_end"] is not None:
+            s["t_end"] = self.positive(s["t_end"], k + "t_end", "a finite positive time (s)")
+        s["t_start"] = self.number(s["t_start"], k + "t_start", "a time in s")
+        if s["t_end"] is not None and s["t_end"] <= s["t_start"]:
+            self.fail(k + "t_end", f"must be later than t_start = {s['t_start']:g}, got {s['t_end']:g}")
+        s["method"] = self.string(s["method"], k + "method", "a method name")
+        s["base"] = self.string(s["base"], k + "base", "an integrator name")
+        self.method_and_base(s["method"], s["base"], "base" in table)
+        s["rtol"] = self.number(s["rtol"], k + "rtol")
+        if not 0 < s["rtol"] < 1:
+            self.fail(k + "rtol", f"must be between 0 and 1 (exclusive), got {s['rtol']:g}")
+        s["atol"] = self.number(s["atol"], k + "atol")
+        if not 0 < s["atol"] < 1:
+            self.fail(k + "atol", f"must be between 0 and 1 (exclusive), got {s['atol']:g}")
+        for name in ("dt", "output_dt"):
+            if s[name] is not None:
+                s[name] = self.positive(s[name], k + name, "a finite positive time step (s)")
+        if s["samples"] is not None:
+            n = s["samples"]
+            if not isinstance(n, int) or isinstance(n, bool) or n < 2:
+                self.fail(k + "samples", f"must be a whole number >= 2, got {_describe(n)}")
+        if s["samples"] is not None and s["output_dt"] is not None:
+            self.fail(k + "samples", "give either 'samples' or 'output_dt', not both")
+        mic = self.number(s["max_initial_correction"], k + "max_initial_correction")
+        if mic < 0:
+            self.fail(k + "max_initial_correction", f"must be zero or positive, got {mic!r}")
+        s["max_initial_correction"] = mic
+        return s
+
+    def method_and_base(self, method: str, base: str, base_given: bool) -> None:
+        """``method`` must be a registered solver; ``base`` one its solver accepts."""
+        from .solvers import METHODS
+
+        if method not in METHODS:
+            self.fail(
+                "simulate.method",
+                f"unknown method '{method}' (known methods: {', '.join(sorted(METHODS))})"
+                f"{_suggest(method, METHODS)}",
+            )
+        cls = METHODS[method]
+        if "base" not in inspect.signature(cls.__init__).parameters:
+            if base_given:
+                self.fail("simulate.base", f"method '{method}' does not take a base integrator")
+            return
+        bases = getattr(sys.modules.get(cls.__module__), "BASES", None)
+        if isinstance(bases, Mapping) and base not in bases:
+            self.fail(
+                "simulate.base",
+                f"unknown base integrator '{base}' for method '{method}' "
+                f"(known: {', '.join(bases)}){_suggest(base, bases)}",
+            )
+
+    def outputs(self) -> dict:
+        table = self.raw.get("outputs", {})
+        self.keys(table, "outputs", OUTPUT_DEFAULTS, what="[outputs]")
+        out = {k: list(v) for k, v in OUTPUT_DEFAULTS.items()}
+        allowed = {
+            "quantities": OUTPUT_QUANTITIES,
+            "plots": OUTPUT_PLOTS,
+            "formats": OUTPUT_FORMATS,
+        }
+        for k, v in table.items():
+            out[k] = self.string_list(v, f"outputs.{k}", allowed[k], k)
+        return out
+
+    def reduced(self, parameters: dict) -> dict | None:
+        if "reduced" not in self.raw:
+            return None
+        table = self.raw["reduced"]
+        self.keys(
+            table,
+            "reduced",
+            ("coordinates", "initial", "rates", "map"),
+            ("coordinates", "initial", "map"),
+            what="[reduced]",
+        )
+        coords = table["coordinates"]
+        if not isinstance(coords, list) or not coords:
+            self.fail("reduced.coordinates", f"must be a non-empty list of names, got {_describe(coords)}")
+        taken = self.reserved_for_formulas() | set(parameters)
+        for i, c in enumerate(coords):
+            key = _join("reduced.coordinates", i)
+            self.identifier(c, key, "a coordinate name")
+            if c in coords[:i]:
+                self.fail(key, f"coordinate '{c}' is listed twice")
+            if c in taken:
+                what = "a parameter" if c in parameters else "a name formulas already use"
+                self.fail(key, f"the coordinate name '{c}' is taken ({what})")
+
+        def values(name: str, complete: bool) -> dict[str, float]:
+            tab = self.table(table.get(name, {}), f"reduced.{name}", "a table coordinate -> number")
+            for k in tab:
+                if k not in coords:
+                    self.fail(
+                        _join(f"reduced.{name}", k),
+                        f"'{k}' is not a coordinate (coordinates: {', '.join(coords)}){_suggest(k, coords)}",
+                    )
+            if complete:
+                for c in coords:
+                    if c not in tab:
+                        self.fail(_join(f"reduced.{name}", c), f"missing the initial value of '{c}'")
+            return {c: self.number(tab.get(c, 0.0), _join(f"reduced.{name}", c)) for c in coords}
+
+        initial = values("initial", True)
+        rates = values("rates", False)
+        mapping = self.table(table["map"], "reduced.map", "a table particle name -> [x, y, z] formulas")
+        out_map = {}
+        for k, v in mapping.items():
+            key = _join("reduced.map", k)
+            if k not in self.names:
+                self.fail(key, f"names unknown particle '{k}' (particles: {', '.join(self.names)})")
+            out_map[k] = self.formulas(v, key, 3, "formulas (x, y, z) in the coordinates")
+        for p in self.names:
+            if p not in out_map:
+                self.fail(
+                    _join("reduced.map", p),
+                    f"particle '{p}' is not mapped; every particle needs x, y, z",
+                )
+        return {
+            "coordinates": list(coords),
+            "initial": initial,
+            "rates": rates,
+            "map": {p: out_map[p] for p in self.names},
+        }
