@@ -265,3 +265,18 @@ def test_outputs_not_asked_for_are_not_computed():
     assert tr.energy is not None and tr.multipliers is None and tr.constraint_forces is None
     with pytest.raises(C.InputError, match="unknown output"):
         C.simulate(planar_pendulum(0.3), 0.2, outputs={"everything"})
+
+
+def test_bundled_double_pendulum_scene_over_its_full_run():
+    from conftest import SCENARIOS
+
+    scene = C.load_scene(SCENARIOS / "double_pendulum.toml")
+    st = scene.settings
+    assert st["t_end"] == 10.0 and st["rtol"] == 1e-10
+    tr = C.simulate(scene.system, st["t_end"], rtol=st["rtol"], atol=st["atol"])
+    assert tr.t[-1] == 10.0
+    assert np.max(np.abs(tr.energy / tr.energy[0] - 1)) <= 1e-8
+    assert np.max(tr.constraint_residual) <= 1e-10
+    # its 10-digit start projects to within 1e-10 of the exact angles (shared/reference)
+    assert tr.info["initial_correction"]["position"] < 1e-9
+    assert abs(tr.energy[0] - DP_ENERGY) < 1e-8

@@ -1,0 +1,209 @@
+"""Figures of constrained.plot on synthetic trajectories: files written, not blank, labelled."""
+
+from __future__ import annotations
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from mpl_toolkits.mplot3d import Axes3D
+
+from constrained.plot import (
+    FIGURES,
+    energy_figure,
+    motion_plane,
+    phase_figure,
+    principal_coordinate,
+    residual_figure,
+    save_figures,
+    trajectory_figure,
+)
+from constrained.trajectory import Trajectory
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+G = 9.81
+
+
+def pendulum() -> Trajectory:
+    """Unit-length pendulum of mass 1 in the x–y plane: θ(t) = 0.5 cos(2t), pivot at the origin."""
+    t = np.linspace(0.0, 6.0, 301)
+    theta = 0.5 * np.cos(2 * t)
+    omega = -np.sin(2 * t)
+    alpha = -2 * np.cos(2 * t)
+    zeros = np.zeros_like(t)
+    x = np.stack([np.sin(theta), -np.cos(theta), zeros], axis=-1)[:, None, :]
+    v = np.stack([np.cos(theta) * omega, np.sin(theta) * omega, zeros], axis=-1)[:, None, :]
+    energy = 0.5 * omega**2 - G * np.cos(theta)
+    # the multiplier of |x| − 1 = 0: the radial force needed, m (g cos θ + ω²) (tension = −λ)
+    lam = -(G * np.cos(theta) + omega**2)
+    forces = lam[:, None, None] * x
+    rng = np.random.default_rng(0)
+    residual = np.abs(rng.normal(scale=1e-12, size=t.shape))
+    residual[0] = 0.0  # an exact zero must not break the log axis
+    vresidual = np.abs(rng.normal(scale=1e-10, size=t.shape)) * (1 + np.abs(alpha))
+    return Trajectory(
+        t=t,
+        x=x,
+        v=v,
+        multipliers=lam[:, None],
+        constraint_forces=forces,
+        energy=energy,
+        constraint_residual=residual,
+        velocity_residual=vresidual,
+        particle_names=["bob"],
+        constraint_labels=["rod: |bob − (0, 0, 0)| = 1"],
+    )
+
+
+def helix() -> Trajectory:
+    """Two particles on helices (not planar), with many multipliers to truncate the legend."""
+    t = np.linspace(0.0, 4 * np.pi, 400)
+    x1 = np.stack([np.cos(t), np.sin(t), 0.1 * t], axis=-1)
+    x2 = np.stack([0.5 * np.cos(t + 1), 0.5 * np.sin(t + 1), 0.1 * t + 0.2], axis=-1)
+    v1 = np.stack([-np.sin(t), np.cos(t), np.full_like(t, 0.1)], axis=-1)
+    v2 = np.stack([-0.5 * np.sin(t + 1), 0.5 * np.cos(t + 1), np.full_like(t, 0.1)], axis=-1)
+    x = np.stack([x1, x2], axis=1)
+    v = np.stack([v1, v2], axis=1)
+    n_rows = 15
+    lam = np.stack([np.sin(t + k) * (k + 1) for k in range(n_rows)], axis=-1)
+    forces = -np.stack([x1 * [1, 1, 0], x2 * [1, 1, 0]], axis=1)
+    return Trajectory(
+        t=t,
+        x=x,
+        v=v,
+        multipliers=lam,
+        constraint_forces=forces,
+        energy=np.full_like(t, 2.0) + 1e-9 * t,
+        constraint_residual=np.zeros_like(t),
+        velocity_residual=np.full_like(t, 1e-13),
+        particle_names=["a", "b"],
+        constraint_labels=[f"row {k}" for k in range(n_rows)],
+    )
+
+
+def _check_labels(fig) -> None:
+    assert fig.axes
+    for ax in fig.axes:
+        assert ax.get_xlabel().strip(), ax
+        assert ax.get_ylabel().strip(), ax
+        assert ax.get_title().strip(), ax
+
+
+def _check_png(path) -> None:
+    assert path.is_file()
+    assert path.read_bytes()[:8] == PNG_MAGIC
+    image = mpimg.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 100 and image.shape[1] > 100
+    assert float(np.std(image[..., :3])) > 0.02
+
+
+@pytest.mark.parametrize("make", [pendulum, helix])
+@pytest.mark.parametrize("kind", list(FIGURES))
+def test_every_figure_is_saved_labelled_and_not_blank(tmp_path, make, kind):
+    traj = make()
+    paths = save_figures(traj, [kind], tmp_path, dpi=80)
+    assert paths == [tmp_path / f"{kind}.png"]
+    _check_png(paths[0])
+    _check_labels(FIGURES[kind](traj))
+    # no temporary files are left beside the figure
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{kind}.png"]
+
+
+def test_save_all_kinds_at_once(tmp_path):
+    paths = save_figures(pendulum(), FIGURES, tmp_path / "figs")
+    assert [p.name for p in paths] == [f"{k}.png" for k in FIGURES]
+    for p in paths:
+        _check_png(p)
+
+
+def test_unknown_kind_names_the_allowed_ones(tmp_path):
+    with pytest.raises(ValueError, match="allowed: trajectory, energy"):
+        save_figures(pendulum(), ["energy", "spaghetti"], tmp_path)
+    assert not list(tmp_path.iterdir())
+
+
+def test_planar_pendulum_is_drawn_in_2d_with_coordinate_axes():
+    fig = trajectory_figure(pendulum())
+    (ax,) = fig.axes
+    assert not isinstance(ax, Axes3D)
+    assert ax.get_xlabel() == "x [m]"
+    assert ax.get_ylabel() == "y [m]"
+    assert "bob" in [text.get_text() for text in ax.get_legend().get_texts()] or any(
+        "bob" in [t.get_text() for t in child.get_texts()]
+        for child in ax.get_children()
+        if hasattr(child, "get_texts")
+    )
+
+
+def test_helix_is_drawn_in_3d():
+    fig = trajectory_figure(helix())
+    (ax,) = fig.axes
+    assert isinstance(ax, Axes3D)
+    assert ax.get_zlabel() == "z [m]"
+
+
+def test_motion_plane_detection():
+    traj = pendulum()
+    origin, basis, labels = motion_plane(traj.x)
+    assert labels == ("x", "y")
+    assert motion_plane(helix().x) is None
+    # a tilted plane is found and described by its principal directions
+    rot = np.array([[1, 0, 0], [0, np.cos(0.7), -np.sin(0.7)], [0, np.sin(0.7), np.cos(0.7)]])
+    tilted = traj.x @ rot.T + [0.0, 0.0, 3.0]
+    origin, basis, labels = motion_plane(tilted)
+    assert labels == ("u", "v")
+    assert np.allclose(basis @ basis.T, np.eye(2))
+    assert np.max(np.abs((tilted.reshape(-1, 3) - origin) @ np.cross(*basis))) < 1e-12
+    fig = trajectory_figure(
+        Trajectory(t=traj.t, x=tilted, v=traj.v @ rot.T, particle_names=["bob"])
+    )
+    (ax,) = fig.axes
+    assert not isinstance(ax, Axes3D)
+    assert ax.get_xlabel() == "u [m]"
+    # just above the tolerance it is no longer planar
+    bumped = tilted.copy()
+    bumped[10, 0] += 1e-6 * np.cross(*basis)
+    assert motion_plane(bumped) is None
+
+
+def test_energy_figure_needs_energy():
+    traj = pendulum()
+    traj.energy = None
+    with pytest.raises(ValueError, match="no energy"):
+        energy_figure(traj)
+
+
+def test_energy_title_gives_initial_energy():
+    traj = pendulum()
+    ax = energy_figure(traj).axes[0]
+    assert f"{traj.energy[0]:.6g} J" in ax.get_title()
+    assert "[J]" in ax.get_ylabel()
+
+
+def test_residual_figure_uses_log_axes_and_survives_zeros():
+    fig = residual_figure(helix())  # constraint residual identically zero
+    assert len(fig.axes) == 2
+    assert all(ax.get_yscale() == "log" for ax in fig.axes)
+    assert "[m]" in fig.axes[0].get_ylabel() and "[m/s]" in fig.axes[1].get_ylabel()
+    traj = pendulum()
+    traj.constraint_residual = traj.velocity_residual = None
+    with pytest.raises(ValueError):
+        residual_figure(traj)
+
+
+def test_multiplier_legend_is_truncated():
+    fig = FIGURES["multipliers"](helix())
+    texts = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert len(texts) == 13
+    assert texts[:12] == [f"row {k}" for k in range(12)]
+    assert texts[-1].startswith("…")
+
+
+def test_phase_portrait_of_the_pendulum():
+    traj = pendulum()
+    s, ds, share = principal_coordinate(traj)
+    # for a 1-DOF motion, ds/dt is the time derivative of s
+    assert np.allclose(np.gradient(s, traj.t)[1:-1], ds[1:-1], atol=5e-3)
+    assert share > 0.9
+    ax = phase_figure(traj).axes[0]
+    assert ax.get_xlabel() == "s [m]" and ax.get_ylabel() == "ds/dt [m/s]"
+    assert "principal coordinate" in ax.get_title()
