@@ -1,0 +1,369 @@
+"""Figures of a Trajectory: paths, energy drift, residuals, constraint forces, multipliers, phase.
+
+Every ``*_figure`` function returns a :class:`matplotlib.figure.Figure` drawn on an Agg canvas;
+pyplot and its global state are never touched, so this works headless and in threads.
+``save_figures`` writes several of them as PNG files, each atomically.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
+
+from .errors import InputError
+from .trajectory import Trajectory, atomic_write
+
+#: Legends list at most this many entries, then "…".
+MAX_LEGEND = 12
+#: Relative tolerance of the planarity test (distance to the plane / size of the motion).
+PLANAR_RTOL = 1e-9
+_AXES = "xyz"
+
+
+def _figure(size=(7.0, 4.5)) -> Figure:
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _names(traj: Trajectory) -> list[str]:
+    n = traj.x.shape[1]
+    names = list(traj.particle_names or [])
+    return names if len(names) == n else [f"particle {i}" for i in range(n)]
+
+
+def _labels(traj: Trajectory, count: int) -> list[str]:
+    labels = list(traj.constraint_labels or [])
+    return labels if len(labels) == count else [f"constraint {k}" for k in range(count)]
+
+
+def _colour(i: int) -> str:
+    return f"C{i % 10}"
+
+
+def _legend(ax, handles: list, labels: list[str], **kwargs) -> None:
+    """Legend with at most MAX_LEGEND entries; the rest is summed up as "… (k more)"."""
+    if not handles:
+        return
+    if len(handles) > MAX_LEGEND:
+        more = len(handles) - MAX_LEGEND
+        handles = [*handles[:MAX_LEGEND], Line2D([], [], linestyle="none")]
+        labels = [*labels[:MAX_LEGEND], f"… ({more} more)"]
+    ax.legend(handles, labels, fontsize="small", **kwargs)
+
+
+def _need(traj: Trajectory, name: str, what: str) -> np.ndarray:
+    value = getattr(traj, name)
+    if value is None:
+        raise InputError(
+            f"this trajectory has no {what}: run the simulation with '{name}' among the "
+            f"requested quantities to plot it"
+        )
+    return np.asarray(value, dtype=float)
+
+
+def _time_axis(ax) -> None:
+    ax.set_xlabel("t [s]")
+    ax.grid(True, alpha=0.3)
+
+
+# --------------------------------------------------------------------------------- planarity
+
+
+def motion_plane(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str, str]] | None:
+    """The plane holding every position of ``x`` (shape (..., 3)), or None if there is none.
+
+    Returns ``(origin, basis, labels)``: plane coordinates are ``(p - origin) @ basis.T``
+    (``basis`` is 2×3, orthonormal rows). When the plane is a coordinate plane (e.g.
+    z = const) the basis is the two other unit axes and labels are their names ("x", "y");
+    otherwise the basis is the two principal directions and labels are ("u", "v").
+    "In the plane" means within ``PLANAR_RTOL`` times the size of the motion.
+    """
+    p = np.asarray(x, dtype=float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) == 0:
+        return None
+    origin = p.mean(axis=0)
+    c = p - origin
+    size = float(np.max(np.ptp(p, axis=0)))
+    tol = PLANAR_RTOL * size
+    spread = np.ptp(p, axis=0)
+    flat = [k for k in range(3) if spread[k] <= tol]
+    if flat:
+        k = flat[-1]  # prefer z = const, then y = const, then x = const
+        keep = [j for j in range(3) if j != k]
+        return origin, np.eye(3)[keep], (_AXES[keep[0]], _AXES[keep[1]])
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    normal = vt[2]
+    if np.max(np.abs(c @ normal)) > tol:
+        return None
+    basis = vt[:2].copy()
+    for row in basis:  # deterministic orientation: largest component positive
+        if row[np.argmax(np.abs(row))] < 0:
+            row *= -1
+    if np.dot(np.cross(basis[0], basis[1]), normal) < 0:
+        normal = -normal
+    return origin, basis, ("u", "v")
+
+
+def _fmt_vec(v: np.ndarray) -> str:
+    v = np.where(np.abs(v) < 5e-4, 0.0, v)
+    return "(" + ", ".join(f"{c:.3g}" for c in v) + ")"
+
+
+def trajectory_figure(traj: Trajectory) -> Figure:
+    """Particle paths, drawn in 2D when the motion is planar and in 3D otherwise.
+
+    Each path starts at a circle and ends at a square; the legend names the particles.
+    """
+    x = np.asarray(traj.x, dtype=float)
+    names = _names(traj)
+    plane = motion_plane(x)
+    fig = _figure((7.0, 6.0))
+    handles = []
+    if plane is not None:
+        origin, basis, (a, b) = plane
+        ax = fig.add_subplot()
+        coordinate_plane = a != "u"
+        # coordinate planes keep the raw coordinates; a general plane is centred at the origin
+        shift = np.zeros(3) if coordinate_plane else origin
+        q = (x - shift) @ basis.T  # (T, N, 2)
+        for i in range(len(names)):
+            (line,) = ax.plot(q[:, i, 0], q[:, i, 1], color=_colour(i), lw=1.5)
+            ax.plot(*q[0, i], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
+            ax.plot(*q[-1, i], "s", color=_colour(i), ms=6)
+            handles.append(line)
+        ax.set_xlabel(f"{a} [m]")
+        ax.set_ylabel(f"{b} [m]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+        if coordinate_plane:
+            k = next(c for c in _AXES if c not in (a, b))
+            where = f"planar motion in {a}–{b} plane ({k} = {origin[_AXES.index(k)]:.4g} m)"
+        else:
+            where = (
+                f"planar motion; u = {_fmt_vec(basis[0])}, v = {_fmt_vec(basis[1])}, "
+                f"origin {_fmt_vec(origin)} m"
+            )
+        ax.set_title(f"Particle paths\n{where}", fontsize="medium")
+    else:
+        ax = fig.add_subplot(projection="3d")
+        for i in range(len(names)):
+            p = x[:, i]
+            (line,) = ax.plot(p[:, 0], p[:, 1], p[:, 2], color=_colour(i), lw=1.5)
+            ax.plot(*p[0][:, None], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
+            ax.plot(*p[-1][:, None], "s", color=_colour(i), ms=6)
+            handles.append(line)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        finite = x.reshape(-1, 3)[np.all(np.isfinite(x.reshape(-1, 3)), axis=1)]
+        if len(finite):
+            span = np.ptp(finite, axis=0)
+            ax.set_box_aspect(np.maximum(span, 0.05 * max(span.max(), 1e-12)))
+        ax.set_title("Particle paths (3D)", fontsize="medium")
+    markers = [
+        Line2D([], [], marker="o", color="0.3", mfc="white", mew=1.8, linestyle="none"),
+        Line2D([], [], marker="s", color="0.3", linestyle="none"),
+    ]
+    _legend(ax, handles, names, loc="upper left")
+    _legend_markers(ax, markers)
+    return fig
+
+
+def _legend_markers(ax, markers) -> None:
+    """A second legend for the start/end markers, kept beside the particle legend."""
+    first = ax.get_legend()
+    ax.legend(markers, ["start", "end"], fontsize="small", loc="lower right")
+    if first is not None:
+        ax.add_artist(first)
+
+
+# ------------------------------------------------------------------------ time series figures
+
+
+def energy_figure(traj: Trajectory) -> Figure:
+    """Energy drift E(t) − E(0) in joules; E(0) is given in the title."""
+    energy = _need(traj, "energy", "energy")
+    t = np.asarray(traj.t, dtype=float)
+    e0 = energy[0]
+    drift = energy - e0
+    fig = _figure()
+    ax = fig.add_subplot()
+    ax.plot(t, drift, color="C0", lw=1.5)
+    ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
+    _time_axis(ax)
+    ax.set_ylabel("E(t) − E(0) [J]")
+    finite = drift[np.isfinite(drift)]
+    worst = float(np.max(np.abs(finite))) if len(finite) else float("nan")
+    rel = f", {worst / abs(e0):.2e} of |E(0)|" if e0 != 0 and np.isfinite(e0) else ""
+    ax.set_title(
+        f"Energy drift (E(0) = {e0:.6g} J)\nmax |E − E(0)| = {worst:.3g} J{rel}",
+        fontsize="medium",
+    )
+    return fig
+
+
+def _floor_positive(values: list[np.ndarray]) -> float:
+    """A floor for log plots: a decade below the smallest positive value (1e-16 if none)."""
+    positive = np.concatenate([v[np.isfinite(v) & (v > 0)] for v in values] or [np.empty(0)])
+    return float(positive.min()) / 10 if len(positive) else 1e-16
+
+
+def residual_figure(traj: Trajectory) -> Figure:
+    """Constraint residual max|f| [m] and velocity residual max|J v + f_t| [m/s], log scale."""
+    panels = [
+        (name, np.abs(np.asarray(value, dtype=float)))
+        for name, value in (
+            ("constraint_residual", traj.constraint_residual),
+            ("velocity_residual", traj.velocity_residual),
+        )
+        if value is not None
+    ]
+    if not panels:
+        raise InputError(
+            "this trajectory has no constraint or velocity residual: run the simulation with "
+            "'constraint_residual' or 'velocity_residual' among the requested quantities"
+        )
+    t = np.asarray(traj.t, dtype=float)
+    text = {
+        "constraint_residual": ("Position-level constraint residual", "max$_k$ |f$_k$| [m]", "C3"),
+        "velocity_residual": (
+            "Velocity-level constraint residual",
+            "max$_k$ |(J v + ∂f/∂t)$_k$| [m/s]",
+            "C4",
+        ),
+    }
+    fig = _figure((7.0, 3.0 * len(panels) + 0.5))
+    axes = fig.subplots(len(panels), 1, squeeze=False)[:, 0]
+    for ax, (name, value) in zip(axes, panels, strict=True):
+        title, ylabel, colour = text[name]
+        floor = _floor_positive([value])
+        zeros = int(np.count_nonzero(value == 0))
+        ax.semilogy(t, np.maximum(value, floor), color=colour, lw=1.2)
+        _time_axis(ax)
+        ax.set_ylabel(ylabel)
+        finite = value[np.isfinite(value)]
+        worst = f"max {finite.max():.2e}" if len(finite) else "no finite values"
+        ax.set_title(f"{title} ({worst})", fontsize="medium")
+        if zeros:
+            ax.text(
+                0.99, 0.03, f"{zeros} exact zero(s) drawn at {floor:.0e}",
+                transform=ax.transAxes, ha="right", va="bottom", fontsize="x-small", color="0.4",
+            )
+    return fig
+
+
+def constraint_forces_figure(traj: Trajectory) -> Figure:
+    """Magnitude of the total constraint force on each particle, |F_con,i|(t) in newtons."""
+    forces = _need(traj, "constraint_forces", "constraint forces")
+    t = np.asarray(traj.t, dtype=float)
+    magnitude = np.linalg.norm(forces, axis=2)
+    names = _names(traj)
+    fig = _figure()
+    ax = fig.add_subplot()
+    handles = [
+        ax.plot(t, magnitude[:, i], color=_colour(i), lw=1.3)[0] for i in range(len(names))
+    ]
+    _time_axis(ax)
+    ax.set_ylabel("|F$_{con}$| [N]")
+    ax.set_title("Constraint force on each particle", fontsize="medium")
+    _legend(ax, handles, names, loc="best")
+    return fig
+
+
+def multipliers_figure(traj: Trajectory) -> Figure:
+    """Each Lagrange multiplier λ_k(t); the legend names the constraint rows."""
+    lam = _need(traj, "multipliers", "multipliers")
+    lam = lam.reshape(len(lam), -1)
+    t = np.asarray(traj.t, dtype=float)
+    labels = _labels(traj, lam.shape[1])
+    fig = _figure()
+    ax = fig.add_subplot()
+    handles = [ax.plot(t, lam[:, k], color=_colour(k), lw=1.3)[0] for k in range(lam.shape[1])]
+    ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
+    _time_axis(ax)
+    ax.set_ylabel("λ [N] (for constraints f in m)")
+    ax.set_title(f"Lagrange multipliers ({lam.shape[1]} constraint rows)", fontsize="medium")
+    _legend(ax, handles, labels, loc="best")
+    return fig
+
+
+def principal_coordinate(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(s, ds/dt, share)``: positions projected on their first principal direction.
+
+    PCA over the flattened configurations x(t) ∈ R^{3N}; ``share`` is the fraction of the
+    position variance that direction carries (1 for a rigid one-degree-of-freedom line
+    motion, close to 1 for small oscillations).
+    """
+    x = np.asarray(traj.x, dtype=float).reshape(len(traj.t), -1)
+    v = np.asarray(traj.v, dtype=float).reshape(len(traj.t), -1)
+    c = x - x.mean(axis=0)
+    _, sing, vt = np.linalg.svd(c, full_matrices=False)
+    direction = vt[0]
+    if direction[np.argmax(np.abs(direction))] < 0:
+        direction = -direction
+    total = float(np.sum(sing**2))
+    share = float(sing[0] ** 2 / total) if total > 0 else 1.0
+    return c @ direction, v @ direction, share
+
+
+def phase_figure(traj: Trajectory) -> Figure:
+    """Phase portrait (s, ds/dt) of a one-degree-of-freedom scene along the principal coordinate."""
+    s, ds, share = principal_coordinate(traj)
+    fig = _figure((6.0, 5.5))
+    ax = fig.add_subplot()
+    ax.plot(s, ds, color="C0", lw=1.2)
+    ax.plot(s[0], ds[0], "o", color="C0", ms=7, mfc="white", mew=1.8, label="start")
+    ax.plot(s[-1], ds[-1], "s", color="C0", ms=6, label="end")
+    ax.axhline(0.0, color="0.6", lw=0.6)
+    ax.axvline(0.0, color="0.6", lw=0.6)
+    ax.grid(True, alpha=0.3)
+    ax.set_xlabel("s [m]")
+    ax.set_ylabel("ds/dt [m/s]")
+    ax.set_title(
+        "Phase portrait\ns = principal coordinate (first PCA direction of all positions, "
+        f"{100 * share:.1f}% of variance)",
+        fontsize="medium",
+    )
+    ax.legend(fontsize="small", loc="best")
+    return fig
+
+
+# --------------------------------------------------------------------------------- saving
+
+FIGURES: dict[str, Callable[[Trajectory], Figure]] = {
+    "trajectory": trajectory_figure,
+    "energy": energy_figure,
+    "constraint_residual": residual_figure,
+    "constraint_forces": constraint_forces_figure,
+    "multipliers": multipliers_figure,
+    "phase": phase_figure,
+}
+
+
+def save_figures(
+    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120
+) -> list[Path]:
+    """Write ``out_dir/<kind>.png`` for each kind (atomically) and return the paths."""
+    kinds = [kinds] if isinstance(kinds, str) else list(kinds)
+    unknown = [k for k in kinds if k not in FIGURES]
+    if unknown:
+        raise InputError(
+            f"unknown figure kind(s) {', '.join(map(repr, unknown))}; "
+            f"allowed: {', '.join(FIGURES)}"
+        )
+    out_dir = Path(out_dir)
+    paths = []
+    for kind in kinds:
+        fig = FIGURES[kind](traj)
+        path = out_dir / f"{kind}.png"
+        atomic_write(path, lambda f, fig=fig: fig.savefig(f, format="png", dpi=dpi))
+        paths.append(path)
+    return paths
