@@ -1,8 +1,11 @@
 """Interchangeable solvers behind ``simulate(..., method=...)``; see base.Solver for the contract."""
 
 from .base import Solution, Solver
+from .baumgarte import Baumgarte
+from .idas import GGL, Idas
 from .projection import Projection
+from .rattle import Rattle
 
-METHODS: dict[str, type[Solver]] = {Projection.name: Projection}
+METHODS: dict[str, type[Solver]] = {cls.name: cls for cls in (Projection, Baumgarte, Rattle, Idas, GGL)}
 
-__all__ = ["METHODS", "Projection", "Solution", "Solver"]
+__all__ = ["GGL", "METHODS", "Baumgarte", "Idas", "Projection", "Rattle", "Solution", "Solver"]

@@ -24,6 +24,8 @@ class _NonFinite(Exception):
 
 class Projection(Solver):
     name = "projection"
+    #: Whether accepted steps and outputs are projected onto the constraint manifolds.
+    projecting = True
 
     def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853", **options):
         super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
@@ -31,7 +33,15 @@ class Projection(Solver):
             raise InputError(f"unknown base integrator {base!r} (choose from {', '.join(BASES)})")
         self.base = base
 
+    def derivative(self, t, y):
+        """(x', v') = (v, a(x, v, t)) with a from the KKT system."""
+        n = self.model.n_coordinates
+        a, _ = self.model.accelerations(y[:n], y[n:], t)
+        return np.concatenate([y[n:], a])
+
     def project(self, x, v, t):
+        if not self.projecting:
+            return x, v
         m = self.model
         x, err, _ = m.project_positions(x, t, tol=self.position_tol)
         v = m.project_velocities(x, v, t)
@@ -45,11 +55,11 @@ class Projection(Solver):
         self.position_tol = 1e-14 * scale
 
         def rhs(t, y):
-            a, _ = m.accelerations(y[:n], y[n:], t)
+            dy = self.derivative(t, y)
             self.stats["nfev"] += 1
-            if not np.all(np.isfinite(a)):
+            if not np.all(np.isfinite(dy)):
                 raise _NonFinite(t)
-            return np.concatenate([y[n:], a])
+            return dy
 
         y0 = np.concatenate([x0, v0])
         integ = BASES[self.base](
@@ -85,18 +95,20 @@ class Projection(Solver):
                     xk, vk = self.project(yk[:n], yk[n:], tk)
                     ts.append(tk)
                     ys.append(np.concatenate([xk, vk]))
-            x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
-            y = np.concatenate([x, v])
-            if not np.all(np.isfinite(y)):
-                failure = f"non-finite state after projection at t = {integ.t:.6g} s"
-                break
-            integ.y = y
-            if hasattr(integ, "f"):  # keep first-same-as-last consistent with the new state
-                integ.f = rhs(integ.t, y)
+            y = integ.y
+            if self.projecting:
+                x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
+                y = np.concatenate([x, v])
+                if not np.all(np.isfinite(y)):
+                    failure = f"non-finite state after projection at t = {integ.t:.6g} s"
+                    break
+                integ.y = y
+                if hasattr(integ, "f"):  # keep first-same-as-last consistent with the new state
+                    integ.f = rhs(integ.t, y)
             if pending is None:
                 ts.append(integ.t)
                 ys.append(y)
         for key in ("njev", "nlu"):
-            self.stats[key] = m.counters[key]
+            self.stats[key] = max(self.stats[key], m.counters[key])
         Y = np.array(ys).reshape(-1, 2 * n)
         return Solution(np.array(ts), Y[:, :n], Y[:, n:], dict(self.stats), failure)
