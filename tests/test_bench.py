@@ -1,0 +1,40 @@
+"""constrained bench: the three outputs and what they must contain (never timings)."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+from conftest import SCENARIOS
+
+from constrained.cli import main
+
+
+def test_bench_writes_csv_markdown_and_figure(tmp_path):
+    out = tmp_path / "bench"
+    code = main(["bench", str(SCENARIOS / "double_pendulum.toml"), "--set", "simulate.t_end=0.5",
+                 "--methods", "projection,ggl,rattle", "--tolerances", "1e-6,1e-10", "--repeats", "1",
+                 "--out", str(out), "--quiet"])
+    assert code == 0
+    rows = list(csv.DictReader((out / "bench.csv").open()))
+    assert {"method", "rtol", "error", "constraint_residual", "wall_time_s", "steps"} <= set(rows[0])
+    assert [r["method"] for r in rows] == ["projection"] * 2 + ["ggl"] * 2 + ["rattle"] * 2
+    proj = [r for r in rows if r["method"] == "projection"]
+    # tighter tolerance, smaller error, more steps; projection keeps |f| at round-off
+    assert float(proj[1]["error"]) < 1e-3 * float(proj[0]["error"])
+    assert int(proj[1]["steps"]) > int(proj[0]["steps"])
+    assert all(float(r["constraint_residual"]) < 1e-12 for r in proj)
+    rattle = [r for r in rows if r["method"] == "rattle"]
+    assert np.isclose(float(rattle[0]["dt"]), 1e-2) and float(rattle[1]["error"]) < float(rattle[0]["error"])
+    assert all(r["status"] == "ok" for r in rows)
+    assert (out / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    md = (out / "bench.md").read_text()
+    assert "| projection | 1e-06 |" in md and "reference" in md
+
+
+def test_bench_refuses_unknown_methods(tmp_path, capsys):
+    code = main(["bench", str(SCENARIOS / "double_pendulum.toml"), "--methods", "euler",
+                 "--out", str(tmp_path / "b")])
+    assert code == 2
+    assert "unknown method" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
