@@ -2,10 +2,19 @@
 
 from .analysis import ConstraintReport, constraint_report, degrees_of_freedom
 from .constraints import Curve, Custom, Distance, Pin, Plane, Surface
+from .derivation import Conservation, EquationCheck, check_equations, conservation, describe
 from .effects import Central, Damping, Electromagnetic, Force, Gravity, Potential, Spring
 from .errors import ConstrainedError, InconsistentStateError, InputError, SimulationError
 from .model import Model, assemble
+from .reduced import CrossCheck, ReducedModel, cross_check
 from .simulate import simulate
+from .statics import (
+    Equilibrium,
+    constraint_virtual_work_residual,
+    equilibrium,
+    generalized_forces,
+    virtual_work,
+)
 from .system import Particle, System
 from .trajectory import Trajectory
 
@@ -22,4 +31,8 @@ __all__ = [
     "Electromagnetic", "Force", "Gravity", "InconsistentStateError", "InputError", "Model",
     "Particle", "Pin", "Plane", "Potential", "SimulationError", "Spring", "Surface", "System",
     "Trajectory", "assemble", "constraint_report", "degrees_of_freedom", "load_scene", "simulate",
+    "Conservation", "CrossCheck", "EquationCheck", "ReducedModel", "check_equations", "conservation",
+    "cross_check", "describe",
+    "Equilibrium", "constraint_virtual_work_residual", "equilibrium", "generalized_forces",
+    "virtual_work",
 ]

@@ -31,6 +31,10 @@ verbs:
             constrained run scenarios/double_pendulum.toml --out out/dp --set simulate.t_end=2
   check   validate a scene and print DOF, rank, redundancy, initial-state consistency
             constrained check scenarios/double_pendulum.toml
+  crosscheck  compare with Lagrange's equations in the [reduced] coordinates
+            constrained crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2
+  statics equilibrium, multipliers, reactions, stability, virtual-work residual
+            constrained statics scenarios/hanging_chain.toml --out out/chain
 
 --set KEY=VALUE overrides one scene key (repeatable): simulate.t_end=2,
 particles.p1.mass=2 or particles[0].mass=2, parameters.k=3, effects[0].k=5.
@@ -86,6 +90,53 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
     _add_set(check)
+
+    crosscheck = verbs.add_parser(
+        "crosscheck",
+        help="compare the Cartesian route with Lagrange's equations in the [reduced] coordinates",
+        description="Run SCENE both ways from the same start (the [reduced] initial values mapped "
+        "to x, v): the Cartesian route with multipliers, and Lagrange's equations in the "
+        "generalized coordinates. Print the largest differences and energies; write "
+        "DIR/crosscheck.png (position difference against time).",
+        epilog=f"example:\n  {PROG} crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    crosscheck.add_argument("scene", metavar="SCENE", help="scene file (TOML) with a [reduced] section")
+    crosscheck.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
+    _add_set(crosscheck)
+
+    statics = verbs.add_parser(
+        "statics",
+        help="find the static equilibrium near the initial positions; reactions and stability",
+        description="Solve F(x) + Jᵀλ = 0, f(x) = 0 near the scene's initial positions (Newton on "
+        "the KKT conditions): print positions, multipliers, constraint forces, support reactions, "
+        "stability (tangent-space eigenvalues of the Hessian of V − λ·f, soft modes) and the "
+        "virtual-work residual; write DIR/equilibrium.json and DIR/statics.png.",
+        epilog=f"example:\n  {PROG} statics scenarios/lever.toml --out out/lever",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    statics.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
+    statics.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
+    _add_set(statics)
+    statics.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    bench = verbs.add_parser(
+        "bench",
+        help="work-precision table and figure: error and drift against wall time per method",
+        description="Simulate SCENE with each method at each tolerance; write DIR/bench.csv "
+        "(method, rtol, dt, error, constraint_residual, velocity_residual, energy_drift, "
+        "wall_time_s, steps, nfev, status), DIR/bench.md and DIR/bench.png.",
+        epilog=f"example:\n  {PROG} bench scenarios/double_pendulum.toml --set simulate.t_end=2 "
+        "--methods projection,rattle --tolerances 1e-8,1e-10",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    bench.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
+    bench.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
+    bench.add_argument("--methods", help="comma-separated methods (default: all)")
+    bench.add_argument("--tolerances", help="comma-separated rtol values (default: 1e-6,1e-8,1e-10,1e-12)")
+    bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row (median)")
+    bench.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    _add_set(bench)
+
     return parser
 
 
@@ -110,6 +161,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.verb == "run":
             return _run(args)
+        if args.verb == "crosscheck":
+            return _crosscheck(args)
+        if args.verb == "bench":
+            return _bench(args)
+        if args.verb == "statics":
+            return _statics(args)
         return _check(args)
     except InputError as exc:
         _say_error(str(exc))
@@ -298,6 +355,78 @@ def _degrees_of_freedom(scene: Scene):
     return constraint_report(scene.system).degrees_of_freedom
 
 
+# --- crosscheck ------------------------------------------------------------------------------
+
+
+def _crosscheck(args) -> int:
+    """Both routes from the [reduced] start; table on stdout, DIR/crosscheck.png."""
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    if scene.reduced is None:
+        raise SceneError("no [reduced] section: crosscheck needs generalized coordinates "
+                         "(coordinates, initial, rates, map)", file=file, key="reduced")
+    t_end = scene.settings["t_end"]
+    if t_end is None:
+        raise SceneError("no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
+                         file=file, key="simulate.t_end")
+    out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} exists and is not a directory")
+    from .reduced import cross_check, save_crosscheck_figure
+
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            check = cross_check(scene, t_end)
+    except SimulationError as exc:
+        _say_error(f"scene file {file}: {exc}")
+        return 1
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+    written = []
+    try:
+        written.append(save_crosscheck_figure(check, out_dir / "crosscheck.png"))
+    except ImportError as exc:
+        _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    print(f"scene: {scene.name} ({file}), coordinates {', '.join(check.reduced_model.coordinates)}, "
+          f"t = {check.t[0]:g} .. {check.t[-1]:g} s, rtol {check.settings['rtol']:g}")
+    print(check.table())
+    if written:
+        print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
+
+
+# --- statics ---------------------------------------------------------------------------------
+
+
+def _statics(args) -> int:
+    """Equilibrium near the scene's positions: report on stdout, DIR/equilibrium.json, statics.png."""
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} exists and is not a directory")
+    from .statics import equilibrium, format_equilibrium, save_equilibrium_figure, write_equilibrium_json
+
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            eq = equilibrium(scene.system, t=scene.settings["t_start"])
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+    written = [write_equilibrium_json(eq, out_dir / "equilibrium.json")]
+    try:
+        written.append(save_equilibrium_figure(eq, scene.system, out_dir / "statics.png"))
+    except ImportError as exc:
+        _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    if not args.quiet:
+        print(format_equilibrium(eq, title=f"scene: {scene.name} ({file})"))
+        print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
+
+
 # --- check -----------------------------------------------------------------------------------
 
 
@@ -431,6 +560,50 @@ def _fmt_value(v) -> str:
     if isinstance(v, float | np.floating):
         return f"{float(v):.3g}"
     return str(v)
+
+
+
+# --- bench -----------------------------------------------------------------------------------
+
+
+def _bench(args) -> int:
+    """Work-precision measurement of one scene: DIR/bench.csv, bench.md, bench.png."""
+    from .bench import DEFAULT_METHODS, DEFAULT_TOLERANCES, work_precision
+
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    t_end = scene.settings["t_end"]
+    if t_end is None:
+        raise SceneError("no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
+                         file=file, key="simulate.t_end")
+    methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
+    try:
+        tolerances = (tuple(float(x) for x in args.tolerances.split(","))
+                      if args.tolerances else DEFAULT_TOLERANCES)
+    except ValueError:
+        raise InputError(f"--tolerances must be comma-separated numbers, got {args.tolerances!r}") from None
+    out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} exists and is not a directory")
+
+    def progress(method, opts):
+        if not args.quiet:
+            setting = ", ".join(f"{k} {v:g}" for k, v in opts.items() if k != "atol")
+            print(f"  {method} ({setting})", flush=True)
+
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            result = work_precision(scene.system, t_end, methods=methods, tolerances=tolerances,
+                                    repeats=args.repeats, name=scene.name, progress=progress)
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+    written = result.write(out_dir)
+    if not args.quiet:
+        print(result.markdown())
+        print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
 
 
 if __name__ == "__main__":
