@@ -31,9 +31,10 @@ def _as_list(value, where: str, what: str) -> list[str]:
     return list(value)
 
 
-class Constraint:
-    """Base class: ``rows(s)`` returns [(CasADi scalar f_k(x, t), label_k), ...]."""
+class Labelled:
+    """A scene item with a readable ``label`` and a ``where`` (scene key) for messages."""
 
+    kind = "item"
     name: str | None = None
     where: str | None = None
 
@@ -42,13 +43,19 @@ class Constraint:
         raise NotImplementedError
 
     def _where(self) -> str:
-        return self.where or f"constraint {self.label!r}"
-
-    def rows(self, s) -> list[tuple]:
-        raise NotImplementedError
+        return self.where or f"{self.kind} {self.label!r}"
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.label})"
+
+
+class Constraint(Labelled):
+    """Base class: ``rows(s)`` returns [(CasADi scalar f_k(x, t), label_k), ...]."""
+
+    kind = "constraint"
+
+    def rows(self, s) -> list[tuple]:
+        raise NotImplementedError
 
 
 class Distance(Constraint):

@@ -15,29 +15,18 @@ from collections.abc import Mapping, Sequence
 
 import casadi as ca
 
-from .constraints import _as_list, _fmt
+from .constraints import Labelled, _as_list, _fmt
 from .errors import InputError
 
 
-class Effect:
+class Effect(Labelled):
     """Base class: ``slot`` names the term, ``term(s)`` builds it from Symbols ``s``."""
 
+    kind = "effect"
     slot: str = ""
-    name: str | None = None
-    where: str | None = None
-
-    @property
-    def label(self) -> str:
-        raise NotImplementedError
-
-    def _where(self) -> str:
-        return self.where or f"effect {self.label!r}"
 
     def term(self, s):
         raise NotImplementedError
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.label})"
 
 
 def _other_end(s, b, point, where):
