@@ -15,6 +15,16 @@ from .statics import (
     generalized_forces,
     virtual_work,
 )
+from .symmetry import (
+    SymmetryReport,
+    charge_drift,
+    euler_lagrange,
+    is_symmetry,
+    is_symmetry_reduced,
+    noether_charge,
+    noether_charge_reduced,
+    with_total_derivative,
+)
 from .system import Particle, System
 from .trajectory import Trajectory
 
@@ -33,6 +43,8 @@ __all__ = [
     "Trajectory", "assemble", "constraint_report", "degrees_of_freedom", "load_scene", "simulate",
     "Conservation", "CrossCheck", "EquationCheck", "ReducedModel", "check_equations", "conservation",
     "cross_check", "describe",
+    "SymmetryReport", "charge_drift", "euler_lagrange", "is_symmetry", "is_symmetry_reduced",
+    "noether_charge", "noether_charge_reduced", "with_total_derivative",
     "Equilibrium", "constraint_virtual_work_residual", "equilibrium", "generalized_forces",
     "virtual_work",
 ]
