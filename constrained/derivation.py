@@ -312,12 +312,60 @@ _UNARY = {
 }
 
 
-def pretty(expr, digits: int = 6) -> str:
-    """A compact infix string of a scalar SX expression (``sq(x)`` → ``x^2``)."""
+def pretty(expr, digits: int = 6, *, simplify: bool = True) -> str:
+    """A compact infix string of a scalar SX expression (``sq(x)`` → ``x^2``).
+
+    With SymPy installed (the ``pretty`` extra) and ``simplify``, the expression is
+    expanded and trigonometrically simplified first (``cos(a)cos(b) + sin(a)sin(b)`` →
+    ``cos(a - b)``); without it, CasADi's graph is printed as it is.
+    """
     expr = ca.SX(expr)
     if expr.numel() != 1:
-        return "[" + ", ".join(pretty(expr[k], digits) for k in range(expr.numel())) + "]"
+        return "[" + ", ".join(pretty(expr[k], digits, simplify=simplify)
+                               for k in range(expr.numel())) + "]"
+    if simplify:
+        try:
+            import sympy
+        except ImportError:
+            sympy = None
+        if sympy is not None:
+            simplified = sympy.trigsimp(sympy.expand(_to_sympy(expr, sympy, {})))
+            if simplified.atoms(sympy.Float):
+                simplified = simplified.evalf(digits)
+                simplified = simplified.xreplace({f: sympy.Integer(int(f)) for f in
+                                                  simplified.atoms(sympy.Float) if float(f).is_integer()})
+            return str(simplified).replace("**", "^")
     return _pp(expr, digits)[0]
+
+
+def _to_sympy(e, sympy, names: dict):
+    """The SX graph of ``e`` as a SymPy expression (same op-codes as ``_pp``)."""
+    if e.is_symbolic():
+        return names.setdefault(e.name(), sympy.Symbol(e.name(), real=True))
+    if e.is_constant():
+        v = float(e)
+        return sympy.Integer(int(v)) if v.is_integer() and abs(v) < 1e15 else sympy.Float(v)
+    op = e.op()
+    a = _to_sympy(e.dep(0), sympy, names)
+    if op == ca.OP_NEG:
+        return -a
+    if op == ca.OP_SQ:
+        return a**2
+    if op == ca.OP_TWICE:
+        return 2 * a
+    if op == ca.OP_INV:
+        return 1 / a
+    if op in _UNARY:
+        return getattr(sympy, {"abs": "Abs"}.get(_UNARY[op], _UNARY[op]))(a)
+    b = _to_sympy(e.dep(1), sympy, names)
+    if op in (ca.OP_POW, ca.OP_CONSTPOW):
+        return a**b
+    if op == ca.OP_ATAN2:
+        return sympy.atan2(a, b)
+    ops = {ca.OP_ADD: a + b, ca.OP_SUB: a - b, ca.OP_MUL: a * b} if op != ca.OP_DIV else {op: a / b}
+    if op in ops:
+        return ops[op]
+    return sympy.sympify(str(e))
 
 
 def _num(value: float, digits: int) -> str:
