@@ -2,7 +2,15 @@
 
 from .analysis import ConstraintReport, constraint_report, degrees_of_freedom
 from .constraints import Curve, Custom, Distance, Pin, Plane, Surface
-from .derivation import Conservation, EquationCheck, check_equations, conservation, describe
+from .derivation import (
+    Conservation,
+    EquationCheck,
+    check_equations,
+    check_generalized_forces,
+    check_lagrangian,
+    conservation,
+    describe,
+)
 from .effects import Central, Damping, Electromagnetic, Force, Gravity, Potential, Spring
 from .errors import ConstrainedError, InconsistentStateError, InputError, SimulationError
 from .model import Model, assemble
@@ -42,7 +50,7 @@ __all__ = [
     "Particle", "Pin", "Plane", "Potential", "SimulationError", "Spring", "Surface", "System",
     "Trajectory", "assemble", "constraint_report", "degrees_of_freedom", "load_scene", "simulate",
     "Conservation", "CrossCheck", "EquationCheck", "ReducedModel", "check_equations", "conservation",
-    "cross_check", "describe",
+    "cross_check", "describe", "check_lagrangian", "check_generalized_forces",
     "SymmetryReport", "charge_drift", "euler_lagrange", "is_symmetry", "is_symmetry_reduced",
     "noether_charge", "noether_charge_reduced", "with_total_derivative",
     "Equilibrium", "constraint_virtual_work_residual", "equilibrium", "generalized_forces",

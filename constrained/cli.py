@@ -35,6 +35,10 @@ verbs:
             constrained crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2
   statics equilibrium, multipliers, reactions, stability, virtual-work residual
             constrained statics scenarios/hanging_chain.toml --out out/chain
+  derive  print T, V, L and Lagrange's equations; check hand-derived equations,
+          Lagrangians and generalized forces (exit 1 when one is wrong)
+            constrained derive scenarios/double_pendulum.toml --set parameters.g=9.81 \
+              --equation "th2_ddot + th1_ddot*cos(th1-th2) - th1_dot**2*sin(th1-th2) + g*sin(th2) = 0"
 
 --set KEY=VALUE overrides one scene key (repeatable): simulate.t_end=2,
 particles.p1.mass=2 or particles[0].mass=2, parameters.k=3, effects[0].k=5.
@@ -137,6 +141,28 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quiet", action="store_true", help="print nothing but errors")
     _add_set(bench)
 
+    derive = verbs.add_parser(
+        "derive",
+        help="print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
+        description="Without options print T, V, L, the momenta and Lagrange's equations of "
+        "SCENE's [reduced] coordinates. With options check each candidate at random states "
+        "and print one verdict line per check (OK or WRONG with where it disagrees); exit "
+        "0 when all are right, 1 when one is wrong, 2 on bad input.",
+        epilog=f"example:\n  {PROG} derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
+        "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
+        "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    derive.add_argument("scene", metavar="SCENE", help="scene file (TOML) with a [reduced] section")
+    derive.add_argument("--equation", action="append", default=[], metavar="EQ",
+                        help="an equation of motion 'lhs = rhs' in q, q_dot, q_ddot, t (repeatable)")
+    derive.add_argument("--lagrangian", action="append", default=[], metavar="L",
+                        help="a candidate Lagrangian in q, q_dot, t (repeatable)")
+    derive.add_argument("--force", action="append", default=[], metavar="Q",
+                        help="a candidate generalized force, one per coordinate in coordinate order "
+                        "(repeat once per coordinate; write --force=-k*x when the formula starts with '-')")
+    _add_set(derive)
+
     return parser
 
 
@@ -167,6 +193,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _bench(args)
         if args.verb == "statics":
             return _statics(args)
+        if args.verb == "derive":
+            return _derive(args)
         return _check(args)
     except InputError as exc:
         _say_error(str(exc))
@@ -425,6 +453,44 @@ def _statics(args) -> int:
         print(format_equilibrium(eq, title=f"scene: {scene.name} ({file})"))
         print("wrote: " + ", ".join(str(p) for p in written))
     return 0
+
+
+# --- derive ----------------------------------------------------------------------------------
+
+
+def _derive(args) -> int:
+    """describe(scene), or one verdict line per candidate check; 1 when a candidate is wrong."""
+    from .derivation import check_equations, check_generalized_forces, check_lagrangian, describe
+    from .reduced import ReducedModel
+
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    if scene.reduced is None:
+        raise SceneError("no [reduced] section: derive needs generalized coordinates "
+                         "(coordinates, initial, rates, map)", file=file, key="reduced")
+    try:
+        rm = ReducedModel.from_scene(scene)
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+    if not (args.equation or args.lagrangian or args.force):
+        print(describe(rm))
+        return 0
+    checks = []
+    try:
+        if args.equation:
+            checks += check_equations(rm, args.equation)
+        for text in args.lagrangian:
+            checks.append(check_lagrangian(rm, text))
+        if args.force:
+            checks += check_generalized_forces(rm, args.force)
+    except InputError as exc:
+        raise InputError(f"derive {file}: {exc}") from None
+    print(f"scene: {scene.name} ({file}), coordinates {', '.join(rm.coordinates)}")
+    for check in checks:
+        print(f"{'OK' if check.ok else 'WRONG'}: {check.message}")
+    return 0 if all(c.ok for c in checks) else 1
 
 
 # --- check -----------------------------------------------------------------------------------
