@@ -70,90 +70,52 @@ def build_parser() -> argparse.ArgumentParser:
     )
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
-    run = verbs.add_parser(
-        "run",
-        help="simulate a scene and write its trajectory and plots",
-        description="Simulate SCENE and write DIR/trajectory.npz (plus trajectory.csv and the "
-        "plots the scene's [outputs] asks for).",
-        epilog=f"example:\n  {PROG} run scenarios/double_pendulum.toml --out out/dp --set simulate.t_end=2",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    run.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
-    run.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
-    _add_set(run)
-    run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    OUT = "output directory (default: out/<scene file stem>)"
+    WITH_REDUCED = "scene file (TOML) with a [reduced] section"
 
-    check = verbs.add_parser(
-        "check",
-        help="validate a scene; print DOF, redundancy and initial-state consistency",
-        description="Validate SCENE without simulating: particles, constraint rows, degrees of "
-        "freedom, rank and redundancy, singular configuration, consistency of the initial state, "
-        "and the terms the model assembles.",
-        epilog=f"example:\n  {PROG} check scenarios/double_pendulum.toml",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    check.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
-    _add_set(check)
-
-    crosscheck = verbs.add_parser(
-        "crosscheck",
-        help="compare the Cartesian route with Lagrange's equations in the [reduced] coordinates",
-        description="Run SCENE both ways from the same start (the [reduced] initial values mapped "
-        "to x, v): the Cartesian route with multipliers, and Lagrange's equations in the "
-        "generalized coordinates. Print the largest differences and energies; write "
-        "DIR/crosscheck.png (position difference against time).",
-        epilog=f"example:\n  {PROG} crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    crosscheck.add_argument("scene", metavar="SCENE", help="scene file (TOML) with a [reduced] section")
-    crosscheck.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
-    _add_set(crosscheck)
-
-    statics = verbs.add_parser(
-        "statics",
-        help="find the static equilibrium near the initial positions; reactions and stability",
-        description="Solve F(x) + Jᵀλ = 0, f(x) = 0 near the scene's initial positions (Newton on "
-        "the KKT conditions): print positions, multipliers, constraint forces, support reactions, "
-        "stability (tangent-space eigenvalues of the Hessian of V − λ·f, soft modes) and the "
-        "virtual-work residual; write DIR/equilibrium.json and DIR/statics.png.",
-        epilog=f"example:\n  {PROG} statics scenarios/lever.toml --out out/lever",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    statics.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
-    statics.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
-    _add_set(statics)
-    statics.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    bench = verbs.add_parser(
-        "bench",
-        help="work-precision table and figure: error and drift against wall time per method",
-        description="Simulate SCENE with each method at each tolerance; write DIR/bench.csv "
+    _verb(verbs, "run", "simulate a scene and write its trajectory and plots",
+          "Simulate SCENE and write DIR/trajectory.npz (plus trajectory.csv and the "
+          "plots the scene's [outputs] asks for).",
+          "run scenarios/double_pendulum.toml --out out/dp --set simulate.t_end=2", out=OUT, quiet=True)
+    _verb(verbs, "check", "validate a scene; print DOF, redundancy and initial-state consistency",
+          "Validate SCENE without simulating: particles, constraint rows, degrees of "
+          "freedom, rank and redundancy, singular configuration, consistency of the initial state, "
+          "and the terms the model assembles.",
+          "check scenarios/double_pendulum.toml")
+    _verb(verbs, "crosscheck",
+          "compare the Cartesian route with Lagrange's equations in the [reduced] coordinates",
+          "Run SCENE both ways from the same start (the [reduced] initial values mapped "
+          "to x, v): the Cartesian route with multipliers, and Lagrange's equations in the "
+          "generalized coordinates. Print the largest differences and energies; write "
+          "DIR/crosscheck.png (position difference against time).",
+          "crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2",
+          scene_help=WITH_REDUCED, out=OUT)
+    _verb(verbs, "statics", "find the static equilibrium near the initial positions; reactions and stability",
+          "Solve F(x) + Jᵀλ = 0, f(x) = 0 near the scene's initial positions (Newton on "
+          "the KKT conditions): print positions, multipliers, constraint forces, support reactions, "
+          "stability (tangent-space eigenvalues of the Hessian of V − λ·f, soft modes) and the "
+          "virtual-work residual; write DIR/equilibrium.json and DIR/statics.png.",
+          "statics scenarios/lever.toml --out out/lever", out=OUT, quiet=True)
+    bench = _verb(
+        verbs, "bench", "work-precision table and figure: error and drift against wall time per method",
+        "Simulate SCENE with each method at each tolerance; write DIR/bench.csv "
         "(method, rtol, dt, error, constraint_residual, velocity_residual, energy_drift, "
         "wall_time_s, steps, nfev, status), DIR/bench.md and DIR/bench.png.",
-        epilog=f"example:\n  {PROG} bench scenarios/double_pendulum.toml --set simulate.t_end=2 "
-        "--methods projection,rattle --tolerances 1e-8,1e-10",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    bench.add_argument("scene", metavar="SCENE", help="scene file (TOML)")
-    bench.add_argument("--out", metavar="DIR", help="output directory (default: out/<scene file stem>)")
+        "bench scenarios/double_pendulum.toml --set simulate.t_end=2 "
+        "--methods projection,rattle --tolerances 1e-8,1e-10", out=OUT, quiet=True)
     bench.add_argument("--methods", help="comma-separated methods (default: all)")
     bench.add_argument("--tolerances", help="comma-separated rtol values (default: 1e-6,1e-8,1e-10,1e-12)")
     bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row (median)")
-    bench.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    _add_set(bench)
-
-    derive = verbs.add_parser(
-        "derive",
-        help="print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
-        description="Without options print T, V, L, the momenta and Lagrange's equations of "
+    derive = _verb(
+        verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
+        "Without options print T, V, L, the momenta and Lagrange's equations of "
         "SCENE's [reduced] coordinates. With options check each candidate at random states "
         "and print one verdict line per check (OK or WRONG with where it disagrees); exit "
         "0 when all are right, 1 when one is wrong, 2 on bad input.",
-        epilog=f"example:\n  {PROG} derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
+        "derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
         "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
         "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    derive.add_argument("scene", metavar="SCENE", help="scene file (TOML) with a [reduced] section")
+        scene_help=WITH_REDUCED)
     derive.add_argument("--equation", action="append", default=[], metavar="EQ",
                         help="an equation of motion 'lhs = rhs' in q, q_dot, q_ddot, t (repeatable)")
     derive.add_argument("--lagrangian", action="append", default=[], metavar="L",
@@ -161,9 +123,22 @@ def build_parser() -> argparse.ArgumentParser:
     derive.add_argument("--force", action="append", default=[], metavar="Q",
                         help="a candidate generalized force, one per coordinate in coordinate order "
                         "(repeat once per coordinate; write --force=-k*x when the formula starts with '-')")
-    _add_set(derive)
-
     return parser
+
+
+def _verb(verbs, name: str, help: str, description: str, example: str, *,
+          scene_help: str = "scene file (TOML)", out: str | None = None, quiet: bool = False):
+    """A verb taking SCENE, ``--set`` and, where asked, ``--out DIR`` and ``--quiet``."""
+    p = verbs.add_parser(name, help=help, description=description,
+                         epilog=f"example:\n  {PROG} {example}",
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help=scene_help)
+    if out:
+        p.add_argument("--out", metavar="DIR", help=out)
+    _add_set(p)
+    if quiet:
+        p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    return p
 
 
 def _add_set(p: argparse.ArgumentParser) -> None:
