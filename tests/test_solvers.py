@@ -98,3 +98,12 @@ def test_every_method_has_counters_and_refuses_bad_arguments():
         C.simulate(double_pendulum(), 0.1, method="ggl", atol=1e-12)
     with pytest.raises(C.InputError, match="does not take the option"):
         C.simulate(double_pendulum(), 0.1, method="projection", alpha=3.0)
+
+
+@pytest.mark.parametrize("method", ["rattle", "idas", "ggl"])
+def test_methods_that_need_independent_constraints_refuse_the_redundant_cube(method):
+    from test_core_physics import spinning_cube
+
+    cube, _ = spinning_cube()
+    with pytest.raises(C.InputError, match=f"method '{method}' needs independent constraints"):
+        C.simulate(cube, 0.1, method=method, dt=1e-3 if method == "rattle" else None)

@@ -44,5 +44,13 @@ class Solver:
         self.rtol, self.atol, self.dt = float(rtol), float(atol), dt
         self.stats = {"steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "projections": 0}
 
+    def require_independent_constraints(self, why: str) -> None:
+        """Refuse a model whose constraint rows are dependent (``Model.redundant``)."""
+        if self.model.redundant:
+            raise InputError(
+                f"method '{self.name}' needs independent constraints ({why} for redundant ones); "
+                "remove the implied constraints or use method 'projection'"
+            )
+
     def run(self, x0, v0, t0: float, t_end: float, t_eval=None) -> Solution:
         raise NotImplementedError

@@ -32,11 +32,7 @@ class _IdasBase(Solver):
     def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, max_step: float | None = None,
                  **options):
         super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
-        if model.redundant:
-            raise InputError(
-                f"method '{self.name}' needs independent constraints (its algebraic equations are "
-                "singular for redundant ones); remove the implied constraints or use 'projection'"
-            )
+        self.require_independent_constraints("its algebraic equations are singular")
         if model.n_constraints == 0:
             raise InputError(f"method '{self.name}' is for constrained systems; this one has none")
         self.max_step = max_step

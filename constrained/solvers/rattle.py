@@ -37,11 +37,7 @@ class Rattle(Solver):
         super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
-        if model.redundant:
-            raise InputError(
-                "method 'rattle' needs independent constraints (its Newton matrix is singular "
-                "for redundant ones); remove the implied constraints or use method 'projection'"
-            )
+        self.require_independent_constraints("its Newton matrix is singular")
         self.newton_tol = newton_tol
         self._chunks: dict[int, ca.Function] = {}
 
