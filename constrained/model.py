@@ -114,6 +114,8 @@ class Model:
         self.counters = {"nfev": 0, "njev": 0, "nlu": 0}
         #: Set when J has dependent rows: every solve then takes the minimum-norm path.
         self.redundant = False
+        #: "virtual machine" (CasADi's) or "compiled" (see ``compile``).
+        self.evaluation = "virtual machine"
         self._build_fast_paths()
 
     def _build_fast_paths(self) -> None:
@@ -141,6 +143,23 @@ class Model:
         self._acceleration = ca.Function("acceleration", [X, Vv, T], [acc, lam])
         self._newton_step = ca.Function("newton_step", [X, T], [f, dx])
         self._velocity_correction = ca.Function("velocity_correction", [X, Vv, T], [dv])
+
+    def compile(self) -> bool:
+        """Replace the per-call fast paths by compiled machine code (constrained.compiled).
+
+        Returns True when they now run compiled; False (virtual machine kept) otherwise.
+        """
+        from . import compiled
+
+        if self.evaluation == "compiled":
+            return True
+        funcs = [compiled.compile_function(f) for f in
+                 (self._acceleration, self._newton_step, self._velocity_correction)]
+        if any(f.class_name() != "External" for f in funcs):
+            return False
+        self._acceleration, self._newton_step, self._velocity_correction = funcs
+        self.evaluation = "compiled"
+        return True
 
     # --- the KKT system ----------------------------------------------------------------------
     def schur_solve(self, J: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -30,7 +30,8 @@ class Solver:
     name = ""
     adaptive = True
 
-    def __init__(self, model, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None, **options):
+    def __init__(self, model, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
+                 compiled="auto", **options):
         for key, value in (("rtol", rtol), ("atol", atol)):
             if not (isinstance(value, int | float) and np.isfinite(value) and 0 < value < 1):
                 raise InputError(f"{key} must be a number between 0 and 1, got {value!r}")
@@ -40,8 +41,12 @@ class Solver:
             raise InputError(
                 f"method '{self.name}' does not take the option(s) {', '.join(sorted(options))}"
             )
+        if compiled not in (True, False, "auto"):
+            raise InputError(f"compiled must be true, false or \"auto\", got {compiled!r}")
         self.model = model
         self.rtol, self.atol, self.dt = float(rtol), float(atol), dt
+        #: The compiled-evaluation setting as given (see constrained.compiled).
+        self.compiled_setting = compiled
         self.stats = {"steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "projections": 0}
 
     def require_independent_constraints(self, why: str) -> None:

@@ -12,10 +12,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.integrate import DOP853, RK45, Radau
 
+from .. import compiled as compiled_evaluation
 from ..errors import InputError
 from .base import Solution, Solver
 
 BASES = {"DOP853": DOP853, "RK45": RK45, "Radau": Radau}
+#: With compiled="auto", the model's per-call functions are compiled from this many coordinates.
+COMPILE_FROM_COORDINATES = 90
 
 
 class _NonFinite(Exception):
@@ -32,6 +35,13 @@ class Projection(Solver):
         if base not in BASES:
             raise InputError(f"unknown base integrator {base!r} (choose from {', '.join(BASES)})")
         self.base = base
+        # Per-call functions gain from machine code only when the model is large enough that
+        # evaluation, not CasADi's Python call overhead, dominates (docs/performance.md).
+        want = self.compiled_setting is True or (
+            self.compiled_setting == "auto" and model.n_coordinates >= COMPILE_FROM_COORDINATES
+        )
+        if want and compiled_evaluation.enabled(self.compiled_setting):
+            model.compile()
 
     def derivative(self, t, y):
         """(x', v') = (v, a(x, v, t)) with a from the KKT system."""
@@ -110,5 +120,6 @@ class Projection(Solver):
                 ys.append(y)
         for key in ("njev", "nlu"):
             self.stats[key] = max(self.stats[key], m.counters[key])
+        self.stats["evaluation"] = m.evaluation
         Y = np.array(ys).reshape(-1, 2 * n)
         return Solution(np.array(ts), Y[:, :n], Y[:, n:], dict(self.stats), failure)
