@@ -5,7 +5,10 @@ from .baumgarte import Baumgarte
 from .idas import GGL, Idas
 from .projection import Projection
 from .rattle import Rattle
+from .reduced import Reduced
 
-METHODS: dict[str, type[Solver]] = {cls.name: cls for cls in (Projection, Baumgarte, Rattle, Idas, GGL)}
+METHODS: dict[str, type[Solver]] = {
+    cls.name: cls for cls in (Projection, Baumgarte, Rattle, Idas, GGL, Reduced)
+}
 
-__all__ = ["GGL", "METHODS", "Baumgarte", "Idas", "Projection", "Rattle", "Solution", "Solver"]
+__all__ = ["GGL", "METHODS", "Baumgarte", "Idas", "Projection", "Rattle", "Reduced", "Solution", "Solver"]
