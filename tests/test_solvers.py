@@ -86,9 +86,14 @@ def test_rattle_long_run_energy_stays_bounded():
 
 
 def test_every_method_has_counters_and_refuses_bad_arguments():
+    from conftest import SCENARIOS
+
+    from constrained.reduced import ReducedModel
+
+    rm = ReducedModel.from_scene(C.load_scene(SCENARIOS / "double_pendulum.toml"))
+    extra = {"rattle": {"dt": 1e-2}, "reduced": {"reduced_model": rm}}
     for name in METHODS:
-        kwargs = {"dt": 1e-2} if name == "rattle" else {}
-        tr = C.simulate(double_pendulum(), 0.1, method=name, **kwargs)
+        tr = C.simulate(double_pendulum(), 0.1, method=name, **extra.get(name, {}))
         assert tr.stats["steps"] > 0 and "wall_time_s" in tr.stats
     with pytest.raises(C.InputError, match="give dt"):
         C.simulate(double_pendulum(), 0.1, method="rattle")
