@@ -25,7 +25,7 @@ from .errors import InputError, SimulationError
 from .simulate import simulate
 from .trajectory import atomic_write
 
-DEFAULT_METHODS = ("projection", "baumgarte", "idas", "ggl", "rattle")
+DEFAULT_METHODS = ("projection", "projection:CVODES", "baumgarte", "idas", "ggl", "rattle")
 DEFAULT_TOLERANCES = (1e-6, 1e-8, 1e-10, 1e-12)
 #: rattle is fixed-step: tolerance k of the list maps to the k-th of these steps.
 RATTLE_STEPS = (1e-2, 3e-3, 1e-3, 3e-4)
@@ -111,7 +111,7 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
     """Measure every (method, tolerance) on ``system`` up to ``t_end`` (see module doc)."""
     from .solvers import METHODS
 
-    unknown = [m for m in methods if m not in METHODS]
+    unknown = [m for m in methods if m.split(":")[0] not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(METHODS)})")
     if not tolerances or any(not (0 < tol < 1) for tol in tolerances):
@@ -141,10 +141,12 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
         "rheonomic", "dissipation", "applied_force", "time_dependent_forces"
     }
     for method in methods:
+        name, _, base = method.partition(":")  # "projection:CVODES" picks a base integrator
+        extra = {"base": base} if base else {}
         settings = (
             [dict(dt=dt) for dt in RATTLE_STEPS[: len(tolerances)]]
-            if method == "rattle"
-            else [dict(rtol=tol, atol=max(tol, getattr(METHODS[method], "MIN_ATOL", 0.0)))
+            if name == "rattle"
+            else [dict(rtol=tol, atol=max(tol, getattr(METHODS[name], "MIN_ATOL", 0.0)), **extra)
                   for tol in tolerances]
         )
         for opts in settings:
@@ -155,14 +157,14 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
             times = []
             try:
                 for _ in range(repeats):
-                    tr = simulate(system, t_end, method=method, t_eval=[0.0, t_end],
+                    tr = simulate(system, t_end, method=name, t_eval=[0.0, t_end],
                                   outputs={"energy", "constraint_residual", "velocity_residual"}, **opts)
                     times.append(tr.stats["wall_time_s"])
             except (InputError, SimulationError) as exc:
                 row["status"] = f"failed: {str(exc).splitlines()[0][:120]}"
                 result.rows.append(row)
                 continue
-            dense = simulate(system, t_end, method=method, **opts,
+            dense = simulate(system, t_end, method=name, **opts,
                              outputs={"energy", "constraint_residual", "velocity_residual"})
             row.update(
                 error=float(np.max(np.abs(tr.x[-1] - x_ref))),

@@ -23,6 +23,7 @@ def driven_pendulum() -> C.System:
 
 @pytest.mark.parametrize("method, settings, max_error", [
     ("projection", dict(rtol=1e-12, atol=1e-12), 1e-9),
+    ("projection", dict(rtol=1e-12, atol=1e-12, base="CVODES"), 1e-9),
     ("baumgarte", dict(rtol=1e-12, atol=1e-12), 1e-9),
     ("idas", dict(rtol=1e-13, atol=1e-13), 1e-9),
     # IDAS on the index-2 form cannot take atol < 1e-10 (see solvers/idas.py): 2.5e-9 here
