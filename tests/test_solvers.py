@@ -129,3 +129,13 @@ def test_reduced_method_reaches_the_reference_and_maps_back_to_the_constraints()
     assert np.max(tr.constraint_residual) <= 1e-14  # the map satisfies the constraints exactly
     with pytest.raises(C.InputError, match="needs generalized coordinates"):
         C.simulate(exact, 0.1, method="reduced")
+
+
+@pytest.mark.parametrize("system", [double_pendulum, driven_pendulum])
+def test_pantelides_agrees_with_projection(system):
+    t = np.linspace(0, 2, 11)
+    ref = C.simulate(system(), 2.0, rtol=1e-12, atol=1e-12, t_eval=t)
+    tr = C.simulate(system(), 2.0, method="pantelides", rtol=1e-12, atol=1e-12, t_eval=t)
+    assert tr.stats["index"] == 3  # CasADi found the index of the raw DAE
+    np.testing.assert_allclose(tr.x, ref.x, atol=1e-7)
+    assert np.max(tr.constraint_residual) <= 1e-10

@@ -3,12 +3,14 @@
 from .base import Solution, Solver
 from .baumgarte import Baumgarte
 from .idas import GGL, Idas
+from .pantelides import Pantelides
 from .projection import Projection
 from .rattle import Rattle
 from .reduced import Reduced
 
 METHODS: dict[str, type[Solver]] = {
-    cls.name: cls for cls in (Projection, Baumgarte, Rattle, Idas, GGL, Reduced)
+    cls.name: cls for cls in (Projection, Baumgarte, Rattle, Idas, GGL, Pantelides, Reduced)
 }
 
-__all__ = ["GGL", "METHODS", "Baumgarte", "Idas", "Projection", "Rattle", "Reduced", "Solution", "Solver"]
+__all__ = ["GGL", "METHODS", "Baumgarte", "Idas", "Pantelides", "Projection", "Rattle", "Reduced",
+           "Solution", "Solver"]
