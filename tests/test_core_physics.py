@@ -258,6 +258,10 @@ def test_trajectory_round_trips_through_npz(tmp_path):
         np.testing.assert_array_equal(getattr(back, name), getattr(tr, name))
     assert back.particle_names == ["bob"] and back.constraint_labels == tr.constraint_labels
     assert not list(tmp_path.glob("*.part"))
+    import os
+    mask = os.umask(0)
+    os.umask(mask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~mask  # as a plain open() would make it
 
 
 def test_outputs_not_asked_for_are_not_computed():
