@@ -1,5 +1,12 @@
 """constrained: particles under holonomic constraints, constraint forces as Lagrange multipliers."""
 
+from .action import (  # the action of a run: constrained.action.action (the module keeps its name)
+    ActionResult,
+    PathResult,
+    StationarityResult,
+    stationarity,
+    stationary_path,
+)
 from .analysis import ConstraintReport, constraint_report, degrees_of_freedom
 from .constraints import Curve, Custom, Distance, Pin, Plane, Surface
 from .derivation import (
@@ -23,6 +30,7 @@ from .statics import (
     generalized_forces,
     virtual_work,
 )
+from .sweep import SweepResult  # the function: constrained.sweep.sweep (the module keeps its name)
 from .symmetry import (
     SymmetryReport,
     charge_drift,
@@ -45,6 +53,7 @@ def load_scene(path, overrides=None):
 
 
 __all__ = [
+    "ActionResult", "PathResult", "StationarityResult", "stationarity", "stationary_path",
     "Central", "ConstrainedError", "ConstraintReport", "Curve", "Custom", "Damping", "Distance",
     "Electromagnetic", "Force", "Gravity", "InconsistentStateError", "InputError", "Model",
     "Particle", "Pin", "Plane", "Potential", "SimulationError", "Spring", "Surface", "System",
@@ -55,4 +64,5 @@ __all__ = [
     "noether_charge", "noether_charge_reduced", "with_total_derivative",
     "Equilibrium", "constraint_virtual_work_residual", "equilibrium", "generalized_forces",
     "virtual_work",
+    "SweepResult",
 ]

@@ -18,7 +18,15 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InconsistentStateError, InputError, SimulationError
-from .scene import _KEY_RE, SIMULATE_DEFAULTS, Scene, SceneError, load_scene
+from .scene import (
+    _KEY_RE,
+    SIMULATE_DEFAULTS,
+    Scene,
+    SceneError,
+    check_expectations,
+    expect_requirements,
+    load_scene,
+)
 from .trajectory import QUANTITIES, Trajectory, atomic_write
 
 __all__ = ["main", "build_parser", "time_grid", "trajectory_csv"]
@@ -35,10 +43,18 @@ verbs:
             constrained crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2
   statics equilibrium, multipliers, reactions, stability, virtual-work residual
             constrained statics scenarios/hanging_chain.toml --out out/chain
+  plot    figures and animation (GIF) from a saved trajectory.npz
+            constrained plot out/dp/trajectory.npz --kinds trajectory,animation
   derive  print T, V, L and Lagrange's equations; check hand-derived equations,
           Lagrangians and generalized forces (exit 1 when one is wrong)
             constrained derive scenarios/double_pendulum.toml --set parameters.g=9.81 \
               --equation "th2_ddot + th1_ddot*cos(th1-th2) - th1_dot**2*sin(th1-th2) + g*sin(th2) = 0"
+  sweep   many runs of one scene on Dask: --vary KEY=SPEC (grid / random); summary.csv
+            constrained sweep scenarios/kapitza_sweep.toml --vary "parameters.a=lin(0.002, 0.02, 12)" \
+              --vary "parameters.nu=lin(20, 240, 12)" --summary "min:up=y_bob - a*cos(nu*t)"
+  path    the motion between the scene's positions and --to in --time T, by making the
+          discrete action stationary (IPOPT); minimum or saddle; path.npz, path.png
+            constrained path scenarios/double_pendulum.toml --to "p1=[0,-1,0]; p2=[0,-2,0]" --time 1
 
 --set KEY=VALUE overrides one scene key (repeatable): simulate.t_end=2,
 particles.p1.mass=2 or particles[0].mass=2, parameters.k=3, effects[0].k=5.
@@ -123,7 +139,82 @@ def build_parser() -> argparse.ArgumentParser:
     derive.add_argument("--force", action="append", default=[], metavar="Q",
                         help="a candidate generalized force, one per coordinate in coordinate order "
                         "(repeat once per coordinate; write --force=-k*x when the formula starts with '-')")
+    _add_sweep(verbs)
+    _add_plot(verbs)
     return parser
+
+
+def _add_plot(verbs) -> None:
+    """The ``plot`` verb: figures (and the animation) from a saved trajectory.npz."""
+    from .plot import KINDS
+
+    p = verbs.add_parser(
+        "plot", help="figures and animation from a saved trajectory.npz",
+        description="Draw figures from RESULTS (a trajectory.npz written by 'run', or the directory "
+        f"holding it) into DIR (default: beside RESULTS). Kinds: {', '.join(KINDS)} "
+        "(animation.gif; also .mp4 when ffmpeg is on PATH). Kinds whose data the file lacks are "
+        "skipped with a note.",
+        epilog=f"example:\n  {PROG} plot out/dp/trajectory.npz --kinds trajectory,animation "
+        "--scene scenarios/double_pendulum.toml",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("results", metavar="RESULTS", help="trajectory.npz, or a directory holding one")
+    p.add_argument("--out", metavar="DIR", help="output directory (default: the folder of RESULTS)")
+    p.add_argument("--kinds", help="comma-separated kinds (default: all PNG figures; also: animation)")
+    p.add_argument("--scene", metavar="SCENE", help="the scene file, to draw its rods in the animation")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def _add_sweep(verbs) -> None:
+    """The ``sweep`` verb (constrained.sweep): many runs of one scene on Dask."""
+    sw = _verb(
+        verbs, "sweep", "run a parameter sweep or an ensemble (on Dask); one summary row per run",
+        "Run SCENE once per point of the design given by --vary KEY=SPEC (a full grid; "
+        "random specs draw --samples points). SPEC: [1, 2, 3], lin(a, b, n), log(a, b, n), "
+        "uniform(a, b), normal(mu, sigma), loguniform(a, b). Writes DIR/runs/<id>.json as runs "
+        "finish, DIR/summary.csv (and .parquet), DIR/sweep.png; run again, it skips finished runs. "
+        "A run that fails is recorded with its error; the others go on.",
+        "sweep scenarios/kapitza_sweep.toml --vary 'parameters.a=lin(0.002, 0.02, 12)' "
+        "--vary 'parameters.nu=lin(20, 240, 12)' \\\n    --summary 'min:up=y_bob - a*cos(nu*t)' "
+        "--boundary 'a**2*nu**2 - 2*g*l' --out out/kapitza",
+        out="output directory (default: out/<scene file stem>_sweep)", quiet=True)
+    sw.add_argument("--vary", action="append", default=[], metavar="KEY=SPEC", required=True,
+                    help="a scene key (--set syntax) and its values (repeatable: a grid)")
+    sw.add_argument("--samples", type=int, metavar="N", help="random draws of the random specs")
+    sw.add_argument("--seed", type=int, default=0, help="seed of the random specs (default 0)")
+    sw.add_argument("--scheduler", metavar="ADDRESS",
+                    help="tcp://HOST:PORT of a running Dask scheduler, or 'sequential' (no Dask); "
+                    "default: a local cluster, one worker process per core")
+    sw.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster")
+    sw.add_argument("--summary", action="append", default=[], metavar="[RED:]NAME=FORMULA",
+                    help="a summary column: a formula in t, x_P, vx_P, ..., parameters, at t_end or "
+                    "reduced over the run with max:, min:, max_abs:, mean: (repeatable)")
+    sw.add_argument("--trajectories", action="store_true", help="also write DIR/runs/<id>.npz")
+    sw.add_argument("--plot", metavar="COLUMN", help="the column the figure shows")
+    sw.add_argument("--boundary", metavar="FORMULA",
+                    help="2-D map: draw the zero contour of a formula in the varied keys' last names "
+                    "and the parameters, e.g. 'a**2*nu**2 - 2*g*l'")
+    sw.add_argument("--limit", type=int, metavar="N", help="compute at most N missing runs, then stop")
+    path = _verb(
+        verbs, "path", "the motion between two configurations in a given time (stationary action)",
+        "Find the path from SCENE's initial positions (at simulate.t_start) to the positions "
+        "--to at time t_start + T by making the discrete action stationary (IPOPT), the "
+        "constraints held at every node. Print the action, convergence and whether it is a "
+        "minimum or a saddle (beyond a conjugate point); write DIR/path.npz and DIR/path.png "
+        "(the path and the action against iteration). Exit 1 with the last iterate saved when "
+        "IPOPT does not converge.",
+        "path scenarios/double_pendulum.toml --to \"p1=[0,-1,0]; p2=[0,-2,0]\" --time 1 --out out/dp_path",
+        out="output directory (default: out/<scene file stem>_path)", quiet=True)
+    path.add_argument("--to", required=True, metavar="FILE_OR_POSITIONS",
+                      help="end configuration: a trajectory .npz (its last positions) or "
+                      "'p1=[x,y,z]; p2=[x,y,z]' naming every particle")
+    path.add_argument("--time", required=True, type=float, metavar="T", help="duration T in seconds (> 0)")
+    path.add_argument("--nodes", type=int, default=200, metavar="K", help="time intervals (default 200)")
+    path.add_argument("--quadrature", choices=("midpoint", "trapezoid"), default="midpoint",
+                      help="discrete Lagrangian (default midpoint)")
+    path.add_argument("--max-iter", type=int, default=200, metavar="N", help="IPOPT iterations (default 200)")
+    path.add_argument("--minimize", action="store_true",
+                      help="minimize the action instead of solving for a stationary point near the "
+                      "straight path (finds minima only)")
 
 
 def _verb(verbs, name: str, help: str, description: str, example: str, *,
@@ -170,6 +261,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _statics(args)
         if args.verb == "derive":
             return _derive(args)
+        if args.verb == "sweep":
+            return _sweep(args)
+        if args.verb == "path":
+            return _path(args)
+        if args.verb == "plot":
+            return _plot(args)
         return _check(args)
     except InputError as exc:
         _say_error(str(exc))
@@ -218,7 +315,7 @@ def _run(args) -> int:
         dt=s["dt"],
         t_start=s["t_start"],
         t_eval=time_grid(s["t_start"], s["t_end"], output_dt=s["output_dt"], samples=s["samples"]),
-        outputs=set(quantities),
+        outputs=set(quantities) | expect_requirements(scene),
         max_initial_correction=s["max_initial_correction"],
     )
     if _takes_base(s["method"]):
@@ -227,7 +324,7 @@ def _run(args) -> int:
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"), _progress(args.quiet):
             trajectory = simulate(scene.system, s["t_end"], **kwargs)
     except SimulationError as exc:
         message = f"scene file {file}: {exc}"
@@ -249,10 +346,68 @@ def _run(args) -> int:
         atomic_write(path, lambda f: f.write(text.encode("utf-8")))
         written.append(path)
     if kinds and save_figures is not None:
-        written.extend(save_figures(trajectory, kinds, out_dir))
+        written.extend(save_figures(trajectory, kinds, out_dir, system=scene.system))
     if not args.quiet:
         _summary(scene, file, trajectory, written)
-    return 0
+    return _report_expectations(scene, trajectory, args.quiet)
+
+
+def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> int:
+    """Check the scene's [expect] section: one line per check; 1 when one fails, else 0."""
+    if not scene.expectations:
+        return 0
+    results = check_expectations(scene, trajectory)
+    failed = [r for r in results if not r.ok]
+    if not quiet:
+        print(f"expect: {len(results) - len(failed)} of {len(results)} checks pass")
+        for r in results:
+            print("  " + r.line)
+    elif failed:
+        for r in failed:
+            print(f"{PROG}: expect: {r.line}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+class _progress:
+    """An elapsed-time bar (tqdm, on stderr) for runs longer than ~2 s; off when quiet or not a TTY.
+
+    The solvers report no progress yet, so this shows that the run is alive and for how long,
+    not the fraction done.
+    """
+
+    DELAY = 2.0
+
+    def __init__(self, quiet: bool):
+        self.enabled = not quiet and sys.stderr.isatty()
+        self._stop = None
+
+    def __enter__(self):
+        if not self.enabled:
+            return self
+        import threading
+
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            return self
+        self._stop = threading.Event()
+        bar = tqdm(total=None, desc="simulating", delay=self.DELAY, file=sys.stderr, leave=False,
+                   bar_format="{desc}: {elapsed} elapsed")
+
+        def tick():
+            while not self._stop.wait(0.25):
+                bar.refresh()
+            bar.close()
+
+        self._thread = threading.Thread(target=tick, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self._stop is not None:
+            self._stop.set()
+            self._thread.join()
+        return False
 
 
 def _takes_base(method: str) -> bool:
@@ -645,6 +800,123 @@ def _bench(args) -> int:
         print(result.markdown())
         print("wrote: " + ", ".join(str(p) for p in written))
     return 0
+
+
+# --- sweep -----------------------------------------------------------------------------------
+
+
+def _sweep(args) -> int:
+    """Parameter sweep / ensemble: DIR/summary.csv (.parquet), DIR/runs/, DIR/sweep.png."""
+    from .sweep import sweep
+
+    result = sweep(args.scene, args.vary, samples=args.samples, seed=args.seed, scheduler=args.scheduler,
+                   out_dir=args.out, overrides=args.overrides, summary=args.summary,
+                   save_trajectories=args.trajectories, progress=not args.quiet, limit=args.limit,
+                   workers=args.workers, plot=args.plot, boundary=args.boundary)
+    if result.failed:
+        _say(f"{PROG}: warning: {result.failed} of {len(result.rows)} runs failed (their errors are in "
+             f"the status column)", always=True)
+    if not args.quiet:
+        print(f"sweep: {result.total} runs ({result.computed} computed, {result.skipped} already done, "
+              f"{result.failed} failed) on {result.workers} worker(s) in {result.wall_time_s:.1f} s")
+        if not result.complete:
+            print(f"{result.total - len(result.rows)} runs still missing: run the same command again")
+        print("wrote: " + ", ".join(str(p) for p in result.paths))
+    return 0
+
+
+# --- path ------------------------------------------------------------------------------------
+
+
+def _path(args) -> int:
+    """Stationary path from the scene's positions to --to in --time: DIR/path.npz, path.png."""
+    from .action import end_configuration, save_path_figure, stationary_path
+
+    scene = load_scene(args.scene, args.overrides)
+    file = args.scene
+    if not math.isfinite(args.time) or args.time <= 0:
+        raise InputError(f"path {file}: --time must be a positive number of seconds, got {args.time:g}")
+    if args.nodes < 2:
+        raise InputError(f"path {file}: --nodes must be at least 2, got {args.nodes}")
+    if args.max_iter < 1:
+        raise InputError(f"path {file}: --max-iter must be at least 1, got {args.max_iter}")
+    out_dir = Path(args.out) if args.out else Path("out") / f"{Path(file).stem}_path"
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} exists and is not a directory")
+    t0 = scene.settings["t_start"]
+    try:
+        x_end = end_configuration(args.to, scene.system)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            result = stationary_path(scene.system, scene.system.positions, x_end, args.time,
+                                     nodes=args.nodes, quadrature=args.quadrature, t0=t0,
+                                     method="minimize" if args.minimize else "stationary",
+                                     max_iter=args.max_iter)
+    except SimulationError as exc:
+        message = f"scene file {file}: {exc}"
+        if exc.trajectory is not None:
+            saved = exc.trajectory.save(out_dir / "path.npz")
+            message += f"; the last iterate is saved in {saved}"
+            if getattr(exc, "path", None) is not None:
+                try:
+                    save_path_figure(exc.path, out_dir / "path.png")
+                except ImportError:
+                    pass
+        _say_error(message)
+        return 1
+    except InputError as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise _scene_error(exc, file) from None
+    written = [result.trajectory.save(out_dir / "path.npz")]
+    try:
+        written.append(save_path_figure(result, out_dir / "path.png"))
+    except ImportError as exc:
+        _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    if not args.quiet:
+        print(f"scene: {scene.name} ({file}), from the scene's positions at t = {t0:g} s to --to at "
+              f"t = {t0 + args.time:g} s")
+        print(result.summary())
+        print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
+
+
+# --- plot ------------------------------------------------------------------------------------
+
+
+def _plot(args) -> int:
+    """Figures of a saved trajectory: DIR/<kind>.png and DIR/animation.gif."""
+    from .plot import FIGURES, KINDS, save_figures
+
+    results = Path(args.results)
+    if results.is_dir():
+        results = results / "trajectory.npz"
+    if not results.exists():
+        raise InputError(f"plot: no such file {results} (give a trajectory.npz written by 'run')")
+    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(FIGURES)
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise InputError(f"plot: unknown kind(s) {', '.join(unknown)} (known: {', '.join(KINDS)})")
+    try:
+        trajectory = Trajectory.load(results)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"plot: cannot read {results} as a trajectory ({exc})") from None
+    system = load_scene(args.scene).system if args.scene else None
+    out_dir = Path(args.out) if args.out else results.parent
+    written, skipped = [], []
+    for kind in kinds:
+        try:
+            written.extend(save_figures(trajectory, [kind], out_dir, system=system))
+        except InputError as exc:
+            if args.kinds:  # asked for by name: say why not
+                skipped.append(f"{kind} ({exc})")
+            else:
+                skipped.append(kind)
+    if not args.quiet:
+        if written:
+            print("wrote: " + ", ".join(str(p) for p in written))
+        if skipped:
+            print("skipped (data not in the file): " + "; ".join(skipped))
+    return 0 if written or not args.kinds else 1
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Figures of a Trajectory: paths, energy drift, residuals, constraint forces, multipliers, phase.
+"""Figures of a Trajectory: paths, energy drift, residuals, constraint forces, multipliers, phase,
+and an animation (GIF through matplotlib's PillowWriter; also MP4 when ffmpeg is on PATH).
 
 Every ``*_figure`` function returns a :class:`matplotlib.figure.Figure` drawn on an Agg canvas;
 pyplot and its global state are never touched, so this works headless and in threads.
@@ -7,6 +8,9 @@ pyplot and its global state are never touched, so this works headless and in thr
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -55,6 +59,8 @@ def _legend(ax, handles: list, labels: list[str], **kwargs) -> None:
         more = len(handles) - MAX_LEGEND
         handles = [*handles[:MAX_LEGEND], Line2D([], [], linestyle="none")]
         labels = [*labels[:MAX_LEGEND], f"… ({more} more)"]
+    if len(handles) > 4:  # many entries would hide the curves: put the legend outside
+        kwargs = {**kwargs, "loc": "upper left", "bbox_to_anchor": (1.01, 1.0)}
     ax.legend(handles, labels, fontsize="small", **kwargs)
 
 
@@ -166,7 +172,12 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         finite = x.reshape(-1, 3)[np.all(np.isfinite(x.reshape(-1, 3)), axis=1)]
         if len(finite):
             span = np.ptp(finite, axis=0)
-            ax.set_box_aspect(np.maximum(span, 0.05 * max(span.max(), 1e-12)))
+            # a thin axis keeps a readable depth (its ticks would collide otherwise)
+            ax.set_box_aspect(np.maximum(span, 0.25 * max(span.max(), 1e-12)))
+        from matplotlib.ticker import MaxNLocator
+
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            axis.set_major_locator(MaxNLocator(5))
         ax.set_title("Particle paths (3D)", fontsize="medium")
     markers = [
         Line2D([], [], marker="o", color="0.3", mfc="white", mew=1.8, linestyle="none"),
@@ -202,7 +213,7 @@ def energy_figure(traj: Trajectory) -> Figure:
     ax.set_ylabel("E(t) − E(0) [J]")
     finite = drift[np.isfinite(drift)]
     worst = float(np.max(np.abs(finite))) if len(finite) else float("nan")
-    rel = f", {worst / abs(e0):.2e} of |E(0)|" if e0 != 0 and np.isfinite(e0) else ""
+    rel = f" (relative {worst / abs(e0):.2e})" if e0 != 0 and np.isfinite(e0) else ""
     ax.set_title(
         f"Energy drift (E(0) = {e0:.6g} J)\nmax |E − E(0)| = {worst:.3g} J{rel}",
         fontsize="medium",
@@ -250,11 +261,16 @@ def residual_figure(traj: Trajectory) -> Figure:
         _time_axis(ax)
         ax.set_ylabel(ylabel)
         finite = value[np.isfinite(value)]
-        worst = f"max {finite.max():.2e}" if len(finite) else "no finite values"
+        if not len(finite):
+            worst = "no finite values"
+        elif finite.max() == 0:
+            worst = "identically zero"
+        else:
+            worst = f"max {finite.max():.2e}"
         ax.set_title(f"{title} ({worst})", fontsize="medium")
         if zeros:
             ax.text(
-                0.99, 0.03, f"{zeros} exact zero(s) drawn at {floor:.0e}",
+                0.99, 0.03, f"{zeros} exact zero{'s' if zeros > 1 else ''} drawn at {floor:.0e}",
                 transform=ax.transAxes, ha="right", va="bottom", fontsize="x-small", color="0.4",
             )
     return fig
@@ -273,6 +289,7 @@ def constraint_forces_figure(traj: Trajectory) -> Figure:
     ]
     _time_axis(ax)
     ax.set_ylabel("|F$_{con}$| [N]")
+    ax.set_ylim(bottom=0.0)
     ax.set_title("Constraint force on each particle", fontsize="medium")
     _legend(ax, handles, names, loc="best")
     return fig
@@ -290,7 +307,8 @@ def multipliers_figure(traj: Trajectory) -> Figure:
     ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
     _time_axis(ax)
     ax.set_ylabel("λ [N] (for constraints f in m)")
-    ax.set_title(f"Lagrange multipliers ({lam.shape[1]} constraint rows)", fontsize="medium")
+    rows = f"{lam.shape[1]} constraint row{'s' if lam.shape[1] != 1 else ''}"
+    ax.set_title(f"Lagrange multipliers ({rows})", fontsize="medium")
     _legend(ax, handles, labels, loc="best")
     return fig
 
@@ -328,12 +346,182 @@ def phase_figure(traj: Trajectory) -> Figure:
     ax.set_xlabel("s [m]")
     ax.set_ylabel("ds/dt [m/s]")
     ax.set_title(
-        "Phase portrait\ns = principal coordinate (first PCA direction of all positions, "
-        f"{100 * share:.1f}% of variance)",
+        "Phase portrait\ns = principal coordinate (positions projected on their first\n"
+        f"principal direction, which carries {100 * share:.1f}% of the position variance)"
+        + ("\ncaution: the motion is not well described by a single coordinate"
+           if share < 0.9 else ""),
         fontsize="medium",
     )
     ax.legend(fontsize="small", loc="best")
     return fig
+
+
+# ------------------------------------------------------------------------------- animation
+
+#: Most frames an animation gets (the trajectory is resampled uniformly in time).
+MAX_FRAMES = 120
+
+
+def _links(system, names: list[str]) -> tuple[list[tuple[int, int]], list[tuple[int, np.ndarray]]]:
+    """Rods to draw: (i, j) pairs of particle-particle distances and (i, point) fixed anchors."""
+    pairs, anchors = [], []
+    if system is None:
+        return pairs, anchors
+    index = {n: k for k, n in enumerate(names)}
+    for c in getattr(system, "constraints", ()):
+        a, b, point = getattr(c, "a", None), getattr(c, "b", None), getattr(c, "point", None)
+        if type(c).__name__ not in ("Distance", "Pin") or a not in index:
+            continue
+        if b in index:
+            pairs.append((index[a], index[b]))
+        elif point is not None and type(c).__name__ == "Distance":
+            try:
+                anchors.append((index[a], np.asarray([float(v) for v in point])))
+            except (TypeError, ValueError):  # a moving anchor (formula of t): not drawn
+                pass
+    return pairs, anchors
+
+
+def _resample(t: np.ndarray, data: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (T, ...) samples at ``times``."""
+    flat = data.reshape(len(t), -1)
+    out = np.stack([np.interp(times, t, flat[:, k]) for k in range(flat.shape[1])], axis=1)
+    return out.reshape((len(times), *data.shape[1:]))
+
+
+def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_frames: int = MAX_FRAMES):
+    """``(fig, FuncAnimation)``: particles, their trails, rods (when ``system`` is given) and
+    constraint-force arrows (when ``forces`` and the trajectory has them), in 2D for planar
+    motion, else 3D. Frames are uniform in time, at most ``max_frames``."""
+    from matplotlib.animation import FuncAnimation
+
+    t = np.asarray(traj.t, dtype=float)
+    names = _names(traj)
+    n_frames = int(max(2, min(max_frames, len(t))))
+    times = np.linspace(t[0], t[-1], n_frames)
+    x = _resample(t, np.asarray(traj.x, dtype=float), times)
+    f = None
+    if forces and traj.constraint_forces is not None:
+        f = _resample(t, np.asarray(traj.constraint_forces, dtype=float), times)
+    pairs, anchors = _links(system, names)
+    plane = motion_plane(np.asarray(traj.x, dtype=float))
+    # a fixed layout: the constrained-layout engine would re-run on every frame
+    fig = Figure(figsize=(5.0, 4.8))
+    FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.14, right=0.96, bottom=0.11, top=0.92)
+    if plane is not None:
+        origin, basis, (a, b) = plane
+        shift = np.zeros(3) if a != "u" else origin
+        project = lambda p: (np.asarray(p) - shift) @ basis.T  # noqa: E731
+        ax = fig.add_subplot()
+        ax.set_xlabel(f"{a} [m]")
+        ax.set_ylabel(f"{b} [m]")
+        ax.set_aspect("equal", adjustable="box")
+        dim = 2
+    else:
+        project = np.asarray
+        ax = fig.add_subplot(projection="3d")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        dim = 3
+    q = project(x)  # (F, N, dim)
+    pts = q.reshape(-1, dim)
+    anchor_q = [project(p) for _, p in anchors]
+    if anchor_q:
+        pts = np.vstack([pts, *anchor_q])
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    size = float(max(np.max(hi - lo), 1e-9))
+    pad = 0.12 * size
+    scale = 0.0
+    if f is not None:
+        fq = f @ basis.T if dim == 2 else f  # forces are directions: no shift
+        biggest = float(np.max(np.linalg.norm(fq, axis=-1))) if fq.size else 0.0
+        scale = 0.25 * size / biggest if biggest > 0 else 0.0
+    limits = [(lo[k] - pad, hi[k] + pad) for k in range(dim)]
+    ax.set_xlim(*limits[0])
+    ax.set_ylim(*limits[1])
+    if dim == 3:
+        ax.set_zlim(*limits[2])
+        ax.set_box_aspect([max(h - l_, 0.05 * size) for l_, h in limits])
+    else:
+        ax.grid(True, alpha=0.3)
+    trail_len = max(1, n_frames // 4)
+    trails, dots = [], []
+    for i in range(len(names)):
+        (trail,) = ax.plot(*([[]] * dim), color=_colour(i), lw=1.0, alpha=0.5)
+        (dot,) = ax.plot(*([[]] * dim), "o", color=_colour(i), ms=8, label=names[i])
+        trails.append(trail)
+        dots.append(dot)
+    rods = [ax.plot(*([[]] * dim), color="0.25", lw=2.0)[0] for _ in pairs + anchors]
+    for p in anchor_q:
+        ax.plot(*[[c] for c in p], "k^", ms=8)
+    arrows = []
+    title = ax.set_title("", fontsize="medium")
+    handles = list(dots)
+    labels = list(names)
+    if scale:
+        handles.append(Line2D([], [], color="C3", lw=2))
+        labels.append(f"constraint force (arrow 1 m = {1 / scale:.3g} N)")
+    _legend(ax, handles, labels, loc="upper right")
+
+    def set_line(line, pts_):
+        pts_ = np.asarray(pts_).reshape(-1, dim)
+        if dim == 2:
+            line.set_data(pts_[:, 0], pts_[:, 1])
+        else:
+            line.set_data_3d(pts_[:, 0], pts_[:, 1], pts_[:, 2])
+
+    def draw(k: int):
+        for a_ in arrows:
+            a_.remove()
+        arrows.clear()
+        for i in range(len(names)):
+            set_line(trails[i], q[max(0, k - trail_len) : k + 1, i])
+            set_line(dots[i], q[k, i])
+        for rod, (i, j) in zip(rods, pairs, strict=False):
+            set_line(rod, np.stack([q[k, i], q[k, j]]))
+        for rod, (i, _), p in zip(rods[len(pairs):], anchors, anchor_q, strict=True):
+            set_line(rod, np.stack([p, q[k, i]]))
+        if scale:
+            vec = (f[k] @ basis.T if dim == 2 else f[k]) * scale
+            if dim == 2:
+                arrows.append(ax.quiver(q[k, :, 0], q[k, :, 1], vec[:, 0], vec[:, 1], color="C3",
+                                        angles="xy", scale_units="xy", scale=1, width=0.006))
+            else:
+                arrows.append(ax.quiver(q[k, :, 0], q[k, :, 1], q[k, :, 2], vec[:, 0], vec[:, 1],
+                                        vec[:, 2], color="C3"))
+        title.set_text(f"t = {times[k]:.3f} s")
+        return [*trails, *dots, *rods, *arrows, title]
+
+    anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
+    return fig, anim
+
+
+def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, fps: int = 15,
+                   dpi: int = 72, max_frames: int = MAX_FRAMES) -> list[Path]:
+    """Write ``path`` (GIF, pillow) and, when ffmpeg is on PATH, the same as ``.mp4``."""
+    from matplotlib.animation import FFMpegWriter, PillowWriter
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, anim = animation_figure(traj, system=system, forces=forces, max_frames=max_frames)
+    targets = [(path, PillowWriter(fps=fps))]
+    if shutil.which("ffmpeg"):
+        targets.append((path.with_suffix(".mp4"), FFMpegWriter(fps=fps)))
+    written = []
+    for target, writer in targets:
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
+        os.close(fd)
+        try:
+            anim.save(tmp, writer=writer, dpi=dpi)
+            os.replace(tmp, target)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        written.append(target)
+    return written
 
 
 # --------------------------------------------------------------------------------- saving
@@ -346,22 +534,31 @@ FIGURES: dict[str, Callable[[Trajectory], Figure]] = {
     "multipliers": multipliers_figure,
     "phase": phase_figure,
 }
+#: Every kind ``save_figures`` knows: the PNG figures and the animation (animation.gif).
+KINDS = (*FIGURES, "animation")
 
 
 def save_figures(
-    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120
+    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120, system=None
 ) -> list[Path]:
-    """Write ``out_dir/<kind>.png`` for each kind (atomically) and return the paths."""
+    """Write ``out_dir/<kind>.png`` for each kind (atomically) and return the paths.
+
+    The kind ``"animation"`` writes ``out_dir/animation.gif`` (and ``.mp4`` with ffmpeg); rods
+    are drawn when ``system`` (the scene's System) is given.
+    """
     kinds = [kinds] if isinstance(kinds, str) else list(kinds)
-    unknown = [k for k in kinds if k not in FIGURES]
+    unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         raise InputError(
             f"unknown figure kind(s) {', '.join(map(repr, unknown))}; "
-            f"allowed: {', '.join(FIGURES)}"
+            f"allowed: {', '.join(KINDS)}"
         )
     out_dir = Path(out_dir)
     paths = []
     for kind in kinds:
+        if kind == "animation":
+            paths.extend(save_animation(traj, out_dir / "animation.gif", system=system))
+            continue
         fig = FIGURES[kind](traj)
         path = out_dir / f"{kind}.png"
         atomic_write(path, lambda f, fig=fig: fig.savefig(f, format="png", dpi=dpi))

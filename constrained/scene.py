@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from . import expressions
 from .constraints import CONSTRAINT_TYPES
 from .effects import EFFECT_TYPES
@@ -40,6 +42,10 @@ __all__ = [
     "OUTPUT_QUANTITIES",
     "OUTPUT_PLOTS",
     "OUTPUT_FORMATS",
+    "EXPECT_KEYS",
+    "ExpectResult",
+    "check_expectations",
+    "expect_requirements",
 ]
 
 TOP_LEVEL_TABLES = (
@@ -83,6 +89,7 @@ OUTPUT_PLOTS = (
     "constraint_forces",
     "multipliers",
     "phase",
+    "animation",
 )
 OUTPUT_FORMATS = ("npz", "csv")
 OUTPUT_DEFAULTS: dict[str, list[str]] = {
@@ -90,6 +97,21 @@ OUTPUT_DEFAULTS: dict[str, list[str]] = {
     "plots": [],
     "formats": ["npz"],
 }
+
+#: Keys of the [expect] table (see docs/scene-format.md, "[expect]").
+EXPECT_KEYS = (
+    "energy_drift",
+    "constraint_residual",
+    "velocity_residual",
+    "final",
+    "closed_form",
+    "bounds",
+    "reaches",
+    "conserved",
+    "period",
+)
+# Keys of one [expect.conserved.NAME] entry.
+_CONSERVED_KEYS = ("axis", "point", "translation", "tol")
 
 # Scene keys of each constraint / effect type: (required, optional), besides type and name.
 CONSTRAINT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
@@ -147,6 +169,7 @@ class Scene:
     raw: dict
     expect: dict | None = None
     description: str = ""
+    expectations: list | None = None
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {self.system!r})"
@@ -531,6 +554,7 @@ class _Builder:
         outputs = self.outputs()
         reduced = self.reduced(parameters)
         expect = self.raw.get("expect")
+        expectations = None if expect is None else self.expect_section(expect, system)
         return Scene(
             path=self.path,
             name=name,
@@ -541,7 +565,82 @@ class _Builder:
             raw=self.raw,
             expect=None if expect is None else copy.deepcopy(expect),
             description=description,
+            expectations=expectations,
         )
+
+    def expect_section(self, table: dict, system: System) -> list[dict]:
+        """Validate [expect]; returns one normalized check per entry (formulas parsed once here)."""
+        self.keys(table, "expect", EXPECT_KEYS, what="[expect]")
+        s = Symbols(system)
+        out: list[dict] = []
+
+        def formula(text, key: str):
+            if _is_number(text):
+                return self.number(text, key)
+            if not isinstance(text, str) or not text.strip():
+                self.fail(key, f"must be a number or a formula string, got {_describe(text)}")
+            try:
+                s.parse(text, key, velocities=True, extra=_force_names(s))
+            except InputError as exc:
+                self.fail(key, exc.reason)
+            return text
+
+        def tolerance(value, key: str) -> float:
+            tol = self.number(value, key, "a tolerance (a number >= 0)")
+            if tol < 0:
+                self.fail(key, f"must be a tolerance >= 0, got {value!r}")
+            return tol
+
+        def pairs(name: str, what: str):
+            sub = self.table(table[name], f"expect.{name}", f"a table formula -> {what}")
+            for lhs, value in sub.items():
+                key = _join(f"expect.{name}", lhs)
+                formula(lhs, key)
+                if not isinstance(value, list) or len(value) != 2:
+                    got = f"{len(value)} entries" if isinstance(value, list) else _describe(value)
+                    self.fail(key, f"must be a list {what}, got {got}")
+                yield lhs, value, key
+
+        for name in EXPECT_KEYS:
+            if name not in table:
+                continue
+            key = f"expect.{name}"
+            if name in ("energy_drift", "constraint_residual", "velocity_residual"):
+                out.append({"kind": name, "key": key, "tol": tolerance(table[name], key)})
+            elif name in ("final", "closed_form", "period"):
+                for lhs, (value, tol), k in pairs(name, "[value or formula, tolerance]"):
+                    out.append({"kind": name, "key": k, "lhs": lhs, "rhs": formula(value, _join(k, 0)),
+                                "tol": tolerance(tol, _join(k, 1))})
+            elif name in ("bounds", "reaches"):
+                for lhs, (lo, hi), k in pairs(name, "[lowest, highest]"):
+                    lo_, hi_ = (self.number(v, _join(k, i)) if not (_is_number(v) and math.isinf(v))
+                                else float(v) for i, v in enumerate((lo, hi)))
+                    if lo_ > hi_:
+                        self.fail(k, f"lowest ({lo_:g}) is above highest ({hi_:g})")
+                    out.append({"kind": name, "key": k, "lhs": lhs, "lo": lo_, "hi": hi_})
+            else:  # conserved
+                sub = self.table(table[name], key, "a table name -> {axis, point, translation, tol}")
+                for label, entry in sub.items():
+                    k = _join(key, label)
+                    self.table(entry, k, "a table {axis = [..], point = [..], tol = ..} or "
+                               "{translation = [..], tol = ..}")
+                    self.keys(entry, k, _CONSERVED_KEYS, ("tol",), what="a conserved quantity")
+                    if "axis" not in entry and "translation" not in entry:
+                        self.fail(k, "give 'axis' (and optionally 'point') for a rotation, or "
+                                  "'translation', the symmetry whose Noether charge is conserved")
+                    if "point" in entry and "axis" not in entry:
+                        self.fail(_join(k, "point"), "'point' needs 'axis' (the rotation axis)")
+                    vec = {v: self.numbers3(entry[v], _join(k, v)) for v in ("axis", "point", "translation")
+                           if v in entry}
+                    for v in ("axis", "translation"):
+                        if v in vec and not any(vec[v]):
+                            self.fail(_join(k, v), "must not be the zero vector")
+                    out.append({"kind": name, "key": k, "label": label,
+                                "rotation": (vec["axis"], vec.get("point", [0.0, 0.0, 0.0]))
+                                if "axis" in vec else None,
+                                "translation": vec.get("translation"),
+                                "tol": tolerance(entry["tol"], _join(k, "tol"))})
+        return out
 
     def scene_section(self) -> tuple[str, str]:
         table = self.raw.get("scene", {})
@@ -848,3 +947,186 @@ class _Builder:
             "rates": rates,
             "map": {p: out_map[p] for p in self.names},
         }
+
+
+# --- [expect]: checks of a finished run ----------------------------------------------------
+
+
+@dataclass
+class ExpectResult:
+    """One [expect] check of a run: ``ok``, the ``value`` found, the ``tolerance``, a ``line``."""
+
+    key: str
+    ok: bool
+    value: float
+    tolerance: float
+    line: str
+
+
+_NEEDS = {
+    "energy_drift": "energy",
+    "constraint_residual": "constraint_residual",
+    "velocity_residual": "velocity_residual",
+}
+
+
+def _force_names(symbols: Symbols) -> dict:
+    """``Fx_NAME, Fy_NAME, Fz_NAME``: constraint-force components, usable in [expect] formulas."""
+    if not hasattr(symbols, "_expect_forces"):
+        import casadi as ca
+
+        symbols._expect_forces = ca.SX.sym("Fc", symbols.x.numel())
+        symbols._expect_force_names = {
+            f"F{axis}_{p.name}": symbols._expect_forces[3 * i + k]
+            for i, p in enumerate(symbols.system.particles)
+            for k, axis in enumerate("xyz")
+        }
+    return symbols._expect_force_names
+
+
+def _uses_forces(text) -> bool:
+    return isinstance(text, str) and any(re.fullmatch(r"F[xyz]_\w+", n) for n in expressions.free_names(text))
+
+
+def expect_requirements(scene: Scene) -> set[str]:
+    """Trajectory quantities the scene's [expect] checks need (besides t, x, v)."""
+    need = {_NEEDS[c["kind"]] for c in scene.expectations or () if c["kind"] in _NEEDS}
+    if any(_uses_forces(c.get(k)) for c in scene.expectations or () for k in ("lhs", "rhs")):
+        need.add("constraint_forces")
+    return need
+
+
+def _series(symbols: Symbols, text, traj, where: str) -> np.ndarray:
+    """A formula in x_NAME, vx_NAME, Fx_NAME, ..., t and parameters, at every sample of ``traj``."""
+    import casadi as ca
+
+    forces = _force_names(symbols)
+    expr = ca.SX(symbols.parse(text, where, velocities=True, extra=forces))
+    fun = ca.Function("expect", [symbols.x, symbols.v, symbols.t, symbols._expect_forces], [expr])
+    n = len(traj.t)
+    x = np.asarray(traj.x, float).reshape(n, -1).T
+    v = np.asarray(traj.v, float).reshape(n, -1).T
+    if _uses_forces(text):
+        if traj.constraint_forces is None:
+            raise InputError("uses constraint forces (F..._NAME) but the run has none", where=where)
+        fc = np.asarray(traj.constraint_forces, float).reshape(n, -1).T
+    else:
+        fc = np.zeros_like(x)
+    return np.asarray(fun.map(n)(x, v, np.asarray(traj.t, float)[None, :], fc)).ravel()
+
+
+def _drift(values: np.ndarray) -> tuple[float, str]:
+    """max |Q − Q0| / |Q0| (absolute when Q0 = 0) and the words for it."""
+    q0 = float(values[0])
+    worst = float(np.max(np.abs(values - q0)))
+    if q0 != 0.0:
+        return worst / abs(q0), "relative"
+    return worst, "absolute, initial value 0"
+
+
+def _period(t: np.ndarray, y: np.ndarray) -> float | None:
+    """Mean time between upward crossings of the mid-level (max + min)/2; None if < 2."""
+    mid = 0.5 * (float(np.max(y)) + float(np.min(y)))
+    d = y - mid
+    k = np.nonzero((d[:-1] < 0) & (d[1:] >= 0))[0]
+    if len(k) < 2:
+        return None
+    crossings = t[k] - d[k] * (t[k + 1] - t[k]) / (d[k + 1] - d[k])
+    return float(np.mean(np.diff(crossings)))
+
+
+def check_expectations(scene: Scene, trajectory, model=None) -> list[ExpectResult]:
+    """Evaluate the scene's [expect] checks on a finished ``trajectory``; one result each.
+
+    A check whose data is missing (e.g. no energy in the trajectory) fails with a message.
+    """
+    if not scene.expectations:
+        return []
+    symbols = Symbols(scene.system)
+    tr = trajectory
+    t = np.asarray(tr.t, float)
+    out = []
+
+    def result(c, ok, value, tol, text):
+        verdict = "PASS" if ok else "FAIL"
+        line = f"{verdict} {c['key']}: {text}"
+        out.append(ExpectResult(c["key"], bool(ok), float(value), float(tol), line))
+
+    for c in scene.expectations:
+        try:
+            _check_one(c, symbols, tr, t, model, result)
+        except InputError as exc:
+            result(c, False, math.nan, c.get("tol", 0.0), f"cannot be evaluated: {exc.reason}")
+    return out
+
+
+def _check_one(c, symbols, tr, t, model, result) -> None:
+    """Evaluate one normalized [expect] check and report it through ``result``."""
+    from .symmetry import noether_charge
+
+    kind, tol = c["kind"], c.get("tol", 0.0)
+    if kind in _NEEDS:
+        data = getattr(tr, _NEEDS[kind], None)
+        if data is None or not len(data):
+            result(c, False, math.nan, tol, f"the run has no {_NEEDS[kind]}")
+            return
+        data = np.asarray(data, float)
+        if kind == "energy_drift":
+            value, how = _drift(data)
+            ratio = " / |E0|" if data[0] != 0 else ""
+            text = f"max |E - E0|{ratio} = {value:.3g} ({how}; E0 = {data[0]:.6g} J)"
+        else:
+            value = float(np.max(np.abs(data)))
+            text = f"max = {value:.3g}"
+        result(c, value <= tol, value, tol, f"{text}, tolerance {tol:g}")
+    elif kind in ("final", "closed_form", "period"):
+        lhs = _series(symbols, c["lhs"], tr, c["key"])
+        rhs = _series(symbols, c["rhs"], tr, _join(c["key"], 0))
+        if kind == "final":
+            value = abs(lhs[-1] - rhs[-1])
+            text = (f"at t = {t[-1]:.6g} s {c['lhs']} = {lhs[-1]:.10g}, expected {rhs[-1]:.10g}, "
+                    f"|difference| = {value:.3g}")
+        elif kind == "closed_form":
+            diff = np.abs(lhs - rhs)
+            value = float(np.max(diff))
+            text = (f"max |{c['lhs']} - ({c['rhs']})| over {len(t)} samples = {value:.3g} "
+                    f"(at t = {t[int(np.argmax(diff))]:.4g} s)")
+        else:
+            found = _period(t, lhs)
+            if found is None:
+                result(c, False, math.nan, tol, f"{c['lhs']} crosses its mid-level fewer than twice "
+                       f"upward in t = {t[0]:g} .. {t[-1]:g} s: no period measured (run longer)")
+                return
+            value = abs(found - rhs[0])
+            text = (f"period of {c['lhs']} = {found:.8g} s, expected {rhs[0]:.8g} s, "
+                    f"|difference| = {value:.3g}")
+        result(c, value <= tol, value, tol, f"{text}, tolerance {tol:g}")
+    elif kind in ("bounds", "reaches"):
+        y = _series(symbols, c["lhs"], tr, c["key"])
+        lo, hi = c["lo"], c["hi"]
+        inside = (y >= lo) & (y <= hi)
+        span = f"[{lo:.10g}, {hi:.10g}]"
+        if kind == "bounds":
+            ok = bool(np.all(inside))
+            text = f"{c['lhs']} ranges over [{np.min(y):.6g}, {np.max(y):.6g}], required within {span}"
+            value = float(np.count_nonzero(~inside))
+        else:
+            ok = bool(np.any(inside))
+            first = f"first at t = {t[int(np.argmax(inside))]:.4g} s" if ok else "never"
+            text = (f"{c['lhs']} ranges over [{np.min(y):.6g}, {np.max(y):.6g}], must reach {span}: "
+                    f"{first}")
+            value = float(np.count_nonzero(inside))
+        result(c, ok, value, 0.0, text)
+    else:  # conserved
+        try:
+            q = noether_charge(model if model is not None else symbols.system, tr,
+                               translation=c["translation"], rotation=c["rotation"])
+        except InputError as exc:
+            result(c, False, math.nan, tol, f"cannot be computed: {exc}")
+            return
+        value, how = _drift(np.asarray(q, float))
+        what = (f"rotation about axis {tuple(c['rotation'][0])} through {tuple(c['rotation'][1])}"
+                if c["rotation"] is not None else f"translation along {tuple(c['translation'])}")
+        result(c, value <= tol, value, tol,
+               f"Noether charge of the {what}: Q0 = {q[0]:.8g}, "
+               f"max |Q - Q0|{' / |Q0|' if q[0] != 0 else ''} = {value:.3g} ({how}), tolerance {tol:g}")

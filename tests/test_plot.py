@@ -207,3 +207,69 @@ def test_phase_portrait_of_the_pendulum():
     ax = phase_figure(traj).axes[0]
     assert ax.get_xlabel() == "s [m]" and ax.get_ylabel() == "ds/dt [m/s]"
     assert "principal coordinate" in ax.get_title()
+
+
+# --- animation and figures of a real run ----------------------------------------------------
+
+
+def _short(traj: Trajectory, n: int = 40) -> Trajectory:
+    """Every k-th sample, so that an animation test stays quick."""
+    k = max(1, len(traj.t) // n)
+    forces = None if traj.constraint_forces is None else traj.constraint_forces[::k]
+    return Trajectory(t=traj.t[::k], x=traj.x[::k], v=traj.v[::k], constraint_forces=forces,
+                      particle_names=traj.particle_names, constraint_labels=traj.constraint_labels)
+
+
+@pytest.mark.filterwarnings("ignore:Animation was deleted")
+@pytest.mark.parametrize("make", [pendulum, helix], ids=["planar", "3d"])
+def test_animation_is_a_gif_with_labelled_axes(tmp_path, make):
+    from constrained.plot import KINDS, animation_figure
+
+    assert "animation" in KINDS
+    traj = _short(make())
+    (path,) = [p for p in save_figures(traj, ["animation"], tmp_path) if p.suffix == ".gif"]
+    assert path.name == "animation.gif"
+    assert path.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    from PIL import Image
+
+    with Image.open(path) as im:
+        assert im.n_frames == len(traj.t)
+        frame = np.asarray(im.convert("L"))
+        assert frame.std() > 5  # not blank
+    fig, _ = animation_figure(traj, max_frames=10)
+    ax = fig.axes[0]
+    assert ax.get_xlabel().endswith("[m]") and ax.get_ylabel().endswith("[m]")
+
+
+@pytest.mark.filterwarnings("ignore:Animation was deleted")
+def test_every_kind_from_a_real_scene_run(tmp_path):
+    """Each figure kind, drawn from an actual `constrained run` of a small scene, is a labelled,
+    non-blank PNG (the animation a GIF), and `constrained plot` redraws them from the .npz."""
+    from pathlib import Path
+
+    from constrained.cli import main
+    from constrained.plot import KINDS
+
+    scene = Path(__file__).resolve().parent.parent / "scenarios" / "simple_pendulum.toml"
+    out = tmp_path / "run"
+    quantities = '["multipliers", "constraint_forces", "energy", "constraint_residual", "velocity_residual"]'
+    assert main(["run", str(scene), "--set", "simulate.t_end=1", "--set", "simulate.output_dt=0.05",
+                 "--set", f"outputs.quantities={quantities}", "--set", "outputs.plots=[]",
+                 "--set", "expect={}", "--quiet", "--out", str(out)]) == 0
+    traj = Trajectory.load(out / "trajectory.npz")
+    for kind in FIGURES:
+        fig = FIGURES[kind](traj)
+        _check_labels(fig)
+    figs = tmp_path / "figs"
+    assert main(["plot", str(out), "--out", str(figs), "--kinds", ",".join(KINDS), "--scene", str(scene),
+                 "--quiet"]) == 0
+    for kind in FIGURES:
+        _check_png(figs / f"{kind}.png")
+    assert (figs / "animation.gif").read_bytes()[:6] == b"GIF89a"
+
+
+def test_plot_verb_bad_input_exits_2(tmp_path, capsys):
+    from constrained.cli import main
+
+    assert main(["plot", str(tmp_path / "nothere.npz")]) == 2
+    assert "no such file" in capsys.readouterr().err

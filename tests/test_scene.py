@@ -101,7 +101,8 @@ def test_double_pendulum_scene_loads():
     assert scene.reduced["coordinates"] == ["th1", "th2"]
     assert scene.reduced["initial"] == {"th1": 2.0, "th2": 2.5}
     assert scene.reduced["map"]["p2"][1] == "-cos(th1) - cos(th2)"
-    assert scene.expect is None
+    assert scene.expect["energy_drift"] == 1e-8
+    assert [c["kind"] for c in scene.expectations] == ["energy_drift", "constraint_residual", "closed_form"]
 
 
 def test_defaults_of_a_minimal_scene(tmp_path):
@@ -366,3 +367,55 @@ def test_reduced_map_must_cover_every_particle(tmp_path):
 def test_bad_set_key(tmp_path, override, key, fragment):
     path = write(tmp_path, BASE)
     expect_error(path, key, fragment, overrides=[override])
+
+
+# --- [expect] ---------------------------------------------------------------------------------
+
+EXPECT_BASE = """
+[[particles]]
+name = "p"
+mass = 1.0
+position = [1.0, 0.0, 0.0]
+
+[[constraints]]
+type = "distance"
+a = "p"
+point = [0.0, 0.0, 0.0]
+length = 1.0
+"""
+
+
+def test_expect_section_is_normalized(tmp_path):
+    text = EXPECT_BASE + """
+[expect]
+energy_drift = 1e-8
+closed_form = { "x_p" = ["cos(t)", 1e-6] }
+final = { "Fx_p" = [0, 1e-9] }
+bounds = { "z_p" = [-inf, 0.5] }
+conserved = { Lz = { axis = [0, 0, 1], tol = 1e-9 } }
+"""
+    scene = load_scene(write(tmp_path, text))
+    kinds = [c["kind"] for c in scene.expectations]
+    assert kinds == ["energy_drift", "final", "closed_form", "bounds", "conserved"]
+    assert scene.expectations[3]["lo"] == float("-inf")
+    assert scene.expectations[4]["rotation"] == ([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    "body, key, fragment",
+    [
+        ("energy_drfit = 1e-8", "expect.energy_drfit", "did you mean 'energy_drift'"),
+        ("energy_drift = -1", "expect.energy_drift", "tolerance >= 0"),
+        ('closed_form = { "x_q" = ["t", 1e-6] }', "expect.closed_form.x_q", "unknown name 'x_q'"),
+        ('closed_form = { "x_p" = ["t"] }', "expect.closed_form.x_p", "[value or formula, tolerance]"),
+        ('final = { "x_p" = ["__import__(1)", 1] }', "expect.final.x_p[0]", "not allowed"),
+        ('bounds = { "x_p" = [1, 0] }', "expect.bounds.x_p", "is above highest"),
+        ("conserved = { L = { tol = 1e-9 } }", "expect.conserved.L", "give 'axis'"),
+        ("conserved = { L = { axis = [0, 0, 1], tol = 1e-9, pivot = 1 } }", "expect.conserved.L.pivot",
+         "unknown key 'pivot'"),
+    ],
+)
+def test_bad_expect_names_file_and_key(tmp_path, body, key, fragment):
+    path = write(tmp_path, EXPECT_BASE + "\n[expect]\n" + body + "\n")
+    err = expect_error(path, key, fragment)
+    assert str(path) in str(err)
