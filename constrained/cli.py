@@ -317,9 +317,17 @@ def _run(args) -> int:
         t_eval=time_grid(s["t_start"], s["t_end"], output_dt=s["output_dt"], samples=s["samples"]),
         outputs=set(quantities) | expect_requirements(scene),
         max_initial_correction=s["max_initial_correction"],
+        compiled=s["compiled"],
     )
     if _takes_base(s["method"]):
         kwargs["base"] = s["base"]
+    if s["method"] == "reduced":
+        from .reduced import ReducedModel
+
+        try:
+            kwargs["reduced_model"] = ReducedModel.from_scene(scene)
+        except InputError as exc:
+            raise _scene_error(exc, file) from None
 
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;

@@ -71,6 +71,7 @@ SIMULATE_DEFAULTS: dict[str, Any] = {
     "samples": None,
     "base": "DOP853",
     "max_initial_correction": 1e-3,
+    "compiled": "auto",
 }
 
 OUTPUT_QUANTITIES = (
@@ -850,6 +851,11 @@ class _Builder:
         if mic < 0:
             self.fail(k + "max_initial_correction", f"must be zero or positive, got {mic!r}")
         s["max_initial_correction"] = mic
+        if s["compiled"] not in (True, False, "auto"):
+            self.fail(k + "compiled", f'must be true, false or "auto", got {_describe(s["compiled"])}')
+        if s["method"] == "reduced" and "reduced" not in self.raw:
+            self.fail(k + "method", "method 'reduced' needs the scene's [reduced] section "
+                      "(coordinates, initial, rates, map)")
         return s
 
     def method_and_base(self, method: str, base: str, base_given: bool) -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from constrained.cli import main, time_grid
+from constrained.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 DOUBLE_PENDULUM = ROOT / "scenarios" / "double_pendulum.toml"
@@ -277,3 +278,26 @@ def test_subprocess_unknown_verb_and_bad_set(tmp_path):
     proc = _subprocess("check", str(scene), "--set", "simulate.rtol", cwd=tmp_path)
     assert proc.returncode == 2
     assert_one_paragraph_error(proc.stderr, f"scene file {scene}", "key simulate.rtol:", "KEY=VALUE")
+
+
+def test_run_with_the_reduced_method_uses_the_scenes_map(tmp_path):
+    from conftest import SCENARIOS
+
+    out = tmp_path / "red"
+    code = main(["run", str(SCENARIOS / "double_pendulum.toml"), "--set", "simulate.method=reduced",
+                 "--set", "simulate.t_end=2", "--out", str(out), "--quiet"])
+    assert code == 0  # the scene's [expect] checks pass through the reduced route too
+    tr = Trajectory.load(out / "trajectory.npz")
+    assert np.max(tr.constraint_residual) <= 1e-12
+
+
+def test_reduced_method_without_a_map_and_bad_compiled_setting_are_refused(tmp_path, capsys):
+    from conftest import SCENARIOS
+
+    code = main(["run", str(SCENARIOS / "rigid_tetrahedron.toml"), "--set", "simulate.method=reduced",
+                 "--out", str(tmp_path / "a")])
+    assert code == 2 and "simulate.method" in capsys.readouterr().err
+    code = main(["run", str(SCENARIOS / "free_particle.toml"), "--set", "simulate.compiled=maybe",
+                 "--out", str(tmp_path / "b")])
+    assert code == 2 and "simulate.compiled" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
