@@ -11,11 +11,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import casadi as ca
+import numpy as np
 
 from .errors import InputError
 
 
 def _fmt(value) -> str:
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
     if isinstance(value, str):
         return value
     if isinstance(value, Sequence):

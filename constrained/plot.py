@@ -524,6 +524,23 @@ def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, 
     return written
 
 
+def action_figure(traj: Trajectory) -> Figure:
+    """The cumulative action S(t) = ∫ L dt along the run (L = T − V − U)."""
+    if traj.action is None:
+        raise InputError("this trajectory has no action: ask for the quantity 'action'")
+    fig = Figure(figsize=(7, 4))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot(traj.t, traj.action, color="C0")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("S(t) = ∫ L dt [J·s]")
+    ax.set_title(f"Action along the run: S(t_end) = {traj.action[-1]:.6g} J·s\n(L = T − V − U; "
+                 "damping and applied forces have no Lagrangian)", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
 # --------------------------------------------------------------------------------- saving
 
 FIGURES: dict[str, Callable[[Trajectory], Figure]] = {
@@ -533,6 +550,7 @@ FIGURES: dict[str, Callable[[Trajectory], Figure]] = {
     "constraint_forces": constraint_forces_figure,
     "multipliers": multipliers_figure,
     "phase": phase_figure,
+    "action": action_figure,
 }
 #: Every kind ``save_figures`` knows: the PNG figures and the animation (animation.gif).
 KINDS = (*FIGURES, "animation")

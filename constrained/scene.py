@@ -82,6 +82,7 @@ OUTPUT_QUANTITIES = (
     "energy",
     "constraint_residual",
     "velocity_residual",
+    "action",
 )
 OUTPUT_PLOTS = (
     "trajectory",
@@ -90,6 +91,7 @@ OUTPUT_PLOTS = (
     "constraint_forces",
     "multipliers",
     "phase",
+    "action",
     "animation",
 )
 OUTPUT_FORMATS = ("npz", "csv")

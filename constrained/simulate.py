@@ -190,6 +190,10 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
             traj.constraint_residual = np.max(np.abs(f), axis=0)
         else:
             traj.constraint_residual = np.zeros(n)
+    if "action" in wanted and n >= 2:
+        from .action import action
+
+        traj.action = action(model, traj).cumulative
     if "velocity_residual" in wanted:
         if model.n_constraints:
             Jcat, f_t = model.evaluate(model.velocity_terms, X, t)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import casadi as ca
+import numpy as np
 
 from . import expressions
 from .errors import ExpressionError, InputError
@@ -81,6 +82,8 @@ class Symbols:
 
     def point(self, entries: Sequence, where: str):
         """A 3-vector whose entries are numbers or formula strings of t."""
+        if isinstance(entries, np.ndarray):
+            entries = entries.tolist()
         if isinstance(entries, str) or not isinstance(entries, Sequence) or len(entries) != 3:
             raise InputError(
                 f"must be a list of 3 entries (numbers or formulas of t), got {entries!r}",

@@ -19,14 +19,16 @@ QUANTITIES = (
     "energy",
     "constraint_residual",
     "velocity_residual",
+    "action",
 )
 
 
 @dataclass
 class Trajectory:
     """One run. Shapes: t (T,), x and v (T, N, 3), multipliers (T, C),
-    constraint_forces (T, N, 3), energy / residuals (T,). Quantities a run was not asked
-    for are None. ``stats`` holds the solver's counters and wall time.
+    constraint_forces (T, N, 3), energy / residuals (T,), action (T,): the cumulative
+    S(t) = ∫ L dt in J·s. Quantities a run was not asked for are None. ``stats`` holds
+    the solver's counters and wall time.
     """
 
     t: np.ndarray
@@ -37,6 +39,7 @@ class Trajectory:
     energy: np.ndarray | None = None
     constraint_residual: np.ndarray | None = None
     velocity_residual: np.ndarray | None = None
+    action: np.ndarray | None = None
     particle_names: list[str] = field(default_factory=list)
     constraint_labels: list[str] = field(default_factory=list)
     stats: dict = field(default_factory=dict)

@@ -284,3 +284,22 @@ def test_bundled_double_pendulum_scene_over_its_full_run():
     # its 10-digit start projects to within 1e-10 of the exact angles (shared/reference)
     assert tr.info["initial_correction"]["position"] < 1e-9
     assert abs(tr.energy[0] - DP_ENERGY) < 1e-8
+
+
+def test_action_along_a_run_matches_the_closed_form_in_uniform_gravity(tmp_path):
+    m, g = 2.0, np.array([0.0, 0.0, -9.81])
+    x0, v0 = np.array([0.3, -0.2, 1.0]), np.array([1.0, 0.5, 4.0])
+    s = C.System()
+    s.add_particle("p", m, x0, v0)
+    s.add(C.Gravity(g))
+    t = np.linspace(0, 1.5, 31)
+    tr = C.simulate(s, 1.5, rtol=1e-12, atol=1e-12, t_eval=t, outputs={"action"})
+    # L = ½ m |v0 + g t|² + m g·(x0 + v0 t + ½ g t²), integrated exactly
+    gg, gv, vv, gx = g @ g, g @ v0, v0 @ v0, g @ x0
+    S = 0.5 * m * (vv * t + gv * t**2 + gg * t**3 / 3) + m * (gx * t + gv * t**2 / 2 + gg * t**3 / 6)
+    np.testing.assert_allclose(tr.action, S, rtol=1e-9, atol=1e-12)
+    assert tr.multipliers is None  # only what was asked for
+    from constrained.plot import save_figures
+
+    (png,) = save_figures(tr, ["action"], tmp_path)
+    assert png.read_bytes()[:4] == b"\x89PNG"

@@ -49,6 +49,7 @@ def pendulum() -> Trajectory:
         energy=energy,
         constraint_residual=residual,
         velocity_residual=vresidual,
+        action=np.cumsum(np.gradient(t) * (0.5 * np.sum(v**2, axis=(1, 2)) - 9.81 * x[:, 0, 1])),
         particle_names=["bob"],
         constraint_labels=["rod: |bob − (0, 0, 0)| = 1"],
     )
@@ -75,6 +76,7 @@ def helix() -> Trajectory:
         energy=np.full_like(t, 2.0) + 1e-9 * t,
         constraint_residual=np.zeros_like(t),
         velocity_residual=np.full_like(t, 1e-13),
+        action=0.5 * t**2,
         particle_names=["a", "b"],
         constraint_labels=[f"row {k}" for k in range(n_rows)],
     )
@@ -252,7 +254,8 @@ def test_every_kind_from_a_real_scene_run(tmp_path):
 
     scene = Path(__file__).resolve().parent.parent / "scenarios" / "simple_pendulum.toml"
     out = tmp_path / "run"
-    quantities = '["multipliers", "constraint_forces", "energy", "constraint_residual", "velocity_residual"]'
+    quantities = ('["multipliers", "constraint_forces", "energy", "constraint_residual", '
+                  '"velocity_residual", "action"]')
     assert main(["run", str(scene), "--set", "simulate.t_end=1", "--set", "simulate.output_dt=0.05",
                  "--set", f"outputs.quantities={quantities}", "--set", "outputs.plots=[]",
                  "--set", "expect={}", "--quiet", "--out", str(out)]) == 0
