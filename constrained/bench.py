@@ -146,8 +146,7 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
         settings = (
             [dict(dt=dt) for dt in RATTLE_STEPS[: len(tolerances)]]
             if name == "rattle"
-            else [dict(rtol=tol, atol=max(tol, getattr(METHODS[name], "MIN_ATOL", 0.0)), **extra)
-                  for tol in tolerances]
+            else [dict(rtol=tol, atol=tol, **extra) for tol in tolerances]
         )
         for opts in settings:
             if progress:
