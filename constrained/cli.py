@@ -797,8 +797,15 @@ def _bench(args) -> int:
 
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            from .scene import closed_form_error, closed_form_positions
+
+            closed = [c["lhs"] for c in closed_form_positions(scene)]
+            kwargs = {}
+            if closed:
+                kwargs = dict(error_of=lambda tr: closed_form_error(scene, tr)[0],
+                              reference_note=f"the scene's closed form for {', '.join(closed)}")
             result = work_precision(scene.system, t_end, methods=methods, tolerances=tolerances,
-                                    repeats=args.repeats, name=scene.name, progress=progress)
+                                    repeats=args.repeats, name=scene.name, progress=progress, **kwargs)
     except InputError as exc:
         if isinstance(exc, SceneError):
             raise

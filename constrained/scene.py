@@ -45,6 +45,8 @@ __all__ = [
     "EXPECT_KEYS",
     "ExpectResult",
     "check_expectations",
+    "closed_form_error",
+    "closed_form_positions",
     "expect_requirements",
 ]
 
@@ -1041,6 +1043,31 @@ def _period(t: np.ndarray, y: np.ndarray) -> float | None:
         return None
     crossings = t[k] - d[k] * (t[k + 1] - t[k]) / (d[k + 1] - d[k])
     return float(np.mean(np.diff(crossings)))
+
+
+def closed_form_positions(scene: Scene) -> list[dict]:
+    """The ``[expect] closed_form`` entries whose left side is a position coordinate name."""
+    names = {f"{axis}_{p.name}" for p in scene.system.particles for axis in "xyz"}
+    return [c for c in scene.expectations if c["kind"] == "closed_form" and c["lhs"].strip() in names]
+
+
+def closed_form_error(scene: Scene, trajectory) -> tuple[float, list[str]] | None:
+    """The largest |coordinate − closed form| at the last sample over the scene's
+    ``[expect] closed_form`` entries for plain position coordinates (``x_NAME``, ``y_NAME``,
+    ``z_NAME``), and their names; None when the scene declares none. Closed forms of other
+    expressions (invariants such as a rod length) say nothing about the motion and are left out.
+
+    This is the reference ``constrained bench`` uses when a scene has a closed form."""
+    checks = closed_form_positions(scene)
+    if not checks:
+        return None
+    symbols = Symbols(scene.system)
+    worst = 0.0
+    for c in checks:
+        lhs = _series(symbols, c["lhs"], trajectory, c["key"])
+        rhs = _series(symbols, c["rhs"], trajectory, _join(c["key"], 0))
+        worst = max(worst, float(abs(lhs[-1] - rhs[-1])))
+    return worst, [c["lhs"] for c in checks]
 
 
 def check_expectations(scene: Scene, trajectory, model=None) -> list[ExpectResult]:

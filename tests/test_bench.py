@@ -38,3 +38,16 @@ def test_bench_refuses_unknown_methods(tmp_path, capsys):
     assert code == 2
     assert "unknown method" in capsys.readouterr().err
     assert not (tmp_path / "b").exists()
+
+
+def test_bench_uses_a_declared_closed_form_as_its_reference(tmp_path):
+    out = tmp_path / "spring"
+    code = main(["bench", str(SCENARIOS / "simple_spring.toml"), "--set", "simulate.t_end=2",
+                 "--methods", "projection", "--tolerances", "1e-6,1e-11", "--repeats", "1",
+                 "--out", str(out), "--quiet"])
+    assert code == 0
+    # only the position closed form (x_m) is the reference, not the velocity one (vx_m)
+    assert "the scene's closed form for x_m;" in (out / "bench.md").read_text()
+    rows = list(csv.DictReader((out / "bench.csv").open()))
+    # against x = A cos(ωt − δ) itself: error falls with the tolerance, to the closed form's level
+    assert float(rows[1]["error"]) < 1e-9 < float(rows[0]["error"])
