@@ -1048,7 +1048,7 @@ def _period(t: np.ndarray, y: np.ndarray) -> float | None:
 def closed_form_positions(scene: Scene) -> list[dict]:
     """The ``[expect] closed_form`` entries whose left side is a position coordinate name."""
     names = {f"{axis}_{p.name}" for p in scene.system.particles for axis in "xyz"}
-    return [c for c in scene.expectations if c["kind"] == "closed_form" and c["lhs"].strip() in names]
+    return [c for c in scene.expectations or () if c["kind"] == "closed_form" and c["lhs"].strip() in names]
 
 
 def closed_form_error(scene: Scene, trajectory) -> tuple[float, list[str]] | None:

@@ -51,3 +51,15 @@ def test_bench_uses_a_declared_closed_form_as_its_reference(tmp_path):
     rows = list(csv.DictReader((out / "bench.csv").open()))
     # against x = A cos(ωt − δ) itself: error falls with the tolerance, to the closed form's level
     assert float(rows[1]["error"]) < 1e-9 < float(rows[0]["error"])
+
+
+def test_bench_on_a_scene_without_expectations(tmp_path):
+    from conftest import ROOT
+
+    out = tmp_path / "penning"
+    code = main(["bench", str(ROOT / "benchmarks" / "scenes" / "penning.toml"), "--set", "simulate.t_end=0.5",
+                 "--methods", "projection", "--tolerances", "1e-8", "--repeats", "1", "--out", str(out),
+                 "--quiet"])
+    assert code == 0
+    (row,) = csv.DictReader((out / "bench.csv").open())
+    assert row["status"] == "ok" and float(row["error"]) < 1e-6
