@@ -332,8 +332,9 @@ def _run(args) -> int:
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"), _progress(args.quiet):
-            trajectory = simulate(scene.system, s["t_end"], **kwargs)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
+                _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
+            trajectory = simulate(scene.system, s["t_end"], progress=progress, **kwargs)
     except SimulationError as exc:
         message = f"scene file {file}: {exc}"
         partial = exc.trajectory
@@ -377,44 +378,36 @@ def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> i
 
 
 class _progress:
-    """An elapsed-time bar (tqdm, on stderr) for runs longer than ~2 s; off when quiet or not a TTY.
-
-    The solvers report no progress yet, so this shows that the run is alive and for how long,
-    not the fraction done.
-    """
+    """A progress bar over simulated time (tqdm, on stderr), shown once a run takes longer than
+    ~2 s; off with --quiet or when stderr is not a terminal. The solvers report the time they
+    have reached through their ``progress`` callback — this object is that callback."""
 
     DELAY = 2.0
 
-    def __init__(self, quiet: bool):
+    def __init__(self, quiet: bool, t_start: float, t_end: float):
         self.enabled = not quiet and sys.stderr.isatty()
-        self._stop = None
+        self.t_start, self.t_end = float(t_start), float(t_end)
+        self.bar = None
 
     def __enter__(self):
-        if not self.enabled:
-            return self
-        import threading
-
-        try:
-            from tqdm import tqdm
-        except ImportError:
-            return self
-        self._stop = threading.Event()
-        bar = tqdm(total=None, desc="simulating", delay=self.DELAY, file=sys.stderr, leave=False,
-                   bar_format="{desc}: {elapsed} elapsed")
-
-        def tick():
-            while not self._stop.wait(0.25):
-                bar.refresh()
-            bar.close()
-
-        self._thread = threading.Thread(target=tick, daemon=True)
-        self._thread.start()
+        if self.enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                return self
+            self.bar = tqdm(total=self.t_end - self.t_start, desc="simulating", delay=self.DELAY,
+                            file=sys.stderr, leave=False,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| t = {n:.4g} of {total:.4g} s "
+                                       "[{elapsed}<{remaining}]")
         return self
 
+    def __call__(self, t: float) -> None:
+        if self.bar is not None:
+            self.bar.update(min(t - self.t_start, self.bar.total) - self.bar.n)
+
     def __exit__(self, *exc):
-        if self._stop is not None:
-            self._stop.set()
-            self._thread.join()
+        if self.bar is not None:
+            self.bar.close()
         return False
 
 

@@ -136,3 +136,14 @@ def test_pantelides_agrees_with_projection(system):
     assert tr.stats["index"] == 3  # CasADi found the index of the raw DAE
     np.testing.assert_allclose(tr.x, ref.x, atol=1e-7)
     assert np.max(tr.constraint_residual) <= 1e-10
+
+
+@pytest.mark.parametrize("method, settings", [("rattle", dict(dt=1e-3)), ("idas", dict(rtol=1e-8))])
+def test_solvers_report_their_progress_in_simulated_time(method, settings):
+    reached = []
+    C.simulate(double_pendulum(), 1.0, method=method, t_eval=np.linspace(0, 1, 11),
+               progress=reached.append, **settings)
+    assert len(reached) >= 5 and np.all(np.diff(reached) > 0)
+    assert reached[-1] == pytest.approx(1.0)
+    with pytest.raises(C.InputError, match="progress must be a function"):
+        C.simulate(double_pendulum(), 0.1, method=method, progress=3, **settings)

@@ -31,7 +31,7 @@ class Solver:
     adaptive = True
 
     def __init__(self, model, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
-                 compiled="auto", **options):
+                 compiled="auto", progress=None, **options):
         for key, value in (("rtol", rtol), ("atol", atol)):
             if not (isinstance(value, int | float) and np.isfinite(value) and 0 < value < 1):
                 raise InputError(f"{key} must be a number between 0 and 1, got {value!r}")
@@ -47,7 +47,15 @@ class Solver:
         self.rtol, self.atol, self.dt = float(rtol), float(atol), dt
         #: The compiled-evaluation setting as given (see constrained.compiled).
         self.compiled_setting = compiled
+        if progress is not None and not callable(progress):
+            raise InputError(f"progress must be a function of the time reached, got {progress!r}")
+        self._progress = progress
         self.stats = {"steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "projections": 0}
+
+    def report(self, t: float) -> None:
+        """Tell the ``progress`` callback (if any) that the run has reached time ``t``."""
+        if self._progress is not None:
+            self._progress(float(t))
 
     def require_independent_constraints(self, why: str) -> None:
         """Refuse a model whose constraint rows are dependent (``Model.redundant``)."""

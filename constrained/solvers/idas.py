@@ -96,6 +96,7 @@ class _IdasBase(Solver):
                 ts.append(tk)
                 xs.append(x)
                 vs.append(v)
+            self.report(seg[-1])
             state = np.concatenate([xs[-1], vs[-1]])
             z = Z[:, -1] if not self.project_outputs else self.algebraic_guess(xs[-1], vs[-1], seg[-1])
             t_prev = seg[-1]

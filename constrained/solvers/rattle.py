@@ -148,6 +148,7 @@ class Rattle(Solver):
                     break
                 state = new
                 done += k
+                self.report(state[2 * n3])
             if failure:
                 break
             ts.append(t0 + done * h)
