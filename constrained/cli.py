@@ -674,7 +674,12 @@ def _check(args) -> int:
         if report.worst is not None and report.max_residual > 0:
             text += f" (worst: {report.worst})"
         out.append(text)
-        out.append(_projection_preview(model, scene))
+        preview = _projection_preview(model, scene)
+        out.append(preview)
+        if preview.startswith("projection: FAILS"):  # incompatible constraints: refuse the scene
+            print("\n".join(out))
+            _say_error(f"scene file {file}: refused: {preview.removeprefix('projection: FAILS, ')}")
+            return 2
     else:
         out.append("initial state: no constraints")
     terms = sorted(getattr(model, "active_terms", ()))

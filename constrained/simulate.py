@@ -50,11 +50,15 @@ def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     if err > 1e-8 * size or not np.isfinite(err):
         f = np.asarray(model.constraint(x, t0)).ravel()
         k = int(np.nanargmax(np.abs(f)))
+        from .diagnostics import incompatible_constraints
+
+        clash = incompatible_constraints(model, x0, t0)
+        named = (f"; {clash.describe()}" if not clash.compatible else
+                 "; check that the constraints are compatible (lengths, triangle inequalities, anchors)")
         raise InconsistentStateError(
             f"the constraints cannot all be satisfied near the initial state: after projection "
             f"constraint '{labels[k]}' is still violated by {abs(f[k]):.3g} (at the given start the "
-            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g}); check that the "
-            "constraints are compatible (lengths, triangle inequalities, anchors)"
+            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g}){named}"
         )
     limit = max_correction * size
     if dx > limit:
@@ -152,10 +156,11 @@ def simulate(
         raise SimulationError(f"the run was {solution.failure}; what was computed is kept",
                               trajectory=traj)
     if solution.failure:
+        cause = ("" if "likely cause" in solution.failure else
+                 " (likely cause: a singular configuration, stiffness, or forces that blow up)")
+        last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         raise SimulationError(
-            f"the run stopped early: {solution.failure}; the last good state is at "
-            f"t = {traj.t[-1]:.6g} s (likely cause: a singular configuration, stiffness, or "
-            "forces that blow up)",
+            f"the run stopped early: {solution.failure}; the last good state is at {last}{cause}",
             trajectory=traj,
         )
     return traj

@@ -138,7 +138,10 @@ def test_pantelides_agrees_with_projection(system):
     assert np.max(tr.constraint_residual) <= 1e-10
 
 
-@pytest.mark.parametrize("method, settings", [("rattle", dict(dt=1e-3)), ("idas", dict(rtol=1e-8))])
+@pytest.mark.parametrize("method, settings", [
+    ("rattle", dict(dt=1e-3)), ("idas", dict(rtol=1e-8)), ("projection", {}),
+    ("projection", dict(base="CVODES")), ("baumgarte", {}),
+])
 def test_solvers_report_their_progress_in_simulated_time(method, settings):
     reached = []
     C.simulate(double_pendulum(), 1.0, method=method, t_eval=np.linspace(0, 1, 11),

@@ -9,14 +9,35 @@ step's dense output and projected the same way, so every sample lies on both man
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.integrate import DOP853, RK45, Radau
 
 from .. import compiled as compiled_evaluation
+from .. import diagnostics
 from ..errors import InputError
 from .base import Solution, Solver
 
-BASES = {"DOP853": DOP853, "RK45": RK45, "Radau": Radau, "CVODES": None}
+#: "CVODES" is Adams with functional iteration (non-stiff, cheapest per step); "CVODES_BDF"
+#: is BDF with Newton iteration, for stiff scenes (springs with k/m = 1e8 beside constraints).
+BASES = {"DOP853": DOP853, "RK45": RK45, "Radau": Radau, "CVODES": None, "CVODES_BDF": None}
+#: Explicit bases, whose accepted steps are watched for stiffness (StiffnessWarning).
+EXPLICIT = ("DOP853", "RK45")
+#: The stiffness check estimates ρ(∂f/∂y) every this many accepted steps ...
+STIFFNESS_EVERY = 50
+#: ... and calls the run stiff when, over at least STIFFNESS_MIN_STEPS steps, the median of
+#: h·ρ sits near the stability boundary of the explicit method (about 3.3 for DOP853 on the
+#: negative real axis, 2.8 for RK45): the step is held down by stability, not accuracy.
+STIFFNESS_MIN_STEPS = 500
+STIFFNESS_H_RHO = 1.0
+#: A projection that leaves |f| above this (× system size) means Newton failed: the run stops.
+PROJECTION_FAIL = 1e-8
+#: The run stops at a singular configuration when the rank-th singular value of the
+#: row-normalized J (rank: at the start) falls below ``singular_tol`` (default below); watched
+#: after every accepted step for models up to SINGULAR_WATCH_MAX coordinates.
+SINGULAR_TOL = 1e-4
+SINGULAR_WATCH_MAX = 300
 #: With compiled="auto", the model's per-call functions are compiled from this many coordinates.
 COMPILE_FROM_COORDINATES = 90
 
@@ -25,13 +46,21 @@ class _NonFinite(Exception):
     pass
 
 
+class _ProjectionFailed(Exception):
+    pass
+
+
 class Projection(Solver):
     name = "projection"
     #: Whether accepted steps and outputs are projected onto the constraint manifolds.
     projecting = True
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853", **options):
+    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
+                 singular_tol: float | None = SINGULAR_TOL, **options):
         super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
+        if singular_tol is not None and not (isinstance(singular_tol, int | float) and 0 <= singular_tol < 1):
+            raise InputError(f"singular_tol must be a number in [0, 1) or None, got {singular_tol!r}")
+        self.singular_tol = singular_tol
         if base not in BASES:
             raise InputError(f"unknown base integrator {base!r} (choose from {', '.join(BASES)})")
         self.base = base
@@ -54,16 +83,44 @@ class Projection(Solver):
             return x, v
         m = self.model
         x, err, _ = m.project_positions(x, t, tol=self.position_tol)
+        if not np.isfinite(err) or err > PROJECTION_FAIL * self.scale:
+            raise _ProjectionFailed(t, err)
         v = m.project_velocities(x, v, t)
         self.stats["projections"] += 1
         return x, v
 
+    def _watch_rank(self, x0, t0) -> int:
+        """The rank to watch (that of J at the start), or 0 when the watch is off."""
+        m = self.model
+        if not self.singular_tol or not m.n_constraints or m.n_coordinates > SINGULAR_WATCH_MAX:
+            return 0
+        return diagnostics.numerical_rank(m, x0, t0)
+
+    def diagnose(self, x, v, t) -> str:
+        """The likely cause of a stop, from the last good state (x, v, t)."""
+        m = self.model
+        try:
+            if m.n_constraints:
+                sing = diagnostics.singularity(m, x, t)
+                if sing.sigma < 1e-3:
+                    return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
+            a, _ = m.accelerations(x, v, t)
+            acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
+            k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
+            name = m.system.particles[k].name
+            pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
+            return (f"likely cause: forces that blow up: at the last good state particle '{name}' at "
+                    f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
+        except Exception:  # a diagnosis must never hide the stop itself
+            return "likely cause: a singular configuration, stiffness, or forces that blow up"
+
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
-        if self.base == "CVODES":
+        self.scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
+        if self.base.startswith("CVODES"):
             return self._run_cvodes(x0, v0, t0, t_end, t_eval)
         m = self.model
         n = m.n_coordinates
-        scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
+        scale = self.scale
         self.position_tol = 1e-14 * scale
 
         def rhs(t, y):
@@ -86,53 +143,109 @@ class Projection(Solver):
                 ts.append(t0)
                 ys.append(y0)
         failure = None
+        good = (t0, x0, v0)  # the last accepted, projected state
+        watch_rank = self._watch_rank(x0, t0)
+        watch = self.base in EXPLICIT
+        h_rho, rho_max = [], 0.0
         while integ.status == "running":
             try:
                 message = integ.step()
             except _NonFinite as exc:
-                failure = f"non-finite accelerations at t = {exc.args[0]:.6g} s"
+                failure = (f"non-finite accelerations at t = {exc.args[0]:.6g} s; "
+                           + self.diagnose(*good[1:], good[0]))
                 break
             except KeyboardInterrupt:
                 failure = f"interrupted at t = {integ.t:.6g} s"
                 break
             if integ.status == "failed":
-                failure = f"the step size collapsed at t = {integ.t:.6g} s ({message})"
+                failure = (f"the step size collapsed at t = {integ.t:.6g} s ({message}); "
+                           + self.diagnose(*good[1:], good[0]))
                 break
             self.stats["steps"] += 1
+            self.report(integ.t)
+            if watch and self.stats["steps"] % STIFFNESS_EVERY == 0 and integ.step_size:
+                rho = diagnostics.spectral_radius(self.derivative, integ.t, integ.y)
+                rho_max = max(rho_max, rho)
+                h_rho.append(integ.step_size * rho)
             if pending is not None and pending and pending[0] <= integ.t:
                 dense = integ.dense_output()
                 while pending and pending[0] <= integ.t:
                     tk = pending.pop(0)
                     yk = dense(tk)
-                    xk, vk = self.project(yk[:n], yk[n:], tk)
+                    try:
+                        xk, vk = self.project(yk[:n], yk[n:], tk)
+                    except _ProjectionFailed as exc:
+                        failure = (f"the state could not be brought back onto the constraints at "
+                                   f"t = {tk:.6g} s (residual {exc.args[1]:.3g} after Newton); "
+                                   + self.diagnose(*good[1:], good[0]))
+                        break
                     ts.append(tk)
                     ys.append(np.concatenate([xk, vk]))
+                if failure:
+                    break
             y = integ.y
             if self.projecting:
-                x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
+                try:
+                    x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
+                except _ProjectionFailed as exc:
+                    failure = (f"the state could not be brought back onto the constraints at "
+                               f"t = {integ.t:.6g} s (residual {exc.args[1]:.3g} after Newton); "
+                               + self.diagnose(*good[1:], good[0]))
+                    break
                 y = np.concatenate([x, v])
                 if not np.all(np.isfinite(y)):
-                    failure = f"non-finite state after projection at t = {integ.t:.6g} s"
+                    failure = (f"non-finite state after projection at t = {integ.t:.6g} s; "
+                               + self.diagnose(*good[1:], good[0]))
                     break
                 integ.y = y
                 if hasattr(integ, "f"):  # keep first-same-as-last consistent with the new state
                     integ.f = rhs(integ.t, y)
+            if watch_rank:
+                sigma = diagnostics.rank_sigma(m, y[:n], integ.t, watch_rank)
+                if sigma < self.singular_tol:
+                    failure = (f"singular configuration reached at t = {integ.t:.6g} s; likely cause: "
+                               + diagnostics.singularity(m, y[:n], integ.t, rank=watch_rank).describe())
+                    if pending is None:
+                        ts.append(integ.t)
+                        ys.append(y)
+                    break
+            good = (integ.t, y[:n].copy(), y[n:].copy())
             if pending is None:
                 ts.append(integ.t)
                 ys.append(y)
+        if watch:
+            self._stiffness_verdict(h_rho, rho_max)
         for key in ("njev", "nlu"):
             self.stats[key] = max(self.stats[key], m.counters[key])
         self.stats["evaluation"] = m.evaluation
         Y = np.array(ys).reshape(-1, 2 * n)
         return Solution(np.array(ts), Y[:, :n], Y[:, n:], dict(self.stats), failure)
 
+    def _stiffness_verdict(self, h_rho, rho_max) -> None:
+        """Record h·ρ in stats["stiffness"]; warn (StiffnessWarning) when the explicit base's
+        steps were held down by stability over many steps."""
+        med = float(np.median(h_rho)) if h_rho else 0.0
+        stiff = self.stats["steps"] >= STIFFNESS_MIN_STEPS and len(h_rho) >= 5 and med >= STIFFNESS_H_RHO
+        self.stats["stiffness"] = {"h_rho_median": med, "rho_max": rho_max, "checks": len(h_rho),
+                                   "stiff": bool(stiff)}
+        if stiff:
+            warnings.warn(
+                f"the problem looks stiff: the explicit base {self.base} took {self.stats['steps']} "
+                f"steps with h·ρ ≈ {med:.2g} (ρ ≈ {rho_max:.3g} /s, the fastest rate of the "
+                "equations), so its step size is limited by stability, not accuracy; use "
+                'base = "Radau" or base = "CVODES_BDF"',
+                diagnostics.StiffnessWarning,
+                stacklevel=4,
+            )
+
     # --- CVODES base: CasADi integrates between projection points --------------------------
     #: Without t_eval, the state is projected this many times over the run.
     CVODES_SEGMENTS = 100
 
     def _run_cvodes(self, x0, v0, t0, t_end, t_eval) -> Solution:
-        """Integrate with CasADi's CVODES (Adams, no Python per evaluation) from one output
-        time to the next, projecting onto both manifolds at each of them."""
+        """Integrate with CasADi's CVODES (Adams, or BDF with Newton for base CVODES_BDF; no Python
+        per evaluation) from one output time to the next, projecting onto both manifolds at each
+        of them."""
         import casadi as ca
 
         m = self.model
@@ -145,9 +258,11 @@ class Projection(Solver):
         y, tau, p = ca.MX.sym("y", 2 * n), ca.MX.sym("tau"), ca.MX.sym("p", 2)
         a, _ = m._acceleration(y[:n], y[n:], p[0] + p[1] * tau)
         ode = p[1] * ca.vertcat(y[n:], a)
+        bdf = self.base == "CVODES_BDF"
         integ = ca.integrator("segment", "cvodes", {"x": y, "p": p, "t": tau, "ode": ode}, 0.0, 1.0, {
             "abstol": self.atol, "reltol": self.rtol, "max_num_steps": 10_000_000,
-            "linear_multistep_method": "adams", "nonlinear_solver_iteration": "functional",
+            "linear_multistep_method": "bdf" if bdf else "adams",
+            "nonlinear_solver_iteration": "newton" if bdf else "functional",
         })
         ts, xs, vs = [], [], []
         if grid[0] <= t0:
@@ -160,7 +275,8 @@ class Projection(Solver):
             try:
                 out = integ(x0=state, p=[t_a, t_b - t_a])
             except RuntimeError as exc:
-                failure = f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]})"
+                failure = (f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]}); "
+                           + self.diagnose(state[:n], state[n:], t_a))
                 break
             except KeyboardInterrupt:
                 failure = f"interrupted at t = {t_a:.6g} s"
@@ -169,14 +285,20 @@ class Projection(Solver):
             self.stats["steps"] += int(stats.get("nsteps", 0))
             self.stats["nfev"] += int(stats.get("nfevals", 0))
             yb = out["xf"].full().ravel()
-            x, v = self.project(yb[:n], yb[n:], t_b)
+            try:
+                x, v = self.project(yb[:n], yb[n:], t_b)
+            except _ProjectionFailed as exc:
+                failure = (f"the state could not be brought back onto the constraints at t = {t_b:.6g} s "
+                           f"(residual {exc.args[1]:.3g}); " + self.diagnose(state[:n], state[n:], t_a))
+                break
             if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
-                failure = f"non-finite state at t = {t_b:.6g} s"
+                failure = f"non-finite state at t = {t_b:.6g} s; " + self.diagnose(state[:n], state[n:], t_a)
                 break
             ts.append(t_b)
             xs.append(x)
             vs.append(v)
             state, t_a = np.concatenate([x, v]), t_b
+            self.report(t_b)
         self.stats["evaluation"] = m.evaluation
         return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
                         dict(self.stats), failure)

@@ -1,0 +1,269 @@
+"""Numerical diagnostics for hard cases: conditioning of the KKT solve along a run, rank drop
+of the constraint Jacobian (singular configurations, named), incompatible constraint sets,
+stiffness, and a scaled multiplier solve that stays accurate for extreme mass ratios.
+
+Everything here reads a Model's public CasADi Functions (``jacobian``, ``dynamics``,
+``constraint``) and a Trajectory; nothing changes the equations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Smallest singular value of the row-normalized Jacobian below which a configuration counts as
+#: singular (the constraint rows are dependent there to this relative size).
+SINGULAR_SIGMA = 1e-6
+#: Relative singular value cut-off of the *scaled* Schur complement (rank-deficient solves).
+SCALED_RANK_RTOL = 1e-12
+
+
+class StiffnessWarning(UserWarning):
+    """An explicit integrator's step is held down by stability, not accuracy: use an implicit base."""
+
+
+# --- the Schur complement J M⁻¹ Jᵀ --------------------------------------------------------------
+def schur_matrix(J: np.ndarray, inverse_masses: np.ndarray) -> np.ndarray:
+    """A = J M⁻¹ Jᵀ for a (C, 3N) Jacobian and the flat inverse masses (3N,)."""
+    return (J * inverse_masses) @ J.T
+
+
+def scaled_schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve (J M⁻¹ Jᵀ) y = b with symmetric diagonal (Jacobi) scaling.
+
+    With D = diag(A)^(-1/2) the scaled matrix D A D has a unit diagonal, so its condition
+    number no longer carries the spread of the masses (a 1e6 kg bob beside a 1e-6 kg particle
+    puts 1e12 between the diagonal entries of A). Solve D A D z = D b, y = D z: Cholesky when
+    D A D is well-conditioned, otherwise the minimum-norm least-squares solution with a
+    relative singular-value cut-off taken on the *scaled* matrix, so rows that are merely
+    heavy are never cut off as if they were redundant.
+    """
+    if J.shape[0] == 0:
+        return np.zeros(0)
+    A = schur_matrix(J, inverse_masses)
+    d = np.sqrt(np.abs(np.diag(A)))
+    d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
+    As = A * d[:, None] * d[None, :]
+    bs = b * d
+    try:
+        L = np.linalg.cholesky(As)
+        piv = np.abs(np.diag(L))
+        if piv.min() > np.sqrt(SCALED_RANK_RTOL) * piv.max():
+            z = np.linalg.solve(L.T, np.linalg.solve(L, bs))
+            return d * z
+    except np.linalg.LinAlgError:
+        pass
+    U, sv, Vt = np.linalg.svd(As)
+    keep = sv > SCALED_RANK_RTOL * sv[0] if sv.size and sv[0] > 0 else np.zeros_like(sv, bool)
+    z = Vt[keep].T @ ((U[:, keep].T @ bs) / sv[keep])
+    return d * z
+
+
+def _jacobians(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    n = len(t)
+    _, Jcat = model.evaluate(model.jacobian, X.reshape(n, -1), t)
+    return Jcat.reshape(model.n_constraints, n, model.n_coordinates).transpose(1, 0, 2)
+
+
+def scaled_multipliers(model, trajectory) -> np.ndarray:
+    """λ at each sample of ``trajectory`` (T, C) from the KKT system, solved with
+    ``scaled_schur_solve`` (accurate whatever the spread of the masses)."""
+    t = np.asarray(trajectory.t, float)
+    n = len(t)
+    X, V = trajectory.x.reshape(n, -1), trajectory.v.reshape(n, -1)
+    F, Jcat, gamma = model.evaluate(model.dynamics, X, V, t)
+    J = Jcat.reshape(model.n_constraints, n, model.n_coordinates).transpose(1, 0, 2)
+    minv = model.inverse_masses
+    lam = np.empty((n, model.n_constraints))
+    for k in range(n):
+        lam[k] = scaled_schur_solve(J[k], minv, -gamma[:, k] - J[k] @ (minv * F[:, k]))
+    return lam
+
+
+# --- conditioning and singular configurations ---------------------------------------------------
+@dataclass
+class Conditioning:
+    """Along a run: ``cond`` of J M⁻¹ Jᵀ (2-norm), ``cond_scaled`` of its Jacobi-scaled form,
+    ``sigma_min`` the smallest singular value of the row-normalized J (0 at a singular
+    configuration), and ``rank`` of J (relative cut-off ``SINGULAR_SIGMA``)."""
+
+    t: np.ndarray
+    cond: np.ndarray
+    cond_scaled: np.ndarray
+    sigma_min: np.ndarray
+    rank: np.ndarray
+    labels: list[str] = field(default_factory=list)
+
+    @property
+    def worst(self) -> int:
+        """Index of the sample closest to a singular configuration."""
+        return int(np.argmin(self.sigma_min))
+
+
+def _row_normalized(J: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(J, axis=1)
+    return J / np.where(norms > 0, norms, 1.0)[:, None]
+
+
+def conditioning(model, trajectory) -> Conditioning:
+    """cond(J M⁻¹ Jᵀ)(t) and the distance to a singular configuration along ``trajectory``."""
+    t = np.asarray(trajectory.t, float)
+    n = len(t)
+    if model.n_constraints == 0 or n == 0:
+        z = np.ones(n)
+        return Conditioning(t, z, z, z, np.zeros(n, int), [])
+    J = _jacobians(model, trajectory.x, t)
+    cond, cond_s, smin, rank = (np.empty(n) for _ in range(4))
+    for k in range(n):
+        A = schur_matrix(J[k], model.inverse_masses)
+        sv = np.linalg.svd(A, compute_uv=False)
+        cond[k] = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
+        d = 1.0 / np.sqrt(np.maximum(np.diag(A), np.finfo(float).tiny))
+        svs = np.linalg.svd(A * d[:, None] * d[None, :], compute_uv=False)
+        cond_s[k] = svs[0] / svs[-1] if svs[-1] > 0 else np.inf
+        svj = np.linalg.svd(_row_normalized(J[k]), compute_uv=False)
+        smin[k] = svj[-1] if svj.size >= J[k].shape[0] else 0.0
+        rank[k] = int(np.sum(svj > SINGULAR_SIGMA * max(svj[0], 1e-300)))
+    return Conditioning(t, cond, cond_s, smin, rank.astype(int), list(model.constraint_labels))
+
+
+@dataclass
+class Singularity:
+    """The constraints that become dependent at one state: ``sigma`` the smallest singular value
+    of the row-normalized J, ``rows`` the constraint indices in the dependency (largest weight
+    first), ``labels`` their names, ``weights`` their share in it."""
+
+    sigma: float
+    rows: list[int]
+    labels: list[str]
+    weights: list[float]
+
+    def describe(self) -> str:
+        names = ", ".join(f"'{name}'" for name in self.labels)
+        return (
+            f"the constraints {names} are (nearly) dependent there (smallest singular value of the "
+            f"row-normalized constraint Jacobian {self.sigma:.2g}): a toggle / dead-centre "
+            "configuration, where the motion can branch or the drive asks for a motion the "
+            "constraints cannot make"
+        )
+
+
+def _normalized_jacobian(model, x, t) -> np.ndarray:
+    return _row_normalized(np.asarray(model.jacobian(np.asarray(x, float).ravel(), t)[1]))
+
+
+def numerical_rank(model, x, t: float = 0.0) -> int:
+    """Rank of the row-normalized J at (x, t) (relative cut-off ``SINGULAR_SIGMA``)."""
+    sv = np.linalg.svd(_normalized_jacobian(model, x, t), compute_uv=False)
+    return int(np.sum(sv > SINGULAR_SIGMA * max(sv[0], 1e-300))) if sv.size else 0
+
+
+def rank_sigma(model, x, t: float, rank: int) -> float:
+    """The rank-th singular value of the row-normalized J at (x, t): it falls to 0 where the
+    constraints lose rank (redundant rows beyond ``rank`` do not count)."""
+    sv = np.linalg.svd(_normalized_jacobian(model, x, t), compute_uv=False)
+    return float(sv[rank - 1]) if 0 < rank <= sv.size else 0.0
+
+
+def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: float = 0.05) -> Singularity:
+    """The near-dependency of the constraint rows at (x, t): the left singular vector of the
+    row-normalized J for its rank-th singular value (default: the smallest that rows and
+    coordinates allow), rows with weight above ``ignore``."""
+    Jn = _normalized_jacobian(model, x, t)
+    U, sv, _ = np.linalg.svd(Jn, full_matrices=True)
+    k = min(Jn.shape) if rank is None else rank
+    if k > sv.size or k <= 0:
+        sigma, u = 0.0, U[:, -1]
+    else:
+        sigma, u = float(sv[k - 1]), U[:, k - 1]
+    w = u**2
+    order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+    labels = model.constraint_labels
+    return Singularity(sigma, order, [labels[k] for k in order], [float(w[k]) for k in order])
+
+
+# --- incompatible constraint sets -----------------------------------------------------------------
+@dataclass
+class Incompatibility:
+    """The least-squares closest state to the constraints and what stays violated there.
+
+    ``compatible`` is False when no state satisfies all constraints near the start:
+    ``residual`` is then the smallest max |f| found and ``labels`` the constraints still
+    violated at that state (a set that cannot hold together).
+    """
+
+    compatible: bool
+    residual: float
+    labels: list[str]
+    violations: list[float]
+    x: np.ndarray
+
+    def describe(self) -> str:
+        if self.compatible:
+            return "the constraints are compatible"
+        items = ", ".join(f"'{n}' ({v:+.3g})" for n, v in zip(self.labels, self.violations, strict=True))
+        return (
+            f"the constraints cannot all hold: at the closest state (least squares) these stay "
+            f"violated: {items}; they contradict each other (lengths, triangle inequalities, anchors)"
+        )
+
+
+def incompatible_constraints(model, x0=None, t: float = 0.0, *, tol: float = 1e-8,
+                             max_iter: int = 200) -> Incompatibility:
+    """Minimize ½|f(x, t)|² from ``x0`` (Levenberg–Marquardt on the constraint rows) and name
+    the constraints that stay violated at the minimum. ``tol`` is relative to the size of x."""
+    x = np.asarray(model.system.positions if x0 is None else x0, float).ravel().copy()
+    scale = max(float(np.max(np.abs(x), initial=0.0)), 1.0)
+    mu = 1e-3
+    f, J = (np.asarray(a) for a in model.jacobian(x, t))
+    f = f.ravel()
+    cost = 0.5 * float(f @ f)
+    for _ in range(max_iter):
+        if np.max(np.abs(f), initial=0.0) <= tol * scale:
+            break
+        g = J.T @ f
+        H = J.T @ J
+        step = np.linalg.solve(H + mu * (np.diag(np.diag(H)) + 1e-12 * np.eye(len(x))), -g)
+        fn = np.asarray(model.constraint(x + step, t)).ravel()
+        cn = 0.5 * float(fn @ fn)
+        if np.isfinite(cn) and cn < cost:
+            x, cost, mu = x + step, cn, max(mu / 3, 1e-12)
+            f, J = (np.asarray(a) for a in model.jacobian(x, t))
+            f = f.ravel()
+            if np.linalg.norm(step) <= 1e-14 * scale:
+                break
+        else:
+            mu *= 4
+            if mu > 1e12:
+                break
+    res = float(np.max(np.abs(f), initial=0.0))
+    compatible = res <= tol * scale
+    bad = [] if compatible else [int(k) for k in np.argsort(-np.abs(f)) if abs(f[k]) > 1e-3 * res]
+    labels = model.constraint_labels
+    return Incompatibility(compatible, res, [labels[k] for k in bad], [float(f[k]) for k in bad], x)
+
+
+# --- stiffness ------------------------------------------------------------------------------------
+def spectral_radius(rhs, t: float, y: np.ndarray, f0: np.ndarray | None = None, *,
+                    iterations: int = 12, seed: int = 0) -> float:
+    """Estimate the largest |eigenvalue| of ∂rhs/∂y at (t, y): power iteration on directional
+    differences (a diagnostic only; the equations themselves are never differenced)."""
+    f0 = rhs(t, y) if f0 is None else f0
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal(y.shape)
+    w /= np.linalg.norm(w)
+    eps = 1e-7 * max(np.linalg.norm(y), 1.0)
+    growth = []
+    for _ in range(iterations):
+        jw = (rhs(t, y + eps * w) - f0) / eps
+        nrm = float(np.linalg.norm(jw))
+        if not np.isfinite(nrm) or nrm == 0:
+            break
+        growth.append(nrm)
+        w = jw / nrm
+    if not growth:
+        return 0.0
+    # complex pairs make single ratios oscillate: the geometric mean of the last few is robust
+    tail = np.array(growth[len(growth) // 2:])
+    return float(np.exp(np.mean(np.log(tail))))
