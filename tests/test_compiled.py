@@ -70,3 +70,12 @@ def test_without_a_compiler_the_virtual_machine_is_used(monkeypatch):
 def test_bad_compiled_setting_is_refused():
     with pytest.raises(C.InputError, match="compiled must be"):
         C.simulate(double_pendulum(), 0.1, compiled="sometimes")
+
+
+@needs_cc
+def test_cvodes_base_runs_on_a_compiled_model():
+    t = np.linspace(0, 0.3, 4)
+    vm = C.simulate(chain(12), 0.3, base="CVODES", rtol=1e-9, atol=1e-11, t_eval=t, compiled=False)
+    mc = C.simulate(chain(12), 0.3, base="CVODES", rtol=1e-9, atol=1e-11, t_eval=t, compiled=True)
+    assert mc.stats["evaluation"] == "compiled"
+    np.testing.assert_allclose(mc.x, vm.x, atol=1e-12, rtol=0)

@@ -303,3 +303,18 @@ def test_action_along_a_run_matches_the_closed_form_in_uniform_gravity(tmp_path)
 
     (png,) = save_figures(tr, ["action"], tmp_path)
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_multipliers_stay_accurate_across_a_mass_ratio_of_1e12():
+    """A 1e6 kg bob on a 1 m rod with a 1e-6 kg particle on a 0.5 m string below it, at rest
+    hanging straight down: tensions m_total g and m_light g, 18 orders of magnitude apart."""
+    s = C.System()
+    s.add_particle("heavy", 1e6, [0, -1.0, 0])
+    s.add_particle("light", 1e-6, [0, -1.5, 0])
+    s.add(C.Distance("heavy", point=[0, 0, 0], length=1.0), C.Distance("heavy", "light", length=0.5),
+          C.Gravity([0, -9.81, 0]))
+    model = C.assemble(s)
+    x = s.positions.ravel()
+    F, J, gamma = (np.asarray(a) for a in model.dynamics(x, np.zeros(6), 0.0))
+    lam = model.schur_solve(J, -gamma.ravel() - J @ (model.inverse_masses * F.ravel()))
+    np.testing.assert_allclose(-lam, [(1e6 + 1e-6) * 9.81, 1e-6 * 9.81], rtol=1e-9)

@@ -256,7 +256,7 @@ class Projection(Solver):
                 else np.linspace(t0, t_end, self.CVODES_SEGMENTS + 1))
         # one integrator for every segment: τ ∈ [0, 1], t = t_a + Δ τ, d/dτ = Δ d/dt
         y, tau, p = ca.MX.sym("y", 2 * n), ca.MX.sym("tau"), ca.MX.sym("p", 2)
-        a, _ = m._acceleration(y[:n], y[n:], p[0] + p[1] * tau)
+        a, _ = m.acceleration_graph(y[:n], y[n:], p[0] + p[1] * tau)
         ode = p[1] * ca.vertcat(y[n:], a)
         bdf = self.base == "CVODES_BDF"
         integ = ca.integrator("segment", "cvodes", {"x": y, "p": p, "t": tau, "ode": ode}, 0.0, 1.0, {
