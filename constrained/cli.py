@@ -250,24 +250,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    handlers = {"run": _run, "check": _check, "crosscheck": _crosscheck, "bench": _bench,
+                "statics": _statics, "derive": _derive, "sweep": _sweep, "path": _path, "plot": _plot}
     try:
-        if args.verb == "run":
-            return _run(args)
-        if args.verb == "crosscheck":
-            return _crosscheck(args)
-        if args.verb == "bench":
-            return _bench(args)
-        if args.verb == "statics":
-            return _statics(args)
-        if args.verb == "derive":
-            return _derive(args)
-        if args.verb == "sweep":
-            return _sweep(args)
-        if args.verb == "path":
-            return _path(args)
-        if args.verb == "plot":
-            return _plot(args)
-        return _check(args)
+        return handlers[args.verb](args)
     except InputError as exc:
         _say_error(str(exc))
         return 2

@@ -29,6 +29,7 @@ from .effects import EFFECT_TYPES
 from .errors import InputError
 from .symbols import Symbols
 from .system import Particle, System
+from .trajectory import QUANTITIES
 
 __all__ = [
     "Scene",
@@ -76,16 +77,7 @@ SIMULATE_DEFAULTS: dict[str, Any] = {
     "compiled": "auto",
 }
 
-OUTPUT_QUANTITIES = (
-    "positions",
-    "velocities",
-    "multipliers",
-    "constraint_forces",
-    "energy",
-    "constraint_residual",
-    "velocity_residual",
-    "action",
-)
+OUTPUT_QUANTITIES = ("positions", "velocities", *QUANTITIES)
 OUTPUT_PLOTS = (
     "trajectory",
     "energy",
