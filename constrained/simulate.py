@@ -8,7 +8,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from .analysis import jacobian_rank
+from .analysis import jacobian_rank, sparse_full_row_rank
 from .errors import InconsistentStateError, InputError, SimulationError
 from .model import Model, assemble
 from .solvers import METHODS
@@ -18,11 +18,20 @@ from .trajectory import QUANTITIES, Trajectory
 OUTPUT_NAMES = frozenset({"positions", "velocities", *QUANTITIES})
 
 
+#: From this many constraint rows, full rank is first checked with a sparse factorization.
+SPARSE_RANK_FROM = 100
+
+
 def flag_redundancy(model: Model, x, t: float) -> bool:
     """Set ``model.redundant`` when J has dependent rows at (x, t); True if newly set."""
     if model.redundant or model.n_constraints == 0:
         return False
-    rank, _ = jacobian_rank(np.asarray(model.jacobian(x, t)[1]))
+    J = model.jacobian(x, t)[1]
+    # the sparse test settles the usual case (independent rows) in O(N); the dense
+    # rank-revealing QR, O(N³), runs only when it cannot
+    if model.n_constraints > SPARSE_RANK_FROM and sparse_full_row_rank(J, model.inverse_masses):
+        return False
+    rank, _ = jacobian_rank(np.asarray(J))
     model.redundant = rank < model.n_constraints
     return model.redundant
 

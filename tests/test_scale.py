@@ -86,3 +86,27 @@ def test_hanging_chain_200_links_conserves_energy():
     assert np.max(tr.constraint_residual) <= 1e-10
     assert np.max(tr.velocity_residual) <= 1e-10
     assert np.max(np.abs(tr.x[-1] - tr.x[0])) > 1e-3  # it did move
+
+
+def test_sparse_full_rank_test_agrees_with_the_dense_one():
+    import itertools
+
+    from constrained.analysis import jacobian_rank, sparse_full_row_rank
+
+    chain = C.System()
+    for i in range(30):
+        chain.add_particle(f"p{i}", 1.0 + i, [np.sin(0.5) * (i + 1), -np.cos(0.5) * (i + 1), 0.0])
+    chain.add(C.Distance("p0", point=[0, 0, 0], length=1.0))
+    for i in range(1, 30):
+        chain.add(C.Distance(f"p{i - 1}", f"p{i}", length=1.0))
+    cube = C.System()
+    pts = np.array(list(itertools.product([-0.5, 0.5], repeat=3)))
+    for i, p in enumerate(pts):
+        cube.add_particle(f"c{i}", 1.0, p)
+    for i, j in itertools.combinations(range(8), 2):
+        cube.add(C.Distance(f"c{i}", f"c{j}", length=float(np.linalg.norm(pts[i] - pts[j]))))
+    for system, full in ((chain, True), (cube, False)):
+        model = C.assemble(system)
+        J = model.jacobian(system.positions.ravel(), 0.0)[1]
+        assert sparse_full_row_rank(J, model.inverse_masses) is full
+        assert (jacobian_rank(np.asarray(J))[0] == model.n_constraints) is full
