@@ -269,16 +269,25 @@ def main(argv: Sequence[str] | None = None) -> int:
 # --- run -------------------------------------------------------------------------------------
 
 
+def _end_time(scene, file: str) -> float:
+    """The scene's t_end, or the refusal naming simulate.t_end."""
+    if scene.settings["t_end"] is None:
+        raise SceneError("no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
+                         file=file, key="simulate.t_end")
+    return scene.settings["t_end"]
+
+
+def _needs_reduced(file: str, verb: str):
+    """The refusal of a verb that needs the scene's [reduced] coordinates."""
+    raise SceneError(f"no [reduced] section: {verb} needs generalized coordinates "
+                     "(coordinates, initial, rates, map)", file=file, key="reduced")
+
+
 def _run(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     s = scene.settings
-    if s["t_end"] is None:
-        raise SceneError(
-            "no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
-            file=file,
-            key="simulate.t_end",
-        )
+    _end_time(scene, file)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -508,12 +517,8 @@ def _crosscheck(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     if scene.reduced is None:
-        raise SceneError("no [reduced] section: crosscheck needs generalized coordinates "
-                         "(coordinates, initial, rates, map)", file=file, key="reduced")
-    t_end = scene.settings["t_end"]
-    if t_end is None:
-        raise SceneError("no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
-                         file=file, key="simulate.t_end")
+        _needs_reduced(file, "crosscheck")
+    t_end = _end_time(scene, file)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -583,8 +588,7 @@ def _derive(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     if scene.reduced is None:
-        raise SceneError("no [reduced] section: derive needs generalized coordinates "
-                         "(coordinates, initial, rates, map)", file=file, key="reduced")
+        _needs_reduced(file, "derive")
     try:
         rm = ReducedModel.from_scene(scene)
     except InputError as exc:
@@ -760,10 +764,7 @@ def _bench(args) -> int:
 
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
-    t_end = scene.settings["t_end"]
-    if t_end is None:
-        raise SceneError("no end time: give t_end in [simulate], or pass --set simulate.t_end=...",
-                         file=file, key="simulate.t_end")
+    t_end = _end_time(scene, file)
     methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
     try:
         tolerances = (tuple(float(x) for x in args.tolerances.split(","))
