@@ -339,8 +339,6 @@ def _run(args) -> int:
         _say_error(message)
         return 1
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
 
     written = [trajectory.save(out_dir / "trajectory.npz", quantities=quantities)]
@@ -531,8 +529,6 @@ def _crosscheck(args) -> int:
         _say_error(f"scene file {file}: {exc}")
         return 1
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
     written = []
     try:
@@ -563,8 +559,6 @@ def _statics(args) -> int:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             eq = equilibrium(scene.system, t=scene.settings["t_start"])
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
     written = [write_equilibrium_json(eq, out_dir / "equilibrium.json")]
     try:
@@ -592,8 +586,6 @@ def _derive(args) -> int:
     try:
         rm = ReducedModel.from_scene(scene)
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
     if not (args.equation or args.lagrangian or args.force):
         print(describe(rm))
@@ -627,8 +619,6 @@ def _check(args) -> int:
         model = assemble(scene.system)
         report = constraint_report(scene.system)
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
 
     sysm = scene.system
@@ -721,7 +711,10 @@ def _fmt_correction(corr) -> str:
 
 
 def _scene_error(exc: InputError, file: str) -> SceneError:
-    """An InputError raised after loading (simulate, assemble) -> SceneError naming the file."""
+    """An InputError raised after loading (simulate, assemble) -> SceneError naming the file
+    (a SceneError already names it and passes through)."""
+    if isinstance(exc, SceneError):
+        return exc
     where = getattr(exc, "where", None)
     reason = getattr(exc, "reason", None) or str(exc)
     key = None
@@ -792,8 +785,6 @@ def _bench(args) -> int:
             result = work_precision(scene.system, t_end, methods=methods, tolerances=tolerances,
                                     repeats=args.repeats, name=scene.name, progress=progress, **kwargs)
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
     written = result.write(out_dir)
     if not args.quiet:
@@ -864,8 +855,6 @@ def _path(args) -> int:
         _say_error(message)
         return 1
     except InputError as exc:
-        if isinstance(exc, SceneError):
-            raise
         raise _scene_error(exc, file) from None
     written = [result.trajectory.save(out_dir / "path.npz")]
     try:

@@ -55,7 +55,7 @@ import numpy as np
 
 from . import expressions
 from .errors import ExpressionError, InputError
-from .scene import SceneError, apply_overrides, build_scene, parse_override
+from .scene import SceneError, apply_overrides, build_scene, expect_requirements, parse_override
 from .trajectory import atomic_write
 
 __all__ = [
@@ -398,14 +398,13 @@ def _settings_kwargs(scene, outputs: set[str]) -> dict:
 
 
 def _expect_columns(scene, traj, model) -> dict[str, Any]:
-    """The scene's [expect] checks, when the scene module provides them (value and pass/fail)."""
-    from . import scene as scene_module
+    """The scene's [expect] checks as columns: value and pass/fail."""
+    from .scene import check_expectations
 
-    check = getattr(scene_module, "check_expectations", None)
-    if check is None or not getattr(scene, "expectations", None):
+    if not scene.expectations:
         return {}
     out: dict[str, Any] = {}
-    for r in check(scene, traj, model):
+    for r in check_expectations(scene, traj, model):
         key = r.key if r.key.startswith("expect.") else f"expect.{r.key}"
         out[key] = float(r.value)
         out[f"{key}.ok"] = bool(r.ok)
@@ -431,9 +430,8 @@ def run_task(task: dict) -> dict:
         entry = _cached_model(raw, scene.system)
         model = entry["model"]
         outputs = {"energy", "constraint_residual", "velocity_residual"}
-        requirements = getattr(sys.modules.get("constrained.scene"), "expect_requirements", None)
-        if requirements is not None and getattr(scene, "expectations", None):
-            outputs |= set(requirements(scene))
+        if scene.expectations:
+            outputs |= set(expect_requirements(scene))
         if task["save_trajectory"]:
             outputs |= {q for q in scene.outputs.get("quantities", ())
                         if q in ("multipliers", "constraint_forces")}
