@@ -49,21 +49,31 @@ def cache_dir() -> Path:
 
 def compile_function(function: ca.Function, *, flags=("-O2",)) -> ca.Function:
     """``function`` as compiled machine code (cached), or unchanged when that is impossible."""
+    return compile_functions([function], flags=flags)[0]
+
+
+def compile_functions(functions: list[ca.Function], *, flags=("-O2",)) -> list[ca.Function]:
+    """Several Functions compiled into one shared library (one compiler run; subfunctions they
+    share are generated once). Each comes back compiled, or all unchanged on failure."""
     global last_error
     last_error = None
     cc = compiler()
     if cc is None:
         last_error = "no C compiler found (set $CC)"
-        return function
-    name = function.name()
-    with tempfile.TemporaryDirectory() as tmp:
-        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
-        cg.add(function)
-        cg.generate(tmp + os.sep)
-        source = Path(tmp, f"{name}.c").read_text()
-    key = hashlib.sha256((source + " ".join(flags) + ca.__version__).encode()).hexdigest()[:20]
-    target = cache_dir() / f"{name}_{key}.so"
+        return list(functions)
+    name = functions[0].name()
+    # The key is CasADi's serialization of the functions (their whole graph and constants;
+    # deterministic, and ~5x cheaper than generating the C source, which a cache hit skips).
+    digest = hashlib.sha256()
+    for function in functions:
+        digest.update(function.serialize().encode())
+    digest.update((" ".join(flags) + ca.__version__).encode())
+    target = cache_dir() / f"{name}_{digest.hexdigest()[:20]}.so"
     if not target.is_file():
+        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+        for function in functions:
+            cg.add(function)
+        source = cg.dump()
         target.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
             c_file = Path(tmp, f"{name}.c")
@@ -73,10 +83,10 @@ def compile_function(function: ca.Function, *, flags=("-O2",)) -> ca.Function:
                                     capture_output=True, text=True)
             if result.returncode != 0:
                 last_error = f"the C compiler failed: {result.stderr.strip()[:300]}"
-                return function
+                return list(functions)
             os.replace(so, target)  # atomic: a concurrent run sees the old file or the whole new one
     try:
-        return ca.external(name, str(target))
+        return [ca.external(f.name(), str(target)) for f in functions]
     except RuntimeError as exc:
         last_error = f"cannot load {target}: {str(exc).splitlines()[0]}"
-        return function
+        return list(functions)

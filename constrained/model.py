@@ -156,6 +156,8 @@ class Model:
         self.redundant = False
         #: "virtual machine" (CasADi's) or "compiled" (see ``compile``).
         self.evaluation = "virtual machine"
+        #: What solvers build once per model and reuse across runs (e.g. dopri's step loop).
+        self.solver_cache: dict = {}
         self._build_fast_paths()
 
     def _build_fast_paths(self) -> None:
@@ -188,6 +190,26 @@ class Model:
         self._newton_step = ca.Function("newton_step", [X, T], [d(f), d(dx)])
         self._velocity_correction = ca.Function("velocity_correction", [X, Vv, T], [d(dv)])
         self._make_fast_calls()
+
+    def symbolic_acceleration(self) -> ca.Function:
+        """The acceleration ``(x, v, t) -> (a, λ)`` as one SX expression, the KKT solve written
+        out symbolically: fastest for small models (a few constraints), where it can be
+        expanded into a larger SX graph; its size grows with the cube of the constraint count."""
+        cached = self.solver_cache.get("symbolic_acceleration")
+        if cached is None:
+            n3 = self.n_coordinates
+            X, Vv, T = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
+            minv = ca.DM(self.inverse_masses)
+            F, J, gamma = self.dynamics(X, Vv, T)
+            if self.n_constraints:
+                A = ca.mtimes(ca.mtimes(J, ca.diag(minv)), J.T)
+                lam = ca.solve(A, -gamma - ca.mtimes(J, minv * F))
+                acc = minv * (F + ca.mtimes(J.T, lam))
+            else:
+                lam, acc = ca.SX(0, 1), minv * F
+            cached = ca.Function("acceleration_sx", [X, Vv, T], [acc, lam])
+            self.solver_cache["symbolic_acceleration"] = cached
+        return cached
 
     def _make_fast_calls(self) -> None:
         self._fast_acceleration = _FastCall(self._acceleration)

@@ -145,11 +145,14 @@ def simulate(
         model, system.positions, system.velocities, t_start,
         max_correction=max_initial_correction, size=system.size(),
     )
+    started = time.perf_counter()
     solver = METHODS[method](model, rtol=rtol, atol=atol, dt=dt, **options)
+    setup_time = time.perf_counter() - started
     started = time.perf_counter()
     solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
     wall = time.perf_counter() - started
-    stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time, "method": method}
+    stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
+             "setup_time_s": setup_time, "method": method}
     traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
     traj.info.update(
         {

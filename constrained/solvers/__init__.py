@@ -2,6 +2,7 @@
 
 from .base import Solution, Solver
 from .baumgarte import Baumgarte
+from .dopri import Dopri
 from .idas import GGL, Idas
 from .pantelides import Pantelides
 from .projection import Projection
@@ -9,8 +10,8 @@ from .rattle import Rattle
 from .reduced import Reduced
 
 METHODS: dict[str, type[Solver]] = {
-    cls.name: cls for cls in (Projection, Baumgarte, Rattle, Idas, GGL, Pantelides, Reduced)
+    cls.name: cls for cls in (Projection, Baumgarte, Dopri, Rattle, Idas, GGL, Pantelides, Reduced)
 }
 
-__all__ = ["GGL", "METHODS", "Baumgarte", "Idas", "Pantelides", "Projection", "Rattle", "Reduced",
+__all__ = ["GGL", "METHODS", "Baumgarte", "Dopri", "Idas", "Pantelides", "Projection", "Rattle", "Reduced",
            "Solution", "Solver"]

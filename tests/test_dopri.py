@@ -1,0 +1,110 @@
+"""dopri: the Dormand–Prince step loop run by CasADi — accuracy, drift, outputs, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import double_pendulum
+from test_solvers import DP_REF_T2, driven_pendulum
+
+import constrained as C
+from constrained import compiled
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+
+
+@pytest.mark.parametrize("base, rtol, max_error", [("DOP853", 1e-10, 1e-9), ("DOPRI5", 1e-11, 1e-9)])
+def test_dopri_reaches_the_double_pendulum_reference(base, rtol, max_error):
+    tr = C.simulate(double_pendulum(), 2.0, method="dopri", base=base, rtol=rtol, atol=rtol * 1e-2,
+                    t_eval=np.linspace(0, 2, 11), compiled=False)
+    assert np.allclose(tr.t, np.linspace(0, 2, 11), rtol=0, atol=1e-15)  # lands on every output
+    assert np.max(np.abs(tr.x[-1, :, :2] - DP_REF_T2)) <= max_error
+    assert np.max(tr.constraint_residual) <= 1e-12  # projected after every step
+    assert tr.stats["steps"] > 0 and tr.stats["nfev"] >= 6 * tr.stats["steps"]
+
+
+def test_dopri_error_falls_with_the_tolerance_at_its_order():
+    errors = []
+    for rtol in (1e-7, 1e-9):
+        tr = C.simulate(double_pendulum(), 2.0, method="dopri", rtol=rtol, atol=rtol * 1e-2,
+                        t_eval=[0.0, 2.0], outputs=set(), compiled=False)
+        errors.append(np.max(np.abs(tr.x[-1, :, :2] - DP_REF_T2)))
+    assert errors[1] < errors[0] / 20  # tolerance proportionality: roughly 100x per 100x in rtol
+
+
+def test_dopri_without_outputs_returns_every_accepted_step_and_conserves_energy():
+    tr = C.simulate(double_pendulum(), 5.0, method="dopri", rtol=1e-10, atol=1e-12, compiled=False)
+    assert len(tr.t) == tr.stats["steps"] + 1 and tr.t[-1] == 5.0
+    assert np.all(np.diff(tr.t) > 0)
+    assert np.ptp(tr.energy) <= 1e-7 * np.max(np.abs(tr.energy))
+
+
+def test_dopri_follows_a_rheonomic_constraint_like_projection():
+    t = np.linspace(0, 2, 11)
+    ref = C.simulate(driven_pendulum(), 2.0, rtol=1e-12, atol=1e-12, t_eval=t)
+    tr = C.simulate(driven_pendulum(), 2.0, method="dopri", rtol=1e-11, atol=1e-12, t_eval=t, compiled=False)
+    assert np.max(np.abs(tr.x - ref.x)) <= 1e-9
+    assert np.max(tr.constraint_residual) <= 1e-12
+
+
+def test_dopri_is_exact_for_free_fall():
+    s = C.System(name="throw")
+    s.add_particle("ball", 0.5, [0.0, 1.0, 0.0], [2.0, 3.0, -1.0])
+    s.add(C.Gravity([0, -9.81, 0]))
+    tr = C.simulate(s, 1.5, method="dopri", base="DOPRI5", rtol=1e-6, atol=1e-8, t_eval=[0.0, 1.5],
+                    compiled=False)
+    t = 1.5
+    expected = np.array([2.0 * t, 1.0 + 3.0 * t - 0.5 * 9.81 * t * t, -t])
+    assert np.allclose(tr.x[-1, 0], expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.skipif(compiled.compiler() is None, reason="no C compiler on this machine")
+def test_compiled_dopri_matches_the_virtual_machine():
+    model = C.assemble(double_pendulum())
+    t = np.linspace(0, 2, 5)
+    vm = C.simulate(double_pendulum(), 2.0, method="dopri", base="DOPRI5", rtol=1e-9, atol=1e-11,
+                    t_eval=t, compiled=False, model=model)
+    mc = C.simulate(double_pendulum(), 2.0, method="dopri", base="DOPRI5", rtol=1e-9, atol=1e-11,
+                    t_eval=t, compiled=True, model=model)
+    assert vm.stats["evaluation"] == "virtual machine" and mc.stats["evaluation"] == "compiled"
+    assert mc.stats["steps"] == vm.stats["steps"]
+    assert np.max(np.abs(mc.x - vm.x)) <= 1e-12 and np.max(np.abs(mc.v - vm.v)) <= 1e-12
+    again = C.simulate(double_pendulum(), 2.0, method="dopri", base="DOPRI5", rtol=1e-7, atol=1e-9,
+                       t_eval=t, compiled=True, model=model)
+    # built once per model and setting: the tolerances are inputs of the compiled loop
+    loops = sorted(key for key in model.solver_cache if key[0] == "dopri")
+    assert loops == [("dopri", "DOPRI5", False), ("dopri", "DOPRI5", True)]
+    assert again.stats["steps"] < mc.stats["steps"]
+
+
+def test_dopri_refuses_bad_settings_and_redundant_constraints():
+    with pytest.raises(C.InputError, match="unknown base tableau 'RK4'"):
+        C.simulate(double_pendulum(), 0.1, method="dopri", base="RK4")
+    with pytest.raises(C.InputError, match="max_steps"):
+        C.simulate(double_pendulum(), 0.1, method="dopri", max_steps=0)
+    s = C.System(name="twice pinned")
+    s.add_particle("p", 1.0, [1.0, 0.0, 0.0])
+    s.add(C.Distance("p", point=[0, 0, 0], length=1.0), C.Distance("p", point=[0, 0, 0], length=1.0))
+    with pytest.raises(C.InputError, match="independent constraints"):
+        C.simulate(s, 0.1, method="dopri")
+
+
+def test_dopri_stops_with_a_message_and_keeps_what_it_computed():
+    with pytest.raises(C.SimulationError, match="max_steps = 20") as info:
+        C.simulate(double_pendulum(), 2.0, method="dopri", rtol=1e-12, atol=1e-14, max_steps=20,
+                   compiled=False)
+    kept = info.value.trajectory
+    assert len(kept.t) >= 2 and kept.t[-1] < 2.0
+    assert np.max(kept.constraint_residual) <= 1e-12
+
+    def stop(t):
+        if t > 0.5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(C.SimulationError, match="interrupted") as info:
+        C.simulate(double_pendulum(), 2.0, method="dopri", t_eval=np.linspace(0, 2, 41), progress=stop,
+                   compiled=False)
+    assert 0.5 <= info.value.trajectory.t[-1] < 2.0  # the outputs reached before the interrupt
