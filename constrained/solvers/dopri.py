@@ -38,7 +38,7 @@ AUTO_COMPILE_COORDINATES = 90
 CHUNKS = (1, 4, 16, 64)
 #: Up to this many constraint rows the whole step is one SX expression (the KKT solves
 #: written out symbolically): ~2.7x faster than calling the sparse linear solver.
-SYMBOLIC_MAX_CONSTRAINTS = 16
+SYMBOLIC_MAX_CONSTRAINTS = 8
 #: Projection residual |f| (× system size) before the last Newton step that stops the run:
 #: Newton converges quadratically, so this leaves |f| ≈ 1e-12 after it.
 PROJECTION_FAIL = 1e-6
