@@ -118,6 +118,37 @@ class Central(Effect):
         return s.parse(self.expr, f"{where}.expr", extra={"r": r})
 
 
+class Pairwise(Effect):
+    """V = Σ_{i<j} V(r_ij), r_ij = |x_i − x_j|, over every pair of the listed particles (all
+    when none are listed): gravitation, Coulomb, Lennard-Jones, the Fekete problem's −log r.
+    ``expr`` in r (and t, parameters); parsed once, substituted per pair."""
+
+    slot = "potential"
+
+    def __init__(self, expr: str, particles=None, *, name=None, where=None):
+        self.expr, self.name, self.where = expr, name, where
+        self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
+
+    @property
+    def label(self) -> str:
+        over = "all particles" if self.particles is None else f"{len(self.particles)} particles"
+        return self.name or f"pairwise V(r) = {self.expr} over {over}"
+
+    def term(self, s):
+        where = self._where()
+        names = self.particles if self.particles is not None else list(s._index)
+        if len(set(names)) != len(names):
+            raise InputError("'particles' lists a particle twice", where=f"{where}.particles")
+        r = ca.SX.sym("r")
+        V = s.parse(self.expr, f"{where}.expr", extra={"r": r})
+        positions = [s.position(p, where) for p in names]
+        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
+        if not pairs:
+            return ca.SX(0)
+        pair = ca.Function("pair_potential", [r, s.x, s.t], [V])  # V may also use t, coordinates
+        return sum((pair(ca.norm_2(positions[i] - positions[j]), s.x, s.t) for i, j in pairs), ca.SX(0))
+
+
 class Damping(Effect):
     """Rayleigh dissipation R = ½ c Σ|v_i|² (listed particles), or ½ c |v_a − v_b|² (a pair)."""
 
@@ -208,6 +239,7 @@ EFFECT_TYPES = {
     "spring": Spring,
     "potential": Potential,
     "central": Central,
+    "pairwise": Pairwise,
     "damping": Damping,
     "force": Force,
     "electromagnetic": Electromagnetic,

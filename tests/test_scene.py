@@ -419,3 +419,32 @@ def test_bad_expect_names_file_and_key(tmp_path, body, key, fragment):
     path = write(tmp_path, EXPECT_BASE + "\n[expect]\n" + body + "\n")
     err = expect_error(path, key, fragment)
     assert str(path) in str(err)
+
+
+def test_pairwise_effect_is_checked_where_it_is_written(tmp_path):
+    text = """
+[[particles]]
+name = "a"
+mass = 1.0
+position = [1.0, 0.0, 0.0]
+
+[[particles]]
+name = "b"
+mass = 1.0
+position = [0.0, 1.0, 0.0]
+
+[[effects]]
+type = "pairwise"
+particles = ["a", "a"]
+expr = "1/r"
+"""
+    path = tmp_path / "pairs.toml"
+    path.write_text(text)
+    with pytest.raises(SceneError, match=r"effects\[0\].particles.*twice"):
+        load_scene(path)
+    path.write_text(text.replace('["a", "a"]', '["a", "c"]'))
+    with pytest.raises(SceneError, match=r"effects\[0\].*'c'"):
+        load_scene(path)
+    path.write_text(text.replace('["a", "a"]', '["a", "b"]').replace("1/r", "1/q"))
+    with pytest.raises(SceneError, match=r"effects\[0\].expr"):
+        load_scene(path)
