@@ -487,9 +487,15 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
         lines.append(f"solver: {stats}")
     if tr.energy is not None and len(tr.energy):
         drift = float(np.max(np.abs(tr.energy - tr.energy[0])))
-        text = f"energy drift: max |E - E0| = {drift:.3g} J"
-        if tr.energy[0] != 0:
-            text += f" (relative {drift / abs(float(tr.energy[0])):.3g})"
+        conserving = not set(tr.info.get("active_terms", ())) & {
+            "rheonomic", "dissipation", "applied_force", "time_dependent_forces"}
+        if conserving:
+            text = f"energy drift: max |E - E0| = {drift:.3g} J"
+            if tr.energy[0] != 0:
+                text += f" (relative {drift / abs(float(tr.energy[0])):.3g})"
+        else:  # damping, driving or applied forces change E: that is physics, not drift
+            text = (f"energy change: E(end) - E0 = {float(tr.energy[-1] - tr.energy[0]):.6g} J "
+                    "(not conserved in this scene: damping, driving or applied forces)")
         lines.append(text)
     if tr.constraint_residual is not None and len(tr.constraint_residual):
         lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g}")

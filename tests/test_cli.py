@@ -301,3 +301,14 @@ def test_reduced_method_without_a_map_and_bad_compiled_setting_are_refused(tmp_p
                  "--out", str(tmp_path / "b")])
     assert code == 2 and "simulate.compiled" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_run_summary_calls_a_damped_energy_loss_a_change_not_a_drift(tmp_path, capsys):
+    code = main(["run", str(ROOT / "scenarios" / "damped_hanging_spring.toml"), "--set", "simulate.t_end=1",
+                 "--set", "outputs.plots=[]", "--out", str(tmp_path / "damped")])
+    out = capsys.readouterr().out
+    assert code == 0 and "energy change: E(end) - E0 = -" in out and "energy drift" not in out
+    code = main(["run", str(ROOT / "scenarios" / "simple_pendulum.toml"), "--set", "simulate.t_end=4.5",
+                 "--set", "outputs.plots=[]", "--out", str(tmp_path / "pendulum")])
+    out = capsys.readouterr().out
+    assert code == 0 and "energy drift: max |E - E0|" in out
