@@ -776,7 +776,8 @@ def _bench(args) -> int:
 
     def progress(method, opts):
         if not args.quiet:
-            setting = ", ".join(f"{k} {v:g}" for k, v in opts.items() if k != "atol")
+            setting = ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+                                for k, v in opts.items() if k not in ("atol", "base"))
             print(f"  {method} ({setting})", flush=True)
 
     try:

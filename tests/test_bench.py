@@ -63,3 +63,15 @@ def test_bench_on_a_scene_without_expectations(tmp_path):
     assert code == 0
     (row,) = csv.DictReader((out / "bench.csv").open())
     assert row["status"] == "ok" and float(row["error"]) < 1e-6
+
+
+def test_bench_reports_progress_for_a_method_with_a_base(tmp_path, capsys):
+    out = tmp_path / "bench"
+    code = main(["bench", str(SCENARIOS / "double_pendulum.toml"), "--set", "simulate.t_end=0.5",
+                 "--methods", "dopri:DOPRI5", "--tolerances", "1e-6,1e-9", "--repeats", "1",
+                 "--out", str(out)])
+    assert code == 0
+    assert "dopri:DOPRI5 (rtol 1e-06)" in capsys.readouterr().out
+    rows = list(csv.DictReader((out / "bench.csv").open()))
+    assert float(rows[1]["error"]) < 1e-3 * float(rows[0]["error"])
+    assert all(float(r["constraint_residual"]) < 1e-12 for r in rows)
