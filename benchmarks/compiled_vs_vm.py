@@ -47,6 +47,10 @@ CASES = [
     ("rattle, double pendulum, 100 s, dt 1e-3", double_pendulum, 100.0, dict(method="rattle", dt=1e-3)),
     ("rattle, 20-link chain, 2 s, dt 1e-3", lambda: chain(20), 2.0, dict(method="rattle", dt=1e-3)),
     ("projection, 40-link chain, 1 s, rtol 1e-8", lambda: chain(40), 1.0, dict(rtol=1e-8, atol=1e-10)),
+    ("dopri, double pendulum, 2 s, rtol 1e-10", double_pendulum, 2.0,
+     dict(method="dopri", rtol=1e-10, atol=1e-12)),
+    ("dopri, 256-link chain, 1 s, rtol 1e-6", lambda: chain(256), 1.0,
+     dict(method="dopri", rtol=1e-6, atol=1e-8)),
 ]
 
 

@@ -69,7 +69,7 @@ class BenchResult:
             lines.append(
                 f"| {r['method']} | {setting} | {_err(r['error'], self.reference_error)} | "
                 f"{r['constraint_residual']:.1e} | {_fmt(r['energy_drift'])} | "
-                f"{r['wall_time_s']:.4f} | {r['steps']} |"
+                f"{r['wall_time_s']:.3g} | {r['steps']} |"
             )
         return "\n".join(lines) + "\n"
 

@@ -35,7 +35,7 @@ from .base import Solution, Solver
 #: (the one-time C compile takes a few seconds there and is cached; beyond, it grows steeply).
 AUTO_COMPILE_COORDINATES = 90
 #: Attempts chained per CasADi call; Python picks the largest not above the expected count.
-CHUNKS = (1, 4, 16, 64)
+CHUNKS = (1, 8, 64)
 #: Up to this many constraint rows the whole step is one SX expression (the KKT solves
 #: written out symbolically): ~2.7x faster than calling the sparse linear solver.
 SYMBOLIC_MAX_CONSTRAINTS = 8
