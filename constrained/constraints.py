@@ -83,8 +83,7 @@ class Distance(Constraint):
         xa = s.position(self.a, where)
         xb = s.position(self.b, where) if self.b is not None else s.point(self.point, f"{where}.point")
         length = s.time_function(self.length, f"{where}.length")
-        d = xa - xb
-        return [(ca.sqrt(ca.dot(d, d)) - length, self.label)]
+        return [(ca.norm_2(xa - xb) - length, self.label)]
 
 
 class Pin(Constraint):
@@ -124,11 +123,10 @@ class Plane(Constraint):
         where = self._where()
         n = s.point(self.normal, f"{where}.normal")
         offset = s.time_function(self.offset, f"{where}.offset")
-        norm = ca.sqrt(ca.dot(n, n))
-        return [
-            ((ca.dot(n, s.position(p, where)) - offset) / norm, f"{self.label} [{p}]")
-            for p in self.particles
-        ]
+        # all rows in a few CasADi calls (one per particle would dominate the build of a chain)
+        P = ca.horzcat(*[s.position(p, where) for p in self.particles])
+        rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
+        return [(row, f"{self.label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
 
 
 class Surface(Constraint):
