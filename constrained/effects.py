@@ -52,9 +52,12 @@ class Gravity(Effect):
         where = self._where()
         g = s.point(self.g, f"{where}.g")
         names = self.particles if self.particles is not None else list(s._index)
-        return -sum(
-            s.masses[s.index(p, where)] * ca.dot(g, s.position(p, where)) for p in names
-        ) if names else 0.0
+        if not names:
+            return 0.0
+        # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
+        P = ca.horzcat(*[s.position(p, where) for p in names])
+        m = ca.DM([[s.masses[s.index(p, where)] for p in names]])
+        return -ca.dot(ca.mtimes(g.T, P), m)
 
 
 class Spring(Effect):
