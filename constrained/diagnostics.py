@@ -267,3 +267,32 @@ def spectral_radius(rhs, t: float, y: np.ndarray, f0: np.ndarray | None = None, 
     # complex pairs make single ratios oscillate: the geometric mean of the last few is robust
     tail = np.array(growth[len(growth) // 2:])
     return float(np.exp(np.mean(np.log(tail))))
+
+
+#: An explicit run is called stiff when, over at least STIFFNESS_MIN_STEPS steps, the median
+#: of h·ρ (sampled every STIFFNESS_EVERY accepted steps) sits near the stability boundary of
+#: the explicit method (about 3.3 for DOP853 on the negative real axis, 2.8 for RK45): the
+#: step is then held down by stability, not accuracy.
+STIFFNESS_EVERY = 50
+STIFFNESS_MIN_STEPS = 500
+STIFFNESS_H_RHO = 1.0
+
+
+def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, advice: str,
+                      stacklevel: int = 5) -> None:
+    """Record h·ρ in ``stats["stiffness"]``; warn (StiffnessWarning) when the explicit
+    method's steps were held down by stability over many steps."""
+    import warnings
+
+    med = float(np.median(h_rho)) if h_rho else 0.0
+    stiff = stats["steps"] >= STIFFNESS_MIN_STEPS and len(h_rho) >= 5 and med >= STIFFNESS_H_RHO
+    stats["stiffness"] = {"h_rho_median": med, "rho_max": rho_max, "checks": len(h_rho),
+                          "stiff": bool(stiff)}
+    if stiff:
+        warnings.warn(
+            f"the problem looks stiff: {what} took {stats['steps']} steps with h·ρ ≈ {med:.2g} "
+            f"(ρ ≈ {rho_max:.3g} /s, the fastest rate of the equations), so its step size is "
+            f"limited by stability, not accuracy; {advice}",
+            StiffnessWarning,
+            stacklevel=stacklevel,
+        )

@@ -302,3 +302,14 @@ def test_blow_up_stops_with_time_state_cause_and_saves(tmp_path, capsys):
 def test_hard_scene_expect_checks_pass(name, tmp_path, capsys):
     code = main(["run", str(HARD / f"{name}.toml"), "--quiet", "--out", str(tmp_path)])
     assert code == 0, capsys.readouterr()
+
+
+def test_stiff_axle_is_warned_about_by_dopri_too():
+    sc = scene("stiff_axle")
+    with pytest.warns(diagnostics.StiffnessWarning, match="dopri's explicit DOP853.*Radau"):
+        tr = C.simulate(sc.system, 0.15, method="dopri", rtol=1e-6, atol=1e-8, compiled=False)
+    assert tr.stats["stiffness"]["stiff"] and tr.stats["stiffness"]["rho_max"] > 5e3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", diagnostics.StiffnessWarning)
+        _, smooth = run("slider_crank_dead_centre", t_end=3.0, method="dopri", compiled=False)
+    assert not smooth.stats["stiffness"]["stiff"]

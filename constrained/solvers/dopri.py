@@ -27,6 +27,7 @@ import numpy as np
 from scipy.integrate import DOP853, RK45
 
 from .. import compiled as compiled_evaluation
+from .. import diagnostics
 from ..errors import InputError
 from ..model import _FastCall
 from .base import Solution, Solver
@@ -221,6 +222,13 @@ class Dopri(Solver):
         state = np.concatenate([x0, v0, a0, [t0, h, 0.0, 0.0, 0.0, 0.0, t0, self.rtol, self.atol]])
         T, H, N_ACC, N_REJ, RES, TARGET = 3 * n, 3 * n + 1, 3 * n + 3, 3 * n + 4, 3 * n + 5, 3 * n + 6
         failure = None
+        # stiffness watch: h·ρ sampled every STIFFNESS_EVERY steps once a run is long enough to
+        # be judged (short runs pay nothing)
+        h_rho, rho_max, checked = [], 0.0, diagnostics.STIFFNESS_MIN_STEPS // 2
+
+        def derivative(t, y):
+            return np.concatenate([y[n:], m.accelerations(y[:n], y[n:], t)[0]])
+
         try:
             for target in targets:
                 state[TARGET] = target
@@ -258,6 +266,11 @@ class Dopri(Solver):
                     if state[N_ACC] + state[N_REJ] > self.max_steps:
                         failure = f"more than max_steps = {self.max_steps} steps before t = {target:.6g} s"
                         break
+                    if state[N_ACC] - checked >= diagnostics.STIFFNESS_EVERY:
+                        checked = state[N_ACC]
+                        rho = diagnostics.spectral_radius(derivative, state[T], state[:2 * n])
+                        rho_max = max(rho_max, rho)
+                        h_rho.append(state[H] * rho)
                     self.report(state[T])
                 if failure:
                     break
@@ -274,5 +287,8 @@ class Dopri(Solver):
             "njev": 2 * (accepted + rejected), "nlu": (evals + 2) * (accepted + rejected),
             "projections": accepted, "tableau": self.tableau.name,
         })
+        diagnostics.stiffness_verdict(
+            self.stats, h_rho, rho_max, what=f"dopri's explicit {self.tableau.name}", stacklevel=4,
+            advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"')
         return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
                         dict(self.stats), failure)

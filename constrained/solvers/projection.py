@@ -9,8 +9,6 @@ step's dense output and projected the same way, so every sample lies on both man
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 from scipy.integrate import DOP853, RK45, Radau
 
@@ -24,13 +22,9 @@ from .base import Solution, Solver
 BASES = {"DOP853": DOP853, "RK45": RK45, "Radau": Radau, "CVODES": None, "CVODES_BDF": None}
 #: Explicit bases, whose accepted steps are watched for stiffness (StiffnessWarning).
 EXPLICIT = ("DOP853", "RK45")
-#: The stiffness check estimates ρ(∂f/∂y) every this many accepted steps ...
-STIFFNESS_EVERY = 50
-#: ... and calls the run stiff when, over at least STIFFNESS_MIN_STEPS steps, the median of
-#: h·ρ sits near the stability boundary of the explicit method (about 3.3 for DOP853 on the
-#: negative real axis, 2.8 for RK45): the step is held down by stability, not accuracy.
-STIFFNESS_MIN_STEPS = 500
-STIFFNESS_H_RHO = 1.0
+#: The stiffness check estimates ρ(∂f/∂y) every this many accepted steps (the verdict:
+#: diagnostics.stiffness_verdict).
+STIFFNESS_EVERY = diagnostics.STIFFNESS_EVERY
 #: A projection that leaves |f| above this (× system size) means Newton failed: the run stops.
 PROJECTION_FAIL = 1e-8
 #: The run stops at a singular configuration when the rank-th singular value of the
@@ -219,21 +213,9 @@ class Projection(Solver):
         return Solution(np.array(ts), Y[:, :n], Y[:, n:], dict(self.stats), failure)
 
     def _stiffness_verdict(self, h_rho, rho_max) -> None:
-        """Record h·ρ in stats["stiffness"]; warn (StiffnessWarning) when the explicit base's
-        steps were held down by stability over many steps."""
-        med = float(np.median(h_rho)) if h_rho else 0.0
-        stiff = self.stats["steps"] >= STIFFNESS_MIN_STEPS and len(h_rho) >= 5 and med >= STIFFNESS_H_RHO
-        self.stats["stiffness"] = {"h_rho_median": med, "rho_max": rho_max, "checks": len(h_rho),
-                                   "stiff": bool(stiff)}
-        if stiff:
-            warnings.warn(
-                f"the problem looks stiff: the explicit base {self.base} took {self.stats['steps']} "
-                f"steps with h·ρ ≈ {med:.2g} (ρ ≈ {rho_max:.3g} /s, the fastest rate of the "
-                "equations), so its step size is limited by stability, not accuracy; use "
-                'base = "Radau" or base = "CVODES_BDF"',
-                diagnostics.StiffnessWarning,
-                stacklevel=4,
-            )
+        diagnostics.stiffness_verdict(
+            self.stats, h_rho, rho_max, what=f"the explicit base {self.base}",
+            advice='use base = "Radau" or base = "CVODES_BDF"')
 
     # --- CVODES base: CasADi integrates between projection points --------------------------
     #: Without t_eval, the state is projected this many times over the run.
