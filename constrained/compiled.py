@@ -18,6 +18,7 @@ gain little, and the C compiler's time grows steeply with the model). The enviro
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import shutil
@@ -33,8 +34,12 @@ last_error: str | None = None
 
 def compiler() -> str | None:
     """The C compiler to use, or None."""
-    cc = os.environ.get("CC") or "cc"
-    return shutil.which(cc)
+    return _which(os.environ.get("CC") or "cc", os.environ.get("PATH", ""))
+
+
+@functools.cache
+def _which(cc: str, path: str) -> str | None:  # PATH is a key: a changed PATH looks again
+    return shutil.which(cc, path=path)
 
 
 def enabled(setting="auto") -> bool:
