@@ -10,7 +10,7 @@ from collections.abc import Iterable
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .analysis import jacobian_rank, sparse_full_row_rank
+from .analysis import dense_full_row_rank, jacobian_rank, sparse_full_row_rank
 from .errors import InconsistentStateError, InputError, SimulationError
 from .model import Model, assemble
 from .solvers import METHODS
@@ -31,7 +31,10 @@ def flag_redundancy(model: Model, x, t: float) -> bool:
     J = model.jacobian(x, t)[1]
     # the sparse test settles the usual case (independent rows) in O(N); the dense
     # rank-revealing QR, O(N³), runs only when it cannot
-    if model.n_constraints > SPARSE_RANK_FROM and sparse_full_row_rank(J, model.inverse_masses):
+    if model.n_constraints > SPARSE_RANK_FROM:
+        if sparse_full_row_rank(J, model.inverse_masses):
+            return False
+    elif dense_full_row_rank(np.asarray(J), model.inverse_masses):
         return False
     rank, _ = jacobian_rank(np.asarray(J))
     model.redundant = rank < model.n_constraints

@@ -88,10 +88,10 @@ def test_hanging_chain_200_links_conserves_energy():
     assert np.max(np.abs(tr.x[-1] - tr.x[0])) > 1e-3  # it did move
 
 
-def test_sparse_full_rank_test_agrees_with_the_dense_one():
+def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr():
     import itertools
 
-    from constrained.analysis import jacobian_rank, sparse_full_row_rank
+    from constrained.analysis import dense_full_row_rank, jacobian_rank, sparse_full_row_rank
 
     chain = C.System()
     for i in range(30):
@@ -109,4 +109,5 @@ def test_sparse_full_rank_test_agrees_with_the_dense_one():
         model = C.assemble(system)
         J = model.jacobian(system.positions.ravel(), 0.0)[1]
         assert sparse_full_row_rank(J, model.inverse_masses) is full
+        assert dense_full_row_rank(np.asarray(J), model.inverse_masses) is full
         assert (jacobian_rank(np.asarray(J))[0] == model.n_constraints) is full
