@@ -62,6 +62,8 @@ class Projection(Solver):
         # compiled only when asked for (compiled=True), never under "auto".
         if self.compiled_setting is True and compiled_evaluation.enabled(True):
             model.compile()
+        # built here, so its cost is setup (stats["setup_time_s"]), not the run
+        self._integrator = self._cvodes_integrator() if base.startswith("CVODES") else None
 
     def derivative(self, t, y):
         """(x', v') = (v, a(x, v, t)) with a from the KKT system."""
@@ -221,18 +223,18 @@ class Projection(Solver):
     #: Without t_eval, the state is projected this many times over the run.
     CVODES_SEGMENTS = 100
 
-    def _run_cvodes(self, x0, v0, t0, t_end, t_eval) -> Solution:
-        """Integrate with CasADi's CVODES (Adams, or BDF with Newton for base CVODES_BDF; no Python
-        per evaluation) from one output time to the next, projecting onto both manifolds at each
-        of them."""
+    def _cvodes_integrator(self):
+        """The CVODES integrator of this model and setting, built once and kept on the model
+        (building it forms the right-hand side's Jacobian: seconds for large models)."""
         import casadi as ca
 
         m = self.model
         n = m.n_coordinates
-        scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
-        self.position_tol = 1e-14 * scale
-        grid = (np.asarray(t_eval, float) if t_eval is not None
-                else np.linspace(t0, t_end, self.CVODES_SEGMENTS + 1))
+        # only the latest setting is kept: one integrator can hold hundreds of MB
+        settings = (self.base, self.rtol, self.atol)
+        cached = m.solver_cache.get("projection_cvodes")
+        if cached is not None and cached[0] == settings:
+            return cached[1]
         # one integrator for every segment: τ ∈ [0, 1], t = t_a + Δ τ, d/dτ = Δ d/dt
         y, tau, p = ca.MX.sym("y", 2 * n), ca.MX.sym("tau"), ca.MX.sym("p", 2)
         a, _ = m.acceleration_graph(y[:n], y[n:], p[0] + p[1] * tau)
@@ -250,6 +252,21 @@ class Projection(Solver):
             options["newton_scheme"] = "gmres"
         integ = ca.integrator("segment", "cvodes", {"x": y, "p": p, "t": tau, "ode": ode}, 0.0, 1.0,
                               options)
+        m.solver_cache["projection_cvodes"] = (settings, integ)
+        return integ
+
+    def _run_cvodes(self, x0, v0, t0, t_end, t_eval) -> Solution:
+        """Integrate with CasADi's CVODES (Adams, or BDF with Newton for base CVODES_BDF; no Python
+        per evaluation) from one output time to the next, projecting onto both manifolds at each
+        of them."""
+
+        m = self.model
+        n = m.n_coordinates
+        scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
+        self.position_tol = 1e-14 * scale
+        grid = (np.asarray(t_eval, float) if t_eval is not None
+                else np.linspace(t0, t_end, self.CVODES_SEGMENTS + 1))
+        integ = self._integrator
         ts, xs, vs = [], [], []
         if grid[0] <= t0:
             ts.append(t0)
