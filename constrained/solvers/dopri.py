@@ -95,7 +95,7 @@ class Dopri(Solver):
         t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol = ca.vertsplit(S[3 * n:], 1)
         symbolic = m.n_constraints <= SYMBOLIC_MAX_CONSTRAINTS
         accel = m.symbolic_acceleration() if symbolic else m.acceleration_graph
-        linsol = "symbolicqr" if symbolic else "qr"
+        linsol = "symbolicqr" if symbolic else "ldl"
         minv = ca.DM(m.inverse_masses)
         done = t >= t_target  # (then the attempt is skipped: see the end)
         remaining = t_target - t
