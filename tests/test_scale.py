@@ -111,3 +111,13 @@ def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr():
         assert sparse_full_row_rank(J, model.inverse_masses) is full
         assert dense_full_row_rank(np.asarray(J), model.inverse_masses) is full
         assert (jacobian_rank(np.asarray(J))[0] == model.n_constraints) is full
+
+
+def test_symbolic_acceleration_matches_the_sparse_solve(small):
+    """dopri's SX-expanded step (small models) writes the KKT solve out symbolically; it must
+    give the sparse fast path's accelerations and multipliers."""
+    model, x, v = small
+    a, lam = model.accelerations(x, v, 0.3)
+    a_sx, lam_sx = (np.asarray(o, float).ravel() for o in model.symbolic_acceleration()(x, v, 0.3))
+    assert np.max(np.abs(a_sx - a)) <= 1e-12 * max(1.0, np.max(np.abs(a)))
+    assert np.max(np.abs(lam_sx - lam)) <= 1e-12 * max(1.0, np.max(np.abs(lam)))
