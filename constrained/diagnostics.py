@@ -296,3 +296,22 @@ def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, ad
             StiffnessWarning,
             stacklevel=stacklevel,
         )
+
+
+def likely_cause(model, x, v, t: float) -> str:
+    """The likely cause of a stopped run, from its last good state (x, v, t): a singular
+    configuration, or the particle whose acceleration blows up."""
+    try:
+        if model.n_constraints:
+            sing = singularity(model, x, t)
+            if sing.sigma < 1e-3:
+                return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
+        a, _ = model.accelerations(x, v, t)
+        acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
+        k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
+        name = model.system.particles[k].name
+        pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
+        return (f"likely cause: forces that blow up: at the last good state particle '{name}' at "
+                f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
+    except Exception:  # a diagnosis must never hide the stop itself
+        return "likely cause: a singular configuration, stiffness, or forces that blow up"

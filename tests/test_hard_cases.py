@@ -313,3 +313,14 @@ def test_stiff_axle_is_warned_about_by_dopri_too():
         warnings.simplefilter("error", diagnostics.StiffnessWarning)
         _, smooth = run("slider_crank_dead_centre", t_end=3.0, method="dopri", compiled=False)
     assert not smooth.stats["stiffness"]["stiff"]
+
+
+def test_dopri_past_the_fourbar_limit_stops_naming_the_constraints():
+    sc = scene("fourbar_limit")
+    with pytest.raises(C.SimulationError) as err:
+        C.simulate(sc.system, 3.0, method="dopri", rtol=1e-10, atol=1e-12,
+                   t_eval=np.arange(0, 3.0, 0.005), compiled=False)
+    msg = str(err.value)
+    assert "singular configuration" in msg and "'coupler BC'" in msg and "'rocker DC'" in msg
+    partial = err.value.trajectory
+    assert 1.0 < partial.t[-1] < 1.3 and np.all(np.isfinite(partial.x))

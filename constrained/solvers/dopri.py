@@ -242,9 +242,9 @@ class Dopri(Solver):
                     if not np.all(np.isfinite(state)):
                         ok = np.all(np.isfinite(cols), axis=1)
                         last = cols[np.argmin(ok) - 1] if not ok[0] else before
-                        failure = (f"non-finite state after t = {last[T]:.6g} s "
-                                   "(forces that blow up, or a singular configuration)")
                         state = last
+                        failure = (f"non-finite state after t = {last[T]:.6g} s; "
+                                   + diagnostics.likely_cause(m, last[:n], last[n:2 * n], last[T]))
                         break
                     if state[RES] > PROJECTION_FAIL * scale:
                         failure = (f"the state could not be kept on the constraints near "
@@ -260,8 +260,9 @@ class Dopri(Solver):
                                 vs.append(col[n:2 * n])
                                 t_prev = col[T]
                     if state[T] < target and state[H] < 1e-14 * max(1.0, abs(state[T])):
-                        failure = (f"the step size collapsed at t = {state[T]:.6g} s (h = {state[H]:.3g} s): "
-                                   "stiffness, a singular configuration, or forces that blow up")
+                        failure = (f"the step size collapsed at t = {state[T]:.6g} s "
+                                   f"(h = {state[H]:.3g} s); "
+                                   + diagnostics.likely_cause(m, state[:n], state[n:2 * n], state[T]))
                         break
                     if state[N_ACC] + state[N_REJ] > self.max_steps:
                         failure = f"more than max_steps = {self.max_steps} steps before t = {target:.6g} s"

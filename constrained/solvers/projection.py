@@ -91,21 +91,7 @@ class Projection(Solver):
 
     def diagnose(self, x, v, t) -> str:
         """The likely cause of a stop, from the last good state (x, v, t)."""
-        m = self.model
-        try:
-            if m.n_constraints:
-                sing = diagnostics.singularity(m, x, t)
-                if sing.sigma < 1e-3:
-                    return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
-            a, _ = m.accelerations(x, v, t)
-            acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
-            k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
-            name = m.system.particles[k].name
-            pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
-            return (f"likely cause: forces that blow up: at the last good state particle '{name}' at "
-                    f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
-        except Exception:  # a diagnosis must never hide the stop itself
-            return "likely cause: a singular configuration, stiffness, or forces that blow up"
+        return diagnostics.likely_cause(self.model, x, v, t)
 
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         self.scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
