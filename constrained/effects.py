@@ -124,7 +124,7 @@ class Central(Effect):
 class Pairwise(Effect):
     """V = Σ_{i<j} V(r_ij), r_ij = |x_i − x_j|, over every pair of the listed particles (all
     when none are listed): gravitation, Coulomb, Lennard-Jones, the Fekete problem's −log r.
-    ``expr`` in r (and t, parameters); parsed once, substituted per pair."""
+    ``expr`` in r (and t, parameters); parsed once into a function of r, called per pair."""
 
     slot = "potential"
 

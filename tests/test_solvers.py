@@ -150,3 +150,9 @@ def test_solvers_report_their_progress_in_simulated_time(method, settings):
     assert reached[-1] == pytest.approx(1.0)
     with pytest.raises(C.InputError, match="progress must be a function"):
         C.simulate(double_pendulum(), 0.1, method=method, progress=3, **settings)
+
+
+def test_baumgarte_refuses_the_cvodes_bases():
+    # CVODES would integrate projection's equations, silently dropping the feedback terms
+    with pytest.raises(C.InputError, match="method 'baumgarte' steps in SciPy"):
+        C.simulate(double_pendulum(), 0.1, method="baumgarte", base="CVODES")

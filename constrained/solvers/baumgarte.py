@@ -24,6 +24,10 @@ class Baumgarte(Projection):
 
     def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, alpha: float = 10.0,
                  beta: float = 10.0, base: str = "DOP853", **options):
+        if isinstance(base, str) and base.startswith("CVODES"):
+            # the CVODES route integrates projection's equations, not the stabilized ones
+            raise InputError(f"method 'baumgarte' steps in SciPy: base must be DOP853, RK45 or "
+                             f"Radau, got {base!r} (for CVODES use method 'projection')")
         super().__init__(model, rtol=rtol, atol=atol, dt=dt, base=base, **options)
         for key, value in (("alpha", alpha), ("beta", beta)):
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
