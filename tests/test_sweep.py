@@ -341,3 +341,14 @@ def test_expect_checks_become_columns(tmp_path):
     assert r.rows[0]["status"] == "ok"
     checks = [c for c in r.columns if c.startswith("expect.") and not c.endswith(".ok")]
     assert checks and all(f"{c}.ok" in r.columns for c in checks)
+
+
+def test_sweep_runs_compile_nothing_unless_the_scene_asks(tmp_path):
+    from constrained.scene import load_scene
+    from constrained.sweep import _settings_kwargs
+
+    scene = load_scene(ROOT / "scenarios" / "double_pendulum.toml", ["simulate.method=dopri"])
+    assert _settings_kwargs(scene, set())["compiled"] is False  # "auto": a compile per variant
+    scene = load_scene(ROOT / "scenarios" / "double_pendulum.toml",
+                       ["simulate.method=dopri", "simulate.compiled=true"])
+    assert _settings_kwargs(scene, set())["compiled"] is True
