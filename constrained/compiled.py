@@ -10,7 +10,7 @@ says why).
 
 The setting: ``simulate(..., compiled=...)`` or ``[simulate] compiled``: ``True``,
 ``False``, or ``"auto"`` (the default: compile what runs long loops in CasADi — RATTLE's
-folded steps and dopri's chained steps, for models up to 90 coordinates — and nothing else:
+folded steps up to 90 coordinates and dopri's chained steps up to 200 — and nothing else:
 the per-call functions gain little, and the C compiler's time grows steeply with the model).
 The environment variable ``CONSTRAINED_COMPILE=0`` turns it off everywhere.
 """

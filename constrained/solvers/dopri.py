@@ -34,7 +34,7 @@ from .base import Solution, Solver
 
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
 #: (the one-time C compile takes a few seconds there and is cached; beyond, it grows steeply).
-AUTO_COMPILE_COORDINATES = 90
+AUTO_COMPILE_COORDINATES = 200
 #: Attempts chained per CasADi call; Python picks the largest not above the expected count.
 CHUNKS = (1, 8, 64)
 #: Up to this many constraint rows the whole step is one SX expression (the KKT solves
