@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from peers import chain  # noqa: E402  (the planar N-link chain every benchmark uses)
+
 import constrained as C  # noqa: E402
 
 
@@ -29,17 +31,6 @@ def double_pendulum() -> C.System:
     s.add_particle("p2", 1.0, [np.sin(2.0) + np.sin(2.5), -np.cos(2.0) - np.cos(2.5), 0.0])
     s.add(C.Distance("p1", point=[0, 0, 0], length=1.0), C.Distance("p1", "p2", length=1.0),
           C.Plane(["p1", "p2"], [0, 0, 1]), C.Gravity([0, -9.81, 0]))
-    return s
-
-
-def chain(n: int) -> C.System:
-    s = C.System(name=f"{n}-link chain")
-    for i in range(n):
-        s.add_particle(f"p{i}", 1.0, [(i + 1) * np.sin(0.5), -(i + 1) * np.cos(0.5), 0.0])
-    s.add(C.Distance("p0", point=[0, 0, 0], length=1.0))
-    for i in range(1, n):
-        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=1.0))
-    s.add(C.Plane([f"p{i}" for i in range(n)], [0, 0, 1]), C.Gravity([0, -9.81, 0]))
     return s
 
 

@@ -28,19 +28,11 @@ ROOT = Path(__file__).resolve().parents[1]
 CHILD = r"""
 import json, resource, sys, time
 sys.path.insert(0, {root!r})
+sys.path.insert(0, {root!r} + "/benchmarks")
 import numpy as np
 import constrained as C
+from peers import chain  # the planar N-link chain every benchmark uses
 baseline_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-def chain(n):
-    s = C.System(name=f"{{n}}-link chain")
-    for i in range(n):
-        s.add_particle(f"p{{i}}", 1.0, [(i + 1) * np.sin(0.5), -(i + 1) * np.cos(0.5), 0.0])
-    s.add(C.Distance("p0", point=[0, 0, 0], length=1.0))
-    for i in range(1, n):
-        s.add(C.Distance(f"p{{i - 1}}", f"p{{i}}", length=1.0))
-    s.add(C.Plane([f"p{{i}}" for i in range(n)], [0, 0, 1]), C.Gravity([0, -9.81, 0]))
-    return s
 
 n, rtol, compiled, reference, method = {n}, {rtol}, {compiled!r}, {reference}, {method!r}
 compiled = {{"true": True, "false": False}}.get(compiled, compiled)
