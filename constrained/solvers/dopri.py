@@ -44,6 +44,15 @@ SYMBOLIC_MAX_CONSTRAINTS = 8
 #: Newton converges quadratically, so this leaves |f| ≈ 1e-12 after it.
 PROJECTION_FAIL = 1e-6
 SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 10.0
+#: The scalars after [x, v, a] in the state a step works on, in order.
+SCALARS = ("t", "h", "rejected", "n_acc", "n_rej", "res", "t_target", "rtol", "atol")
+
+
+def _slot(n: int, name: str) -> int:
+    """Index of the scalar ``name`` in the state of a model with n coordinates."""
+    return 3 * n + SCALARS.index(name)
+
+
 #: The tableaus (``base``), as SciPy's classes hold them.
 BASES = {"DOP853": DOP853, "DOPRI5": RK45}
 
@@ -83,11 +92,10 @@ class Dopri(Solver):
 
     # --- the step as a CasADi graph -------------------------------------------------------
     def _state_size(self) -> int:
-        return 3 * self.model.n_coordinates + 9
+        return 3 * self.model.n_coordinates + len(SCALARS)
 
     def _step_function(self) -> ca.Function:
-        """One attempted step on the state
-        [x, v, a, t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol]."""
+        """One attempted step on the state [x, v, a, *SCALARS]."""
         m, tab = self.model, self.tableau
         n = m.n_coordinates
         S = ca.MX.sym("state", self._state_size())
@@ -161,7 +169,7 @@ class Dopri(Solver):
             attempt = attempt.expand()
         # at the output time the attempt is skipped (short-circuit), so no-ops in a chain are free
         S2 = ca.MX.sym("state", S.numel())
-        done = S2[3 * n] >= S2[3 * n + 6]
+        done = S2[_slot(n, "t")] >= S2[_slot(n, "t_target")]
         return ca.Function(f"{name}_step", [S2], [ca.if_else(done, S2, attempt(S2), True)])
 
     def _functions(self) -> dict[int, _FastCall]:
@@ -219,8 +227,10 @@ class Dopri(Solver):
             xs.append(np.asarray(x0, float))
             vs.append(np.asarray(v0, float))
         scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
-        state = np.concatenate([x0, v0, a0, [t0, h, 0.0, 0.0, 0.0, 0.0, t0, self.rtol, self.atol]])
-        T, H, N_ACC, N_REJ, RES, TARGET = 3 * n, 3 * n + 1, 3 * n + 3, 3 * n + 4, 3 * n + 5, 3 * n + 6
+        start = {"t": t0, "h": h, "t_target": t0, "rtol": self.rtol, "atol": self.atol}
+        state = np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS]])
+        T, H, N_ACC, N_REJ, RES, TARGET = (
+            _slot(n, k) for k in ("t", "h", "n_acc", "n_rej", "res", "t_target"))
         failure = None
         # stiffness watch: h·ρ sampled every STIFFNESS_EVERY steps once a run is long enough to
         # be judged (short runs pay nothing)
