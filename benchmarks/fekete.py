@@ -57,6 +57,7 @@ from scipy.integrate import solve_ivp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import constrained as C  # noqa: E402
 from constrained.errors import InputError  # noqa: E402
+from constrained.manifold import Manifold  # noqa: E402
 
 N = 20
 ALPHA = 0.5
@@ -180,7 +181,7 @@ def run_constrained(system: C.System, model, method: str, options: dict, rtol: f
                     outputs=set(), model=model, **options)
     wall = time.perf_counter() - start
     x, v = tr.x[-1], tr.v[-1]
-    _, lam = model.accelerations(x.ravel(), v.ravel(), float(tr.t[-1]))
+    _, lam = Manifold(model).accelerations(x.ravel(), v.ravel(), float(tr.t[-1]))
     return {"wall": wall, "solver_wall": float(tr.stats["wall_time_s"]), "x": x, "v": v, "lam": lam,
             "nfev": tr.stats.get("nfev"), "steps": tr.stats.get("steps")}
 

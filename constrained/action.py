@@ -35,7 +35,9 @@ import scipy.sparse as sp
 
 from .analysis import jacobian_rank
 from .errors import InputError, SimulationError
+from .manifold import Manifold, multipliers_along, schur_solve, tangent_basis
 from .model import Model, assemble
+from .quantities import OUTPUT_NAMES, trajectory_from
 from .trajectory import Trajectory, atomic_write
 
 __all__ = [
@@ -310,7 +312,7 @@ def stationarity(
     n, n3 = X.shape
     lam = trajectory.multipliers
     if lam is None or np.asarray(lam).shape != (n, model.n_constraints):
-        lam = model.multipliers_along(X, V, t)
+        lam = multipliers_along(model, X, V, t)
     lam = np.asarray(lam, float).reshape(n, model.n_constraints)
 
     # the variation η(t) and its exact time derivative along the trajectory
@@ -483,8 +485,8 @@ def _on_constraints(model: Model, x, t, what: str, tolerance: float) -> np.ndarr
             f"{abs(f[k]):.3g} at t = {t:g} s (allowed {tolerance:.3g}); give positions that satisfy "
             "the constraints"
         )
-    xp, err, _ = model.project_positions(x, t, tol=1e-14 * max(1.0, float(np.max(np.abs(x)))), max_iter=20)
-    return xp
+    tol = 1e-14 * max(1.0, float(np.max(np.abs(x))))
+    return Manifold.at(model, x, t).project_positions(x, t, tol=tol, max_iter=20).x
 
 
 def _guess(model: Model, guess, xs, xe, tn, rows) -> np.ndarray:
@@ -502,8 +504,9 @@ def _guess(model: Model, guess, xs, xe, tn, rows) -> np.ndarray:
             raise InputError(f"guess must have shape ({K1}, {model.n_particles}, 3)")
     W = np.array(W, float)
     if model.n_constraints:
+        manifold = Manifold.at(model, W[0], tn[0])
         for k in range(1, K1 - 1):
-            W[k] = model.project_positions(W[k], tn[k], tol=1e-12, max_iter=30)[0]
+            W[k] = manifold.project_positions(W[k], tn[k], tol=1e-12, max_iter=30).x
     return W
 
 
@@ -630,14 +633,13 @@ def stationary_path(
     X = np.vstack([xs, w_sol.reshape(K - 1, n3), xe])
     second = _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, K, h)
     V = _legendre_velocities(model, Ld_fun, X, tn)
-    from .simulate import OUTPUT_NAMES, trajectory_from
-
     converged = bool(stats.get("success", False))
     status = str(stats.get("return_status", "unknown"))
     iterations = int(stats.get("iter_count", len(history)))
     wall = time.perf_counter() - started
     traj = trajectory_from(model, tn, X, V, OUTPUT_NAMES,
                            {"iterations": iterations, "wall_time_s": wall, "method": "path"})
+    traj.action = action(model, traj).cumulative
     scale = _hessian_scale(model, h)
     traj.info.update({
         "kind": "stationary path", "system": system.name, "quadrature": quadrature, "nodes": K,
@@ -677,7 +679,8 @@ def _least_squares_multipliers(model, rows, S_d, w, P, G, w0, p_val, K, C) -> np
     mu = np.zeros(C * (K - 1))
     for k in range(K - 1):
         Jk = Jg[k * C:(k + 1) * C, k * n3:(k + 1) * n3].toarray()
-        mu[k * C:(k + 1) * C] = -np.linalg.lstsq(Jk.T, g[k * n3:(k + 1) * n3], rcond=None)[0]
+        # least squares of Jₖᵀ μ = −g: (Jₖ Jₖᵀ) μ = −Jₖ g, the Schur solve with unit weights
+        mu[k * C:(k + 1) * C] = -schur_solve(Jk, np.ones(n3), Jk @ g[k * n3:(k + 1) * n3])
     return mu
 
 
@@ -695,8 +698,7 @@ def _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, 
     for k in range(1, K):
         if len(rows):
             Jk = np.asarray(model.jacobian(X[k], tn[k])[1])[rows]
-            _, _, Vt = np.linalg.svd(Jk)
-            blocks.append(Vt[len(rows):].T)
+            blocks.append(tangent_basis(Jk, n3))
         else:
             blocks.append(np.eye(n3))
     Z = sp.block_diag(blocks, format="csc")
@@ -733,7 +735,8 @@ def _legendre_velocities(model: Model, Ld_fun: ca.Function, X: np.ndarray, tn: n
                                                             ca.SX.zeros(n3))])
     W = np.asarray(model.evaluate(dLdv0, X, tn)[0]).T
     V = model.inverse_masses * (p - W)
-    return np.array([model.project_velocities(X[k], V[k], tn[k]) for k in range(K + 1)])
+    manifold = Manifold.at(model, X[0], tn[0])
+    return np.array([manifold.project_velocities(X[k], V[k], tn[k]) for k in range(K + 1)])
 
 
 # --- figures ---------------------------------------------------------------------------------

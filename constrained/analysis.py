@@ -8,10 +8,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
+from .manifold import RANK
 from .model import Model, assemble
 
-#: Relative pivot size below which a row of the (row-normalized) Jacobian counts as dependent.
-RANK_TOL = 1e-9
+#: Relative pivot size below which a row of the (row-normalized) Jacobian counts as dependent:
+#: the rank policy's (constrained.manifold.RANK).
+RANK_TOL = RANK.dependent_rtol
 
 
 class SingularConfigurationWarning(UserWarning):
@@ -75,47 +77,6 @@ def jacobian_rank(J: np.ndarray) -> tuple[int, np.ndarray]:
         return 0, order
     rank = int(np.sum(diag > RANK_TOL * diag[0]))
     return rank, order
-
-
-def sparse_full_row_rank(J, inverse_masses, rtol: float = 1e-10) -> bool:
-    """True when J (a CasADi DM, kept sparse) has full row rank, shown by a sparse LU of the
-    Jacobi-scaled J M⁻¹ Jᵀ whose pivots all stay above ``rtol`` of the largest. False means
-    "not shown" (a small pivot, or a singular factorization): use the dense rank test.
-
-    For a chain J M⁻¹ Jᵀ is banded, so this costs O(N) where the dense QR costs O(N³)."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
-    rows, cols = J.sparsity().get_triplet()
-    Js = sp.csr_matrix((np.asarray(J.nonzeros(), float), (rows, cols)), shape=J.shape)
-    A = (Js @ sp.diags(inverse_masses) @ Js.T).tocsc()
-    d = A.diagonal()
-    if d.size == 0 or np.any(d <= 0):
-        return False
-    s = sp.diags(1.0 / np.sqrt(d))
-    try:
-        lu = spla.splu((s @ A @ s).tocsc(), diag_pivot_thresh=0.0)
-    except RuntimeError:  # exactly singular
-        return False
-    u = np.abs(lu.U.diagonal())
-    return bool(u.min() > rtol * u.max())
-
-
-def dense_full_row_rank(J: np.ndarray, inverse_masses, rtol: float = 1e-10) -> bool:
-    """``sparse_full_row_rank`` for a small dense J: a Cholesky factorization of the
-    Jacobi-scaled J M⁻¹ Jᵀ whose pivots L_ii² all stay above ``rtol`` of the largest
-    (≈ 10 µs, where the rank-revealing QR costs ≈ 150 µs). False means "not shown"."""
-    A = (J * inverse_masses) @ J.T
-    d = np.diag(A)
-    if d.size == 0 or np.any(d <= 0):
-        return False
-    s = 1.0 / np.sqrt(d)
-    try:
-        L = np.linalg.cholesky(s[:, None] * A * s[None, :])
-    except np.linalg.LinAlgError:
-        return False
-    u = np.diag(L) ** 2
-    return bool(u.min() > rtol * u.max())
 
 
 def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = None, samples: int = 3,

@@ -676,7 +676,7 @@ def _check(args) -> int:
 
 def _projection_preview(model, scene: Scene) -> str:
     """What the start-up projection of ``run`` would do to the initial state."""
-    from .simulate import consistent_state
+    from .start import consistent_state
 
     sysm, s = scene.system, scene.settings
     try:

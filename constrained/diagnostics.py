@@ -12,73 +12,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .manifold import RANK, Manifold, schur_matrix
+
 #: Smallest singular value of the row-normalized Jacobian below which a configuration counts as
-#: singular (the constraint rows are dependent there to this relative size).
-SINGULAR_SIGMA = 1e-6
-#: Relative singular value cut-off of the *scaled* Schur complement (rank-deficient solves).
-SCALED_RANK_RTOL = 1e-12
+#: singular: the rank policy's (constrained.manifold.RANK).
+SINGULAR_SIGMA = RANK.singular_sigma
 
 
 class StiffnessWarning(UserWarning):
     """An explicit integrator's step is held down by stability, not accuracy: use an implicit base."""
 
 
-# --- the Schur complement J M⁻¹ Jᵀ --------------------------------------------------------------
-def schur_matrix(J: np.ndarray, inverse_masses: np.ndarray) -> np.ndarray:
-    """A = J M⁻¹ Jᵀ for a (C, 3N) Jacobian and the flat inverse masses (3N,)."""
-    return (J * inverse_masses) @ J.T
-
-
-def scaled_schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve (J M⁻¹ Jᵀ) y = b with symmetric diagonal (Jacobi) scaling.
-
-    With D = diag(A)^(-1/2) the scaled matrix D A D has a unit diagonal, so its condition
-    number no longer carries the spread of the masses (a 1e6 kg bob beside a 1e-6 kg particle
-    puts 1e12 between the diagonal entries of A). Solve D A D z = D b, y = D z: Cholesky when
-    D A D is well-conditioned, otherwise the minimum-norm least-squares solution with a
-    relative singular-value cut-off taken on the *scaled* matrix, so rows that are merely
-    heavy are never cut off as if they were redundant.
-    """
-    if J.shape[0] == 0:
-        return np.zeros(0)
-    A = schur_matrix(J, inverse_masses)
-    d = np.sqrt(np.abs(np.diag(A)))
-    d = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
-    As = A * d[:, None] * d[None, :]
-    bs = b * d
-    try:
-        L = np.linalg.cholesky(As)
-        piv = np.abs(np.diag(L))
-        if piv.min() > np.sqrt(SCALED_RANK_RTOL) * piv.max():
-            z = np.linalg.solve(L.T, np.linalg.solve(L, bs))
-            return d * z
-    except np.linalg.LinAlgError:
-        pass
-    U, sv, Vt = np.linalg.svd(As)
-    keep = sv > SCALED_RANK_RTOL * sv[0] if sv.size and sv[0] > 0 else np.zeros_like(sv, bool)
-    z = Vt[keep].T @ ((U[:, keep].T @ bs) / sv[keep])
-    return d * z
-
-
 def _jacobians(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
     n = len(t)
     _, Jcat = model.evaluate(model.jacobian, X.reshape(n, -1), t)
     return Jcat.reshape(model.n_constraints, n, model.n_coordinates).transpose(1, 0, 2)
-
-
-def scaled_multipliers(model, trajectory) -> np.ndarray:
-    """λ at each sample of ``trajectory`` (T, C) from the KKT system, solved with
-    ``scaled_schur_solve`` (accurate whatever the spread of the masses)."""
-    t = np.asarray(trajectory.t, float)
-    n = len(t)
-    X, V = trajectory.x.reshape(n, -1), trajectory.v.reshape(n, -1)
-    F, Jcat, gamma = model.evaluate(model.dynamics, X, V, t)
-    J = Jcat.reshape(model.n_constraints, n, model.n_coordinates).transpose(1, 0, 2)
-    minv = model.inverse_masses
-    lam = np.empty((n, model.n_constraints))
-    for k in range(n):
-        lam[k] = scaled_schur_solve(J[k], minv, -gamma[:, k] - J[k] @ (minv * F[:, k]))
-    return lam
 
 
 # --- conditioning and singular configurations ---------------------------------------------------
@@ -298,18 +246,21 @@ def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, ad
         )
 
 
-def likely_cause(model, x, v, t: float) -> str:
+def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str:
     """The likely cause of a stopped run, from its last good state (x, v, t): a singular
-    configuration, or the particle whose acceleration blows up."""
+    configuration (a rank drop below the run's rank: redundant rows do not count), or the
+    particle whose acceleration blows up."""
     try:
+        manifold = manifold or Manifold.at(model, x, t)
         if model.n_constraints:
-            sing = singularity(model, x, t)
+            rank = model.n_constraints if manifold.rows is None else len(manifold.rows)
+            sing = singularity(model, x, t, rank=min(rank, model.n_coordinates))
             if sing.sigma < 1e-3:
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
-        a, _ = model.accelerations(x, v, t)
+        a, _ = manifold.accelerations(x, v, t)
         acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
         k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
-        name = model.system.particles[k].name
+        name = model.particle_names[k]
         pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
         return (f"likely cause: forces that blow up: at the last good state particle '{name}' at "
                 f"({pos}) m has acceleration {acc[k]:.3g} m/s²")

@@ -30,6 +30,7 @@ from scipy.integrate import solve_ivp
 from . import expressions
 from .errors import InputError, SimulationError
 from .model import Model, assemble
+from .quantities import trajectory_from
 from .symbols import Symbols
 from .trajectory import QUANTITIES, Trajectory, atomic_write
 
@@ -341,8 +342,6 @@ class ReducedModel:
         the Cartesian energy function, constraint residuals, KKT multipliers/forces at the
         mapped states); ``info`` holds ``coordinates``, ``q``, ``q_dot`` (T, n) and
         ``hamiltonian`` (T,)."""
-        from .simulate import trajectory_from
-
         t0 = self.t0 if t_start is None else _number(t_start, "t_start")
         t_end = _number(t_end, "t_end")
         if t_end <= t0:
@@ -371,6 +370,10 @@ class ReducedModel:
         wanted = set(QUANTITIES) if outputs is None else set(outputs)
         stats = {"nfev": int(sol.nfev), "wall_time_s": wall, "method": "reduced DOP853"}
         traj = trajectory_from(self.model, ts, X, V, wanted, stats)
+        if "action" in wanted and len(ts) >= 2:
+            from .action import action
+
+            traj.action = action(self.model, traj).cumulative
         traj.info.update({
             "route": "reduced",
             "coordinates": list(self.coordinates),

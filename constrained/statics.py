@@ -24,14 +24,14 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
 
 from .errors import InputError
+from .manifold import Manifold, schur_solve, tangent_basis
 from .model import Model, assemble
 
-#: Relative singular-value cut-off for the rank of J (tangent basis, minimum-norm multipliers).
-RANK_RTOL = 1e-10
-#: Eigenvalues of the reduced Hessian with |value| <= STABILITY_RTOL × ‖K‖ count as zero (neutral).
+#: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
+#: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
+#: beside a 1e6 kg one on the same footing: both swing with ω² = g/L.
 STABILITY_RTOL = 1e-8
 #: Convergence: force balance within FORCE_RTOL × force scale, constraints within LENGTH_RTOL × size.
 FORCE_RTOL = 1e-10
@@ -57,10 +57,12 @@ class Equilibrium:
 
     Shapes: ``x``, ``constraint_forces``, ``applied_forces`` (N, 3); ``multipliers`` (C,);
     ``eigenvalues`` (d,) of the tangent-space Hessian of ``V − λ·f`` (d = 3N − rank J);
-    ``soft_modes`` (k, N, 3) unit tangent directions whose eigenvalue is zero within
-    ``stability_tolerance``. ``anchor_reactions``: (constraint label, support force) for each
-    constraint tying particles to the environment; the support force is the net constraint
-    force on the particles, ``Σ_i (J_kᵀ λ_k)_i``; the force on the support is its negative.
+    ``frequencies_squared`` (d,) the squared small-oscillation frequencies ω² [1/s²] of the
+    mass-weighted problem, which decide ``stable``; ``soft_modes`` (k, N, 3) unit tangent
+    directions whose ω² is zero within ``stability_tolerance`` [1/s²].
+    ``anchor_reactions``: (constraint label, support force) for each constraint tying
+    particles to the environment; the support force is the net constraint force on the
+    particles, ``Σ_i (J_kᵀ λ_k)_i``; the force on the support is its negative.
     ``stable``: True (strict minimum), False (some negative eigenvalue), None (neutral, or the
     forces are not conservative so the energy test does not apply).
     """
@@ -84,6 +86,7 @@ class Equilibrium:
     conservative: bool = True
     stability_tolerance: float = 0.0
     tangent_basis: np.ndarray | None = None
+    frequencies_squared: np.ndarray | None = None
     method: str = "newton"
     max_constraint_residual: float = 0.0
 
@@ -122,6 +125,8 @@ class Equilibrium:
             "stable": self.stable,
             "conservative": self.conservative,
             "eigenvalues": self.eigenvalues.tolist(),
+            "frequencies_squared": ([] if self.frequencies_squared is None
+                                    else self.frequencies_squared.tolist()),
             "stability_tolerance": self.stability_tolerance,
             "soft_modes": self.soft_modes.tolist(),
             "virtual_work_residual": self.virtual_work_residual,
@@ -138,20 +143,6 @@ class Equilibrium:
 
 
 # --- building blocks ---------------------------------------------------------------------------
-
-
-def tangent_basis(J: np.ndarray, n: int | None = None) -> np.ndarray:
-    """Orthonormal basis N (n, d) of the admissible virtual displacements, null(J) (SVD,
-    rows normalized first, singular values below RANK_RTOL × the largest count as zero)."""
-    J = np.asarray(J, float)
-    n = J.shape[1] if n is None else n
-    if J.shape[0] == 0:
-        return np.eye(n)
-    norms = np.linalg.norm(J, axis=1)
-    Jn = J[norms > 0] / norms[norms > 0, None]
-    if Jn.shape[0] == 0:
-        return np.eye(n)
-    return sla.null_space(Jn, rcond=RANK_RTOL)
 
 
 def _flat(system, x, what: str = "x") -> np.ndarray:
@@ -221,12 +212,13 @@ def generalized_forces(system, x, map_jacobian, t: float = 0.0, *, model: Model 
     return D.T @ F
 
 
-def _min_norm_multipliers(J: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Minimum-norm λ with Jᵀλ ≈ −F (least squares; redundant rows share the load evenly)."""
+def _min_norm_multipliers(model: Model, J: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """λ with Jᵀλ = −F in the mass-weighted least-squares sense, (J M⁻¹ Jᵀ) λ = −J M⁻¹ F: the
+    multipliers that keep every particle at rest (a = 0), minimum-norm for redundant rows
+    (identical rods share the load evenly), accurate whatever the spread of the masses."""
     if J.shape[0] == 0:
         return np.zeros(0)
-    lam, *_ = np.linalg.lstsq(J.T, -F, rcond=RANK_RTOL)
-    return lam
+    return schur_solve(J, model.inverse_masses, -J @ (model.inverse_masses * F))
 
 
 class _KKT:
@@ -393,15 +385,13 @@ def equilibrium(
     n3, C = model.n_coordinates, model.n_constraints
     x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
     size = system.size()
+    manifold = Manifold.at(model, x0, t)
     if C:
-        from .simulate import flag_redundancy
-
-        flag_redundancy(model, x0, t)
-        xp, err, _ = model.project_positions(x0, t, tol=1e-13 * size, max_iter=50)
-        if np.isfinite(err) and np.all(np.isfinite(xp)):
-            x0 = xp
+        projected = manifold.project_positions(x0, t, tol=1e-13 * size, max_iter=50)
+        if np.isfinite(projected.residual) and np.all(np.isfinite(projected.x)):
+            x0 = projected.x
     F0, J0 = _forces_at_rest(model, x0, t)
-    lam0 = _min_norm_multipliers(J0, F0)
+    lam0 = _min_norm_multipliers(model, J0, F0)
     force_scale = max(
         float(np.max(np.abs(F0), initial=0.0)), float(np.max(np.abs(J0.T @ lam0), initial=0.0)) if C else 0.0
     )
@@ -416,11 +406,12 @@ def equilibrium(
         if not C:
             return z
         with np.errstate(all="ignore"):
-            xr, err, _ = model.project_positions(z[:n3], t, tol=1e-14 * size, max_iter=8)
+            projected = manifold.project_positions(z[:n3], t, tol=1e-14 * size, max_iter=8)
+            xr, err = projected.x, projected.residual
             if not (np.isfinite(err) and err <= 1e-10 * size and np.all(np.isfinite(xr))):
                 return z
             Fr, Jr = _forces_at_rest(model, xr, t)
-            return np.concatenate([xr, _min_norm_multipliers(Jr, Fr)])
+            return np.concatenate([xr, _min_norm_multipliers(model, Jr, Fr)])
 
     used = "newton"
     iterations, converged, z = 0, False, np.concatenate([x0, lam0])
@@ -432,7 +423,7 @@ def equilibrium(
             xi = _ipopt(kkt, x0)
             if xi is not None:
                 Fi, Ji = _forces_at_rest(model, xi, t)
-                zi = np.concatenate([xi, _min_norm_multipliers(Ji, Fi)])
+                zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
                 zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
                 if conv2 or method == "ipopt":
                     z, iterations, converged, used = zi, iterations + it2, conv2, "ipopt"
@@ -445,25 +436,34 @@ def equilibrium(
         )
     x = z[:n3]
     F, J = _forces_at_rest(model, x, t)
-    lam = _min_norm_multipliers(J, F)
+    lam = _min_norm_multipliers(model, J, F)
     f = np.asarray(model.constraint(x, t), float).ravel()
     N = tangent_basis(J, n3)
     K = np.asarray(kkt.stiffness(x, lam), float)
     knorm = float(np.linalg.norm(K, 2)) if K.size else 0.0
     conservative = bool(np.linalg.norm(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
-    H = N.T @ (0.5 * (K + K.T)) @ N
-    eig, vec = np.linalg.eigh(H) if H.size else (np.zeros(0), np.zeros((0, 0)))
-    tol = stability_rtol * knorm
-    soft = np.abs(eig) <= tol
+    Ks = 0.5 * (K + K.T)
+    H = N.T @ Ks @ N
+    eig = np.linalg.eigvalsh(H) if H.size else np.zeros(0)
+    # the verdict on the mass-weighted problem: ω² of (M^(-1/2) K M^(-1/2)) on null(J M^(-1/2)),
+    # congruent to H (same signs) but with every particle's scale its own
+    r = np.sqrt(model.inverse_masses)
+    Kw = r[:, None] * Ks * r[None, :]
+    Nw = tangent_basis(J * r[None, :], n3) if C else np.eye(n3)
+    omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
+    tol = stability_rtol * (float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0)
+    soft = np.abs(omega2) <= tol
     if not conservative:
         stable = None
-    elif np.any(eig < -tol):
+    elif np.any(omega2 < -tol):
         stable = False
     elif np.any(soft):
         stable = None
     else:
         stable = True
-    soft_modes = (N @ vec[:, soft]).T.reshape(-1, model.n_particles, 3)
+    modes = r[:, None] * (Nw @ vec[:, soft])
+    modes = modes / np.maximum(np.linalg.norm(modes, axis=0), 1e-300)
+    soft_modes = modes.T.reshape(-1, model.n_particles, 3)
     Fc = J.T @ lam if C else np.zeros(n3)
     return Equilibrium(
         x=x.reshape(-1, 3),
@@ -473,6 +473,7 @@ def equilibrium(
         anchor_reactions=_anchor_reactions(model, J, lam) if C else [],
         stable=stable,
         eigenvalues=eig,
+        frequencies_squared=omega2,
         soft_modes=soft_modes,
         virtual_work_residual=float(np.linalg.norm(N.T @ F)),
         constraint_virtual_work_residual=float(np.linalg.norm(N.T @ Fc)),
@@ -524,8 +525,13 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
     out.append(
         "  tangent-space eigenvalues of ∇²(V − λ·f) [N/m]: "
         + (", ".join(f"{e:.6g}" for e in eq.eigenvalues) or "none (no freedom)")
-        + f"  (zero below {eq.stability_tolerance:.2g})"
     )
+    if eq.frequencies_squared is not None and len(eq.frequencies_squared):
+        out.append(
+            "  squared frequencies ω² of small oscillations [1/s²]: "
+            + ", ".join(f"{e:.6g}" for e in eq.frequencies_squared)
+            + f"  (zero below {eq.stability_tolerance:.2g})"
+        )
     for k, mode in enumerate(eq.soft_modes):
         moving = [f"{names[i]} {_vec(mode[i])}" for i in range(len(mode)) if np.linalg.norm(mode[i]) > 1e-9]
         out.append(f"  soft mode {k + 1}: " + "; ".join(moving))

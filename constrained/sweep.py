@@ -333,11 +333,6 @@ def _cached_model(raw: dict, system):
     else:
         _MODEL_CACHE.move_to_end(key)
         CACHE_STATS["reused"] += 1
-    model = entry["model"]
-    # A reused Model starts like a fresh one: the redundancy flag is decided per start, counters at 0.
-    model.redundant = False
-    for k in model.counters:
-        model.counters[k] = 0
     return entry
 
 

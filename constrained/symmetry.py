@@ -29,6 +29,7 @@ import numpy as np
 
 from . import expressions
 from .errors import InputError
+from .manifold import Manifold
 from .model import Model, assemble
 from .trajectory import Trajectory
 
@@ -162,8 +163,6 @@ class SymmetryReport:
 
 def _manifold_samples(model: Model, samples: int, seed: int):
     """Random (x, v, t) on f = 0, J v + f_t = 0 near the system's start (the start first)."""
-    from .simulate import flag_redundancy
-
     system = model.system
     rng = np.random.default_rng(seed)
     x0 = system.positions.ravel()
@@ -179,11 +178,12 @@ def _manifold_samples(model: Model, samples: int, seed: int):
         t = 0.0 if first else float(rng.uniform(0.0, 1.0))
         x = x0 + spread * rng.standard_normal(x0.size)
         v = v0 if first else v0 + vscale * rng.standard_normal(v0.size)
-        flag_redundancy(model, x, t)
-        x, err, _ = model.project_positions(x, t, tol=1e-13 * size, max_iter=50)
+        manifold = Manifold.at(model, x, t)
+        projected = manifold.project_positions(x, t, tol=1e-13 * size, max_iter=50)
+        x, err = projected.x, projected.residual
         if not np.isfinite(err) or err > 1e-9 * size:
             continue
-        v = model.project_velocities(x, v, t)
+        v = manifold.project_velocities(x, v, t)
         if np.all(np.isfinite(v)):
             out.append((x, v, t))
     if not out:

@@ -3,10 +3,19 @@
 Correctness only; timings live in benchmarks/scaling.py, never in tests.
 """
 
+import casadi as ca
 import numpy as np
 import pytest
 
 import constrained as C
+from constrained.manifold import (
+    Manifold,
+    ProjectionStatus,
+    acceleration_function,
+    schur_solve,
+    symbolic_acceleration,
+)
+from constrained.model import FastCall
 
 
 def chain(n: int, bend: float = 0.5) -> C.System:
@@ -32,10 +41,10 @@ def small():
 
 def test_sparse_kkt_matches_dense_schur(small):
     model, x, v = small
-    a, lam = model.accelerations(x, v, 0.3)
+    a, lam = Manifold(model).accelerations(x, v, 0.3)
     F, J, gamma = (np.asarray(o, float) for o in model.dynamics(x, v, 0.3))
     F, gamma = F.ravel(), gamma.ravel()
-    lam_dense = model.schur_solve(J, -gamma - J @ (model.inverse_masses * F))
+    lam_dense = schur_solve(J, model.inverse_masses, -gamma - J @ (model.inverse_masses * F))
     a_dense = model.inverse_masses * (F + J.T @ lam_dense)
     assert np.max(np.abs(lam - lam_dense)) <= 1e-12 * max(1.0, np.max(np.abs(lam_dense)))
     assert np.max(np.abs(a - a_dense)) <= 1e-12 * max(1.0, np.max(np.abs(a_dense)))
@@ -46,12 +55,14 @@ def test_projection_steps_match_dense(small):
     model, x, v = small
     f, J = (np.asarray(o, float) for o in model.jacobian(x, 0.0))
     f = f.ravel()
-    (f_fast, dx) = model._fast_newton_step(x, 0.0)
-    dx_dense = model.inverse_masses * (J.T @ model.schur_solve(J, f))
-    assert np.array_equal(f_fast, f)
+    manifold = Manifold(model)
+    one_step = manifold.project_positions(x, 0.0, tol=0.0, max_iter=1)
+    dx = x - one_step.x
+    dx_dense = model.inverse_masses * (J.T @ schur_solve(J, model.inverse_masses, f))
+    assert one_step.iterations == 1 and one_step.status is ProjectionStatus.MAX_ITERATIONS
     assert np.max(np.abs(dx - dx_dense)) <= 1e-12 * max(1.0, np.max(np.abs(dx_dense)))
-    v_new = model.project_velocities(x, v, 0.0)
-    v_dense = v - model.inverse_masses * (J.T @ model.schur_solve(J, J @ v))
+    v_new = manifold.project_velocities(x, v, 0.0)
+    v_dense = v - model.inverse_masses * (J.T @ schur_solve(J, model.inverse_masses, J @ v))
     assert np.max(np.abs(v_new - v_dense)) <= 1e-12 * max(1.0, np.max(np.abs(v)))
 
 
@@ -59,11 +70,14 @@ def test_buffer_calls_identical_to_ordinary_calls(small):
     """The FunctionBuffer route returns exactly what a plain CasADi call returns, and its
     results are copies (a later call does not overwrite them)."""
     model, x, v = small
-    a1, lam1 = model._fast_acceleration(x, v, 0.3)
-    a2, lam2 = (np.asarray(o, float).ravel() for o in model._acceleration(x, v, 0.3))
+    function = acceleration_function(model)
+    inputs = function.mx_in()
+    fast = FastCall(ca.Function("dense", inputs, [ca.densify(o) for o in function.call(inputs)]))
+    a1, lam1 = fast(x, v, 0.3)
+    a2, lam2 = (np.asarray(o, float).ravel() for o in function(x, v, 0.3))
     assert np.array_equal(a1, a2) and np.array_equal(lam1, lam2)
     kept = a1.copy()
-    model._fast_acceleration(x + 0.01, v, 0.3)
+    fast(x + 0.01, v, 0.3)
     assert np.array_equal(a1, kept)
 
 
@@ -72,7 +86,7 @@ def test_buffer_calls_without_constraints():
     s.add_particle("p", 2.0, [0, 0, 0])
     s.add(C.Gravity([0, 0, -9.81]))
     model = C.assemble(s)
-    a, lam = model.accelerations(np.zeros(3), np.zeros(3), 0.0)
+    a, lam = Manifold(model).accelerations(np.zeros(3), np.zeros(3), 0.0)
     assert np.allclose(a, [0, 0, -9.81]) and lam.size == 0
 
 
@@ -88,10 +102,11 @@ def test_hanging_chain_200_links_conserves_energy():
     assert np.max(np.abs(tr.x[-1] - tr.x[0])) > 1e-3  # it did move
 
 
-def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr():
+def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr(monkeypatch):
     import itertools
 
-    from constrained.analysis import dense_full_row_rank, jacobian_rank, sparse_full_row_rank
+    from constrained import manifold
+    from constrained.analysis import jacobian_rank
 
     chain = C.System()
     for i in range(30):
@@ -108,8 +123,11 @@ def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr():
     for system, full in ((chain, True), (cube, False)):
         model = C.assemble(system)
         J = model.jacobian(system.positions.ravel(), 0.0)[1]
-        assert sparse_full_row_rank(J, model.inverse_masses) is full
-        assert dense_full_row_rank(np.asarray(J), model.inverse_masses) is full
+        for sparse_from in (0, 10**9):  # the sparse LU, then the dense Cholesky
+            monkeypatch.setattr(manifold, "SPARSE_FROM", sparse_from)
+            assert bool(manifold.full_row_rank(J, model.inverse_masses)) is full
+        assert (manifold.independent_rows(np.asarray(J), model.inverse_masses).size
+                == model.n_constraints) is full
         assert (jacobian_rank(np.asarray(J))[0] == model.n_constraints) is full
 
 
@@ -117,7 +135,7 @@ def test_symbolic_acceleration_matches_the_sparse_solve(small):
     """dopri's SX-expanded step (small models) writes the KKT solve out symbolically; it must
     give the sparse fast path's accelerations and multipliers."""
     model, x, v = small
-    a, lam = model.accelerations(x, v, 0.3)
-    a_sx, lam_sx = (np.asarray(o, float).ravel() for o in model.symbolic_acceleration()(x, v, 0.3))
+    a, lam = Manifold(model).accelerations(x, v, 0.3)
+    a_sx, lam_sx = (np.asarray(o, float).ravel() for o in symbolic_acceleration(model)(x, v, 0.3))
     assert np.max(np.abs(a_sx - a)) <= 1e-12 * max(1.0, np.max(np.abs(a)))
     assert np.max(np.abs(lam_sx - lam)) <= 1e-12 * max(1.0, np.max(np.abs(lam)))

@@ -15,6 +15,7 @@ from scipy.optimize import fsolve
 
 import constrained as C
 from constrained.cli import main
+from constrained.manifold import Manifold
 from constrained.statics import (
     constraint_virtual_work_residual,
     equilibrium,
@@ -107,8 +108,9 @@ def admissible_step(system, eq, size=1e-3) -> np.ndarray:
     """eq.x moved by ``size`` along a tangent direction, then projected back onto f = 0."""
     model = C.assemble(system)
     x = eq.x.ravel() + size * eq.tangent_basis[:, 0]
-    x, err, _ = model.project_positions(x, 0.0, tol=1e-14)
-    assert err < 1e-12
+    projected = Manifold(model).project_positions(x, 0.0, tol=1e-14)
+    x = projected.x
+    assert projected.residual < 1e-12 and projected.converged
     return x.reshape(-1, 3)
 
 

@@ -1,9 +1,14 @@
 """The solver contract: every method is a short class with the same ``run`` and counters.
 
-A Solver takes an assembled Model (never the scene), a consistent start (x0, v0, t0) and
-returns a Solution: output times and states, plus counters in ``stats`` —
-``steps``, ``nfev`` (right-hand sides), ``njev`` (constraint Jacobians),
-``nlu`` (factorizations), ``projections``; methods that know it add ``rejected``.
+A Solver takes one run's Manifold (constrained.manifold: the immutable Model, the row set
+decided at the start, the KKT solve and projections, the run's counters) — never the scene —
+and a consistent start (x0, v0, t0), and returns a Solution: output times and states, plus
+counters in ``stats`` — ``steps``, ``nfev`` (right-hand sides), ``njev`` (constraint
+Jacobians), ``nlu`` (factorizations), ``projections``; methods that know it add ``rejected``.
+
+Redundant constraint rows: the manifold holds an independent subset (``rows``); methods
+that build their own equations use ``self.rows`` (all rows when none is redundant), and the
+multipliers of a run are always the minimum-norm ones over every row.
 """
 
 from __future__ import annotations
@@ -13,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..manifold import Manifold
+from ..model import Model
 
 
 @dataclass
@@ -30,7 +37,7 @@ class Solver:
     name = ""
     adaptive = True
 
-    def __init__(self, model, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
+    def __init__(self, manifold, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
                  compiled="auto", progress=None, **options):
         for key, value in (("rtol", rtol), ("atol", atol)):
             if not (isinstance(value, int | float) and np.isfinite(value) and 0 < value < 1):
@@ -43,7 +50,14 @@ class Solver:
             )
         if compiled not in (True, False, "auto"):
             raise InputError(f"compiled must be true, false or \"auto\", got {compiled!r}")
-        self.model = model
+        if isinstance(manifold, Model):  # a bare Model: every row independent
+            manifold = Manifold(manifold)
+        #: This run's view of the constraints (row set, KKT solve, counters).
+        self.manifold: Manifold = manifold
+        self.model: Model = manifold.model
+        #: The constraint rows the method's own equations use (an independent set).
+        self.rows: list[int] = (list(range(manifold.model.n_constraints)) if manifold.rows is None
+                                else list(manifold.rows))
         self.rtol, self.atol, self.dt = float(rtol), float(atol), dt
         #: The compiled-evaluation setting as given (see constrained.compiled).
         self.compiled_setting = compiled
@@ -57,9 +71,17 @@ class Solver:
         if self._progress is not None:
             self._progress(float(t))
 
+    def counted(self) -> dict:
+        """The run's statistics: the method's own counts, and the manifold's where larger
+        (work done in the KKT solves and projections is counted there)."""
+        stats = dict(self.stats)
+        for key, value in self.manifold.counters.as_dict().items():
+            stats[key] = max(int(stats.get(key, 0)), value)
+        return stats
+
     def require_independent_constraints(self, why: str) -> None:
-        """Refuse a model whose constraint rows are dependent (``Model.redundant``)."""
-        if self.model.redundant:
+        """Refuse a run whose constraint rows are dependent (``Manifold.redundant``)."""
+        if self.manifold.redundant:
             raise InputError(
                 f"method '{self.name}' needs independent constraints ({why} for redundant ones); "
                 "remove the implied constraints or use method 'projection'"

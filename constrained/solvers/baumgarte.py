@@ -15,40 +15,38 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
+from ..manifold import acceleration_graph
 from .projection import Projection
 
 
 class Baumgarte(Projection):
+    """Projection's SciPy step loop with the stabilized acceleration and no projection; the
+    KKT solve with feedback is the manifold's (``acceleration_graph(feedback=...)``)."""
+
     name = "baumgarte"
     projecting = False
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, alpha: float = 10.0,
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, alpha: float = 10.0,
                  beta: float = 10.0, base: str = "DOP853", **options):
         if isinstance(base, str) and base.startswith("CVODES"):
             # the CVODES route integrates projection's equations, not the stabilized ones
             raise InputError(f"method 'baumgarte' steps in SciPy: base must be DOP853, RK45 or "
                              f"Radau, got {base!r} (for CVODES use method 'projection')")
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, base=base, **options)
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, base=base, **options)
         for key, value in (("alpha", alpha), ("beta", beta)):
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
                 raise InputError(f"{key} must be a non-negative number (1/s), got {value!r}")
         self.alpha, self.beta = float(alpha), float(beta)
-        m = model
+        m = self.model
         n3 = m.n_coordinates
         X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        minv = ca.DM(m.inverse_masses)
-        F, J, gamma = m.dynamics(X, V, T)
-        if m.n_constraints:
-            f = m.constraint(X, T)
-            _, f_t = m.velocity_terms(X, T)
-            c = ca.mtimes(J, V) + f_t
-            A = ca.mtimes(ca.mtimes(J, ca.diag(minv)), J.T)
-            rhs = -gamma - 2 * self.alpha * c - self.beta**2 * f - ca.mtimes(J, minv * F)
-            acc = minv * (F + ca.mtimes(J.T, ca.solve(A, rhs, "qr")))
-        else:
-            acc = minv * F
+        # the acceleration level with feedback: γ → γ + 2α (J v + f_t) + β² f, over the
+        # independent rows (a redundant row's feedback is implied by the others)
+        acc, _ = acceleration_graph(m, X, V, T, rows=self.manifold.rows, linsol="qr",
+                                    feedback=(self.alpha, self.beta))
         self._rhs = ca.Function("baumgarte_rhs", [T, ca.vertcat(X, V)], [ca.vertcat(V, acc)])
 
     def derivative(self, t, y):
-        self.stats["nlu"] += 1
+        self.manifold.counters.nfev += 1
+        self.manifold.counters.nlu += 1
         return self._rhs(t, y).full().ravel()

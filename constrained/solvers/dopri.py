@@ -29,7 +29,8 @@ from scipy.integrate import DOP853, RK45
 from .. import compiled as compiled_evaluation
 from .. import diagnostics
 from ..errors import InputError
-from ..model import _FastCall
+from ..manifold import acceleration_function, per_model_cache, projection_graph, symbolic_acceleration
+from ..model import FastCall
 from .base import Solution, Solver
 
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
@@ -74,9 +75,10 @@ class _Tableau:
 class Dopri(Solver):
     name = "dopri"
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
                  max_steps: int = 10_000_000, **options):
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
+        model = self.model
         if base not in BASES:
             raise InputError(f"unknown base tableau {base!r} for method 'dopri' "
                              f"(choose from {', '.join(BASES)})")
@@ -84,7 +86,6 @@ class Dopri(Solver):
             raise InputError(f"max_steps must be a positive whole number, got {max_steps!r}")
         self.tableau = _Tableau(base)
         self.max_steps = max_steps
-        self.require_independent_constraints("its projection solves with J M⁻¹ Jᵀ")
         self.compiled = compiled_evaluation.enabled(self.compiled_setting) and (
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
         )
@@ -101,10 +102,10 @@ class Dopri(Solver):
         S = ca.MX.sym("state", self._state_size())
         x, v, a = S[:n], S[n:2 * n], S[2 * n:3 * n]
         t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol = ca.vertsplit(S[3 * n:], 1)
-        symbolic = m.n_constraints <= SYMBOLIC_MAX_CONSTRAINTS
-        accel = m.symbolic_acceleration() if symbolic else m.acceleration_graph
+        rows = self.manifold.rows
+        symbolic = len(self.rows) <= SYMBOLIC_MAX_CONSTRAINTS
+        accel = symbolic_acceleration(m, rows) if symbolic else acceleration_function(m, rows)
         linsol = "symbolicqr" if symbolic else "ldl"
-        minv = ca.DM(m.inverse_masses)
         done = t >= t_target  # (then the attempt is skipped: see the end)
         remaining = t_target - t
         clipped = h >= remaining
@@ -125,17 +126,7 @@ class Dopri(Solver):
         v1 = v + hh * combine(Kv, tab.B)
         t1 = ca.if_else(clipped, t_target, t + hh)
         if m.n_constraints:
-            f0, J0 = m.jacobian(x1, t1)
-            A0 = ca.mtimes(ca.mtimes(J0, ca.diag(minv)), J0.T)
-            x1 = x1 - minv * ca.mtimes(J0.T, ca.solve(A0, f0, linsol))
-            f1, J1 = m.jacobian(x1, t1)
-            _, f_t = m.velocity_terms(x1, t1)
-            A1 = ca.mtimes(ca.mtimes(J1, ca.diag(minv)), J1.T)
-            rhs = ca.horzcat(f1, ca.mtimes(J1, v1) + f_t)
-            sol = ca.solve(A1, rhs, linsol)
-            x1 = x1 - minv * ca.mtimes(J1.T, sol[:, 0])
-            v1 = v1 - minv * ca.mtimes(J1.T, sol[:, 1])
-            residual = ca.mmax(ca.fabs(f1))
+            x1, v1, residual = projection_graph(m, x1, v1, t1, rows=rows, linsol=linsol)
         else:
             residual = ca.MX(0)
         a1, _ = accel(x1, v1, t1)
@@ -172,16 +163,17 @@ class Dopri(Solver):
         done = S2[_slot(n, "t")] >= S2[_slot(n, "t_target")]
         return ca.Function(f"{name}_step", [S2], [ca.if_else(done, S2, attempt(S2), True)])
 
-    def _functions(self) -> dict[int, _FastCall]:
+    def _functions(self) -> dict[int, FastCall]:
         """The chained-step Functions, built (and compiled) once per model and kept there."""
-        key = (self.name, self.tableau.name, self.compiled)
-        cached = self.model.solver_cache.get(key)
+        key = (self.name, self.tableau.name, self.compiled, self.manifold.rows)
+        cache = per_model_cache(self.model)
+        cached = cache.get(key)
         if cached is None:
-            cached = self.model.solver_cache[key] = self._build_functions()
+            cached = cache[key] = self._build_functions()
         self.stats["evaluation"] = cached[0]
         return cached[1]
 
-    def _build_functions(self) -> tuple[str, dict[int, _FastCall]]:
+    def _build_functions(self) -> tuple[str, dict[int, FastCall]]:
         step = self._step_function()
         evaluation = "virtual machine"
         chunks = {k: (step if k == 1 else step.mapaccum(f"{step.name()}_{k}", k)) for k in CHUNKS}
@@ -190,14 +182,14 @@ class Dopri(Solver):
             if all(f.class_name() == "External" for f in compiled):
                 chunks = dict(zip(chunks, compiled, strict=True))
                 evaluation = "compiled"
-        return evaluation, {k: _FastCall(f) for k, f in chunks.items()}
+        return evaluation, {k: FastCall(f) for k, f in chunks.items()}
 
     # --- the driver -----------------------------------------------------------------------
     def _initial_step(self, x0, v0, a0, t0, t_end) -> float:
         """Hairer's starting step (as SciPy's select_initial_step), from two evaluations."""
         if self.dt is not None:
             return min(float(self.dt), t_end - t0)
-        m = self.model
+        m = self.manifold
         y0, f0 = np.concatenate([x0, v0]), np.concatenate([v0, a0])
         scale = self.atol + np.abs(y0) * self.rtol
         d0, d1 = np.linalg.norm(y0 / scale), np.linalg.norm(f0 / scale)
@@ -217,7 +209,7 @@ class Dopri(Solver):
         m = self.model
         n = m.n_coordinates
         chunks = self._chunks
-        a0, _ = m.accelerations(x0, v0, t0)
+        a0, _ = self.manifold.accelerations(x0, v0, t0)
         h = self._initial_step(x0, v0, a0, t0, t_end)
         targets = [t_end] if t_eval is None else [tk for tk in np.asarray(t_eval, float) if tk > t0]
         every_step = t_eval is None
@@ -237,7 +229,7 @@ class Dopri(Solver):
         h_rho, rho_max, checked = [], 0.0, diagnostics.STIFFNESS_MIN_STEPS // 2
 
         def derivative(t, y):
-            return np.concatenate([y[n:], m.accelerations(y[:n], y[n:], t)[0]])
+            return np.concatenate([y[n:], self.manifold.accelerations(y[:n], y[n:], t)[0]])
 
         try:
             for target in targets:
@@ -254,7 +246,8 @@ class Dopri(Solver):
                         last = cols[np.argmin(ok) - 1] if not ok[0] else before
                         state = last
                         failure = (f"non-finite state after t = {last[T]:.6g} s; "
-                                   + diagnostics.likely_cause(m, last[:n], last[n:2 * n], last[T]))
+                                   + diagnostics.likely_cause(m, last[:n], last[n:2 * n], last[T],
+                                                              self.manifold))
                         break
                     if state[RES] > PROJECTION_FAIL * scale:
                         failure = (f"the state could not be kept on the constraints near "
@@ -272,7 +265,8 @@ class Dopri(Solver):
                     if state[T] < target and state[H] < 1e-14 * max(1.0, abs(state[T])):
                         failure = (f"the step size collapsed at t = {state[T]:.6g} s "
                                    f"(h = {state[H]:.3g} s); "
-                                   + diagnostics.likely_cause(m, state[:n], state[n:2 * n], state[T]))
+                                   + diagnostics.likely_cause(m, state[:n], state[n:2 * n], state[T],
+                                                            self.manifold))
                         break
                     if state[N_ACC] + state[N_REJ] > self.max_steps:
                         failure = f"more than max_steps = {self.max_steps} steps before t = {target:.6g} s"
@@ -302,4 +296,4 @@ class Dopri(Solver):
             self.stats, h_rho, rho_max, what=f"dopri's explicit {self.tableau.name}", stacklevel=4,
             advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"')
         return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
-                        dict(self.stats), failure)
+                        self.counted(), failure)

@@ -31,11 +31,12 @@ class _IdasBase(Solver):
     #: First step as a fraction of the run when no dt is given (None: IDAS chooses).
     first_step_fraction: float | None = None
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, max_step: float | None = None,
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, max_step: float | None = None,
                  **options):
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
-        self.require_independent_constraints("its algebraic equations are singular")
-        if model.n_constraints == 0:
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
+        # redundant rows: the DAE takes the independent subset (its algebraic equations would
+        # be singular with all of them); the run's multipliers are the minimum-norm ones
+        if self.model.n_constraints == 0:
             raise InputError(f"method '{self.name}' is for constrained systems; this one has none")
         self.max_step = max_step
 
@@ -70,7 +71,7 @@ class _IdasBase(Solver):
         t_prev = t0
         segments = [grid] if not self.project_outputs else [[tk] for tk in grid]
         for seg in segments:
-            a_prev, _ = m.accelerations(state[:n3], state[n3:], t_prev)
+            a_prev, _ = self.manifold.accelerations(state[:n3], state[n3:], t_prev)
             opts["init_xdot"] = np.concatenate([state[n3:], a_prev]).tolist()
             integ = ca.integrator("dae", "idas", dae, t_prev, list(seg), opts)
             try:
@@ -90,9 +91,9 @@ class _IdasBase(Solver):
             for k, tk in enumerate(seg):
                 x, v = X[:n3, k], X[n3:, k]
                 if self.project_outputs:
-                    x, _, _ = m.project_positions(x, tk, tol=1e-14 * max(1.0, np.max(np.abs(x))))
-                    v = m.project_velocities(x, v, tk)
-                    self.stats["projections"] += 1
+                    x = self.manifold.project_positions(x, tk, tol=1e-14 * max(1.0, np.max(np.abs(x)))).x
+                    v = self.manifold.project_velocities(x, v, tk)
+                    self.manifold.counters.projections += 1
                 ts.append(tk)
                 xs.append(x)
                 vs.append(v)
@@ -101,7 +102,7 @@ class _IdasBase(Solver):
             z = Z[:, -1] if not self.project_outputs else self.algebraic_guess(xs[-1], vs[-1], seg[-1])
             t_prev = seg[-1]
         return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                        dict(self.stats), failure)
+                        self.counted(), failure)
 
     def extra_options(self) -> dict:
         return {}
@@ -111,24 +112,25 @@ class Idas(_IdasBase):
     name = "idas"
     project_outputs = True
 
-    def __init__(self, model, *, project_outputs: bool = True, **kwargs):
-        super().__init__(model, **kwargs)
+    def __init__(self, manifold, *, project_outputs: bool = True, **kwargs):
+        super().__init__(manifold, **kwargs)
         self.project_outputs = bool(project_outputs)
 
     def dae(self):
         m = self.model
-        n3, C = m.n_coordinates, m.n_constraints
+        n3, C = m.n_coordinates, len(self.rows)
         x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
         lam = ca.SX.sym("lam", C)
         minv = ca.DM(m.inverse_masses)
         F, J, gamma = m.dynamics(x, v, t)
+        J, gamma = J[self.rows, :], gamma[self.rows]
         a = minv * (F + ca.mtimes(J.T, lam))
         dae = {"x": ca.vertcat(x, v), "z": lam, "t": t, "ode": ca.vertcat(v, a),
                "alg": ca.mtimes(J, a) + gamma}
         return dae, C
 
     def algebraic_guess(self, x, v, t):
-        return self.model.accelerations(x, v, t)[1]
+        return self.manifold.accelerations(x, v, t)[1][self.rows]
 
 
 class GGL(_IdasBase):
@@ -140,20 +142,21 @@ class GGL(_IdasBase):
 
     def dae(self):
         m = self.model
-        n3, C = m.n_coordinates, m.n_constraints
+        n3, C = m.n_coordinates, len(self.rows)
         x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
         lam, mu = ca.SX.sym("lam", C), ca.SX.sym("mu", C)
         minv = ca.DM(m.inverse_masses)
         F, J, _ = m.dynamics(x, v, t)
         _, f_t = m.velocity_terms(x, t)
         f = m.constraint(x, t)
+        J, f_t, f = J[self.rows, :], f_t[self.rows], f[self.rows]
         dae = {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu), "t": t,
                "ode": ca.vertcat(v + minv * ca.mtimes(J.T, mu), minv * (F + ca.mtimes(J.T, lam))),
                "alg": ca.vertcat(f, ca.mtimes(J, v) + f_t)}
         return dae, 2 * C
 
     def algebraic_guess(self, x, v, t):
-        return np.concatenate([self.model.accelerations(x, v, t)[1], np.zeros(self.model.n_constraints)])
+        return np.concatenate([self.manifold.accelerations(x, v, t)[1][self.rows], np.zeros(len(self.rows))])
 
     def extra_options(self) -> dict:
         return {"suppress_algebraic": True, "calc_ic": False}

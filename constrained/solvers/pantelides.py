@@ -27,21 +27,22 @@ from .base import Solution, Solver
 class Pantelides(Solver):
     name = "pantelides"
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, **options):
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
-        self.require_independent_constraints("the reduced DAE is singular")
-        if model.n_constraints == 0:
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, **options):
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
+        # redundant rows: the DAE takes the independent subset (see solvers.base)
+        if self.model.n_constraints == 0:
             raise InputError("method 'pantelides' is for constrained systems; this one has none")
         self.dae, self.reduced, self.index = self._reduce()
         self.semi_explicit, self.to_original, _ = ca.dae_map_semi_expl(self.dae, self.reduced)
 
     def _reduce(self):
         m = self.model
-        n3, C = m.n_coordinates, m.n_constraints
+        n3, C = m.n_coordinates, len(self.rows)
         x, v, dx, dv = (ca.SX.sym(k, n3) for k in ("x", "v", "dx", "dv"))
         lam, t = ca.SX.sym("lam", C), ca.SX.sym("t")
         F, J, _ = m.dynamics(x, v, t)
-        blocks = [m.constraint(x, t), ca.DM(m.masses) * dv - F - ca.mtimes(J.T, lam), dx - v]
+        J = J[self.rows, :]
+        blocks = [m.constraint(x, t)[self.rows], ca.DM(m.masses) * dv - F - ca.mtimes(J.T, lam), dx - v]
         last = None
         for order in itertools.permutations(range(3)):
             dae = {"x_impl": ca.vertcat(x, v), "dx_impl": ca.vertcat(dx, dv), "z": lam,
@@ -56,8 +57,9 @@ class Pantelides(Solver):
 
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         m = self.model
-        n3, C = m.n_coordinates, m.n_constraints
-        a0, lam0 = m.accelerations(x0, v0, t0)
+        n3, C = m.n_coordinates, len(self.rows)
+        a0, lam0 = self.manifold.accelerations(x0, v0, t0)
+        lam0 = lam0[self.rows]
         force = ca.DM([-1.0] * (2 * n3))
         init_gen = ca.dae_init_gen(self.dae, self.reduced, "ipopt",
                                    {"x_impl": force, "dx_impl": force, "z": ca.DM([-1.0] * C)},
@@ -76,7 +78,7 @@ class Pantelides(Solver):
             sol = integ(x0=start["x0"], z0=start["z0"])
         except RuntimeError as exc:
             return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                            dict(self.stats), f"IDAS stopped ({str(exc).splitlines()[-1][:200]})")
+                            self.counted(), f"IDAS stopped ({str(exc).splitlines()[-1][:200]})")
         stats = integ.stats()
         self.stats.update(steps=int(stats.get("nsteps", 0)), nfev=int(stats.get("nfevals", 0)),
                           nlu=int(stats.get("nlinsetups", 0)), rejected=int(stats.get("netfails", 0)),
@@ -86,4 +88,4 @@ class Pantelides(Solver):
         xs += list(X[:n3].T)
         vs += list(X[n3:].T)
         return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                        dict(self.stats), failure)
+                        self.counted(), failure)

@@ -15,6 +15,7 @@ from scipy.integrate import DOP853, RK45, Radau
 from .. import compiled as compiled_evaluation
 from .. import diagnostics
 from ..errors import InputError
+from ..manifold import Manifold, acceleration_graph, per_model_cache
 from .base import Solution, Solver
 
 #: "CVODES" is Adams with functional iteration (non-stiff, cheapest per step); "CVODES_BDF"
@@ -48,9 +49,9 @@ class Projection(Solver):
     #: Whether accepted steps and outputs are projected onto the constraint manifolds.
     projecting = True
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
                  singular_tol: float | None = SINGULAR_TOL, **options):
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
         if singular_tol is not None and not (isinstance(singular_tol, int | float) and 0 <= singular_tol < 1):
             raise InputError(f"singular_tol must be a number in [0, 1) or None, got {singular_tol!r}")
         self.singular_tol = singular_tol
@@ -61,25 +62,27 @@ class Projection(Solver):
         # C compiler's time grows steeply with the model (13 s at 200 particles, 98 s at 1000):
         # compiled only when asked for (compiled=True), never under "auto".
         if self.compiled_setting is True and compiled_evaluation.enabled(True):
-            model.compile()
+            self.manifold = Manifold(self.model, rows=self.manifold.rows, policy=self.manifold.policy,
+                                     compiled=True)
         # built here, so its cost is setup (stats["setup_time_s"]), not the run
         self._integrator = self._cvodes_integrator() if base.startswith("CVODES") else None
 
     def derivative(self, t, y):
         """(x', v') = (v, a(x, v, t)) with a from the KKT system."""
         n = self.model.n_coordinates
-        a, _ = self.model.accelerations(y[:n], y[n:], t)
+        a, _ = self.manifold.accelerations(y[:n], y[n:], t)
         return np.concatenate([y[n:], a])
 
     def project(self, x, v, t):
         if not self.projecting:
             return x, v
-        m = self.model
-        x, err, _ = m.project_positions(x, t, tol=self.position_tol)
+        m = self.manifold
+        projected = m.project_positions(x, t, tol=self.position_tol)
+        x, err = projected.x, projected.residual
         if not np.isfinite(err) or err > PROJECTION_FAIL * self.scale:
             raise _ProjectionFailed(t, err)
         v = m.project_velocities(x, v, t)
-        self.stats["projections"] += 1
+        m.counters.projections += 1
         return x, v
 
     def _watch_rank(self, x0, t0) -> int:
@@ -87,11 +90,11 @@ class Projection(Solver):
         m = self.model
         if not self.singular_tol or not m.n_constraints or m.n_coordinates > SINGULAR_WATCH_MAX:
             return 0
-        return diagnostics.numerical_rank(m, x0, t0)
+        return len(self.rows)
 
     def diagnose(self, x, v, t) -> str:
         """The likely cause of a stop, from the last good state (x, v, t)."""
-        return diagnostics.likely_cause(self.model, x, v, t)
+        return diagnostics.likely_cause(self.model, x, v, t, self.manifold)
 
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         self.scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
@@ -194,11 +197,9 @@ class Projection(Solver):
                 ys.append(y)
         if watch:
             self._stiffness_verdict(h_rho, rho_max)
-        for key in ("njev", "nlu"):
-            self.stats[key] = max(self.stats[key], m.counters[key])
-        self.stats["evaluation"] = m.evaluation
+        self.stats["evaluation"] = self.manifold.evaluation
         Y = np.array(ys).reshape(-1, 2 * n)
-        return Solution(np.array(ts), Y[:, :n], Y[:, n:], dict(self.stats), failure)
+        return Solution(np.array(ts), Y[:, :n], Y[:, n:], self.counted(), failure)
 
     def _stiffness_verdict(self, h_rho, rho_max) -> None:
         diagnostics.stiffness_verdict(
@@ -217,13 +218,15 @@ class Projection(Solver):
         m = self.model
         n = m.n_coordinates
         # only the latest setting is kept: one integrator can hold hundreds of MB
-        settings = (self.base, self.rtol, self.atol)
-        cached = m.solver_cache.get("projection_cvodes")
+        settings = (self.base, self.rtol, self.atol, self.manifold.rows)
+        cache = per_model_cache(m)
+        cached = cache.get("projection_cvodes")
         if cached is not None and cached[0] == settings:
             return cached[1]
         # one integrator for every segment: τ ∈ [0, 1], t = t_a + Δ τ, d/dτ = Δ d/dt
         y, tau, p = ca.MX.sym("y", 2 * n), ca.MX.sym("tau"), ca.MX.sym("p", 2)
-        a, _ = m.acceleration_graph(y[:n], y[n:], p[0] + p[1] * tau)
+        a, _ = acceleration_graph(m, y[:n], y[n:], p[0] + p[1] * tau,
+                                  rows=self.manifold.rows)
         ode = p[1] * ca.vertcat(y[n:], a)
         bdf = self.base == "CVODES_BDF"
         options = {
@@ -238,7 +241,7 @@ class Projection(Solver):
             options["newton_scheme"] = "gmres"
         integ = ca.integrator("segment", "cvodes", {"x": y, "p": p, "t": tau, "ode": ode}, 0.0, 1.0,
                               options)
-        m.solver_cache["projection_cvodes"] = (settings, integ)
+        cache["projection_cvodes"] = (settings, integ)
         return integ
 
     def _run_cvodes(self, x0, v0, t0, t_end, t_eval) -> Solution:
@@ -288,6 +291,6 @@ class Projection(Solver):
             vs.append(v)
             state, t_a = np.concatenate([x, v]), t_b
             self.report(t_b)
-        self.stats["evaluation"] = m.evaluation
+        self.stats["evaluation"] = self.manifold.evaluation
         return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
-                        dict(self.stats), failure)
+                        self.counted(), failure)

@@ -28,6 +28,7 @@ import numpy as np
 
 from .. import compiled as compiled_evaluation
 from ..errors import InputError
+from ..manifold import schur_solve_graph, velocity_correction_graph
 from .base import Solution, Solver
 
 #: Under compiled="auto", RATTLE's folded steps are compiled for models up to this size.
@@ -41,9 +42,10 @@ class Rattle(Solver):
     name = "rattle"
     adaptive = False
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
                  newton_iterations: int = 4, **options):
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
+        model = self.model
         if not (isinstance(newton_iterations, int) and 1 <= newton_iterations <= 50):
             raise InputError(
                 f"newton_iterations must be a whole number from 1 to 50, got {newton_iterations!r}"
@@ -57,35 +59,36 @@ class Rattle(Solver):
         )
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
-        self.require_independent_constraints("its Newton matrix is singular")
         self.newton_tol = newton_tol
         self._chunks: dict[int, ca.Function] = {}
 
     def _step(self, h: float) -> ca.Function:
         """One RATTLE step on the state (x, v, t, λ, err) — err: running max of |f| after Newton."""
         m = self.model
-        n3, C = m.n_coordinates, m.n_constraints
+        rows = self.manifold.rows
+        n3, C = m.n_coordinates, len(self.rows)
         x, v, t, err = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t"), ca.MX.sym("err")
         lam = ca.MX.sym("lam", C)
         minv = ca.DM(m.inverse_masses)
         F0, J0, _ = m.dynamics(x, v, t)
         t1 = t + h
         if C:
+            J0 = J0 if rows is None else J0[list(rows), :]
             kick = 0.5 * h * h * minv
             base = x + h * v + kick * F0
             lam_k = lam
             for _ in range(self.newton_iterations):
                 f1, J1 = m.jacobian(base + kick * ca.mtimes(J0.T, lam_k), t1)
+                if rows is not None:
+                    f1, J1 = f1[list(rows)], J1[list(rows), :]
                 # d f(x1(λ)) / dλ = J(x1) · h²/2 M⁻¹ J(x_n)ᵀ
-                lam_k = lam_k - ca.solve(ca.mtimes(J1, kick * J0.T), f1, "qr")
+                lam_k = lam_k - schur_solve_graph(J1, J0, 0.5 * h * h * m.inverse_masses, f1)
             v_half = v + 0.5 * h * minv * (F0 + ca.mtimes(J0.T, lam_k))
             x1 = x + h * v_half
             residual = ca.mmax(ca.fabs(m.constraint(x1, t1)))
-            F1, J1, _ = m.dynamics(x1, v_half, t1)
-            _, f_t1 = m.velocity_terms(x1, t1)
+            F1, _, _ = m.dynamics(x1, v_half, t1)
             v_pred = v_half + 0.5 * h * minv * F1
-            A = ca.mtimes(ca.mtimes(J1, ca.diag(minv)), J1.T)
-            v1 = v_pred - minv * ca.mtimes(J1.T, ca.solve(A, ca.mtimes(J1, v_pred) + f_t1, "qr"))
+            v1 = v_pred - velocity_correction_graph(m, x1, v_pred, t1, rows=rows)
             state = ca.vertcat(x, v, t, lam, err)
             out = ca.vertcat(x1, v1, t1, lam_k, ca.fmax(err, residual))
             return ca.Function("rattle_step", [state], [out])
@@ -106,7 +109,7 @@ class Rattle(Solver):
 
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         m = self.model
-        n3, C = m.n_coordinates, m.n_constraints
+        n3, C = m.n_coordinates, len(self.rows)
         n_steps = max(1, math.ceil((t_end - t0) / self.dt - 1e-9))
         self.scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
         h = (t_end - t0) / n_steps  # the step is shortened slightly to land on t_end
@@ -124,7 +127,7 @@ class Rattle(Solver):
                     "give t_eval on that grid or omit it"
                 )
         step = self._step(h)
-        lam0 = self.model.accelerations(x0, v0, t0)[1] if C else np.zeros(0)
+        lam0 = self.manifold.accelerations(x0, v0, t0)[1][self.rows] if C else np.zeros(0)
         state = np.concatenate([x0, v0, [t0], lam0, [0.0]])
         ts, xs, vs = [], [], []
         done = 0
@@ -165,4 +168,4 @@ class Rattle(Solver):
         self.stats.update({"steps": done, "nfev": 2 * done, "dt": h,
                            "evaluation": "compiled" if self.compiled else "virtual machine"})
         return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                        dict(self.stats), failure)
+                        self.counted(), failure)

@@ -18,8 +18,9 @@ from .base import Solution, Solver
 class Reduced(Solver):
     name = "reduced"
 
-    def __init__(self, model, *, rtol=1e-8, atol=1e-10, dt=None, reduced_model=None, **options):
-        super().__init__(model, rtol=rtol, atol=atol, dt=dt, **options)
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, reduced_model=None, **options):
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
+        model = self.model
         if reduced_model is None:
             raise InputError(
                 "method 'reduced' needs generalized coordinates: pass reduced_model="
@@ -56,4 +57,4 @@ class Reduced(Solver):
                                         atol=self.atol, t_eval=t_eval, outputs=())
         n = len(traj.t)
         self.stats.update({"nfev": traj.stats.get("nfev", 0), "steps": traj.stats.get("nfev", 0) // 12})
-        return Solution(traj.t, traj.x.reshape(n, -1), traj.v.reshape(n, -1), dict(self.stats))
+        return Solution(traj.t, traj.x.reshape(n, -1), traj.v.reshape(n, -1), self.counted())

@@ -1,0 +1,555 @@
+"""The constraint manifold: THE mass-scaled KKT/Schur solve and the projections onto
+``f(x, t) = 0`` and ``J v + f_t = 0``, in NumPy and as CasADi graphs.
+
+Every method, statics, the action module and the diagnostics solve their linear systems
+here; no other module factors ``J M⁻¹ Jᵀ``.
+
+The KKT system ``[[M, Jᵀ], [J, 0]] [a; −λ] = [F; −γ]`` is solved through its Schur
+complement ``A = J M⁻¹ Jᵀ``:
+
+    A λ = −γ − J M⁻¹ F,        a = M⁻¹ (F + Jᵀ λ).
+
+``A`` carries the spread of the masses (a 1e6 kg bob beside a 1e-6 kg one puts 1e12 between
+its diagonal entries), so every dense solve first scales it symmetrically, ``D A D`` with
+``D = diag(A)^(-1/2)``: the rows of the mass-weighted Jacobian ``Ĵ = D J M^(-1/2)`` then have
+unit length and ``D A D = Ĵ Ĵᵀ``. A Cholesky factorization of ``D A D`` is accepted when its
+pivots are well above round-off; otherwise (redundant rows, a singular configuration) the
+minimum-norm least-squares solution is taken from the SVD of ``Ĵ`` itself — never of ``A``,
+whose singular values are squares — with one relative cut-off (``RankPolicy``). Rows that
+are merely heavy are therefore never cut as if they were dependent, and identical rows share
+their load equally (two identical rods each carry half).
+
+The projections are the mass-weighted nearest points:
+
+    x ← x − M⁻¹ Jᵀ A⁻¹ f        (Newton on f(x, t) = 0)
+    v ← v − M⁻¹ Jᵀ A⁻¹ (J v + f_t)
+
+A ``Manifold`` is one run's view of a Model: the row set it solves with (all rows, or an
+independent subset when rows are redundant, decided once at the start), the rank policy,
+and the run's counters. The Model itself stays immutable and can serve many runs at once.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+import weakref
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+
+from .model import FastCall, Model
+
+
+@dataclass(frozen=True)
+class RankPolicy:
+    """The one set of thresholds that decides when constraint rows are dependent.
+
+    ``dependent_rtol``: a row of the row-normalized, mass-weighted Jacobian ``Ĵ`` whose pivot
+    (pivoted QR) or singular value falls below this fraction of the largest is dependent on
+    the others (redundant), and is cut from minimum-norm solves. Exactly dependent rows sit
+    at round-off, about 1e-16; 1e-9 leaves seven orders of magnitude on both sides.
+
+    ``cholesky_rtol``: the fast path's test. A pivot of the Cholesky factor of ``D A D``
+    below this fraction of the largest sends the solve to the SVD. It is larger than
+    ``dependent_rtol`` because forming ``A`` squares the round-off: two identical rows leave
+    a pivot near √ε ≈ 1e-8, not 0.
+
+    ``singular_sigma``: a configuration is (nearly) singular when the smallest singular value
+    of the row-normalized ``J`` falls below this; the diagnostics name the rows involved.
+    """
+
+    dependent_rtol: float = 1e-9
+    cholesky_rtol: float = 1e-6
+    singular_sigma: float = 1e-6
+
+
+#: The policy every module uses unless a caller passes its own.
+RANK = RankPolicy()
+
+
+class ProjectionStatus(enum.Enum):
+    """How a position projection ended."""
+
+    CONVERGED = "converged"
+    STALLED = "stalled"  # Newton stopped reducing |f| (incompatible constraints, or too far off)
+    MAX_ITERATIONS = "max_iterations"
+    NON_FINITE = "non_finite"
+
+    @property
+    def message(self) -> str:
+        return {
+            ProjectionStatus.CONVERGED: "the state was brought onto the constraints",
+            ProjectionStatus.STALLED: "Newton's iteration stopped reducing the constraint violation",
+            ProjectionStatus.MAX_ITERATIONS: "Newton's iteration ran out of iterations",
+            ProjectionStatus.NON_FINITE: "the constraint functions became non-finite",
+        }[self]
+
+
+@dataclass(frozen=True)
+class ProjectionResult:
+    """A position projection: the new ``x``, its ``status``, Newton ``iterations`` and the
+    ``residual`` max |f| left (in the constraints' units)."""
+
+    x: np.ndarray
+    status: ProjectionStatus
+    iterations: int
+    residual: float
+
+    @property
+    def converged(self) -> bool:
+        return self.status is ProjectionStatus.CONVERGED
+
+
+@dataclass
+class Counters:
+    """Work done by one run, incremented where it happens: right-hand sides (``nfev``),
+    Jacobian evaluations (``njev``), factorizations (``nlu``), ``projections``."""
+
+    nfev: int = 0
+    njev: int = 0
+    nlu: int = 0
+    projections: int = 0
+
+    def as_dict(self) -> dict:
+        return {"nfev": self.nfev, "njev": self.njev, "nlu": self.nlu, "projections": self.projections}
+
+
+# --- the dense solve ----------------------------------------------------------------------------
+def schur_matrix(J: np.ndarray, inverse_masses: np.ndarray) -> np.ndarray:
+    """A = J M⁻¹ Jᵀ for a (C, 3N) Jacobian and the flat inverse masses (3N,)."""
+    return (J * inverse_masses) @ J.T
+
+
+def _row_scale(J: np.ndarray, inverse_masses: np.ndarray) -> np.ndarray:
+    """D = diag(J M⁻¹ Jᵀ)^(-1/2), rows of zero weight left unscaled."""
+    d = np.sqrt(np.einsum("ij,ij,j->i", J, J, inverse_masses))
+    return np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 1.0)
+
+
+def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
+                policy: RankPolicy = RANK, full_rank: bool = True) -> np.ndarray:
+    """Solve (J M⁻¹ Jᵀ) y = b; the minimum-norm least-squares y (in the scaled norm |D⁻¹y|)
+    when rows are dependent.
+
+    ``full_rank=False`` skips the Cholesky attempt (the caller knows rows are redundant).
+    ``b`` may be a vector (C,) or a matrix (C, k).
+    """
+    b = np.asarray(b, float)
+    if J.shape[0] == 0:
+        return np.zeros(b.shape)
+    s = _row_scale(J, inverse_masses)
+    sb = s * b if b.ndim == 1 else s[:, None] * b
+    if full_rank:
+        A = s[:, None] * schur_matrix(J, inverse_masses) * s[None, :]
+        try:
+            L, lower = sla.cho_factor(A, lower=True, check_finite=False)
+            d = np.abs(np.diag(L))
+            if d.size and d.min() > policy.cholesky_rtol * d.max():
+                z = sla.cho_solve((L, lower), sb, check_finite=False)
+                return s * z if z.ndim == 1 else s[:, None] * z
+        except (np.linalg.LinAlgError, ValueError):
+            pass
+    # SVD of Ĵ = D J M^(-1/2): A's scaled form is Ĵ Ĵᵀ = U Σ² Uᵀ, so z = U Σ⁻² Uᵀ (D b)
+    Jhat = s[:, None] * J * np.sqrt(inverse_masses)[None, :]
+    U, sv, _ = np.linalg.svd(Jhat, full_matrices=False)
+    keep = sv > policy.dependent_rtol * sv[0] if sv.size and sv[0] > 0 else np.zeros(sv.shape, bool)
+    Uk, w = U[:, keep], 1.0 / sv[keep] ** 2
+    z = Uk @ (w * (Uk.T @ sb)) if sb.ndim == 1 else Uk @ (w[:, None] * (Uk.T @ sb))
+    return s * z if z.ndim == 1 else s[:, None] * z
+
+
+def independent_rows(J: np.ndarray, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> np.ndarray:
+    """A maximal set of independent rows of J, in scene order (pivoted QR of Ĵᵀ; a row whose
+    pivot is below ``dependent_rtol`` of the largest is implied by the others)."""
+    C = J.shape[0]
+    if C == 0:
+        return np.zeros(0, dtype=int)
+    Jhat = _row_scale(J, inverse_masses)[:, None] * J * np.sqrt(inverse_masses)[None, :]
+    _, R, order = sla.qr(Jhat.T, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    if diag.size == 0 or diag[0] == 0:
+        return np.zeros(0, dtype=int)
+    rank = int(np.sum(diag > policy.dependent_rtol * diag[0]))
+    return np.sort(order[:rank])
+
+
+def full_row_rank(J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> bool | None:
+    """True when J shows full row rank by a cheap factorization of D A D (dense Cholesky for
+    small J, sparse LU for a CasADi-sparse J with many rows: O(N) on a chain); None when it
+    cannot tell (a small pivot: use ``independent_rows``)."""
+    if isinstance(J, ca.DM) and J.shape[0] > SPARSE_FROM:
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
+        rows, cols = J.sparsity().get_triplet()
+        Js = sp.csr_matrix((np.asarray(J.nonzeros(), float), (rows, cols)), shape=J.shape)
+        A = (Js @ sp.diags(inverse_masses) @ Js.T).tocsc()
+        d = A.diagonal()
+        if d.size == 0 or np.any(d <= 0):
+            return None
+        s = sp.diags(1.0 / np.sqrt(d))
+        try:
+            lu = spla.splu((s @ A @ s).tocsc(), diag_pivot_thresh=0.0)
+        except RuntimeError:  # exactly singular
+            return None
+        u = np.sqrt(np.abs(lu.U.diagonal()))  # pivots of D A D are squares of Ĵ's
+        return True if u.min() > policy.cholesky_rtol * u.max() else None
+    J = np.asarray(J, float)
+    s = _row_scale(J, inverse_masses)
+    try:
+        L = np.linalg.cholesky(s[:, None] * schur_matrix(J, inverse_masses) * s[None, :])
+    except np.linalg.LinAlgError:
+        return None
+    d = np.abs(np.diag(L))
+    return True if d.size and d.min() > policy.cholesky_rtol * d.max() else None
+
+
+def tangent_basis(J: np.ndarray, n: int | None = None, policy: RankPolicy = RANK) -> np.ndarray:
+    """Orthonormal basis (n, d) of null(J), the admissible virtual displacements (SVD of the
+    row-normalized J; singular values below ``dependent_rtol`` of the largest count as 0)."""
+    J = np.asarray(J, float)
+    n = J.shape[1] if n is None else n
+    norms = np.linalg.norm(J, axis=1) if J.shape[0] else np.zeros(0)
+    Jn = J[norms > 0] / norms[norms > 0, None]
+    if Jn.shape[0] == 0:
+        return np.eye(n)
+    return sla.null_space(Jn, rcond=policy.dependent_rtol)
+
+
+#: From this many constraint rows, full rank is first shown by a sparse factorization.
+SPARSE_FROM = 100
+
+
+def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
+    """None when the rows of J(x, t) are independent; otherwise the independent subset to
+    solve with (the others are implied by it). This is the run's redundancy, a value."""
+    if model.n_constraints == 0:
+        return None
+    J = model.jacobian(np.asarray(x, float).ravel(), t)[1]
+    if full_row_rank(J, model.inverse_masses, policy):
+        return None
+    rows = independent_rows(np.asarray(J, float), model.inverse_masses, policy)
+    return None if rows.size == model.n_constraints else tuple(int(k) for k in rows)
+
+
+# --- the CasADi graph forms ------------------------------------------------------------------
+def _select(expr, rows):
+    return expr if rows is None else expr[list(rows), :]
+
+
+def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None = "qr"):
+    """y with (J_left M⁻¹ J_rightᵀ) y = rhs, as a CasADi expression (J_left = J_right: the
+    Schur complement; RATTLE's Newton step takes J at two states). ``linsol``: a CasADi
+    linear solver plugin for MX graphs, None for SX (solved symbolically).
+
+    Scaled like the NumPy solve, D_l A D_r z = D_l rhs, y = D_r z, with D = diag(J M⁻¹ Jᵀ)^(-1/2)
+    of each side: CasADi's sparse QR takes pivots below an absolute 1e-12 or so for zero, and
+    h² M⁻¹ of a heavy particle is far below that."""
+    minv = ca.DM(inverse_masses)
+
+    def scale(J):
+        return 1.0 / ca.sqrt(ca.mtimes(J * J, minv))
+
+    d_left, d_right = scale(J_left), scale(J_right)
+    A = ca.mtimes(ca.mtimes(J_left, ca.diag(minv)), J_right.T)
+    A = A * ca.mtimes(d_left, d_right.T)
+    b = rhs * ca.repmat(d_left, 1, rhs.shape[1])
+    z = ca.solve(A, b) if linsol is None else ca.solve(A, b, linsol)
+    return z * ca.repmat(d_right, 1, rhs.shape[1])
+
+
+def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl", feedback=None):
+    """(a, λ) of the KKT system as CasADi expressions in (X, V, T): A λ = −γ − J M⁻¹ F,
+    a = M⁻¹ (F + Jᵀ λ), over ``rows`` (all by default; λ holds those rows only).
+
+    ``feedback = (α, β)`` imposes Baumgarte's J a + γ + 2α (J v + f_t) + β² f = 0 instead."""
+    minv = ca.DM(model.inverse_masses)
+    F, J, gamma = model.dynamics(X, V, T)
+    if not model.n_constraints:
+        return minv * F, (ca.SX if isinstance(X, ca.SX) else ca.MX)(0, 1)
+    if feedback is not None:
+        alpha, beta = feedback
+        _, f_t = model.velocity_terms(X, T)
+        gamma = gamma + 2 * alpha * (ca.mtimes(J, V) + f_t) + beta**2 * model.constraint(X, T)
+    J, gamma = _select(J, rows), _select(gamma, rows)
+    lam = schur_solve_graph(J, J, model.inverse_masses, -gamma - ca.mtimes(J, minv * F), linsol)
+    return minv * (F + ca.mtimes(J.T, lam)), lam
+
+
+def position_step_graph(model: Model, X, T, *, rows=None, linsol: str = "qr"):
+    """(f, dx): one mass-weighted Newton step toward f = 0 is x ← x − dx, dx = M⁻¹Jᵀ A⁻¹ f;
+    f is over all rows (the residual), the step over ``rows``."""
+    f, J = model.jacobian(X, T)
+    fs, Js = _select(f, rows), _select(J, rows)
+    minv = ca.DM(model.inverse_masses)
+    return f, minv * ca.mtimes(Js.T, schur_solve_graph(Js, Js, model.inverse_masses, fs, linsol))
+
+
+def velocity_correction_graph(model: Model, X, V, T, *, rows=None, linsol: str = "qr"):
+    """dv with v ← v − dv the mass-weighted nearest velocity satisfying J v + f_t = 0."""
+    J, f_t = model.velocity_terms(X, T)
+    J, f_t = _select(J, rows), _select(f_t, rows)
+    minv = ca.DM(model.inverse_masses)
+    c = ca.mtimes(J, V) + f_t
+    return minv * ca.mtimes(J.T, schur_solve_graph(J, J, model.inverse_masses, c, linsol))
+
+
+def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
+    """Two Newton steps onto f = 0, the second sharing its factorization with the velocity
+    projection: (x, v, max|f| before the last step). The step loops (dopri) use it."""
+    minv = ca.DM(model.inverse_masses)
+    _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
+    x = x - dx
+    f, J = model.jacobian(x, t)
+    _, f_t = model.velocity_terms(x, t)
+    fs, Js, f_ts = _select(f, rows), _select(J, rows), _select(f_t, rows)
+    sol = schur_solve_graph(Js, Js, model.inverse_masses, ca.horzcat(fs, ca.mtimes(Js, v) + f_ts), linsol)
+    return (x - minv * ca.mtimes(Js.T, sol[:, 0]), v - minv * ca.mtimes(Js.T, sol[:, 1]),
+            ca.mmax(ca.fabs(f)))
+
+
+# --- the per-model functions, built once and shared by every run --------------------------------
+_built: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_lock = threading.Lock()
+
+
+@dataclass(frozen=True)
+class _FastPaths:
+    acceleration: FastCall
+    newton_step: FastCall
+    velocity_correction: FastCall
+    evaluation: str
+
+
+def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
+    """The acceleration, Newton step and velocity correction as one CasADi call each (sparse
+    LDLᵀ of the SPD A for the acceleration, sparse QR for the projections), per model and
+    row set, optionally compiled; cached beside the model, which is not changed."""
+    key = ("fast", rows, bool(compiled))
+    with _lock:
+        per_model = _built.setdefault(model, {})
+        cached = per_model.get(key)
+    if cached is not None:
+        return cached
+    n3 = model.n_coordinates
+    X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+    d = ca.densify
+    if model.n_constraints:
+        a, lam = acceleration_graph(model, X, V, T, rows=rows, linsol="ldl")
+        f, dx = position_step_graph(model, X, T, rows=rows)
+        dv = velocity_correction_graph(model, X, V, T, rows=rows)
+    else:
+        a, lam = acceleration_graph(model, X, V, T)
+        f, dx, dv = ca.MX(0, 1), ca.MX.zeros(n3), ca.MX.zeros(n3)
+    funcs = [ca.Function("acceleration", [X, V, T], [d(a), d(lam)]),
+             ca.Function("newton_step", [X, T], [d(f), d(dx)]),
+             ca.Function("velocity_correction", [X, V, T], [d(dv)])]
+    evaluation = "virtual machine"
+    if compiled:
+        from . import compiled as compiled_evaluation
+
+        machine = compiled_evaluation.compile_functions(funcs)
+        if all(f.class_name() == "External" for f in machine):
+            funcs, evaluation = machine, "compiled"
+    paths = _FastPaths(*(FastCall(f) for f in funcs), evaluation)
+    with _lock:
+        _built.setdefault(model, {})[key] = paths
+    return paths
+
+
+def per_model_cache(model: Model) -> dict:
+    """A dict kept beside ``model`` (not on it) for what solvers build once per model and
+    reuse across runs, e.g. a compiled step loop. It goes when the model goes."""
+    with _lock:
+        return _built.setdefault(model, {})
+
+
+def acceleration_function(model: Model, rows=None) -> ca.Function:
+    """``(x, v, t) -> (a, λ_rows)`` as one MX Function (sparse LDLᵀ inside), built once per
+    model and row set: step loops call it as a node of their graphs."""
+    cache = per_model_cache(model)
+    key = ("acceleration_mx", rows)
+    if key not in cache:
+        n3 = model.n_coordinates
+        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+        cache[key] = ca.Function("acceleration", [X, V, T],
+                                 list(acceleration_graph(model, X, V, T, rows=rows, linsol="ldl")))
+    return cache[key]
+
+
+def symbolic_acceleration(model: Model, rows=None) -> ca.Function:
+    """``(x, v, t) -> (a, λ_rows)`` as one SX expression, the KKT solve written out
+    symbolically: fastest for a few constraint rows, where a step loop can expand it into one
+    SX graph; its size grows with the cube of the row count."""
+    cache = per_model_cache(model)
+    key = ("acceleration_sx", rows)
+    if key not in cache:
+        n3 = model.n_coordinates
+        X, V, T = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
+        cache[key] = ca.Function("acceleration_sx", [X, V, T],
+                                 list(acceleration_graph(model, X, V, T, rows=rows, linsol=None)))
+    return cache[key]
+
+
+def _fast_or_nan(call: FastCall, sizes, *args) -> list[np.ndarray]:
+    """A fast-path call; NaN results when CasADi's solver fails (a singular factorization),
+    which sends the caller to the NumPy minimum-norm path."""
+    try:
+        return call(*args)
+    except RuntimeError:
+        return [np.full(k, np.nan) for k in sizes]
+
+
+# --- one run's view of the manifold ------------------------------------------------------------
+class Manifold:
+    """One run's numeric access to the KKT system and the projections of ``model``.
+
+    ``rows``: None (all rows independent) or the independent subset decided at the start
+    (``redundant_rows``); the projections and the step graphs then solve with that subset
+    (the others are implied by it), while multipliers are always the minimum-norm ones over
+    every row. ``counters`` belong to this run.
+    """
+
+    def __init__(self, model: Model, *, rows: tuple[int, ...] | None = None,
+                 policy: RankPolicy = RANK, compiled: bool = False):
+        self.model = model
+        self.rows = rows
+        self.policy = policy
+        self.counters = Counters()
+        self._fast = _fast_paths(model, rows, compiled)
+
+    @classmethod
+    def at(cls, model: Model, x, t: float, *, policy: RankPolicy = RANK, compiled: bool = False) -> Manifold:
+        """The manifold of a run starting at (x, t): redundancy decided there."""
+        return cls(model, rows=redundant_rows(model, x, t, policy), policy=policy, compiled=compiled)
+
+    @property
+    def redundant(self) -> bool:
+        return self.rows is not None
+
+    @property
+    def evaluation(self) -> str:
+        return self._fast.evaluation
+
+    def schur_solve(self, J: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(J M⁻¹ Jᵀ) y = b, minimum-norm for dependent rows (see ``schur_solve``)."""
+        self.counters.nlu += 1
+        return schur_solve(J, self.model.inverse_masses, b, policy=self.policy, full_rank=not self.redundant)
+
+    def accelerations(self, x: np.ndarray, v: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Accelerations and multipliers (over every row) at (x, v, t)."""
+        m = self.model
+        self.counters.nfev += 1
+        if not self.redundant:
+            a, lam = _fast_or_nan(self._fast.acceleration, (m.n_coordinates, len(m.constraint_labels)),
+                                  x, v, t)
+            self.counters.nlu += 1
+            if np.all(np.isfinite(a)) and np.all(np.isfinite(lam)):
+                return a, lam
+        F, J, gamma = (np.asarray(o, float) for o in m.dynamics(x, v, t))
+        F, gamma = F.ravel(), gamma.ravel()
+        if m.n_constraints == 0:
+            return m.inverse_masses * F, np.zeros(0)
+        lam = self.schur_solve(J, -gamma - J @ (m.inverse_masses * F))
+        return m.inverse_masses * (F + J.T @ lam), lam
+
+    def project_positions(self, x: np.ndarray, t: float, tol: float, max_iter: int = 12) -> ProjectionResult:
+        """Mass-weighted nearest point on f(x, t) = 0 by Newton, x ← x − M⁻¹Jᵀ A⁻¹ f, until
+        max|f| ≤ tol; stops when an iteration no longer halves the violation."""
+        x = np.array(x, dtype=float)
+        m = self.model
+        if m.n_constraints == 0:
+            return ProjectionResult(x, ProjectionStatus.CONVERGED, 0, 0.0)
+        best = err = np.inf
+        for it in range(max_iter + 1):
+            self.counters.njev += 1
+            f, dx = _fast_or_nan(self._fast.newton_step, (m.n_constraints, m.n_coordinates), x, t)
+            err = float(np.max(np.abs(f)))
+            if not np.isfinite(err):  # the fast path failed, or f itself is not finite
+                f = np.asarray(m.constraint(x, t), float).ravel()
+                err = float(np.max(np.abs(f)))
+                if not np.isfinite(err):
+                    return ProjectionResult(x, ProjectionStatus.NON_FINITE, it, err)
+            if err <= tol:
+                return ProjectionResult(x, ProjectionStatus.CONVERGED, it, err)
+            if it == max_iter:
+                return ProjectionResult(x, ProjectionStatus.MAX_ITERATIONS, it, err)
+            if err > 0.5 * best and it > 2:
+                return ProjectionResult(x, ProjectionStatus.STALLED, it, err)
+            best = min(best, err)
+            self.counters.nlu += 1
+            if not np.all(np.isfinite(dx)):
+                f, J = (np.asarray(o, float) for o in m.jacobian(x, t))
+                dx = m.inverse_masses * (J.T @ self.schur_solve(J, f.ravel()))
+            x = x - dx
+        return ProjectionResult(x, ProjectionStatus.MAX_ITERATIONS, max_iter, err)  # pragma: no cover
+
+    def project_velocities(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
+        """Mass-weighted nearest velocity with J v + f_t = 0 (one linear solve)."""
+        m = self.model
+        if m.n_constraints == 0:
+            return np.array(v, dtype=float)
+        self.counters.njev += 1
+        self.counters.nlu += 1
+        (dv,) = _fast_or_nan(self._fast.velocity_correction, (m.n_coordinates,), x, v, t)
+        if np.all(np.isfinite(dv)):
+            return v - dv
+        J, f_t = (np.asarray(o, float) for o in m.velocity_terms(x, t))
+        c = J @ v + f_t.ravel()
+        return v - m.inverse_masses * (J.T @ self.schur_solve(J, c))
+
+    def multipliers_along(self, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """λ at each sample (T, C), minimum-norm over every row (see ``multipliers_along``)."""
+        return multipliers_along(self.model, X, V, t, policy=self.policy, full_rank=not self.redundant)
+
+
+# --- along a trajectory ---------------------------------------------------------------------------
+#: Samples evaluated per block along a trajectory: bounds the dense (samples × rows × coordinates)
+#: Jacobians held at once to about this many floats.
+BLOCK_FLOATS = 4_000_000
+
+
+def _blocks(n: int, per_sample: int):
+    size = max(1, BLOCK_FLOATS // max(per_sample, 1))
+    for start in range(0, n, size):
+        yield slice(start, min(n, start + size))
+
+
+def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, *,
+                      policy: RankPolicy = RANK, full_rank: bool = True) -> np.ndarray:
+    """λ at each sample (T, C) from the KKT system at (x, v, t), solved with ``schur_solve``
+    (accurate whatever the spread of the masses), in blocks of samples."""
+    t = np.asarray(t, float)
+    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
+    if C == 0:
+        return np.zeros((n, 0))
+    X, V = np.asarray(X, float).reshape(n, n3), np.asarray(V, float).reshape(n, n3)
+    lam = np.empty((n, C))
+    minv = model.inverse_masses
+    for block in _blocks(n, C * n3):
+        F, Jcat, gamma = model.evaluate(model.dynamics, X[block], V[block], t[block])
+        k = len(t[block])
+        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
+        for i in range(k):
+            lam[block.start + i] = schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
+                                               policy=policy, full_rank=full_rank)
+    return lam
+
+
+def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """(Jᵀλ)_i for each particle, (T, N, 3), in blocks of samples."""
+    t = np.asarray(t, float)
+    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
+    out = np.zeros((n, model.n_particles, 3))
+    if C == 0:
+        return out
+    X = np.asarray(X, float).reshape(n, n3)
+    for block in _blocks(n, C * n3):
+        _, Jcat = model.evaluate(model.jacobian, X[block], t[block])
+        k = len(t[block])
+        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
+        out[block] = np.einsum("kci,kc->ki", J, lam[block]).reshape(k, model.n_particles, 3)
+    return out
