@@ -9,6 +9,26 @@ import constrained as C
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
+#: The high-precision double-pendulum reference (30-digit arithmetic, good to < 1e-12): the
+#: one copy every test reads.
+REFERENCE = Path(__file__).resolve().parent / "reference" / "double_pendulum.md"
+
+
+def _reference() -> tuple[dict[float, np.ndarray], float]:
+    """Positions (2, 2) [[x1, y1], [x2, y2]] by time, and the energy, from REFERENCE."""
+    text = REFERENCE.read_text(encoding="utf-8").replace("\u2212", "-")
+    positions = {}
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 5 and cells[0].endswith(" s"):
+            positions[float(cells[0][:-2])] = np.array([float(c) for c in cells[1:]]).reshape(2, 2)
+    energy = float(text.split("Energy (kinetic + m g y):")[1].split("J")[0])
+    return positions, energy
+
+
+DP_REF, DP_ENERGY = _reference()
+#: Positions at t = 2 s, where the start's chaos has grown perturbations only about 3-fold.
+DP_REF_T2 = DP_REF[2.0]
 
 
 def planar_pendulum(theta0: float, omega0: float = 0.0, *, m=1.0, l=1.0, g=9.81) -> C.System:

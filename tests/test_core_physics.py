@@ -6,16 +6,11 @@ import itertools
 
 import numpy as np
 import pytest
-from conftest import double_pendulum, planar_pendulum
+from conftest import DP_ENERGY, DP_REF_T2, double_pendulum, planar_pendulum
 from scipy.integrate import simpson
 
 import constrained as C
 from constrained.manifold import schur_solve
-
-# Reference of shared/reference/double_pendulum.md (30-digit arithmetic, good to < 1e-12).
-DP_REF_T2 = np.array([[-0.2178006147474844, 0.975993284923425],
-                      [-0.1006848373741372, -0.01712498330560951]])
-DP_ENERGY = 16.024019801570354
 
 
 def test_simple_pendulum_tension_follows_closed_form():

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import double_pendulum
-from test_solvers import DP_REF_T2, driven_pendulum
+from conftest import DP_REF_T2, double_pendulum
+from test_solvers import driven_pendulum
 
 import constrained as C
 from constrained import compiled
@@ -17,7 +17,8 @@ def private_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
 
 
-@pytest.mark.parametrize("base, rtol, max_error", [("DOP853", 1e-10, 1e-9), ("DOPRI5", 1e-11, 1e-9)])
+@pytest.mark.parametrize("base, rtol, max_error", [("DOP853", 1e-10, 1e-9), ("DOPRI5", 1e-11, 1e-9),
+                                                  ("Tsit5", 1e-11, 1e-9)])
 def test_dopri_reaches_the_double_pendulum_reference(base, rtol, max_error):
     tr = C.simulate(double_pendulum(), 2.0, method="dopri", base=base, rtol=rtol, atol=rtol * 1e-2,
                     t_eval=np.linspace(0, 2, 11), compiled=False)

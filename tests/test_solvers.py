@@ -4,13 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import double_pendulum
+from conftest import DP_REF_T2, double_pendulum
 
 import constrained as C
 from constrained.solvers import METHODS
-
-DP_REF_T2 = np.array([[-0.2178006147474844, 0.975993284923425],
-                      [-0.1006848373741372, -0.01712498330560951]])
 
 
 def driven_pendulum() -> C.System:

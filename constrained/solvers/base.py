@@ -36,6 +36,9 @@ class Solver:
 
     name = ""
     adaptive = True
+    #: The order p of the method (global error ∝ h^p), or None for variable-order methods
+    #: (SUNDIALS' BDF and Adams) whose error follows the tolerance instead.
+    order: int | None = None
 
     def __init__(self, manifold, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
                  compiled="auto", progress=None, **options):

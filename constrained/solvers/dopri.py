@@ -15,16 +15,16 @@ right after a rejection). Steps are clipped to land exactly on each output time;
 attempt at the output time is skipped (a short-circuit branch, nearly free), so ``mapaccum``
 can chain a fixed number of attempts per call and Python only picks how many.
 
-``base`` picks the tableau: "DOP853" (8th order, error estimator of orders 5 and 3,
-12 evaluations per step; the default) or "DOPRI5" (5th order with a 4th-order estimate,
-6 per step) — the same pairs as SciPy's DOP853 and RK45, whose coefficients are used.
+``base`` picks the tableau (solvers/tableaus/): "DOP853" (8th order, error estimator of
+orders 5 and 3, 12 evaluations per step; the default), "DOPRI5" (5th order with a 4th-order
+estimate, 6 per step) — the same pairs as SciPy's DOP853 and RK45, whose coefficients are
+used — or "Tsit5" (Tsitouras' 5(4) pair, 6 per step).
 """
 
 from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-from scipy.integrate import DOP853, RK45
 
 from .. import compiled as compiled_evaluation
 from .. import diagnostics
@@ -32,6 +32,7 @@ from ..errors import InputError
 from ..manifold import acceleration_function, per_model_cache, projection_graph, symbolic_acceleration
 from ..model import FastCall
 from .base import Solution, Solver
+from .tableaus import TABLEAUS
 
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
 #: (the one-time C compile takes a few seconds there and is cached; beyond, it grows steeply).
@@ -54,22 +55,8 @@ def _slot(n: int, name: str) -> int:
     return 3 * n + SCALARS.index(name)
 
 
-#: The tableaus (``base``), as SciPy's classes hold them.
-BASES = {"DOP853": DOP853, "DOPRI5": RK45}
-
-
-class _Tableau:
-    def __init__(self, name: str):
-        if name == "DOP853":
-            k = DOP853
-            self.A, self.B, self.C = k.A, k.B, k.C[: k.n_stages]
-            self.E = (k.E5, k.E3)
-        else:
-            k = RK45
-            self.A, self.B, self.C, self.E = k.A, k.B, k.C, (k.E,)
-        self.name = name
-        self.stages = k.n_stages
-        self.exponent = -1.0 / (k.error_estimator_order + 1)
+#: The tableaus (``base``): solvers/tableau.py and one module per pair in solvers/tableaus/.
+BASES = TABLEAUS
 
 
 class Dopri(Solver):
@@ -82,9 +69,11 @@ class Dopri(Solver):
         if base not in BASES:
             raise InputError(f"unknown base tableau {base!r} for method 'dopri' "
                              f"(choose from {', '.join(BASES)})")
+        #: The tableau's order: the global error falls like h^order.
+        self.order = BASES[base].order
         if not (isinstance(max_steps, int) and max_steps > 0):
             raise InputError(f"max_steps must be a positive whole number, got {max_steps!r}")
-        self.tableau = _Tableau(base)
+        self.tableau = BASES[base]
         self.max_steps = max_steps
         self.compiled = compiled_evaluation.enabled(self.compiled_setting) and (
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
@@ -198,7 +187,7 @@ class Dopri(Solver):
         x1, v1 = x0 + h0 * v0, v0 + h0 * a0
         a1, _ = m.accelerations(x1, v1, t0 + h0)
         d2 = np.linalg.norm((np.concatenate([v1, a1]) - f0) / scale) / h0
-        order = 8 if self.tableau.name == "DOP853" else 5
+        order = self.tableau.order
         if d1 <= 1e-15 and d2 <= 1e-15:
             h1 = max(1e-6, h0 * 1e-3)
         else:

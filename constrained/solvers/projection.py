@@ -58,6 +58,7 @@ class Projection(Solver):
         if base not in BASES:
             raise InputError(f"unknown base integrator {base!r} (choose from {', '.join(BASES)})")
         self.base = base
+        self.order = {"DOP853": 8, "RK45": 5, "Radau": 5}.get(base)
         # The per-call functions gain ~1.3x from machine code (docs/performance.md), while the
         # C compiler's time grows steeply with the model (13 s at 200 particles, 98 s at 1000):
         # compiled only when asked for (compiled=True), never under "auto".

@@ -41,6 +41,7 @@ DEFAULT_SAMPLES = 2000
 class Rattle(Solver):
     name = "rattle"
     adaptive = False
+    order = 2
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
                  newton_iterations: int = 4, **options):
