@@ -9,6 +9,7 @@ from .action import (  # the action of a run: constrained.action.action (the mod
 )
 from .analysis import ConstraintReport, constraint_report, degrees_of_freedom
 from .constraints import Curve, Custom, Distance, Pin, Plane, Surface
+from .crosscheck import cross_check
 from .derivation import (
     Conservation,
     EquationCheck,
@@ -21,7 +22,7 @@ from .derivation import (
 from .effects import Central, Damping, Electromagnetic, Force, Gravity, Pairwise, Potential, Spring
 from .errors import ConstrainedError, InconsistentStateError, InputError, SimulationError
 from .model import Model, assemble
-from .reduced import CrossCheck, ReducedModel, cross_check
+from .reduced import CrossCheck, ReducedModel
 from .simulate import simulate
 from .statics import (
     Equilibrium,

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import inspect
 import io
 import math
 import sys
@@ -29,7 +28,7 @@ from .scene import (
 )
 from .trajectory import QUANTITIES, Trajectory, atomic_write
 
-__all__ = ["main", "build_parser", "time_grid", "trajectory_csv"]
+__all__ = ["main", "build_parser", "trajectory_csv"]
 
 PROG = "constrained"
 
@@ -301,28 +300,13 @@ def _run(args) -> int:
             _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
             kinds = []
 
+    from .run_options import from_scene
     from .simulate import simulate
 
-    kwargs = dict(
-        method=s["method"],
-        rtol=s["rtol"],
-        atol=s["atol"],
-        dt=s["dt"],
-        t_start=s["t_start"],
-        t_eval=time_grid(s["t_start"], s["t_end"], output_dt=s["output_dt"], samples=s["samples"]),
-        outputs=set(quantities) | expect_requirements(scene),
-        max_initial_correction=s["max_initial_correction"],
-        compiled=s["compiled"],
-    )
-    if _takes_base(s["method"]):
-        kwargs["base"] = s["base"]
-    if s["method"] == "reduced":
-        from .reduced import ReducedModel
-
-        try:
-            kwargs["reduced_model"] = ReducedModel.from_scene(scene)
-        except InputError as exc:
-            raise _scene_error(exc, file) from None
+    try:
+        kwargs = from_scene(scene, outputs=set(quantities) | expect_requirements(scene)).simulate_kwargs()
+    except InputError as exc:
+        raise _scene_error(exc, file) from None
 
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
@@ -404,32 +388,9 @@ class _progress:
         return False
 
 
-def _takes_base(method: str) -> bool:
-    """Whether the solver of ``method`` accepts a ``base`` integrator option."""
-    from .solvers import METHODS
-
-    cls = METHODS.get(method)
-    return cls is not None and "base" in inspect.signature(cls.__init__).parameters
-
-
 def _contract_quantities(names: Sequence[str]) -> list[str]:
     """Scene output names -> contract array names besides t, x, v (always written)."""
     return [q for q in QUANTITIES if q in names]
-
-
-def time_grid(t_start: float, t_end: float, *, output_dt=None, samples=None) -> np.ndarray | None:
-    """Output times: every ``output_dt`` from t_start (t_end included), or ``samples`` points."""
-    if samples is not None:
-        return np.linspace(t_start, t_end, int(samples))
-    if output_dt is None:
-        return None
-    n = int(np.floor((t_end - t_start) / output_dt + 1e-9))
-    grid = t_start + output_dt * np.arange(n + 1)
-    if t_end - grid[-1] > 1e-9 * max(1.0, abs(t_end)):
-        grid = np.append(grid, t_end)
-    else:
-        grid[-1] = t_end
-    return grid
 
 
 def trajectory_csv(trajectory: Trajectory, quantities: Sequence[str]) -> str:
@@ -526,7 +487,8 @@ def _crosscheck(args) -> int:
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
-    from .reduced import cross_check, save_crosscheck_figure
+    from .crosscheck import cross_check
+    from .reduced import save_crosscheck_figure
 
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):

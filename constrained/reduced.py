@@ -12,7 +12,8 @@ CasADi derives, with symbols ``q``, ``q̇`` and ``t``:
 
 SciPy's DOP853 integrates ``(q, q̇)``; the samples are mapped back to ``x``, ``v`` and the
 Cartesian Model supplies energy, residuals and (KKT) constraint forces, so a reduced
-Trajectory reads like a Cartesian one. ``cross_check`` runs both routes from the same start.
+Trajectory reads like a Cartesian one. ``constrained.crosscheck.cross_check`` runs both routes
+from the same start.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from .quantities import trajectory_from
 from .symbols import Symbols
 from .trajectory import QUANTITIES, Trajectory, atomic_write
 
-__all__ = ["CrossCheck", "ReducedModel", "cross_check", "save_crosscheck_figure"]
+__all__ = ["CrossCheck", "ReducedModel", "save_crosscheck_figure"]
 
 #: Relative tolerance (× system size) within which the map must satisfy every constraint.
 MAP_RTOL = 1e-9
@@ -454,80 +455,6 @@ class CrossCheck:
             res = float(np.max(cr)) if cr is not None and len(cr) else float("nan")
             out.append(f"{name:<12}{e0:>20.12g}{drift(tr.energy):>18.3e}{res:>12.3e}")
         return "\n".join(out)
-
-
-def _grid(settings: dict, t_start: float, t_end: float) -> np.ndarray:
-    if settings.get("samples"):
-        return np.linspace(t_start, t_end, int(settings["samples"]))
-    dt = settings.get("output_dt")
-    if dt:
-        n = int(np.floor((t_end - t_start) / dt + 1e-9))
-        grid = t_start + dt * np.arange(n + 1)
-        return grid if t_end - grid[-1] <= 1e-9 * max(1.0, abs(t_end)) else np.append(grid, t_end)
-    return np.linspace(t_start, t_end, 201)
-
-
-def cross_check(scene, t_end: float | None = None, **settings) -> CrossCheck:
-    """Run the Cartesian route (``simulate``) and the reduced route of ``scene.reduced`` from
-    the same start (the reduced ``initial``/``rates`` mapped to x, v) on one time grid.
-
-    ``settings`` override the scene's ``[simulate]`` ones: ``method``, ``rtol``, ``atol``,
-    ``t_start``, ``t_eval``, ``samples``, ``output_dt``, ``parameters`` (extra names for the
-    map); other keywords go to ``simulate``.
-    """
-    from .simulate import simulate
-
-    base = dict(getattr(scene, "settings", None) or {})
-    extra_parameters = settings.pop("parameters", None)
-    opts = {**base, **settings}
-    t_end = opts.get("t_end") if t_end is None else t_end
-    if t_end is None:
-        raise InputError("no end time: give t_end, or t_end in the scene's [simulate]",
-                         where="simulate.t_end")
-    t_start = float(opts.get("t_start") or 0.0)
-    t_end = _number(t_end, "t_end")
-    rtol, atol = float(opts.get("rtol") or 1e-10), float(opts.get("atol") or 1e-10)
-    t_eval = opts.get("t_eval")
-    t_eval = _grid(opts, t_start, t_end) if t_eval is None else np.asarray(t_eval, float).ravel()
-    rm = ReducedModel.from_scene(scene, parameters=extra_parameters, t0=t_start)
-    x0, v0 = rm.state(rm.initial, rm.rates, t_start)
-    system = scene.system.with_state(x0, v0)
-    sim_keys = {"method", "dt", "max_initial_correction", "base"}
-    passthrough = {k: v for k, v in settings.items()
-                   if k not in {"rtol", "atol", "t_start", "t_eval", "samples", "output_dt", "t_end"}}
-    kwargs = {k: opts[k] for k in sim_keys if opts.get(k) is not None}
-    kwargs.update(passthrough)
-    if "base" in kwargs:
-        import inspect
-
-        from .solvers import METHODS
-
-        cls = METHODS.get(kwargs.get("method", "projection"))
-        if cls is None or "base" not in inspect.signature(cls.__init__).parameters:
-            kwargs.pop("base")
-    cart = simulate(system, t_end, rtol=rtol, atol=atol, t_eval=t_eval, t_start=t_start, **kwargs)
-    red = rm.solve(t_end, t_start=t_start, rtol=rtol, atol=atol, t_eval=cart.t)
-    dx = np.max(np.linalg.norm(cart.x - red.x, axis=2), axis=1)
-    dv = np.max(np.linalg.norm(cart.v - red.v, axis=2), axis=1)
-    de = None
-    if cart.energy is not None and red.energy is not None:
-        de = float(np.max(np.abs(cart.energy - red.energy)))
-    dF = None
-    if cart.constraint_forces is not None and red.constraint_forces is not None and rm.model.n_constraints:
-        dF = float(np.max(np.linalg.norm(cart.constraint_forces - red.constraint_forces, axis=2)))
-    return CrossCheck(
-        cartesian=cart,
-        reduced=red,
-        reduced_model=rm,
-        t=cart.t,
-        position_difference=dx,
-        velocity_difference=dv,
-        max_position_difference=float(np.max(dx)),
-        max_velocity_difference=float(np.max(dv)),
-        max_energy_difference=de,
-        max_constraint_force_difference=dF,
-        settings={"rtol": rtol, "atol": atol, "t_start": t_start, "t_end": t_end, **kwargs},
-    )
 
 
 def save_crosscheck_figure(check: CrossCheck, path) -> Path:

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import copy
 import difflib
-import inspect
 import math
 import re
-import sys
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -866,12 +864,12 @@ class _Builder:
                 f"{_suggest(method, METHODS)}",
             )
         cls = METHODS[method]
-        if "base" not in inspect.signature(cls.__init__).parameters:
+        if "base" not in cls.OPTIONS:
             if base_given:
                 self.fail("simulate.base", f"method '{method}' does not take a base integrator")
             return
-        bases = getattr(sys.modules.get(cls.__module__), "BASES", None)
-        if isinstance(bases, Mapping) and base not in bases:
+        bases = cls.BASES
+        if bases and base not in bases:
             self.fail(
                 "simulate.base",
                 f"unknown base integrator '{base}' for method '{method}' "

@@ -381,18 +381,13 @@ def _scene_for(task: dict):
 
 
 def _settings_kwargs(scene, outputs: set[str]) -> dict:
-    from .cli import _takes_base, time_grid
+    """simulate's keywords for one variant, from the one map of settings (run_options).
 
-    s = scene.settings
-    kw = dict(method=s["method"], rtol=s["rtol"], atol=s["atol"], dt=s["dt"], t_start=s["t_start"],
-              t_eval=time_grid(s["t_start"], s["t_end"], output_dt=s["output_dt"], samples=s["samples"]),
-              outputs=outputs, max_initial_correction=s["max_initial_correction"],
-              # every variant is a new model (its parameters are constants in the graph), so a
-              # compiled step loop would be compiled again for each: "auto" means none here
-              compiled=s["compiled"] is True)
-    if _takes_base(s["method"]):
-        kw["base"] = s["base"]
-    return kw
+    Every variant is a new model (its parameters are constants in the graph), so a compiled
+    step loop would be compiled again for each: "auto" means none here."""
+    from .run_options import from_scene
+
+    return from_scene(scene, outputs=outputs, compiled=scene.settings["compiled"] is True).simulate_kwargs()
 
 
 def _expect_columns(scene, traj, model) -> dict[str, Any]:

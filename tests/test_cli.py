@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from constrained.cli import main, time_grid
+from constrained.cli import main
+from constrained.run_options import time_grid
 from constrained.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]

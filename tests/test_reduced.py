@@ -10,8 +10,9 @@ from conftest import DP_ENERGY, DP_REF_T2, SCENARIOS
 
 import constrained as C
 from constrained.cli import main
+from constrained.crosscheck import cross_check
 from constrained.derivation import check_equations, conservation, describe
-from constrained.reduced import ReducedModel, cross_check
+from constrained.reduced import ReducedModel
 from constrained.scene import build_scene
 
 TIGHT = {"rtol": 1e-11, "atol": 1e-12}

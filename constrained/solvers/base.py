@@ -39,6 +39,11 @@ class Solver:
     #: The order p of the method (global error ∝ h^p), or None for variable-order methods
     #: (SUNDIALS' BDF and Adams) whose error follows the tolerance instead.
     order: int | None = None
+    #: The method's own keyword options (besides rtol, atol, dt, compiled, progress): the
+    #: declaration the scene reader and run_options consult.
+    OPTIONS: tuple[str, ...] = ()
+    #: The base integrators or tableaus ``base`` may name (methods that take one).
+    BASES: tuple[str, ...] = ()
 
     def __init__(self, manifold, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
                  compiled="auto", progress=None, **options):

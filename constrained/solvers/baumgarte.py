@@ -25,6 +25,8 @@ class Baumgarte(Projection):
 
     name = "baumgarte"
     projecting = False
+    OPTIONS = ("base", "alpha", "beta", "singular_tol")
+    BASES = ("DOP853", "RK45", "Radau")
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, alpha: float = 10.0,
                  beta: float = 10.0, base: str = "DOP853", **options):

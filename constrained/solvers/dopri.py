@@ -61,6 +61,8 @@ BASES = TABLEAUS
 
 class Dopri(Solver):
     name = "dopri"
+    OPTIONS = ("base", "max_steps")
+    BASES = tuple(BASES)
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
                  max_steps: int = 10_000_000, **options):

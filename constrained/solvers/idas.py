@@ -27,6 +27,7 @@ from .base import Solution, Solver
 
 class _IdasBase(Solver):
     adaptive = True
+    OPTIONS = ("max_step",)
     project_outputs = False
     #: First step as a fraction of the run when no dt is given (None: IDAS chooses).
     first_step_fraction: float | None = None
@@ -110,6 +111,7 @@ class _IdasBase(Solver):
 
 class Idas(_IdasBase):
     name = "idas"
+    OPTIONS = ("max_step", "project_outputs")
     project_outputs = True
 
     def __init__(self, manifold, *, project_outputs: bool = True, **kwargs):

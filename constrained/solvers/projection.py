@@ -46,6 +46,8 @@ class _ProjectionFailed(Exception):
 
 class Projection(Solver):
     name = "projection"
+    OPTIONS = ("base", "singular_tol")
+    BASES = tuple(BASES)
     #: Whether accepted steps and outputs are projected onto the constraint manifolds.
     projecting = True
 

@@ -42,6 +42,7 @@ class Rattle(Solver):
     name = "rattle"
     adaptive = False
     order = 2
+    OPTIONS = ("newton_tol", "newton_iterations")
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
                  newton_iterations: int = 4, **options):

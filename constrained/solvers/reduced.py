@@ -18,6 +18,7 @@ from .base import Solution, Solver
 class Reduced(Solver):
     name = "reduced"
     order = 8  # SciPy's DOP853 on Lagrange's equations
+    OPTIONS = ("reduced_model",)
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, reduced_model=None, **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
