@@ -367,31 +367,25 @@ def per_model_cache(model: Model) -> dict:
         return _built.setdefault(model, {})
 
 
-def acceleration_function(model: Model, rows=None) -> ca.Function:
-    """``(x, v, t) -> (a, λ_rows)`` as one MX Function (sparse LDLᵀ inside), built once per
-    model and row set: step loops call it as a node of their graphs."""
+def acceleration_function(model: Model, rows=None, *, symbolic: bool = False) -> ca.Function:
+    """``(x, v, t) -> (a, λ_rows)`` as one Function, built once per model and row set: step
+    loops call it as a node of their graphs. MX with a sparse LDLᵀ inside, or (``symbolic``)
+    one SX expression with the KKT solve written out: fastest for a few constraint rows, where
+    a step loop can expand it into one SX graph; its size grows with the cube of the rows."""
     cache = per_model_cache(model)
-    key = ("acceleration_mx", rows)
+    key = ("acceleration", rows, symbolic)
     if key not in cache:
         n3 = model.n_coordinates
-        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        cache[key] = ca.Function("acceleration", [X, V, T],
-                                 list(acceleration_graph(model, X, V, T, rows=rows, linsol="ldl")))
+        kind = ca.SX if symbolic else ca.MX
+        X, V, T = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
+        graph = acceleration_graph(model, X, V, T, rows=rows, linsol=None if symbolic else "ldl")
+        cache[key] = ca.Function("acceleration_sx" if symbolic else "acceleration", [X, V, T], list(graph))
     return cache[key]
 
 
 def symbolic_acceleration(model: Model, rows=None) -> ca.Function:
-    """``(x, v, t) -> (a, λ_rows)`` as one SX expression, the KKT solve written out
-    symbolically: fastest for a few constraint rows, where a step loop can expand it into one
-    SX graph; its size grows with the cube of the row count."""
-    cache = per_model_cache(model)
-    key = ("acceleration_sx", rows)
-    if key not in cache:
-        n3 = model.n_coordinates
-        X, V, T = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
-        cache[key] = ca.Function("acceleration_sx", [X, V, T],
-                                 list(acceleration_graph(model, X, V, T, rows=rows, linsol=None)))
-    return cache[key]
+    """``acceleration_function(model, rows, symbolic=True)``."""
+    return acceleration_function(model, rows, symbolic=True)
 
 
 def _fast_or_nan(call: FastCall, sizes, *args) -> list[np.ndarray]:
