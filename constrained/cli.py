@@ -345,7 +345,9 @@ def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> i
     results = check_expectations(scene, trajectory)
     failed = [r for r in results if not r.ok]
     if not quiet:
-        print(f"expect: {len(results) - len(failed)} of {len(results)} checks pass")
+        built = sum(r.by_construction for r in results)
+        aside = f" ({built} of them hold by construction, see below)" if built else ""
+        print(f"expect: {len(results) - len(failed)} of {len(results)} checks pass{aside}")
         for r in results:
             print("  " + r.line)
     elif failed:

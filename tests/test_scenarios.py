@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import constrained as C
 from constrained.cli import main
 from constrained.scene import load_scene
 
@@ -84,3 +85,24 @@ def test_expect_lines_report_value_and_tolerance(tmp_path, capsys):
     assert line.strip().startswith("PASS") and "tolerance 1e-08" in line
     data = np.load(tmp_path / "trajectory.npz")
     assert np.allclose(data["constraint_forces"][:, 0, 2], 2 * 3 * 2 * 9.81 / 5)
+
+
+def test_expectations_enforced_by_construction_are_flagged():
+    """A rod length and a projected residual pass whatever the dynamics: they are flagged, and
+    a check of the motion itself (energy, a closed form of the dynamics) is not."""
+    from constrained.scene import check_expectations
+
+    scene = C.load_scene(SCENARIOS / "four_bar_linkage.toml", overrides=["simulate.t_end=0.5"])
+    tr = C.simulate(scene.system, 0.5, method="projection", t_eval=np.linspace(0, 0.5, 21))
+    results = {r.key: r for r in check_expectations(scene, tr)}
+    assert results["expect.energy_drift"].ok and not results["expect.energy_drift"].by_construction
+    assert results["expect.constraint_residual"].by_construction
+    lengths = [r for k, r in results.items() if k.startswith("expect.closed_form")]
+    assert lengths and all(r.by_construction and "function of the constraints" in r.line for r in lengths)
+    # without projection the residual is evidence (of the method's drift control)
+    ggl = C.simulate(scene.system, 0.5, method="ggl", t_eval=np.linspace(0, 0.5, 21))
+    assert not {r.key: r for r in check_expectations(scene, ggl)}["expect.constraint_residual"].by_construction
+    atwood = C.load_scene(SCENARIOS / "atwood_machine.toml")
+    tr = C.simulate(atwood.system, 0.5, t_eval=np.linspace(0, 0.5, 11))
+    motion = [r for r in check_expectations(atwood, tr) if r.key.startswith("expect.closed_form.z_heavy")]
+    assert motion and not motion[0].by_construction
