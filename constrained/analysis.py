@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from .manifold import RANK
+from .manifold import RANK, full_row_rank
 from .model import Model, assemble
+from .threads import one_blas_thread
 
 #: Relative pivot size below which a row of the (row-normalized) Jacobian counts as dependent:
 #: the rank policy's (constrained.manifold.RANK).
@@ -85,9 +86,20 @@ def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = N
     and the generic rank from ``samples`` random perturbations of x (seeded)."""
     model = model or assemble(system)
     x = (system.positions if x is None else np.asarray(x, float)).ravel()
-    f, J = model.jacobian(x, t)
+    f, J_sparse = model.jacobian(x, t)
     f = np.asarray(f).ravel()
-    J = np.asarray(J)
+    if model.n_constraints and full_row_rank(J_sparse, model.inverse_masses):
+        # independent rows (shown in O(N) on a chain by a sparse factorization): rank C here,
+        # and nearby too, since the rank cannot exceed the number of rows
+        C = model.n_constraints
+        return ConstraintReport(n_coordinates=model.n_coordinates, n_constraints=C, rank=C, generic_rank=C,
+                                labels=list(model.constraint_labels), residuals=f, redundant=[])
+    with one_blas_thread():
+        return _dense_report(model, system, x, t, f, np.asarray(J_sparse), samples, seed)
+
+
+def _dense_report(model: Model, system, x, t, f, J, samples, seed) -> ConstraintReport:
+    """The rank-revealing (dense) route of ``constraint_report``, for dependent rows."""
     rank, order = jacobian_rank(J)
     # rows beyond the rank: implied by the others; report them in scene order
     redundant_rows = sorted(order[rank:].tolist())

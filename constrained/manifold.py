@@ -254,11 +254,12 @@ def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None =
         return 1.0 / ca.sqrt(ca.mtimes(J * J, minv))
 
     d_left, d_right = scale(J_left), scale(J_right)
-    A = ca.mtimes(ca.mtimes(J_left, ca.diag(minv)), J_right.T)
-    A = A * ca.mtimes(d_left, d_right.T)
-    b = rhs * ca.repmat(d_left, 1, rhs.shape[1])
+    # diagonal matrices (sparse) keep the scaling O(nnz): an outer product d_l d_rᵀ would be C × C
+    Dl, Dr = ca.diag(d_left), ca.diag(d_right)
+    A = ca.mtimes(ca.mtimes(ca.mtimes(Dl, J_left), ca.diag(minv)), ca.mtimes(Dr, J_right).T)
+    b = ca.mtimes(Dl, rhs)
     z = ca.solve(A, b) if linsol is None else ca.solve(A, b, linsol)
-    return z * ca.repmat(d_right, 1, rhs.shape[1])
+    return ca.mtimes(Dr, z)
 
 
 def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl", feedback=None):
@@ -512,24 +513,55 @@ def _blocks(n: int, per_sample: int):
         yield slice(start, min(n, start + size))
 
 
+def _checked_multipliers(model: Model) -> ca.Function:
+    """``(x, v, t) -> (λ, r)``: the sparse scaled LDLᵀ multipliers and the relative residual
+    r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) of the acceleration they give. A factorization
+    that met dependent rows gives large λ without a NaN; r shows it."""
+    cache = per_model_cache(model)
+    if "checked_multipliers" not in cache:
+        n3 = model.n_coordinates
+        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+        a, lam = acceleration_function(model)(X, V, T)
+        F, J, gamma = model.dynamics(X, V, T)
+        load = ca.mtimes(J, ca.DM(model.inverse_masses) * F)
+        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
+        r = ca.mmax(ca.fabs(ca.mtimes(J, a) + gamma)) / scale
+        cache["checked_multipliers"] = ca.Function("checked_multipliers", [X, V, T], [lam, r])
+    return cache["checked_multipliers"]
+
+
 def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, *,
-                      policy: RankPolicy = RANK, full_rank: bool = True) -> np.ndarray:
-    """λ at each sample (T, C) from the KKT system at (x, v, t), solved with ``schur_solve``
-    (accurate whatever the spread of the masses), in blocks of samples."""
+                      policy: RankPolicy = RANK, full_rank: bool | None = None) -> np.ndarray:
+    """λ at each sample (T, C) from the KKT system at (x, v, t), in blocks of samples.
+
+    Independent rows (``full_rank``; None: decided at the first sample): the sparse scaled
+    LDLᵀ, mapped over the samples (O(N) per sample on a chain), kept where the acceleration it
+    gives satisfies J a + γ = 0 to 1e-9. Other samples, and redundant rows, take the dense
+    ``schur_solve`` (minimum-norm, accurate whatever the spread of the masses)."""
     t = np.asarray(t, float)
     n, C, n3 = len(t), model.n_constraints, model.n_coordinates
     if C == 0:
         return np.zeros((n, 0))
     X, V = np.asarray(X, float).reshape(n, n3), np.asarray(V, float).reshape(n, n3)
-    lam = np.empty((n, C))
+    if full_rank is None:
+        full_rank = n == 0 or redundant_rows(model, X[0], float(t[0]), policy) is None
+    lam = np.full((n, C), np.nan)
+    if full_rank:
+        fast = _checked_multipliers(model)
+        for block in _blocks(n, 4 * (C + n3)):
+            values, residual = model.evaluate(fast, X[block], V[block], t[block])
+            good = np.asarray(residual, float).ravel() <= 1e-9
+            lam[block] = np.where(good[:, None], np.asarray(values, float).T, np.nan)
+    redo = np.flatnonzero(~np.all(np.isfinite(lam), axis=1))
     minv = model.inverse_masses
-    for block in _blocks(n, C * n3):
-        F, Jcat, gamma = model.evaluate(model.dynamics, X[block], V[block], t[block])
-        k = len(t[block])
-        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
-        for i in range(k):
-            lam[block.start + i] = schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
-                                               policy=policy, full_rank=full_rank)
+    per_block = max(1, BLOCK_FLOATS // (C * n3))
+    for start in range(0, len(redo), per_block):
+        rows = redo[start:start + per_block]
+        F, Jcat, gamma = model.evaluate(model.dynamics, X[rows], V[rows], t[rows])
+        J = Jcat.reshape(C, len(rows), n3).transpose(1, 0, 2)
+        for i, k in enumerate(rows):
+            lam[k] = schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
+                                 policy=policy, full_rank=full_rank)
     return lam
 
 

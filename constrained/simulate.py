@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from collections.abc import Iterable
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
 from .action import action
 from .errors import InputError, SimulationError
@@ -16,13 +14,8 @@ from .model import Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
+from .threads import one_blas_thread
 from .trajectory import Trajectory
-
-
-@functools.cache
-def _blas_threads() -> ThreadpoolController:
-    """The loaded BLAS/OpenMP libraries, found once (≈ 1 ms); limiting them then costs ≈ 20 µs."""
-    return ThreadpoolController()
 
 
 def simulate(
@@ -83,10 +76,7 @@ def simulate(
     started = time.perf_counter()
     solver = METHODS[method](start.manifold, rtol=rtol, atol=atol, dt=dt, **options)
     setup_time = time.perf_counter() - started
-    # The dense algebra inside a run is small (J is C × 3N at most); a multithreaded BLAS only
-    # adds spin-waiting, which on a busy 2-core machine made one 128 × 192 SVD take 0.1–1 s
-    # instead of 1.5 ms. One thread for the run; the caller's setting is restored after.
-    with _blas_threads().limit(limits=1, user_api="blas"):
+    with one_blas_thread():  # see constrained.threads
         started = time.perf_counter()
         solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
         wall = time.perf_counter() - started
