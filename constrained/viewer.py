@@ -22,6 +22,7 @@ import base64
 import html
 import json
 import math
+import warnings
 from importlib import resources
 from pathlib import Path
 
@@ -94,7 +95,8 @@ def envelope(t: np.ndarray, y: np.ndarray, points: int) -> tuple[np.ndarray, np.
 
     ``y`` is (T,) or (T, C); columns share the times. NaN is ignored inside a bucket.
     """
-    y = np.asarray(y, dtype=float)
+    y = np.asarray(y)
+    y = y.astype(np.result_type(y.dtype, np.float32), copy=False)  # float32 stays float32
     n = len(t)
     if n <= points:
         return np.asarray(t, dtype=float), y
@@ -342,7 +344,7 @@ def _check_scene(system, names: list[str], n: int) -> None:
 def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
     """Everything the page draws, decimated and encoded (JSON-ready)."""
     t = np.asarray(traj.t, dtype=float)
-    x = np.asarray(traj.x, dtype=float)
+    x = np.asarray(traj.x)  # maybe float32 and big: converted after decimation only
     if t.ndim != 1 or x.ndim != 3 or x.shape[0] != len(t) or x.shape[2] != 3 or len(t) == 0:
         raise InputError(f"the trajectory's arrays do not fit: t {t.shape}, x {x.shape} "
                          "(expected t (T,), x (T, N, 3), T > 0)")
@@ -350,11 +352,11 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
     names = list(traj.particle_names or [])
     names = names if len(names) == n else [f"particle {i}" for i in range(n)]
     idx = frame_indices(t, n)
-    times, xf = t[idx], x[idx]
+    times, xf = t[idx], np.asarray(x[idx], dtype=float)
     basis, axes, planar = view_basis(xf, up_direction(system) if system is not None else None)
-    finite = xf[np.isfinite(xf)]
-    lo = np.nanmin(xf, axis=(0, 1)) if finite.size else np.zeros(3)
-    hi = np.nanmax(xf, axis=(0, 1)) if finite.size else np.zeros(3)
+    with warnings.catch_warnings():  # an axis that is NaN throughout: drawn nowhere
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lo, hi = np.nanmin(xf, axis=(0, 1)), np.nanmax(xf, axis=(0, 1))
     lo, hi = np.where(np.isfinite(lo), lo, 0.0), np.where(np.isfinite(hi), hi, 0.0)
     step = np.maximum((hi - lo) / 65534.0, 1e-12)
     data: dict = {
@@ -365,7 +367,7 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
         "series": {},
     }
     if traj.constraint_forces is not None:
-        f = np.asarray(traj.constraint_forces, dtype=float)[idx]
+        f = np.asarray(np.asarray(traj.constraint_forces)[idx], dtype=float)
         big = float(np.nanmax(np.abs(f))) if np.isfinite(f).any() else 0.0
         if big > 0 and np.isfinite(big):
             fstep = big / 32767.0
@@ -458,7 +460,8 @@ def view_command(results, *, scene=None, out=None) -> Path:
     if target.is_dir():
         raise InputError(f"view: --out {target} is a directory; give the name of the page to write")
     system = scene.system if scene is not None else None
-    title = (scene.name if scene is not None else "") or run.stem
+    file = run / "trajectory.npz" if run.is_dir() else run
+    title = (scene.name if scene is not None else "") or f"{file.parent.name}/{file.name}".lstrip("/")
     try:
         return write_viewer(traj, target, system=system, title=title)
     except OSError as exc:
