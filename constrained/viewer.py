@@ -214,6 +214,7 @@ class _Geometry:
         self.size = float(max(np.max(self.hi - self.lo), 1e-3))
         self.centre = 0.5 * (self.lo + self.hi)
         self.items: list[dict] = []
+        self._clouds: dict[tuple, dict] = {}  # one cloud per distinct formula (a chain repeats them)
 
     def particle(self, name, where) -> int:
         if name not in self.names:
@@ -278,6 +279,13 @@ class _Geometry:
 
     def cloud(self, exprs: list[str], where) -> dict:
         """Points on g_k(x, y, z, t) = 0 near the motion (Newton from a grid), per key time."""
+        key = tuple(str(e) for e in exprs)
+        if key in self._clouds:
+            return {"same_as": self._clouds[key]["index"]}
+        self._clouds[key] = {"index": len(self.items)}
+        return self._cloud(exprs, where)
+
+    def _cloud(self, exprs: list[str], where) -> dict:
         s = self.s
         p = ca.SX.sym("p", 3)
         g = ca.vertcat(*[s.parse_field(e, f"{where}.expr", p) for e in exprs])
@@ -405,11 +413,22 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
 def viewer_page(traj: Trajectory, *, system=None, title: str = "") -> str:
     """The HTML text of the viewer of ``traj`` (constraints drawn when ``system`` is given)."""
     data = page_data(traj, system=system, title=title)
-    blob = json.dumps(data, separators=(",", ":"), allow_nan=False, default=_plain)
+    blob = json.dumps(_finite(data), separators=(",", ":"), allow_nan=False, default=_plain)
     blob = blob.replace("</", "<\\/")  # never closes the <script> element holding it
     template = resources.files(__package__).joinpath(_TEMPLATE).read_text(encoding="utf-8")
     heading = html.escape(title or "constrained run")
     return template.replace("__TITLE__", heading).replace("__DATA__", blob)
+
+
+def _finite(value):
+    """JSON has no NaN: a non-finite number (a formula undefined at some t) becomes null."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float | np.floating) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _plain(value):

@@ -53,8 +53,10 @@ def _browser(chromium: str, *args: str, timeout: float = 120) -> subprocess.Comp
 
 def selftest(chromium: str, page: Path) -> dict:
     """Load ``page#selftest`` in headless Chromium; the report the page wrote about itself."""
-    done = _browser(chromium, "--dump-dom", page.resolve().as_uri() + "#selftest")
-    match = re.search(r'<pre id="selftest">(.*?)</pre>', done.stdout, re.S)
+    # virtual time lets the page's timers run: it plays until its slider moves, then reports
+    url = page.resolve().as_uri() + "#selftest"
+    done = _browser(chromium, "--virtual-time-budget=6000", "--dump-dom", url)
+    match = re.search(r'<pre id="selftest"[^>]*>(.*?)</pre>', done.stdout, re.S)
     assert match, f"the page wrote no self-test report (exit {done.returncode}): {done.stderr[-2000:]}"
     return json.loads(html.unescape(match.group(1)))
 
@@ -94,7 +96,7 @@ def test_run_writes_viewer_html_that_works_in_chromium(dp_run, chromium):
     page = dp_run / "viewer.html"
     assert page.is_file()
     report = selftest(chromium, page)
-    assert report["errors"] == []
+    assert report["errors"] == [], report
     assert report["particles"] == 2 and report["constraints"] == 3  # two rods and the plane
     assert report["start"]["ink"] > 1000  # the picture is not blank
     assert report["start"]["ink"] < 0.5 * report["start"]["pixels"]  # nor flooded (face-on plane faded)
@@ -104,6 +106,9 @@ def test_run_writes_viewer_html_that_works_in_chromium(dp_run, chromium):
     assert report["multiplier_choice_changes_panel"]
     assert report["play_advances"]
     assert report["rotation_changes_picture"]
+    played = report["played"]  # the play button, pressed for real: time runs, the slider follows
+    assert played["t"] > 0 and played["slider_moved"] and played["picture_changed"], report
+    assert "pause" in played["button"] and "play" in report["paused"]["button"]
 
 
 def test_view_verb_screenshots_change_with_time(dp_run, chromium, tmp_path, capsys):
@@ -150,7 +155,8 @@ def _zoo() -> tuple[C.System, Trajectory]:
           C.Pin("c", ["cos(t)", "sin(t)", "0.5"]),
           C.Curve("d", ["x**2 + y**2 + z**2 - 1", "z - 0.2"]),
           C.Surface("d", "x**2 + y**2 - (0.9 + 0.05*t)**2"),
-          C.Custom("x_a - x_b"))
+          C.Custom("x_a - x_b"),
+          C.Surface("c", "x**2 + y**2 + z**2 - 1"))  # the sphere again: drawn once
     t = np.linspace(0.0, 2.0, 60)
     th = 0.5 * np.sin(3 * t)
     a = np.stack([np.sin(th) * np.cos(2 * t), np.sin(th) * np.sin(2 * t), -np.cos(th)], axis=1)
@@ -169,8 +175,9 @@ def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
     system, traj = _zoo()
     data = viewer.page_data(traj, system=system, title="zoo")
     kinds = [c["kind"] for c in data["constraints"]]
-    assert kinds == ["surface", "plane", "rod", "rod", "pin", "curve", "surface", "undrawn"]
-    sphere, plane, anchor, pair, pin, curve, cylinder, custom = data["constraints"]
+    assert kinds == ["surface", "plane", "rod", "rod", "pin", "curve", "surface", "undrawn", "surface"]
+    sphere, plane, anchor, pair, pin, curve, cylinder, custom, again = data["constraints"]
+    assert again["same_as"] == 0 and "points" not in again
     frames = data["frames"]
     times = _f32(data["t"])
     # the fixed sphere: points on it, near the motion
@@ -202,7 +209,7 @@ def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
     page = viewer.write_viewer(traj, tmp_path / "zoo.html", system=system, title="zoo <&>")
     assert "zoo &lt;&amp;&gt;" in page.read_text(encoding="utf-8")
     report = selftest(chromium, page)
-    assert report["errors"] == [] and report["constraints"] == 8
+    assert report["errors"] == [] and report["constraints"] == 9
     assert report["slider_changes_picture"] and report["rotation_changes_picture"]
 
 
