@@ -102,6 +102,11 @@ def test_run_writes_viewer_html_that_works_in_chromium(dp_run, chromium):
     assert report["start"]["ink"] < 0.5 * report["start"]["pixels"]  # nor flooded (face-on plane faded)
     assert report["slider_changes_picture"] and report["t_middle"] > report["t_start"]
     assert all(ink > 200 for ink in report["panels"])  # energy, residual, multiplier drawn
+    for axes in report["axis_labels"]:  # numbers on the axes, each readable and distinct
+        for labels in (axes["y"], axes["t"]):
+            assert len(labels) >= 2 and len(set(labels)) == len(labels), axes
+            assert all(re.fullmatch(r"-?[0-9.]+(e[-+]?[0-9]+)?", text) for text in labels), axes
+        assert axes["t"][0] == "0" and float(axes["t"][-1]) == 1.0
     assert report["forces_toggle_changes_picture"]
     assert report["multiplier_choice_changes_panel"]
     assert report["play_advances"]
