@@ -50,6 +50,8 @@ MAX_SERIES_VALUES = 400_000
 #: Most points of a surface or curve cloud, and most key times of a moving one.
 CLOUD_POINTS = 700
 CLOUD_KEYS = 40
+#: Most distinct surface and curve formulas drawn (each costs a Newton projection and page space).
+MAX_CLOUDS = 12
 #: How far above the level a 3-D motion is first seen from (radians; drag to turn).
 ELEVATION = math.radians(25.0)
 _GRID = 14  # seeds per axis of the Newton projection onto surfaces and curves
@@ -282,6 +284,8 @@ class _Geometry:
         key = tuple(str(e) for e in exprs)
         if key in self._clouds:
             return {"same_as": self._clouds[key]["index"]}
+        if len(self._clouds) >= MAX_CLOUDS:
+            return {"points": [], "note": f"not drawn: only the first {MAX_CLOUDS} distinct formulas are"}
         self._clouds[key] = {"index": len(self.items)}
         return self._cloud(exprs, where)
 
@@ -341,7 +345,7 @@ def _check_scene(system, names: list[str], n: int) -> None:
     if len(scene_names) != n or (names and scene_names != names):
         have = ", ".join(names) if names else f"{n} particles"
         raise InputError(
-            f"the scene's particles ({', '.join(scene_names) or 'none'}) are not the trajectory's "
+            f"the scene's particles ({', '.join(scene_names) or 'none'}) are not the run's "
             f"({have}): give the scene the run was made from"
         )
 
@@ -485,3 +489,6 @@ def view_command(results, *, scene=None, out=None) -> Path:
         return write_viewer(traj, target, system=system, title=title)
     except OSError as exc:
         raise InputError(f"view: cannot write {target}: {exc.strerror or exc}") from None
+    except InputError as exc:  # the scene does not fit the run, or a formula cannot be drawn
+        where = f"scene file {scene.path}" if scene is not None else str(file)
+        raise InputError(f"view: {where} with {file}: {exc}") from None

@@ -347,6 +347,8 @@ def test_view_bad_input_exits_2_with_one_line(case, dp_run, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err and "\n" not in err and "Traceback" not in err, err
     assert err.startswith("constrained: ")
+    if case == "scene other particles":
+        assert "simple_pendulum.toml" in err and "(bob)" in err and "p1, p2" in err, err
     if case not in ("out is a directory",):
         assert not out.exists()
     assert not [p for p in tmp_path.rglob("*") if p.name.endswith(".part")]
