@@ -22,6 +22,7 @@ import base64
 import html
 import json
 import math
+import re
 import warnings
 from importlib import resources
 from pathlib import Path
@@ -362,6 +363,9 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
                          "(expected t (T,), x (T, N, 3), T > 0)")
     n = x.shape[1]
     names = list(traj.particle_names or [])
+    if system is not None:  # before any work: the scene must be the run's
+        _check_scene(system, names, n)
+        names = [p.name for p in system.particles]
     names = names if len(names) == n else [f"particle {i}" for i in range(n)]
     idx = frame_indices(t, n)
     times, xf = t[idx], np.asarray(x[idx], dtype=float)
@@ -406,7 +410,6 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
         labels = labels if len(labels) == c else [f"multiplier {k}" for k in range(c)]
         data["series"]["multipliers"] = {"t": _f32(tt), "y": _f32(yy.T), "count": c, "labels": labels}
     if system is not None:
-        _check_scene(system, list(traj.particle_names or []), n)
         geo = _Geometry(system, names, times, xf)
         for c in system.constraints:
             geo.add(c)
@@ -421,7 +424,8 @@ def viewer_page(traj: Trajectory, *, system=None, title: str = "") -> str:
     blob = blob.replace("</", "<\\/")  # never closes the <script> element holding it
     template = resources.files(__package__).joinpath(_TEMPLATE).read_text(encoding="utf-8")
     heading = html.escape(title or "constrained run")
-    return template.replace("__TITLE__", heading).replace("__DATA__", blob)
+    fill = {"__TITLE__": heading, "__DATA__": blob}  # one pass: neither can create the other
+    return re.sub("__TITLE__|__DATA__", lambda m: fill[m.group(0)], template)
 
 
 def _finite(value):

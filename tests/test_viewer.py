@@ -211,8 +211,10 @@ def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
         assert len(p) > 10
         assert np.allclose(np.hypot(p[:, 0], p[:, 1]), 0.9 + 0.05 * times[frame], atol=1e-5)
     assert "not drawn" in custom["label"]
-    page = viewer.write_viewer(traj, tmp_path / "zoo.html", system=system, title="zoo <&>")
-    assert "zoo &lt;&amp;&gt;" in page.read_text(encoding="utf-8")
+    traj.particle_names = []  # a file without names: the scene's names (same count) are used
+    page = viewer.write_viewer(traj, tmp_path / "zoo.html", system=system, title="__DATA__ zoo <&>")
+    assert "<h1>__DATA__ zoo &lt;&amp;&gt;</h1>" in page.read_text(encoding="utf-8")
+    assert _embedded(page)["names"] == ["a", "b", "c", "d"]
     report = selftest(chromium, page)
     assert report["errors"] == [] and report["constraints"] == 9
     assert report["slider_changes_picture"] and report["rotation_changes_picture"]
