@@ -138,6 +138,9 @@ def test_view_without_scene_draws_what_the_file_has(dp_run, chromium, tmp_path):
     assert report["errors"] == [] and report["constraints"] == 0
     assert report["start"]["ink"] > 500 and report["slider_changes_picture"]
     assert "give --scene" in page.read_text(encoding="utf-8")
+    report = selftest(chromium, dp_run / "viewer.html")  # the legend of the page with the scene
+    assert "plane n=(0, 0, 1), offset 0 (the picture's own plane)" in report["legend"]
+    assert "distance p1–p2 = 1 m" in report["legend"] and "give --scene" not in report["legend"]
 
 
 def test_page_is_self_contained(dp_run):
