@@ -44,6 +44,8 @@ verbs:
             constrained statics scenarios/hanging_chain.toml --out out/chain
   plot    figures and animation (GIF) from a saved trajectory.npz
             constrained plot out/dp/trajectory.npz --kinds trajectory,animation
+  view    one self-contained interactive HTML page of a run (works offline)
+            constrained view out/dp/trajectory.npz --scene scenarios/double_pendulum.toml --out dp.html
   derive  print T, V, L and Lagrange's equations; check hand-derived equations,
           Lagrangians and generalized forces (exit 1 when one is wrong)
             constrained derive scenarios/double_pendulum.toml --set parameters.g=9.81 \
@@ -140,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(repeat once per coordinate; write --force=-k*x when the formula starts with '-')")
     _add_sweep(verbs)
     _add_plot(verbs)
+    _add_view(verbs)
     return parser
 
 
@@ -160,6 +163,22 @@ def _add_plot(verbs) -> None:
     p.add_argument("--out", metavar="DIR", help="output directory (default: the folder of RESULTS)")
     p.add_argument("--kinds", help="comma-separated kinds (default: all PNG figures; also: animation)")
     p.add_argument("--scene", metavar="SCENE", help="the scene file, to draw its rods in the animation")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def _add_view(verbs) -> None:
+    """The ``view`` verb (constrained.viewer): an interactive HTML page of a saved run."""
+    p = verbs.add_parser(
+        "view", help="one self-contained interactive HTML page of a saved trajectory.npz",
+        description="Write one HTML page (no network needed) showing RUN: particles, trails, "
+        "constraint-force arrows, a time slider, play/pause and speed, and linked panels of energy, "
+        "constraint residual and a chosen multiplier. With --scene the constraints are drawn too.",
+        epilog=f"example:\n  {PROG} view out/dp/trajectory.npz --scene scenarios/double_pendulum.toml "
+        "--out out/dp/viewer.html", formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("results", metavar="RUN", help="trajectory.npz, or a directory holding one")
+    p.add_argument("--scene", metavar="SCENE", help="the scene file of the run, to draw its constraints")
+    p.add_argument("--out", metavar="FILE", help="the page to write (default: viewer.html beside RUN)")
+    _add_set(p)
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
 
 
@@ -250,7 +269,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     handlers = {"run": _run, "check": _check, "crosscheck": _crosscheck, "bench": _bench,
-                "statics": _statics, "derive": _derive, "sweep": _sweep, "path": _path, "plot": _plot}
+                "statics": _statics, "derive": _derive, "sweep": _sweep, "path": _path, "plot": _plot,
+                "view": _view}
     try:
         return handlers[args.verb](args)
     except InputError as exc:
@@ -292,6 +312,8 @@ def _run(args) -> int:
         raise InputError(f"--out {out_dir} exists and is not a directory")
     quantities = _contract_quantities(scene.outputs["quantities"])
     kinds = list(scene.outputs["plots"])
+    viewer = "viewer" in kinds  # an HTML page (constrained.viewer), not a matplotlib figure
+    kinds = [k for k in kinds if k != "viewer"]
     save_figures = None
     if kinds:
         try:
@@ -333,6 +355,11 @@ def _run(args) -> int:
         written.append(path)
     if kinds and save_figures is not None:
         written.extend(save_figures(trajectory, kinds, out_dir, system=scene.system))
+    if viewer:
+        from .viewer import write_viewer
+
+        page = out_dir / "viewer.html"
+        written.append(write_viewer(trajectory, page, system=scene.system, title=scene.name))
     if not args.quiet:
         _summary(scene, file, trajectory, written)
     return _report_expectations(scene, trajectory, args.quiet)
@@ -877,6 +904,19 @@ def _plot(args) -> int:
         if skipped:
             print("skipped (data not in the file): " + "; ".join(skipped))
     return 0 if written or not args.kinds else 1
+
+
+def _view(args) -> int:
+    """``view``: the interactive page of a saved run (constrained.viewer)."""
+    from .viewer import view_command
+
+    if args.overrides and not args.scene:
+        raise InputError("view: --set changes the scene; give it with --scene")
+    scene = load_scene(args.scene, args.overrides) if args.scene else None
+    path = view_command(args.results, scene=scene, out=args.out)
+    if not args.quiet:
+        print(f"wrote: {path}")
+    return 0
 
 
 if __name__ == "__main__":

@@ -85,6 +85,7 @@ OUTPUT_PLOTS = (
     "phase",
     "action",
     "animation",
+    "viewer",
 )
 OUTPUT_FORMATS = ("npz", "csv")
 OUTPUT_DEFAULTS: dict[str, list[str]] = {
