@@ -10,10 +10,12 @@ from collections.abc import Iterable
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from . import interrupt
 from .analysis import dense_full_row_rank, jacobian_rank, sparse_full_row_rank
-from .errors import InconsistentStateError, InputError, SimulationError
+from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .model import Model, assemble
 from .solvers import METHODS
+from .solvers.base import INTERRUPTED
 from .trajectory import QUANTITIES, Trajectory
 
 #: Output names accepted by ``outputs`` (``positions``/``velocities`` are always computed).
@@ -22,6 +24,8 @@ OUTPUT_NAMES = frozenset({"positions", "velocities", *QUANTITIES})
 
 #: From this many constraint rows, full rank is first checked with a sparse factorization.
 SPARSE_RANK_FROM = 100
+#: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
+INTERRUPTED_QUANTITY_SAMPLES = 5000
 
 
 def flag_redundancy(model: Model, x, t: float) -> bool:
@@ -164,11 +168,21 @@ def simulate(
     # instead of 1.5 ms. One thread for the run; the caller's setting is restored after.
     with _blas_threads().limit(limits=1, user_api="blas"):
         started = time.perf_counter()
-        solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
+        # Ctrl-C becomes a request the solver honours after its current step or chunk
+        with interrupt.watch():
+            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
+        interrupted = bool(solution.failure and solution.failure.startswith(INTERRUPTED))
+        if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
+            # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
+            # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
+            skipped, wanted = sorted(wanted & set(QUANTITIES)), set()
+        else:
+            skipped = []
         traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
+    reached = float(traj.t[-1]) if len(traj.t) else float(t_start)
     traj.info.update(
         {
             "initial_correction": correction,
@@ -177,11 +191,18 @@ def simulate(
             "rtol": rtol,
             "atol": atol,
             "active_terms": sorted(model.active_terms),
+            "status": "interrupted" if interrupted else ("stopped" if solution.failure else "completed"),
+            "t_end": float(t_end),
+            "t_end_reached": reached,
         }
     )
-    if solution.failure and solution.failure.startswith("interrupted"):
-        raise SimulationError(f"the run was {solution.failure}; what was computed is kept",
-                              trajectory=traj)
+    if interrupted:
+        note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
+                f"{len(traj.t)} samples)" if skipped else "")
+        if skipped:
+            traj.info["quantities_skipped"] = skipped
+        raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
+                             f"what was computed is kept{note}", trajectory=traj)
     if solution.failure:
         cause = ("" if "likely cause" in solution.failure else
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")

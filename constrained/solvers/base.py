@@ -12,7 +12,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import interrupt
 from ..errors import InputError
+
+#: The start of ``Solution.failure`` for a run stopped by Ctrl-C (simulate tells it apart).
+INTERRUPTED = "interrupted"
 
 
 @dataclass
@@ -56,6 +60,17 @@ class Solver:
         """Tell the ``progress`` callback (if any) that the run has reached time ``t``."""
         if self._progress is not None:
             self._progress(float(t))
+
+    @staticmethod
+    def stop_requested() -> bool:
+        """Whether Ctrl-C asked the run to stop (see constrained.interrupt): loops ask after
+        every step or chunk, and stop there keeping what they computed."""
+        return interrupt.requested()
+
+    @staticmethod
+    def interrupted_at(t: float) -> str:
+        """The ``failure`` of a run stopped by Ctrl-C after its last state, at time t."""
+        return f"{INTERRUPTED} at t = {float(t):.6g} s"
 
     def require_independent_constraints(self, why: str) -> None:
         """Refuse a model whose constraint rows are dependent (``Model.redundant``)."""

@@ -243,6 +243,9 @@ class Dopri(Solver):
             for target in targets:
                 state[TARGET] = target
                 while state[T] < target:
+                    if self.stop_requested():
+                        failure = self.interrupted_at(state[T])
+                        break
                     expected = (target - state[T]) / max(state[H], 1e-300) + 1
                     k = max(c for c in CHUNKS if c <= max(expected, 1))
                     before = state
@@ -290,7 +293,7 @@ class Dopri(Solver):
                     xs.append(state[:n])
                     vs.append(state[n:2 * n])
         except KeyboardInterrupt:
-            failure = f"interrupted at t = {state[T]:.6g} s"
+            failure = self.interrupted_at(ts[-1] if ts else t0)
         accepted, rejected = int(state[N_ACC]), int(state[N_REJ])
         evals = self.tableau.stages  # per attempt: s − 1 stages plus the projected last one
         self.stats.update({

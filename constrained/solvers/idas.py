@@ -21,8 +21,12 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from .. import interrupt
 from ..errors import InputError
 from .base import Solution, Solver
+
+#: Output times integrated per IDAS call when outputs are not projected (ggl).
+SEGMENT_OUTPUTS = 10
 
 
 class _IdasBase(Solver):
@@ -68,18 +72,26 @@ class _IdasBase(Solver):
         z = self.algebraic_guess(x0, v0, t0)
         failure = None
         t_prev = t0
-        segments = [grid] if not self.project_outputs else [[tk] for tk in grid]
+        # one IDAS call per output time (idas, projecting there) or per group of them (ggl):
+        # Ctrl-C is honoured between calls, and inside one it loses only that call's part
+        per_call = 1 if self.project_outputs else SEGMENT_OUTPUTS
+        segments = [grid[k:k + per_call] for k in range(0, len(grid), per_call)]
         for seg in segments:
+            if self.stop_requested():
+                failure = self.interrupted_at(t_prev)
+                break
             a_prev, _ = m.accelerations(state[:n3], state[n3:], t_prev)
             opts["init_xdot"] = np.concatenate([state[n3:], a_prev]).tolist()
             integ = ca.integrator("dae", "idas", dae, t_prev, list(seg), opts)
             try:
-                res = integ(x0=state, z0=z)
-            except RuntimeError as exc:
-                failure = f"IDAS stopped after t = {t_prev:.6g} s ({str(exc).splitlines()[-1][:200]})"
-                break
+                with interrupt.external():
+                    res = integ(x0=state, z0=z)
             except KeyboardInterrupt:
-                failure = f"interrupted at t = {t_prev:.6g} s"
+                failure = self.interrupted_at(t_prev)
+                break
+            except RuntimeError as exc:
+                failure = (self.interrupted_at(t_prev) if self.stop_requested() else
+                           f"IDAS stopped after t = {t_prev:.6g} s ({str(exc).splitlines()[-1][:200]})")
                 break
             stats = integ.stats()
             for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),

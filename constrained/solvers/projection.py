@@ -13,7 +13,7 @@ import numpy as np
 from scipy.integrate import DOP853, RK45, Radau
 
 from .. import compiled as compiled_evaluation
-from .. import diagnostics
+from .. import diagnostics, interrupt
 from ..errors import InputError
 from .base import Solution, Solver
 
@@ -127,6 +127,9 @@ class Projection(Solver):
         watch = self.base in EXPLICIT
         h_rho, rho_max = [], 0.0
         while integ.status == "running":
+            if self.stop_requested():
+                failure = self.interrupted_at(good[0])
+                break
             try:
                 message = integ.step()
             except _NonFinite as exc:
@@ -134,7 +137,7 @@ class Projection(Solver):
                            + self.diagnose(*good[1:], good[0]))
                 break
             except KeyboardInterrupt:
-                failure = f"interrupted at t = {integ.t:.6g} s"
+                failure = self.interrupted_at(good[0])
                 break
             if integ.status == "failed":
                 failure = (f"the step size collapsed at t = {integ.t:.6g} s ({message}); "
@@ -261,14 +264,21 @@ class Projection(Solver):
             grid = grid[1:]
         state, t_a, failure = np.concatenate([x0, v0]), t0, None
         for t_b in grid:
+            if self.stop_requested():
+                failure = self.interrupted_at(t_a)
+                break
             try:
-                out = integ(x0=state, p=[t_a, t_b - t_a])
+                with interrupt.external():
+                    out = integ(x0=state, p=[t_a, t_b - t_a])
+            except KeyboardInterrupt:
+                failure = self.interrupted_at(t_a)
+                break
             except RuntimeError as exc:
+                if self.stop_requested():  # Ctrl-C inside CVODES: its right-hand side "failed"
+                    failure = self.interrupted_at(t_a)
+                    break
                 failure = (f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]}); "
                            + self.diagnose(state[:n], state[n:], t_a))
-                break
-            except KeyboardInterrupt:
-                failure = f"interrupted at t = {t_a:.6g} s"
                 break
             stats = integ.stats()
             self.stats["steps"] += int(stats.get("nsteps", 0))

@@ -35,6 +35,8 @@ AUTO_COMPILE_COORDINATES = 90
 
 #: Largest number of output samples when the caller gives no output grid.
 DEFAULT_SAMPLES = 2000
+#: Coordinate-steps per chained call (see ``run``): 16384 steps of a 6-coordinate model.
+CHUNK_WORK = 6 << 14
 
 
 class Rattle(Solver):
@@ -133,16 +135,21 @@ class Rattle(Solver):
         # the regular gap between samples is one chunk, compiled once; other gaps are split
         # into powers of two (at most a few distinct folds)
         regular = int(np.bincount(gaps[gaps > 0]).argmax()) if np.any(gaps > 0) else 1
-        regular = min(regular, 1 << 14)
+        # a chunk is one call into CasADi, where Ctrl-C waits for its end: chunks of about
+        # CHUNK_WORK coordinate-steps keep each call near 0.1 s at most (checked in between)
+        regular = min(regular, 1 << 14, 1 << max(3, int(math.log2(max(CHUNK_WORK // n3, 1)))))
         for target in sample_steps:
             while done < target:
+                if self.stop_requested():
+                    failure = self.interrupted_at(state[2 * n3])
+                    break
                 left = target - done
                 k = regular if left >= regular else 1 << (left.bit_length() - 1)
                 chunk = self._chunk(step, k, compile_it=self.compiled and k == regular and k >= 8)
                 try:
                     new = chunk(state).full().ravel()
                 except KeyboardInterrupt:
-                    failure = f"interrupted at t = {state[2 * n3]:.6g} s"
+                    failure = self.interrupted_at(state[2 * n3])
                     break
                 if not np.all(np.isfinite(new)):
                     failure = f"non-finite state between t = {state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s"
@@ -158,6 +165,11 @@ class Rattle(Solver):
                 done += k
                 self.report(state[2 * n3])
             if failure:
+                if (t_eval is None and self.stop_requested()
+                        and done > (sample_steps[len(ts) - 1] if ts else -1)):
+                    ts.append(t0 + done * h)  # keep the state reached, between two samples
+                    xs.append(state[:n3])
+                    vs.append(state[n3:2 * n3])
                 break
             ts.append(t0 + done * h)
             xs.append(state[:n3])

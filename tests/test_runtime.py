@@ -1,0 +1,140 @@
+"""Runtime behaviour of runs (issue 18): Ctrl-C, interrupted sweeps, non-finite values,
+stiffness diagnosed, constraint residuals in metres."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenarios"
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
+def _interrupt_after_start(args: list[str], cwd: Path, *, start_timeout=90.0):
+    """Start ``constrained ARGS``, wait for the line that says the time loop runs, send SIGINT;
+    returns (exit status, seconds from SIGINT to exit, its output)."""
+    proc = subprocess.Popen([sys.executable, "-m", "constrained.cli", *args], cwd=cwd, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    deadline = time.monotonic() + start_timeout
+    try:
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if "Ctrl-C stops" in line:
+                break
+        assert any("Ctrl-C stops" in x for x in lines), "".join(lines)
+        time.sleep(0.3)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=60)[0]
+        return proc.returncode, time.monotonic() - sent, "".join(lines) + rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+METHOD_SETTINGS = {
+    "projection": [], "baumgarte": [], "dopri": [], "rattle": ["simulate.dt=1e-4"],
+    "idas": [], "ggl": [], "pantelides": [], "reduced": [],
+    "projection-cvodes": ['simulate.base="CVODES"'],
+}
+
+
+@pytest.mark.parametrize("variant", list(METHOD_SETTINGS))
+def test_ctrl_c_stops_every_method_promptly_and_keeps_the_partial_run(tmp_path, variant):
+    method = variant.split("-")[0]
+    out = tmp_path / "out"
+    sets = [f"simulate.method={method}", "simulate.t_end=1e4", "outputs.plots=[]",
+            *METHOD_SETTINGS[variant]]
+    args = ["run", str(SCENES / "double_pendulum.toml"), "--out", str(out)]
+    for s in sets:
+        args += ["--set", s]
+    code, seconds, err = _interrupt_after_start(args, tmp_path)
+    assert code == 130, err
+    assert "Traceback" not in err and "interrupted" in err, err
+    # generous for a loaded machine: the stop itself is after one step or chunk (≤ 0.1 s)
+    assert seconds < 5.0, (seconds, err)
+    with np.load(out / "trajectory.npz") as data:
+        t = data["t"]
+        meta = json.loads(str(data["meta"]))
+    assert meta["info"]["status"] == "interrupted"
+    assert 0 < meta["info"]["t_end_reached"] < 1e4
+    assert meta["info"]["t_end_reached"] == pytest.approx(t[-1])
+    assert len(t) >= 1 and np.all(np.diff(t) > 0)
+
+
+# --- item 3: Ctrl-C in a sweep stops it, and a rerun redoes what did not finish ------------------
+KAPITZA = SCENES / "kapitza_sweep.toml"
+
+
+@pytest.mark.parametrize("method", ["rattle", "dopri"])
+def test_ctrl_c_stops_a_sequential_sweep_and_the_rerun_redoes_the_interrupted_run(tmp_path, method):
+    from constrained import sweep as S
+
+    out = tmp_path / "sweep"
+    vary = ["simulate.t_end=[0.05, 1e4, 0.06]"]
+    sets = [f"simulate.method={method}"]
+    args = [sys.executable, "-m", "constrained.cli", "sweep", str(KAPITZA), "--vary", vary[0],
+            "--set", sets[0], "--out", str(out), "--scheduler", "sequential", "--quiet"]
+    proc = subprocess.Popen(args, env=_env(), cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    runs = out / "runs"
+    try:
+        deadline = time.monotonic() + 90
+        while not list(runs.glob("*.json")):  # the short first run is done: the long one runs
+            assert proc.poll() is None, proc.communicate()[1]
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        time.sleep(1.5)
+        assert proc.poll() is None
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        err = proc.communicate(timeout=60)[1]
+        seconds = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert seconds < 10.0 and "Traceback" not in err
+    records = [json.loads(p.read_text()) for p in runs.glob("*.json")]
+    assert [r["index"] for r in records] == [0]  # neither the interrupted run nor the one after
+    assert records[0]["status"] == "ok"
+    # the rerun finds one run done and two to compute (limit=0: compute none of them here)
+    again = S.sweep(KAPITZA, vary, overrides=sets, out_dir=out, scheduler="sequential", progress=False,
+                    limit=0, figure=False)
+    assert again.skipped == 1 and not again.complete
+
+
+def test_a_run_recorded_as_interrupted_by_an_earlier_version_is_computed_again(tmp_path):
+    from constrained import sweep as S
+
+    vary = ["parameters.nu=[100, 200]"]
+    sets = ["simulate.t_end=0.02"]
+    first = S.sweep(KAPITZA, vary, overrides=sets, out_dir=tmp_path, scheduler="sequential",
+                    progress=False, figure=False)
+    assert first.complete and first.failed == 0
+    path = tmp_path / "runs" / f"{first.rows[1]['run_id']}.json"
+    rec = json.loads(path.read_text())
+    rec["status"] = "the run was interrupted at t = 0.01 s; what was computed is kept"
+    path.write_text(json.dumps(rec))
+    again = S.sweep(KAPITZA, vary, overrides=sets, out_dir=tmp_path, scheduler="sequential",
+                    progress=False, figure=False)
+    assert again.skipped == 1 and again.computed == 1 and again.failed == 0
