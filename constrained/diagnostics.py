@@ -315,3 +315,43 @@ def likely_cause(model, x, v, t: float) -> str:
                 f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
     except Exception:  # a diagnosis must never hide the stop itself
         return "likely cause: a singular configuration, stiffness, or forces that blow up"
+
+
+# --- non-finite values ----------------------------------------------------------------------------
+def nonfinite_cause(model, x, v, t: float) -> str:
+    """The likely cause of non-finite values (energy, forces, multipliers) at the state (x, v, t):
+    the effects whose term or force is not finite there, else the constraints, else
+    ``likely_cause``. A diagnosis only: the equations are not changed."""
+    import casadi as ca
+
+    s = model.symbols
+    x = np.asarray(x, float).ravel()
+    v = np.asarray(v, float).ravel()
+    found = []
+    try:
+        for k, effect in enumerate(model.system.effects):
+            term = effect.term(s)
+            if isinstance(term, int | float):  # a constant formula (folded by the parser)
+                term = ca.SX(term)
+            parts = {"potential": [term, ca.gradient(term, s.x)],
+                     "generalized_potential": [term, ca.gradient(term, s.x), ca.gradient(term, s.v)],
+                     "dissipation": [term, ca.gradient(term, s.v)]}.get(effect.slot, [term])
+            f = ca.Function("term", [s.x, s.v, s.t], [ca.vertcat(*[ca.vec(p) for p in parts])])
+            values = np.asarray(f(x, v, t)).ravel()
+            if not np.all(np.isfinite(values)):
+                what = {"potential": "potential energy or its force", "applied_force": "force",
+                        "dissipation": "damping force", "generalized_potential": "generalized potential"}
+                found.append(f"effect {k} ('{effect.label}') gives a non-finite "
+                             f"{what.get(effect.slot, 'term')} ({values[0]:.3g})")
+        if not found and model.n_constraints:
+            f, J = (np.asarray(a) for a in model.jacobian(x, t))
+            rows = np.flatnonzero(~np.all(np.isfinite(np.hstack([f, J])), axis=1))
+            found += [f"constraint '{model.constraint_labels[r]}' is not finite (or its gradient)"
+                      for r in rows[:3]]
+    except Exception:  # a diagnosis must never hide the stop itself
+        found = []
+    if not found:
+        return likely_cause(model, x, v, t)
+    return (f"likely cause: {'; '.join(found)} at the state reached at t = {t:.6g} s: a formula "
+            "overflows there (beyond ~1.8e308, e.g. exp of a large number) or divides by zero; "
+            "check the formula, its units and its scale")

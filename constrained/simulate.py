@@ -10,7 +10,7 @@ from collections.abc import Iterable
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from . import interrupt
+from . import diagnostics, interrupt
 from .analysis import dense_full_row_rank, jacobian_rank, sparse_full_row_rank
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .model import Model, assemble
@@ -160,6 +160,7 @@ def simulate(
         model, system.positions, system.velocities, t_start,
         max_correction=max_initial_correction, size=system.size(),
     )
+    _refuse_nonfinite_start(model, x0, v0, float(t_start))
     started = time.perf_counter()
     solver = METHODS[method](model, rtol=rtol, atol=atol, dt=dt, **options)
     setup_time = time.perf_counter() - started
@@ -203,6 +204,17 @@ def simulate(
             traj.info["quantities_skipped"] = skipped
         raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
                              f"what was computed is kept{note}", trajectory=traj)
+    bad = None if solution.failure else _first_nonfinite(model, traj, wanted)
+    if bad is not None:
+        what, k = bad
+        state = (traj.x[k].ravel(), traj.v[k].ravel(), float(traj.t[k]))
+        kept = traj.head(k)
+        kept.info.update(status="stopped", t_end_reached=float(kept.t[-1]) if k else float(t_start))
+        raise SimulationError(
+            f"non-finite {what} at t = {traj.t[k]:.6g} s; "
+            f"{diagnostics.nonfinite_cause(model, *state)}",
+            trajectory=kept,
+        )
     if solution.failure:
         cause = ("" if "likely cause" in solution.failure else
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")
@@ -212,6 +224,43 @@ def simulate(
             trajectory=traj,
         )
     return traj
+
+
+def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
+    """Stop before stepping when the forces (or the energy) are not finite at the start."""
+    F = np.asarray(model.dynamics(x0, v0, t0)[0], float).ravel()
+    E = float(np.asarray(model.energy(x0, v0, t0), float).ravel()[0])
+    if np.all(np.isfinite(F)) and np.isfinite(E):
+        return
+    what = "forces" if not np.all(np.isfinite(F)) else f"energy ({E:g} J)"
+    start = trajectory_from(model, [t0], np.asarray(x0)[None], np.asarray(v0)[None], set())
+    start.info.update(status="stopped", t_end_reached=t0)
+    raise SimulationError(f"non-finite {what} at the initial state (t = {t0:g} s); "
+                          f"{diagnostics.nonfinite_cause(model, x0, v0, t0)}", trajectory=start)
+
+
+def _first_nonfinite(model: Model, traj: Trajectory, wanted):
+    """(name, index) of the first sample where a state or a computed quantity is not finite
+    (the energy is checked at the last sample even when not asked for), or None."""
+    n = len(traj.t)
+    if n == 0:
+        return None
+    first = None
+    for name in ("x", "v", *QUANTITIES):
+        values = getattr(traj, name)
+        if values is None or name == "action":
+            continue
+        ok = np.all(np.isfinite(values.reshape(n, -1)), axis=1)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            if first is None or k < first[1]:
+                first = ({"x": "positions", "v": "velocities"}.get(name, name.replace("_", " ")), k)
+    if first is None and "energy" not in wanted:
+        E = np.asarray(model.energy(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1]), float)
+        if not np.all(np.isfinite(E)):  # then find the first sample where it is not
+            E = model.evaluate(model.energy, traj.x.reshape(n, -1), traj.v.reshape(n, -1), traj.t)[0]
+            first = ("energy", int(np.argmin(np.isfinite(np.asarray(E).ravel()))))
+    return first
 
 
 def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:

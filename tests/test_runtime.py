@@ -138,3 +138,65 @@ def test_a_run_recorded_as_interrupted_by_an_earlier_version_is_computed_again(t
     again = S.sweep(KAPITZA, vary, overrides=sets, out_dir=tmp_path, scheduler="sequential",
                     progress=False, figure=False)
     assert again.skipped == 1 and again.computed == 1 and again.failed == 0
+
+
+# --- item 8: non-finite values stop the run with a diagnosis ---------------------------------------
+OVERFLOW = """
+[scene]
+name = "overflow"
+
+[[particles]]
+name = "p"
+mass = 1.0
+position = [1.0, 0.0, 0.0]
+velocity = [0.0, 1.0, 0.0]
+
+[[constraints]]
+type = "distance"
+a = "p"
+point = [0.0, 0.0, 0.0]
+length = 1.0
+
+[[effects]]
+type = "potential"
+name = "runaway"
+expr = "EXPR"
+
+[simulate]
+t_end = 1.0
+dt = 1e-3
+
+[outputs]
+quantities = ["energy", "constraint_residual"]
+"""
+
+
+@pytest.mark.parametrize("method", ["projection", "dopri", "rattle", "idas"])
+def test_an_infinite_potential_energy_stops_the_run_with_a_diagnosis(tmp_path, capsys, method):
+    from constrained.cli import main
+
+    scene = tmp_path / "overflow.toml"
+    scene.write_text(OVERFLOW.replace("EXPR", "exp(1e308)"))
+    code = main(["run", str(scene), "--out", str(tmp_path / "out"), "--quiet",
+                 "--set", f"simulate.method={method}"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "non-finite energy" in err and "'runaway'" in err and "overflows" in err
+    with np.load(tmp_path / "out" / "trajectory.npz") as data:
+        assert np.all(np.isfinite(data["x"])) and data["t"][-1] == 0.0
+
+
+def test_energy_that_becomes_infinite_during_the_run_stops_it_where_it_does(tmp_path):
+    import constrained as C
+
+    scene = tmp_path / "later.toml"
+    # finite until t = 0.5 s (a force-free potential, so the motion itself stays smooth)
+    scene.write_text(OVERFLOW.replace("EXPR", "exp(1000 * (t - 0.5)) ** 2"))
+    system = C.load_scene(scene).system
+    for outputs in (["energy"], ["constraint_residual"]):  # energy asked for or not
+        with pytest.raises(C.SimulationError, match="non-finite energy") as info:
+            C.simulate(system, 1.0, method="projection", outputs=outputs,
+                       t_eval=np.linspace(0, 1, 101))
+        kept = info.value.trajectory
+        assert "'runaway'" in str(info.value)
+        assert 0.5 < kept.t[-1] < 0.9 and kept.info["status"] == "stopped"

@@ -27,6 +27,7 @@ import casadi as ca
 import numpy as np
 
 from .. import compiled as compiled_evaluation
+from .. import diagnostics
 from ..errors import InputError
 from .base import Solution, Solver
 
@@ -152,7 +153,9 @@ class Rattle(Solver):
                     failure = self.interrupted_at(state[2 * n3])
                     break
                 if not np.all(np.isfinite(new)):
-                    failure = f"non-finite state between t = {state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s"
+                    failure = (f"non-finite state between t = {state[2 * n3]:.6g} s and "
+                               f"{t0 + (done + k) * h:.6g} s; "
+                               + diagnostics.nonfinite_cause(m, state[:n3], state[n3:2 * n3], state[2 * n3]))
                     break
                 if new[-1] > self.newton_tol * self.scale:
                     failure = (
