@@ -200,3 +200,49 @@ def test_energy_that_becomes_infinite_during_the_run_stops_it_where_it_does(tmp_
         kept = info.value.trajectory
         assert "'runaway'" in str(info.value)
         assert 0.5 < kept.t[-1] < 0.9 and kept.info["status"] == "stopped"
+
+
+# --- item 9: a spring stiff enough to hold the steps down is diagnosed, by name ---------------------
+def _stiff_scene(tmp_path: Path) -> Path:
+    """The double pendulum with its second rod replaced by a spring of k = 1e12 N/m."""
+    text = (SCENES / "double_pendulum.toml").read_text()
+    text = text.replace('[[constraints]]\ntype = "distance"\na = "p1"\nb = "p2"\nlength = 1.0\n', "")
+    text = text.replace('[[effects]]\ntype = "gravity"', '[[effects]]\ntype = "spring"\nname = "stiff rod"\n'
+                        'a = "p1"\nb = "p2"\nk = 1e12\nrest = 1.0\n\n[[effects]]\ntype = "gravity"')
+    text = text.split("\n[reduced]")[0].replace("t_end = 10.0", "t_end = 0.1")
+    text = text.replace('plots = ["trajectory", "energy", "constraint_residual"]', "plots = []")
+    assert "stiff rod" in text and text.count("[[constraints]]") == 2
+    path = tmp_path / "stiff.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("method", ["projection", "dopri", "idas", "ggl"])
+def test_a_stiff_spring_is_named_with_its_period_and_the_distance_constraint(tmp_path, method):
+    scene = _stiff_scene(tmp_path)
+    started = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "constrained.cli", "run", str(scene), "--out",
+                           str(tmp_path / "out"), "--quiet", "--set", f"simulate.method={method}"],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=120)
+    seconds = time.monotonic() - started
+    assert seconds < 20.0, (seconds, proc.stderr)
+    # done (with a StiffnessWarning) or stopped (exit 1): either way the spring is named
+    assert proc.returncode in (0, 1), proc.stderr
+    err = " ".join(proc.stderr.split())
+    assert "'stiff rod' (effect 0)" in err and "distance" in err, err
+    assert "4.44e-06 s" in err  # 2π/ω with ω² = k / (m1 m2 / (m1 + m2)) = 1e12 / 0.5
+    if proc.returncode == 1:
+        assert "likely cause: stiffness" in err and "Traceback" not in err
+        assert (tmp_path / "out" / "trajectory.npz").is_file()
+
+
+def test_stiff_springs_reports_the_reduced_mass_period_and_stretch(tmp_path):
+    import constrained as C
+    from constrained.diagnostics import stiff_springs
+    from constrained.model import assemble
+
+    system = C.load_scene(_stiff_scene(tmp_path)).system
+    (spring,) = stiff_springs(assemble(system), system.positions)
+    assert spring.label == "stiff rod" and spring.reduced_mass == pytest.approx(0.5)
+    assert spring.period == pytest.approx(2 * np.pi / np.sqrt(1e12 / 0.5))
+    assert spring.rigid_like and spring.stretch < 1e-9

@@ -239,12 +239,16 @@ class Dopri(Solver):
         def derivative(t, y):
             return np.concatenate([y[n:], m.accelerations(y[:n], y[n:], t)[0]])
 
+        self.watch_stiffness(x0, t0, t_end)
         try:
             for target in targets:
                 state[TARGET] = target
                 while state[T] < target:
                     if self.stop_requested():
                         failure = self.interrupted_at(state[T])
+                        break
+                    failure = self.too_stiff(state[T], int(state[N_ACC]), state[:n])
+                    if failure:
                         break
                     expected = (target - state[T]) / max(state[H], 1e-300) + 1
                     k = max(c for c in CHUNKS if c <= max(expected, 1))
@@ -303,6 +307,7 @@ class Dopri(Solver):
         })
         diagnostics.stiffness_verdict(
             self.stats, h_rho, rho_max, what=f"dopri's explicit {self.tableau.name}", stacklevel=4,
-            advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"')
+            advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"'
+            + self.stiff_hint())
         return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
                         dict(self.stats), failure)

@@ -126,9 +126,13 @@ class Projection(Solver):
         watch_rank = self._watch_rank(x0, t0)
         watch = self.base in EXPLICIT
         h_rho, rho_max = [], 0.0
+        self.watch_stiffness(x0, t0, t_end)
         while integ.status == "running":
             if self.stop_requested():
                 failure = self.interrupted_at(good[0])
+                break
+            failure = self.too_stiff(good[0], self.stats["steps"], good[1])
+            if failure:
                 break
             try:
                 message = integ.step()
@@ -195,7 +199,7 @@ class Projection(Solver):
             if pending is None:
                 ts.append(integ.t)
                 ys.append(y)
-        if watch:
+        if watch and not (failure or "").startswith("the steps follow"):  # (that stop says it)
             self._stiffness_verdict(h_rho, rho_max)
         for key in ("njev", "nlu"):
             self.stats[key] = max(self.stats[key], m.counters[key])
@@ -206,7 +210,7 @@ class Projection(Solver):
     def _stiffness_verdict(self, h_rho, rho_max) -> None:
         diagnostics.stiffness_verdict(
             self.stats, h_rho, rho_max, what=f"the explicit base {self.base}",
-            advice='use base = "Radau" or base = "CVODES_BDF"')
+            advice='use base = "Radau" or base = "CVODES_BDF"' + self.stiff_hint())
 
     # --- CVODES base: CasADi integrates between projection points --------------------------
     #: Without t_eval, the state is projected this many times over the run.
@@ -263,9 +267,13 @@ class Projection(Solver):
             vs.append(v0)
             grid = grid[1:]
         state, t_a, failure = np.concatenate([x0, v0]), t0, None
+        self.watch_stiffness(x0, t0, t_end)
         for t_b in grid:
             if self.stop_requested():
                 failure = self.interrupted_at(t_a)
+                break
+            failure = self.too_stiff(t_a, self.stats["steps"], state[:n])
+            if failure:
                 break
             try:
                 with interrupt.external():

@@ -139,10 +139,14 @@ class Rattle(Solver):
         # a chunk is one call into CasADi, where Ctrl-C waits for its end: chunks of about
         # CHUNK_WORK coordinate-steps keep each call near 0.1 s at most (checked in between)
         regular = min(regular, 1 << 14, 1 << max(3, int(math.log2(max(CHUNK_WORK // n3, 1)))))
+        self.watch_stiffness(x0, t0, t_end)
         for target in sample_steps:
             while done < target:
                 if self.stop_requested():
                     failure = self.interrupted_at(state[2 * n3])
+                    break
+                failure = self.too_stiff(state[2 * n3], done, state[:n3])
+                if failure:
                     break
                 left = target - done
                 k = regular if left >= regular else 1 << (left.bit_length() - 1)
@@ -168,9 +172,9 @@ class Rattle(Solver):
                 done += k
                 self.report(state[2 * n3])
             if failure:
-                if (t_eval is None and self.stop_requested()
-                        and done > (sample_steps[len(ts) - 1] if ts else -1)):
-                    ts.append(t0 + done * h)  # keep the state reached, between two samples
+                # the state reached (the last good one) between two samples is kept
+                if t_eval is None and done > (sample_steps[len(ts) - 1] if ts else -1):
+                    ts.append(t0 + done * h)
                     xs.append(state[:n3])
                     vs.append(state[n3:2 * n3])
                 break
