@@ -10,7 +10,7 @@ from collections.abc import Iterable
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from . import diagnostics, interrupt
+from . import diagnostics, interrupt, residual
 from .analysis import dense_full_row_rank, jacobian_rank, sparse_full_row_rank
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .model import Model, assemble
@@ -62,11 +62,17 @@ def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     if model.n_constraints and not np.all(np.isfinite(f0)):
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
+    # residuals and tolerances in metres: each row divided by its scale (constrained.residual)
+    scales = residual.row_scales(model, x0, t0) if model.n_constraints else np.ones(0)
+    f0 = f0 / scales if np.all(np.isfinite(scales)) and np.all(scales > 0) else f0
     worst = int(np.argmax(np.abs(f0))) if f0.size else 0
-    x, err, _ = model.project_positions(x0, t0, tol=1e-13 * size, max_iter=50)
+    s_min = float(np.min(scales)) if scales.size and np.isfinite(np.min(scales)) else 1.0
+    x, err, _ = model.project_positions(x0, t0, tol=1e-13 * size * s_min, max_iter=50)
+    if np.isfinite(err) and err > 1e-8 * size * s_min:
+        err = residual.position_residual(model, x, t0)
     dx = float(np.max(np.linalg.norm((x - x0).reshape(-1, 3), axis=1), initial=0.0))
     if err > 1e-8 * size or not np.isfinite(err):
-        f = np.asarray(model.constraint(x, t0)).ravel()
+        f = np.asarray(model.constraint(x, t0)).ravel() / np.where(scales > 0, scales, 1.0)
         k = int(np.nanargmax(np.abs(f)))
         from .diagnostics import incompatible_constraints
 
@@ -75,20 +81,20 @@ def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
                  "; check that the constraints are compatible (lengths, triangle inequalities, anchors)")
         raise InconsistentStateError(
             f"the constraints cannot all be satisfied near the initial state: after projection "
-            f"constraint '{labels[k]}' is still violated by {abs(f[k]):.3g} (at the given start the "
-            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g}){named}"
+            f"constraint '{labels[k]}' is still violated by {abs(f[k]):.3g} m (at the given start the "
+            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g} m){named}"
         )
     limit = max_correction * size
     if dx > limit:
         raise InconsistentStateError(
             f"the initial positions are too far from the constraints: constraint '{labels[worst]}' "
-            f"is violated by {abs(f0[worst]):.3g} at t = {t0:g}, and the nearest consistent state "
+            f"is violated by {abs(f0[worst]):.3g} m at t = {t0:g}, and the nearest consistent state "
             f"moves a particle by {dx:.3g} m, more than the allowed {max_correction:g} × system size "
             f"{size:.3g} m = {limit:.3g} m. Correct the positions, or raise "
             "simulate.max_initial_correction"
         )
     if not np.array_equal(x, x0) and flag_redundancy(model, x, t0):
-        x, err, _ = model.project_positions(x, t0, tol=1e-13 * size, max_iter=50)
+        x, err, _ = model.project_positions(x, t0, tol=1e-13 * size * s_min, max_iter=50)
     v = model.project_velocities(x, v0, t0)
     dv = float(np.max(np.linalg.norm((v - v0).reshape(-1, 3), axis=1), initial=0.0))
     report = {
@@ -286,22 +292,12 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
             traj.constraint_forces = model.constraint_forces_along(X, t, lam)
     if "energy" in wanted:
         traj.energy = model.evaluate(model.energy, X, V, t)[0].ravel()
-    if "constraint_residual" in wanted:
-        if model.n_constraints:
-            f = model.evaluate(model.constraint, X, t)[0]
-            traj.constraint_residual = np.max(np.abs(f), axis=0)
-        else:
-            traj.constraint_residual = np.zeros(n)
+    if "constraint_residual" in wanted:  # in metres, whatever the scale of the formulas
+        traj.constraint_residual = residual.position_residual_along(model, X, t)
     if "action" in wanted and n >= 2:
         from .action import action
 
         traj.action = action(model, traj).cumulative
-    if "velocity_residual" in wanted:
-        if model.n_constraints:
-            Jcat, f_t = model.evaluate(model.velocity_terms, X, t)
-            J = Jcat.reshape(model.n_constraints, n, -1).transpose(1, 0, 2)
-            c = np.einsum("kci,ki->kc", J, V.reshape(n, -1)) + f_t.T
-            traj.velocity_residual = np.max(np.abs(c), axis=1)
-        else:
-            traj.velocity_residual = np.zeros(n)
+    if "velocity_residual" in wanted:  # in m/s
+        traj.velocity_residual = residual.velocity_residual_along(model, X, V.reshape(n, -1), t)
     return traj

@@ -246,3 +246,74 @@ def test_stiff_springs_reports_the_reduced_mass_period_and_stretch(tmp_path):
     assert spring.label == "stiff rod" and spring.reduced_mass == pytest.approx(0.5)
     assert spring.period == pytest.approx(2 * np.pi / np.sqrt(1e12 / 0.5))
     assert spring.rigid_like and spring.stretch < 1e-9
+
+
+# --- item 6: constraint residuals and tolerances in metres, whatever the formula's scale ------------
+SPHERE = """
+[scene]
+name = "bead on a sphere"
+
+[[particles]]
+name = "p"
+mass = 1.0
+position = [0.6, 0.0, -0.8]
+velocity = [0.0, 1.0, 0.0]
+
+[[constraints]]
+type = "surface"
+particles = ["p"]
+expr = "SCALE * (x**2 + y**2 + z**2 - 1)"
+
+[[effects]]
+type = "gravity"
+g = [0.0, 0.0, -9.81]
+"""
+
+
+def _sphere(scale: str):
+    import tomllib
+
+    from constrained.scene import build_scene
+
+    return build_scene(tomllib.loads(SPHERE.replace("SCALE", scale)), path="sphere").system
+
+
+@pytest.mark.parametrize("method, settings", [
+    ("projection", {}), ("dopri", {}), ("rattle", {"dt": 1e-3}), ("idas", {}), ("ggl", {}),
+    ("baumgarte", {}),
+])
+def test_a_scaled_surface_gives_the_same_run_and_residual_in_metres(method, settings):
+    import constrained as C
+
+    t = np.linspace(0, 2, 21)
+    runs = {}
+    for scale in ("1", "1e8", "1e-8"):
+        runs[scale] = C.simulate(_sphere(scale), 2.0, method=method, rtol=1e-10, atol=1e-10, t_eval=t,
+                                 outputs=["constraint_residual", "velocity_residual"], **settings)
+    base = runs["1"]
+    for scale, tr in runs.items():
+        off = np.abs(np.linalg.norm(tr.x[:, 0], axis=1) - 1.0)  # metres off the sphere
+        assert np.max(np.abs(tr.x - base.x)) <= 1e-8, scale
+        # the residual is the distance from the surface, not |f| (1e8 or 1e-8 times it)
+        assert np.allclose(tr.constraint_residual, off, rtol=1e-3, atol=1e-15), scale
+        # the same drift (ggl, baumgarte) or round-off at every scale
+        assert np.allclose(tr.constraint_residual, base.constraint_residual, rtol=1e-2, atol=1e-11)
+        assert np.allclose(tr.velocity_residual, base.velocity_residual, rtol=1e-2, atol=1e-10)
+        if method != "baumgarte":  # (baumgarte does not project: it drifts, equally at every scale)
+            assert np.max(off) <= 1e-10, scale
+
+
+def test_a_scaled_surface_starts_statics_and_reports_in_metres():
+    import constrained as C
+    from constrained.model import assemble
+    from constrained.simulate import consistent_state
+
+    for scale in ("1", "1e8", "1e-8"):
+        system = _sphere(scale)
+        start = np.array([0.6, 0.0, -0.8 + 1e-6])  # 0.8e-6 m outside the sphere
+        x, _, report = consistent_state(assemble(system), start, np.zeros(3))
+        assert abs(np.linalg.norm(x) - 1.0) <= 1e-15
+        assert report["max_residual_before"] == pytest.approx(0.8e-6, rel=1e-3)
+        eq = C.equilibrium(system, np.array([[0.3, 0.1, -0.9]]))
+        assert np.allclose(eq.x, [[0, 0, -1]], atol=1e-12) and eq.stable
+        assert eq.max_constraint_residual <= 1e-15

@@ -30,6 +30,7 @@ from .. import compiled as compiled_evaluation
 from .. import diagnostics
 from ..errors import InputError
 from ..model import _FastCall
+from ..residual import row_scales_expr
 from .base import Solution, Solver
 
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
@@ -135,7 +136,8 @@ class Dopri(Solver):
             sol = ca.solve(A1, rhs, linsol)
             x1 = x1 - minv * ca.mtimes(J1.T, sol[:, 0])
             v1 = v1 - minv * ca.mtimes(J1.T, sol[:, 1])
-            residual = ca.mmax(ca.fabs(f1))
+            # in metres: each row over its scale (constrained.residual)
+            residual = ca.mmax(ca.fabs(f1) / row_scales_expr(J1, m.n_particles))
         else:
             residual = ca.MX(0)
         a1, _ = accel(x1, v1, t1)
@@ -265,7 +267,7 @@ class Dopri(Solver):
                         break
                     if state[RES] > PROJECTION_FAIL * scale:
                         failure = (f"the state could not be kept on the constraints near "
-                                   f"t = {state[T]:.6g} s (residual {state[RES]:.3g} before the last "
+                                   f"t = {state[T]:.6g} s (residual {state[RES]:.3g} m before the last "
                                    "Newton step): reduce rtol")
                         break
                     if every_step:

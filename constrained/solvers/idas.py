@@ -23,7 +23,7 @@ from collections import deque
 import casadi as ca
 import numpy as np
 
-from .. import interrupt
+from .. import interrupt, residual
 from ..errors import InputError
 from .base import Solution, Solver
 
@@ -61,6 +61,9 @@ class _IdasBase(Solver):
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         m = self.model
         n3 = m.n_coordinates
+        # constraint rows divided by their scale at the start (constrained.residual), so IDAS
+        # sees the same equations and multipliers (in N) whatever scale a formula is written in
+        self.row_scales = residual.row_scales(m, x0, t0)
         dae, nz = self.dae()
         grid = np.asarray(t_eval, float) if t_eval is not None else np.linspace(t0, t_end, 201)
         grid = grid[grid > t0]
@@ -90,6 +93,8 @@ class _IdasBase(Solver):
         opts["max_num_steps"] = STEPS_PER_CALL
         self.watch_stiffness(x0, t0, t_end)
         scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
+        # projection tolerances in metres (constrained.residual): |f| ≤ tol × smallest row scale
+        tol_f = 1e-14 * residual.smallest_scale(m, x0, t0)
         retries = list(RESTART_STEPS)
         while queue:
             seg = queue.popleft()
@@ -140,7 +145,7 @@ class _IdasBase(Solver):
             for k, (tk, output) in enumerate(seg):
                 x, v = X[:n3, k], X[n3:, k]
                 if self.project_outputs:
-                    x, _, _ = m.project_positions(x, tk, tol=1e-14 * max(scale, np.max(np.abs(x))))
+                    x, _, _ = m.project_positions(x, tk, tol=tol_f * max(scale, np.max(np.abs(x))))
                     v = m.project_velocities(x, v, tk)
                     self.stats["projections"] += 1
                 if output:
@@ -152,7 +157,7 @@ class _IdasBase(Solver):
             if not self.project_outputs and queue:
                 # the next call restarts IDAS, whose index-2 corrector (ggl) needs a start on
                 # both constraint levels to round-off: the restart point is projected
-                x, _, _ = m.project_positions(x, t_prev, tol=1e-14 * max(scale, np.max(np.abs(x))))
+                x, _, _ = m.project_positions(x, t_prev, tol=tol_f * max(scale, np.max(np.abs(x))))
                 v = m.project_velocities(x, v, t_prev)
             state = np.concatenate([x, v])
             z = self.algebraic_guess(x, v, t_prev)
@@ -182,13 +187,15 @@ class Idas(_IdasBase):
         lam = ca.SX.sym("lam", C)
         minv = ca.DM(m.inverse_masses)
         F, J, gamma = m.dynamics(x, v, t)
+        w = ca.DM(1.0 / self.row_scales)
+        J, gamma = ca.mtimes(ca.diag(w), J), w * gamma  # rows in metres
         a = minv * (F + ca.mtimes(J.T, lam))
         dae = {"x": ca.vertcat(x, v), "z": lam, "t": t, "ode": ca.vertcat(v, a),
                "alg": ca.mtimes(J, a) + gamma}
         return dae, C
 
     def algebraic_guess(self, x, v, t):
-        return self.model.accelerations(x, v, t)[1]
+        return self.model.accelerations(x, v, t)[1] * self.row_scales
 
 
 class GGL(_IdasBase):
@@ -207,13 +214,16 @@ class GGL(_IdasBase):
         F, J, _ = m.dynamics(x, v, t)
         _, f_t = m.velocity_terms(x, t)
         f = m.constraint(x, t)
+        w = ca.DM(1.0 / self.row_scales)  # rows in metres (see run)
+        J, f_t, f = ca.mtimes(ca.diag(w), J), w * f_t, w * f
         dae = {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu), "t": t,
                "ode": ca.vertcat(v + minv * ca.mtimes(J.T, mu), minv * (F + ca.mtimes(J.T, lam))),
                "alg": ca.vertcat(f, ca.mtimes(J, v) + f_t)}
         return dae, 2 * C
 
     def algebraic_guess(self, x, v, t):
-        return np.concatenate([self.model.accelerations(x, v, t)[1], np.zeros(self.model.n_constraints)])
+        return np.concatenate([self.model.accelerations(x, v, t)[1] * self.row_scales,
+                               np.zeros(self.model.n_constraints)])
 
     def extra_options(self) -> dict:
         return {"suppress_algebraic": True, "calc_ic": False}

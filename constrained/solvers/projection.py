@@ -13,7 +13,7 @@ import numpy as np
 from scipy.integrate import DOP853, RK45, Radau
 
 from .. import compiled as compiled_evaluation
-from .. import diagnostics, interrupt
+from .. import diagnostics, interrupt, residual
 from ..errors import InputError
 from .base import Solution, Solver
 
@@ -76,6 +76,12 @@ class Projection(Solver):
             return x, v
         m = self.model
         x, err, _ = m.project_positions(x, t, tol=self.position_tol)
+        # err is max |f|; in metres every row |f_i| / s_i ≤ err / s_min (constrained.residual),
+        # and where that bound is too coarse the residual is measured in metres
+        if np.isfinite(err):
+            err = err / self.row_scale
+            if err > PROJECTION_FAIL * self.scale:
+                err = residual.position_residual(m, x, t)
         if not np.isfinite(err) or err > PROJECTION_FAIL * self.scale:
             raise _ProjectionFailed(t, err)
         v = m.project_velocities(x, v, t)
@@ -95,12 +101,14 @@ class Projection(Solver):
 
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         self.scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
+        # tolerances are in metres: |f| ≤ tol × (smallest row scale) keeps every row within tol
+        self.row_scale = residual.smallest_scale(self.model, x0, t0)
         if self.base.startswith("CVODES"):
             return self._run_cvodes(x0, v0, t0, t_end, t_eval)
         m = self.model
         n = m.n_coordinates
         scale = self.scale
-        self.position_tol = 1e-14 * scale
+        self.position_tol = 1e-14 * scale * self.row_scale
 
         def rhs(t, y):
             dy = self.derivative(t, y)
@@ -162,7 +170,7 @@ class Projection(Solver):
                         xk, vk = self.project(yk[:n], yk[n:], tk)
                     except _ProjectionFailed as exc:
                         failure = (f"the state could not be brought back onto the constraints at "
-                                   f"t = {tk:.6g} s (residual {exc.args[1]:.3g} after Newton); "
+                                   f"t = {tk:.6g} s (residual {exc.args[1]:.3g} m after Newton); "
                                    + self.diagnose(*good[1:], good[0]))
                         break
                     ts.append(tk)
@@ -175,7 +183,7 @@ class Projection(Solver):
                     x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
                 except _ProjectionFailed as exc:
                     failure = (f"the state could not be brought back onto the constraints at "
-                               f"t = {integ.t:.6g} s (residual {exc.args[1]:.3g} after Newton); "
+                               f"t = {integ.t:.6g} s (residual {exc.args[1]:.3g} m after Newton); "
                                + self.diagnose(*good[1:], good[0]))
                     break
                 y = np.concatenate([x, v])
@@ -255,8 +263,8 @@ class Projection(Solver):
 
         m = self.model
         n = m.n_coordinates
-        scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
-        self.position_tol = 1e-14 * scale
+        scale = self.scale
+        self.position_tol = 1e-14 * scale * self.row_scale
         grid = (np.asarray(t_eval, float) if t_eval is not None
                 else np.linspace(t0, t_end, self.CVODES_SEGMENTS + 1))
         integ = self._integrator

@@ -27,7 +27,7 @@ import casadi as ca
 import numpy as np
 
 from .. import compiled as compiled_evaluation
-from .. import diagnostics
+from .. import diagnostics, residual
 from ..errors import InputError
 from .base import Solution, Solver
 
@@ -83,7 +83,8 @@ class Rattle(Solver):
                 lam_k = lam_k - ca.solve(ca.mtimes(J1, kick * J0.T), f1, "qr")
             v_half = v + 0.5 * h * minv * (F0 + ca.mtimes(J0.T, lam_k))
             x1 = x + h * v_half
-            residual = ca.mmax(ca.fabs(m.constraint(x1, t1)))
+            # in metres: each row over its scale at the start (constrained.residual)
+            residual = ca.mmax(ca.fabs(m.constraint(x1, t1)) / ca.DM(self.row_scales))
             F1, J1, _ = m.dynamics(x1, v_half, t1)
             _, f_t1 = m.velocity_terms(x1, t1)
             v_pred = v_half + 0.5 * h * minv * F1
@@ -126,6 +127,7 @@ class Rattle(Solver):
                     f"method 'rattle' outputs at multiples of its step ({h:.6g} s); "
                     "give t_eval on that grid or omit it"
                 )
+        self.row_scales = residual.row_scales(m, x0, t0) if C else np.zeros(0)
         step = self._step(h)
         lam0 = self.model.accelerations(x0, v0, t0)[1] if C else np.zeros(0)
         state = np.concatenate([x0, v0, [t0], lam0, [0.0]])
@@ -164,7 +166,7 @@ class Rattle(Solver):
                 if new[-1] > self.newton_tol * self.scale:
                     failure = (
                         f"Newton for the position multipliers did not converge between t = "
-                        f"{state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s (|f| = {new[-1]:.3g} after "
+                        f"{state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s (|f| = {new[-1]:.3g} m after "
                         f"{self.newton_iterations} iterations): reduce dt"
                     )
                     break
