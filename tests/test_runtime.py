@@ -317,3 +317,26 @@ def test_a_scaled_surface_starts_statics_and_reports_in_metres():
         eq = C.equilibrium(system, np.array([[0.3, 0.1, -0.9]]))
         assert np.allclose(eq.x, [[0, 0, -1]], atol=1e-12) and eq.stable
         assert eq.max_constraint_residual <= 1e-15
+
+
+# --- item 8: what idas's rtol buys, as docs/methods.md states it -----------------------------------
+DP_REF_T2 = np.array([[-0.2178006147474844, 0.975993284923425],
+                      [-0.1006848373741372, -0.01712498330560951]])  # /work/shared/reference
+
+
+@pytest.mark.parametrize("rtol", [1e-8, 1e-10, 1e-12])
+def test_idas_accuracy_is_what_methods_md_says(rtol):
+    import constrained as C
+
+    s = C.System(name="double pendulum")
+    th1, th2 = 2.0, 2.5  # the reference's exact angles
+    p1 = [np.sin(th1), -np.cos(th1), 0.0]
+    s.add_particle("p1", 1.0, p1)
+    s.add_particle("p2", 1.0, [p1[0] + np.sin(th2), p1[1] - np.cos(th2), 0.0])
+    s.add(C.Distance("p1", point=[0, 0, 0], length=1.0), C.Distance("p1", "p2", length=1.0),
+          C.Plane(["p1", "p2"], [0, 0, 1]), C.Gravity([0, -9.81, 0]))
+    tr = C.simulate(s, 2.0, method="idas", rtol=rtol, atol=rtol, t_eval=np.linspace(0, 2, 21))
+    error = np.max(np.abs(tr.x[-1, :, :2] - DP_REF_T2))
+    # methods.md: the error at the end is 100-300x rtol (local error per BDF step)
+    assert error <= 500 * rtol
+    assert np.max(tr.constraint_residual) <= 1e-13  # the outputs are projected
