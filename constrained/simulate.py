@@ -223,6 +223,7 @@ def simulate(
         )
     if solution.failure:
         cause = ("" if "likely cause" in solution.failure else
+                 _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         raise SimulationError(
@@ -230,6 +231,23 @@ def simulate(
             trajectory=traj,
         )
     return traj
+
+
+def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: float, stats: dict) -> str:
+    """'; likely cause: stiffness: ...' when a barely stretched spring far faster than the run
+    explains a stop the solver could not name (diagnostics.StiffnessWatch), else ''."""
+    try:
+        watch = diagnostics.StiffnessWatch(model, x0, t0, t_end, method=stats.get("method", ""))
+        t = float(traj.t[-1]) if len(traj.t) else t0
+        element = watch.fastest()  # as at the start: an unstable step stretches it later
+        if element is None or not element.rigid_like:
+            return ""
+        dt = stats.get("dt")
+        limit = (f"; the fixed step dt = {dt:.3g} s is beyond its stability limit 2/ω = "
+                 f"{2 / element.omega:.3g} s" if dt and dt * element.omega > 2 else "")
+        return f"; {watch.describe(element, t, int(stats.get('steps', 0) or 0))}{limit}"
+    except Exception:  # a diagnosis must never hide the stop itself
+        return ""
 
 
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
