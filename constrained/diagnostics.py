@@ -306,6 +306,13 @@ def likely_cause(model, x, v, t: float) -> str:
             sing = singularity(model, x, t)
             if sing.sigma < 1e-3:
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
+        strongest = _strongest_effect(model, model.symbols, np.asarray(x, float).ravel(),
+                                      np.asarray(v, float).ravel(), t)
+        if strongest is not None and strongest[3] > 1e100:  # one step of it overflows the state
+            k, label, particle, size = strongest
+            return (f"likely cause: effect {k} ('{label}') pushes particle '{particle}' with a force of "
+                    f"{size:.3g} N at t = {t:.6g} s: a formula overflows there (e.g. exp of a large "
+                    "number); check the formula, its units and its scale")
         a, _ = model.accelerations(x, v, t)
         acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
         k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
@@ -348,6 +355,13 @@ def nonfinite_cause(model, x, v, t: float) -> str:
             rows = np.flatnonzero(~np.all(np.isfinite(np.hstack([f, J])), axis=1))
             found += [f"constraint '{model.constraint_labels[r]}' is not finite (or its gradient)"
                       for r in rows[:3]]
+        if not found:
+            strongest = _strongest_effect(model, s, x, v, t)
+            if strongest is not None:
+                k, label, particle, size = strongest
+                if size > 1e100:  # finite, but one step of it overflows the state
+                    found.append(f"effect {k} ('{label}') pushes particle '{particle}' with a force "
+                                 f"of {size:.3g} N")
     except Exception:  # a diagnosis must never hide the stop itself
         found = []
     if not found:
@@ -496,3 +510,29 @@ class StiffnessWatch:
                 f"the run of {length:g} s{pace}. Its stretch is {e.stretch:.2g} m of {e.rest:g} m: "
                 f"{e.constraint_advice()}; or, to keep the spring, use a method that steps over the "
                 'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
+
+
+def _strongest_effect(model, s, x, v, t):
+    """(index, label, particle, |F|) of the effect with the largest force on one particle."""
+    import casadi as ca
+
+    best = None
+    for k, effect in enumerate(model.system.effects):
+        term = effect.term(s)
+        if isinstance(term, int | float):
+            continue
+        if effect.slot == "potential":
+            force = -ca.gradient(term, s.x)
+        elif effect.slot == "dissipation":
+            force = -ca.gradient(term, s.v)
+        elif effect.slot == "applied_force":
+            force = term
+        else:
+            continue
+        F = np.asarray(ca.Function("force", [s.x, s.v, s.t], [force])(x, v, t), float).reshape(-1, 3)
+        big = np.max(np.abs(F), axis=1, keepdims=True)  # scaled: |F| itself may be near overflow
+        norms = big.ravel() * np.linalg.norm(F / np.where(big > 0, big, 1.0), axis=1)
+        i = int(np.argmax(norms))
+        if best is None or norms[i] > best[3]:
+            best = (k, effect.label, model.system.particles[i].name, float(norms[i]))
+    return best

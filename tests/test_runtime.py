@@ -342,3 +342,16 @@ def test_idas_accuracy_is_what_methods_md_says(rtol):
     # methods.md: the error at the end is 100-300x rtol (local error per BDF step)
     assert error <= 500 * rtol
     assert np.max(tr.constraint_residual) <= 1e-13  # the outputs are projected
+
+
+@pytest.mark.parametrize("method", ["projection", "dopri", "rattle"])
+def test_a_force_that_overflows_the_state_names_its_effect(tmp_path, method):
+    import constrained as C
+
+    scene = tmp_path / "push.toml"
+    scene.write_text(OVERFLOW.replace("EXPR", "exp(1e3 * (x_p - 0.5))"))  # 1.4e220 N at the start
+    with pytest.raises(C.SimulationError, match="likely cause: effect 0 \\('runaway'\\)") as info:
+        C.simulate(C.load_scene(scene).system, 1.0, method=method, dt=1e-3 if method == "rattle" else None)
+    assert "overflows" in str(info.value)
+    kept = info.value.trajectory
+    assert len(kept.t) >= 1 and np.all(np.isfinite(kept.x))

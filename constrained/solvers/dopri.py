@@ -263,7 +263,7 @@ class Dopri(Solver):
                         last = cols[np.argmin(ok) - 1] if not ok[0] else before
                         state = last
                         failure = (f"non-finite state after t = {last[T]:.6g} s; "
-                                   + diagnostics.likely_cause(m, last[:n], last[n:2 * n], last[T]))
+                                   + diagnostics.nonfinite_cause(m, last[:n], last[n:2 * n], last[T]))
                         break
                     if state[RES] > PROJECTION_FAIL * scale:
                         failure = (f"the state could not be kept on the constraints near "

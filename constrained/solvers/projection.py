@@ -146,7 +146,7 @@ class Projection(Solver):
                 message = integ.step()
             except _NonFinite as exc:
                 failure = (f"non-finite accelerations at t = {exc.args[0]:.6g} s; "
-                           + self.diagnose(*good[1:], good[0]))
+                           + diagnostics.nonfinite_cause(m, *good[1:], good[0]))
                 break
             except KeyboardInterrupt:
                 failure = self.interrupted_at(good[0])
