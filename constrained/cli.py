@@ -539,7 +539,7 @@ def _crosscheck(args) -> int:
             check = cross_check(scene, t_end)
     except SimulationError as exc:
         _say_error(f"scene file {file}: {exc}")
-        return 1
+        return 130 if isinstance(exc, RunInterrupted) else 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
     written = []

@@ -51,8 +51,10 @@ def watch():
     try:
         yield
     finally:
+        # the run has read the request (its Solution says "interrupted"); what runs next
+        # outside a watch must not see it
         signal.signal(signal.SIGINT, previous)
-        _state.update(active=0, raising=0)
+        _state.update(active=0, raising=0, requested=False)
 
 
 @contextlib.contextmanager

@@ -355,3 +355,24 @@ def test_a_force_that_overflows_the_state_names_its_effect(tmp_path, method):
     assert "overflows" in str(info.value)
     kept = info.value.trajectory
     assert len(kept.t) >= 1 and np.all(np.isfinite(kept.x))
+
+
+def test_a_stop_request_ends_with_its_run(monkeypatch):
+    """The request of an interrupted run does not stop the next one (or a reduced solve)."""
+    import constrained as C
+    from constrained import interrupt
+
+    system = C.load_scene(SCENES / "double_pendulum.toml").system
+
+    def press_ctrl_c(t):
+        if t > 0.5:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(C.RunInterrupted) as info:
+        C.simulate(system, 2.0, method="projection", progress=press_ctrl_c)
+    kept = info.value.trajectory
+    assert 0.5 < kept.t[-1] < 2.0 and kept.info["status"] == "interrupted"
+    assert not interrupt.requested()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    after = C.simulate(system, 2.0, method="projection")
+    assert after.t[-1] == 2.0 and after.info["status"] == "completed"
