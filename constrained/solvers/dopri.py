@@ -22,6 +22,8 @@ can chain a fixed number of attempts per call and Python only picks how many.
 
 from __future__ import annotations
 
+import time
+
 import casadi as ca
 import numpy as np
 from scipy.integrate import DOP853, RK45
@@ -36,8 +38,10 @@ from .base import Solution, Solver
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
 #: (the one-time C compile takes a few seconds there and is cached; beyond, it grows steeply).
 AUTO_COMPILE_COORDINATES = 200
-#: Attempts chained per CasADi call; Python picks the largest not above the expected count.
+#: Attempts chained per CasADi call; Python picks the largest not above the expected count
+#: (and not above one whose call took longer than CHUNK_SECONDS: Ctrl-C waits for a call).
 CHUNKS = (1, 8, 64)
+CHUNK_SECONDS = 0.1
 #: Up to this many constraint rows the whole step is one SX expression (the KKT solves
 #: written out symbolically): ~2.7x faster than calling the sparse linear solver.
 SYMBOLIC_MAX_CONSTRAINTS = 8
@@ -242,6 +246,7 @@ class Dopri(Solver):
             return np.concatenate([y[n:], m.accelerations(y[:n], y[n:], t)[0]])
 
         self.watch_stiffness(x0, t0, t_end)
+        longest = CHUNKS[-1]
         try:
             for target in targets:
                 state[TARGET] = target
@@ -253,9 +258,13 @@ class Dopri(Solver):
                     if failure:
                         break
                     expected = (target - state[T]) / max(state[H], 1e-300) + 1
-                    k = max(c for c in CHUNKS if c <= max(expected, 1))
+                    k = max(c for c in CHUNKS if c <= max(expected, 1) and c <= longest)
                     before = state
+                    called = time.perf_counter()
                     (out,) = chunks[k](state)
+                    if k > 1 and time.perf_counter() - called > CHUNK_SECONDS:
+                        # Ctrl-C waits for the call: keep calls short on slow (large) models
+                        longest = max(c for c in CHUNKS if c < k)
                     cols = out.reshape(k, -1)
                     state = cols[-1]
                     if not np.all(np.isfinite(state)):

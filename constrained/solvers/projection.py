@@ -32,6 +32,8 @@ PROJECTION_FAIL = 1e-8
 #: after every accepted step for models up to SINGULAR_WATCH_MAX coordinates.
 SINGULAR_TOL = 1e-4
 SINGULAR_WATCH_MAX = 300
+#: This many accepted steps in a row below 1e-14 of the run stop it (a collapsed step size).
+COLLAPSED_STEPS = 100
 
 
 
@@ -133,7 +135,7 @@ class Projection(Solver):
         good = (t0, x0, v0)  # the last accepted, projected state
         watch_rank = self._watch_rank(x0, t0)
         watch = self.base in EXPLICIT
-        h_rho, rho_max = [], 0.0
+        h_rho, rho_max, tiny = [], 0.0, 0
         self.watch_stiffness(x0, t0, t_end)
         while integ.status == "running":
             if self.stop_requested():
@@ -157,6 +159,13 @@ class Projection(Solver):
                 break
             self.stats["steps"] += 1
             self.report(integ.t)
+            # SciPy only stops at h < 10 eps |t|, which near t = 0 is no limit at all: steps
+            # below 1e-14 of the run, many in a row, are a collapse too
+            tiny = tiny + 1 if (integ.step_size or 0.0) < 1e-14 * max(t_end - t0, abs(integ.t)) else 0
+            if tiny > COLLAPSED_STEPS:
+                failure = (f"the step size collapsed at t = {integ.t:.6g} s (h = {integ.step_size:.3g} s "
+                           f"for {tiny} steps); " + diagnostics.nonfinite_cause(m, *good[1:], good[0]))
+                break
             if watch and self.stats["steps"] % STIFFNESS_EVERY == 0 and integ.step_size:
                 rho = diagnostics.spectral_radius(self.derivative, integ.t, integ.y)
                 rho_max = max(rho_max, rho)
