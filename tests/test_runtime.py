@@ -376,3 +376,26 @@ def test_a_stop_request_ends_with_its_run(monkeypatch):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     after = C.simulate(system, 2.0, method="projection")
     assert after.t[-1] == 2.0 and after.info["status"] == "completed"
+
+
+@pytest.mark.parametrize("constraint", [
+    'type = "custom"\nexpr = "SCALE * (x_p**2 + y_p**2 + z_p**2 - 1)"',
+    'type = "distance"\na = "p"\npoint = [0.0, 0.0, 0.0]\nlength = 1.0',  # metres already
+])
+def test_every_constraint_type_reports_its_residual_in_metres(constraint):
+    import tomllib
+
+    import constrained as C
+    from constrained.scene import build_scene
+
+    runs = []
+    for scale in ("1", "1e8", "1e-8"):
+        surface = 'type = "surface"\nparticles = ["p"]\nexpr = "SCALE * (x**2 + y**2 + z**2 - 1)"'
+        text = SPHERE.replace(surface, constraint).replace("SCALE", scale)
+        system = build_scene(tomllib.loads(text), path="sphere").system
+        runs.append(C.simulate(system, 1.0, rtol=1e-10, atol=1e-10, t_eval=np.linspace(0, 1, 11),
+                               outputs=["constraint_residual"]))
+    for tr in runs:
+        off = np.abs(np.linalg.norm(tr.x[:, 0], axis=1) - 1.0)
+        assert np.allclose(tr.constraint_residual, off, rtol=1e-3, atol=1e-15)
+        assert np.max(np.abs(tr.x - runs[0].x)) <= 1e-9
