@@ -95,7 +95,7 @@ class _IdasBase(Solver):
         scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
         # projection tolerances in metres (constrained.residual): |f| ≤ tol × smallest row scale
         tol_f = 1e-14 * residual.smallest_scale(m, x0, t0)
-        retries = list(RESTART_STEPS)
+        retries, pace = list(RESTART_STEPS), 0.0
         while queue:
             seg = queue.popleft()
             if self.stop_requested():
@@ -105,6 +105,12 @@ class _IdasBase(Solver):
             if failure:
                 break
             times = [tk for tk, _ in seg]
+            pieces = int(np.ceil(pace * (times[-1] - t_prev) / (STEPS_PER_CALL // 2)))
+            if pieces > 1:  # at the pace so far this call would run out of steps: split it first
+                inner = [(tk, False) for tk in np.linspace(t_prev, times[0], pieces + 1)[1:-1]]
+                if inner:
+                    queue.extendleft(reversed([[item] for item in inner] + [seg]))
+                    continue
             a_prev, _ = m.accelerations(state[:n3], state[n3:], t_prev)
             opts["init_xdot"] = np.concatenate([state[n3:], a_prev]).tolist()
             integ = ca.integrator("dae", "idas", dae, t_prev, times, opts)
@@ -138,6 +144,7 @@ class _IdasBase(Solver):
             if step0:
                 opts["step0"], retries = step0, list(RESTART_STEPS)
             stats = integ.stats()
+            pace = int(stats.get("nsteps", 0)) / max(times[-1] - t_prev, 1e-300)  # steps per second
             for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
                               ("rejected", "netfails")):
                 self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
