@@ -504,9 +504,9 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
                     "(not conserved in this scene: damping, driving or applied forces)")
         lines.append(text)
     if tr.constraint_residual is not None and len(tr.constraint_residual):
-        lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g}")
+        lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g} m")
     if tr.velocity_residual is not None and len(tr.velocity_residual):
-        lines.append(f"max velocity residual: {float(np.max(tr.velocity_residual)):.3g}")
+        lines.append(f"max velocity residual: {float(np.max(tr.velocity_residual)):.3g} m/s")
     lines.append("wrote: " + ", ".join(str(p) for p in written))
     print("\n".join(lines))
 
