@@ -20,7 +20,7 @@ from .derivation import (
     describe,
 )
 from .effects import Central, Damping, Electromagnetic, Force, Gravity, Pairwise, Potential, Spring
-from .errors import ConstrainedError, InconsistentStateError, InputError, SimulationError
+from .errors import ConstrainedError, InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .model import Model, assemble
 from .reduced import CrossCheck, ReducedModel
 from .simulate import simulate
@@ -57,7 +57,8 @@ __all__ = [
     "ActionResult", "PathResult", "StationarityResult", "stationarity", "stationary_path",
     "Central", "ConstrainedError", "ConstraintReport", "Curve", "Custom", "Damping", "Distance",
     "Electromagnetic", "Force", "Gravity", "InconsistentStateError", "InputError", "Model",
-    "Pairwise", "Particle", "Pin", "Plane", "Potential", "SimulationError", "Spring", "Surface", "System",
+    "Pairwise", "Particle", "Pin", "Plane", "Potential", "RunInterrupted", "SimulationError", "Spring",
+    "Surface", "System",
     "Trajectory", "assemble", "constraint_report", "degrees_of_freedom", "load_scene", "simulate",
     "Conservation", "CrossCheck", "EquationCheck", "ReducedModel", "check_equations", "conservation",
     "cross_check", "describe", "check_lagrangian", "check_generalized_forces",

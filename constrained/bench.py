@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, SimulationError
+from .errors import InputError, RunInterrupted, SimulationError
 from .model import assemble
 from .simulate import simulate
 from .trajectory import atomic_write
@@ -152,6 +152,8 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
         )
     except _Skip:
         pass
+    except RunInterrupted:  # Ctrl-C stops the whole measurement, not just this run
+        raise KeyboardInterrupt from None
     except (InputError, SimulationError) as exc:
         result.notes.append(f"reference: projection at rtol 1e-13 (not cross-checked: {exc})")
     if math.isfinite(result.reference_error) and result.reference_error > 1e-6:
@@ -184,6 +186,8 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
                     tr = simulate(system, t_end, method=name, t_eval=[0.0, t_end], model=model,
                                   outputs={"energy", "constraint_residual", "velocity_residual"}, **opts)
                     times.append(tr.stats["wall_time_s"])
+            except RunInterrupted:  # Ctrl-C: not a failed method; the measurement stops
+                raise KeyboardInterrupt from None
             except (InputError, SimulationError) as exc:
                 row["status"] = f"failed: {str(exc).splitlines()[0][:120]}"
                 result.rows.append(row)

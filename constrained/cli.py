@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InconsistentStateError, InputError, SimulationError
+from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .scene import (
     _KEY_RE,
     SIMULATE_DEFAULTS,
@@ -336,14 +336,14 @@ def _run(args) -> int:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
                 _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
             trajectory = simulate(scene.system, s["t_end"], progress=progress, **kwargs)
-    except SimulationError as exc:
+    except SimulationError as exc:  # RunInterrupted (Ctrl-C) too: exit status 130
         message = f"scene file {file}: {exc}"
         partial = exc.trajectory
         if partial is not None and len(partial.t):
             path = partial.save(out_dir / "trajectory.npz", quantities=quantities)
             message += f"; what was computed up to t = {partial.t[-1]:.6g} s is saved in {path}"
         _say_error(message)
-        return 1
+        return 130 if isinstance(exc, RunInterrupted) else 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
 
@@ -394,6 +394,8 @@ class _progress:
         self.enabled = not quiet and sys.stderr.isatty()
         self.t_start, self.t_end = float(t_start), float(t_end)
         self.bar = None
+        # once the time loop runs (its first report), one line says how to stop it
+        self.announce = not quiet
 
     def __enter__(self):
         if self.enabled:
@@ -408,6 +410,10 @@ class _progress:
         return self
 
     def __call__(self, t: float) -> None:
+        if self.announce:
+            self.announce = False
+            print(f"simulating to t = {self.t_end:g} s (Ctrl-C stops the run and saves what was "
+                  "computed)", flush=True)
         if self.bar is not None:
             self.bar.update(min(t - self.t_start, self.bar.total) - self.bar.n)
 
@@ -488,9 +494,9 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
                     "(not conserved in this scene: damping, driving or applied forces)")
         lines.append(text)
     if tr.constraint_residual is not None and len(tr.constraint_residual):
-        lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g}")
+        lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g} m")
     if tr.velocity_residual is not None and len(tr.velocity_residual):
-        lines.append(f"max velocity residual: {float(np.max(tr.velocity_residual)):.3g}")
+        lines.append(f"max velocity residual: {float(np.max(tr.velocity_residual)):.3g} m/s")
     lines.append("wrote: " + ", ".join(str(p) for p in written))
     print("\n".join(lines))
 
@@ -524,7 +530,7 @@ def _crosscheck(args) -> int:
             check = cross_check(scene, t_end)
     except SimulationError as exc:
         _say_error(f"scene file {file}: {exc}")
-        return 1
+        return 130 if isinstance(exc, RunInterrupted) else 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
     written = []

@@ -257,6 +257,13 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
             sing = singularity(model, x, t, rank=min(rank, model.n_coordinates))
             if sing.sigma < 1e-3:
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
+        strongest = _strongest_effect(model, model.symbols, np.asarray(x, float).ravel(),
+                                      np.asarray(v, float).ravel(), t)
+        if strongest is not None and strongest[3] > 1e100:  # one step of it overflows the state
+            k, label, particle, size = strongest
+            return (f"likely cause: effect {k} ('{label}') pushes particle '{particle}' with a force of "
+                    f"{size:.3g} N at t = {t:.6g} s: a formula overflows there (e.g. exp of a large "
+                    "number); check the formula, its units and its scale")
         a, _ = manifold.accelerations(x, v, t)
         acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
         k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
@@ -266,3 +273,217 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
                 f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
     except Exception:  # a diagnosis must never hide the stop itself
         return "likely cause: a singular configuration, stiffness, or forces that blow up"
+
+
+# --- non-finite values ----------------------------------------------------------------------------
+def nonfinite_cause(model, x, v, t: float) -> str:
+    """The likely cause of non-finite values (energy, forces, multipliers) at the state (x, v, t):
+    the effects whose term or force is not finite there, else the constraints, else
+    ``likely_cause``. A diagnosis only: the equations are not changed."""
+    import casadi as ca
+
+    s = model.symbols
+    x = np.asarray(x, float).ravel()
+    v = np.asarray(v, float).ravel()
+    found = []
+    try:
+        for k, effect in enumerate(model.system.effects):
+            term = effect.term(s)
+            if isinstance(term, int | float):  # a constant formula (folded by the parser)
+                term = ca.SX(term)
+            parts = {"potential": [term, ca.gradient(term, s.x)],
+                     "generalized_potential": [term, ca.gradient(term, s.x), ca.gradient(term, s.v)],
+                     "dissipation": [term, ca.gradient(term, s.v)]}.get(effect.slot, [term])
+            f = ca.Function("term", [s.x, s.v, s.t], [ca.vertcat(*[ca.vec(p) for p in parts])])
+            values = np.asarray(f(x, v, t)).ravel()
+            if not np.all(np.isfinite(values)):
+                what = {"potential": "potential energy or its force", "applied_force": "force",
+                        "dissipation": "damping force", "generalized_potential": "generalized potential"}
+                found.append(f"effect {k} ('{effect.label}') gives a non-finite "
+                             f"{what.get(effect.slot, 'term')} ({values[0]:.3g})")
+        if not found and model.n_constraints:
+            f, J = (np.asarray(a) for a in model.jacobian(x, t))
+            rows = np.flatnonzero(~np.all(np.isfinite(np.hstack([f, J])), axis=1))
+            found += [f"constraint '{model.constraint_labels[r]}' is not finite (or its gradient)"
+                      for r in rows[:3]]
+        if not found:
+            strongest = _strongest_effect(model, s, x, v, t)
+            if strongest is not None:
+                k, label, particle, size = strongest
+                if size > 1e100:  # finite, but one step of it overflows the state
+                    found.append(f"effect {k} ('{label}') pushes particle '{particle}' with a force "
+                                 f"of {size:.3g} N")
+    except Exception:  # a diagnosis must never hide the stop itself
+        found = []
+    if not found:
+        return likely_cause(model, x, v, t)
+    return (f"likely cause: {'; '.join(found)} at the state reached at t = {t:.6g} s: a formula "
+            "overflows there (beyond ~1.8e308, e.g. exp of a large number) or divides by zero; "
+            "check the formula, its units and its scale")
+
+
+# --- stiff elements: springs much stiffer than the motion they carry --------------------------------
+#: A spring whose stretch is below this fraction of its length stands for a rigid link.
+RIGID_STRETCH = 1e-6
+
+
+@dataclass
+class StiffElement:
+    """A spring effect and its oscillation: ω² = k / m_reduced (m_a m_b / (m_a + m_b), or m_a
+    for a spring to a point), ``period`` = 2π/ω; ``stretch`` |ℓ − rest| at the state given."""
+
+    index: int
+    label: str
+    k: float
+    reduced_mass: float
+    omega: float
+    length: float
+    rest: float
+    stretch: float
+    ends: tuple
+
+    @property
+    def period(self) -> float:
+        return 2 * np.pi / self.omega
+
+    @property
+    def rigid_like(self) -> bool:
+        return self.stretch <= RIGID_STRETCH * max(self.rest, self.length, 1e-300)
+
+    def constraint_advice(self) -> str:
+        a, b = self.ends
+        other = f'b = "{b}"' if isinstance(b, str) else f"point = {list(b)}"
+        return (f'a spring that stiff stands for a rigid link: replace it by a constraint '
+                f'(type = "distance", a = "{a}", {other}, length = {self.rest:g})')
+
+
+def stiff_springs(model, x, t: float = 0.0) -> list[StiffElement]:
+    """The scene's springs with their oscillation at the state (x, t), fastest first (springs
+    whose stiffness or rest length are not plain numbers at t are evaluated there)."""
+    import casadi as ca
+
+    from .effects import Spring
+
+    s, system = model.symbols, model.system
+    x = np.asarray(x, float).reshape(-1, 3)
+    found = []
+    for index, effect in enumerate(system.effects):
+        if not isinstance(effect, Spring):
+            continue
+        try:
+            where = f"effects[{index}]"
+            k, rest = (float(np.asarray(ca.Function("c", [s.t], [ca.SX(s.time_function(v, where))])(t),
+                                        float).ravel()[0]) for v in (effect.k, effect.rest))
+            ia = s.index(effect.a, where)
+            ma = float(system.masses[ia])
+            if effect.b is not None:
+                ib = s.index(effect.b, where)
+                mb, xb, other = float(system.masses[ib]), x[ib], effect.b
+            else:
+                p = ca.Function("p", [s.t], [s.point(effect.point, where)])
+                mb, xb = np.inf, np.asarray(p(t), float).ravel()
+                other = tuple(float(c) for c in xb)
+        except Exception:  # a diagnosis only: a spring it cannot evaluate is left out
+            continue
+        if not (np.isfinite(k) and k > 0):
+            continue
+        m_red = ma if not np.isfinite(mb) else ma * mb / (ma + mb)
+        length = float(np.linalg.norm(x[ia] - xb))
+        found.append(StiffElement(index, effect.label, k, m_red, float(np.sqrt(k / m_red)), length, rest,
+                                  abs(length - rest), (effect.a, other)))
+    return sorted(found, key=lambda e: -e.omega)
+
+
+class StiffnessWatch:
+    """Watches a run for a spring that holds the steps down to its own oscillation.
+
+    The solvers call ``check(t, steps, x)`` after every step or chunk (it costs a clock read).
+    From ``AFTER_S`` seconds of wall time on, twice a second: when reaching t_end at the pace
+    so far would take more than ``BUDGET_S`` seconds, the run is more than ``MIN_PERIODS``
+    periods of the fastest spring long, the steps average less than that period, and the
+    spring is barely stretched (a rigid link in disguise), ``check`` returns the diagnosis
+    (the run stops with it); otherwise None.
+    """
+
+    AFTER_S = 2.0
+    BUDGET_S = 15.0
+    MIN_PERIODS = 1e3
+
+    def __init__(self, model, x0, t0: float, t_end: float, *, method: str):
+        import time
+
+        self._clock = time.perf_counter
+        self.model, self.t0, self.t_end, self.method = model, float(t0), float(t_end), method
+        length = self.t_end - self.t0
+        self.elements = [e for e in stiff_springs(model, x0, t0) if e.period * self.MIN_PERIODS < length]
+        self.started = self._clock()
+        self.next = self.started + self.AFTER_S
+
+    def check(self, t: float, steps: int, x=None) -> str | None:
+        if not self.elements:
+            return None
+        now = self._clock()
+        if now < self.next:
+            return None
+        self.next = now + 0.5
+        done = float(t) - self.t0
+        projected = np.inf if done <= 0 else (now - self.started) * (self.t_end - self.t0) / done
+        if projected < self.BUDGET_S:
+            return None
+        element = self.fastest(x, t)
+        if element is None or not element.rigid_like or (steps and done / steps > element.period):
+            return None
+        return self.describe(element, t, steps, projected)
+
+    def fastest(self, x=None, t: float | None = None) -> StiffElement | None:
+        """The fastest watched spring, re-measured at (x, t) when given."""
+        if not self.elements:
+            return None
+        if x is None:
+            return self.elements[0]
+        now = stiff_springs(self.model, x, self.t0 if t is None else t)
+        return next((e for e in now if e.index == self.elements[0].index), self.elements[0])
+
+    def describe(self, element: StiffElement, t: float, steps: int | None = None,
+                 projected: float | None = None) -> str:
+        e, length = element, self.t_end - self.t0
+        pace = ""
+        if steps:
+            h = (float(t) - self.t0) / steps
+            total = steps * length / max(float(t) - self.t0, 1e-300)
+            pace = (f"; {self.method} took {steps} steps to t = {float(t):.3g} s (mean step {h:.3g} s, "
+                    f"{e.period / h:.3g} per period): about {total:.3g} steps to t_end")
+            if projected is not None and np.isfinite(projected):
+                pace += f", {projected:.0f} s of wall time"
+        return (f"likely cause: stiffness: the spring '{e.label}' (effect {e.index}) has k = {e.k:.3g} N/m "
+                f"on a reduced mass of {e.reduced_mass:.3g} kg, so it oscillates with period "
+                f"2π/ω = {e.period:.3g} s (ω = {e.omega:.3g} rad/s), {length / e.period:.3g} periods in "
+                f"the run of {length:g} s{pace}. Its stretch is {e.stretch:.2g} m of {e.rest:g} m: "
+                f"{e.constraint_advice()}; or, to keep the spring, use a method that steps over the "
+                'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
+
+
+def _strongest_effect(model, s, x, v, t):
+    """(index, label, particle, |F|) of the effect with the largest force on one particle."""
+    import casadi as ca
+
+    best = None
+    for k, effect in enumerate(model.system.effects):
+        term = effect.term(s)
+        if isinstance(term, int | float):
+            continue
+        if effect.slot == "potential":
+            force = -ca.gradient(term, s.x)
+        elif effect.slot == "dissipation":
+            force = -ca.gradient(term, s.v)
+        elif effect.slot == "applied_force":
+            force = term
+        else:
+            continue
+        F = np.asarray(ca.Function("force", [s.x, s.v, s.t], [force])(x, v, t), float).reshape(-1, 3)
+        big = np.max(np.abs(F), axis=1, keepdims=True)  # scaled: |F| itself may be near overflow
+        norms = big.ravel() * np.linalg.norm(F / np.where(big > 0, big, 1.0), axis=1)
+        i = int(np.argmax(norms))
+        if best is None or norms[i] > best[3]:
+            best = (k, effect.label, model.system.particles[i].name, float(norms[i]))
+    return best

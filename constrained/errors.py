@@ -36,3 +36,8 @@ class SimulationError(ConstrainedError, RuntimeError):
     def __init__(self, message: str, trajectory=None):
         self.trajectory = trajectory
         super().__init__(message)
+
+
+class RunInterrupted(SimulationError):
+    """A run stopped by Ctrl-C: ``trajectory`` holds the states computed until then
+    (``trajectory.info["status"] == "interrupted"``)."""

@@ -298,9 +298,26 @@ def velocity_correction_graph(model: Model, X, V, T, *, rows=None, linsol: str =
     return minv * ca.mtimes(J.T, schur_solve_graph(J, J, model.inverse_masses, c, linsol))
 
 
+def row_scales_expr(J, n_particles: int):
+    """s_i = max_p |∂f_i/∂x_p| as a column (C,) of J's type (SX or MX), 1 where a row's gradient
+    vanishes."""
+    C = J.shape[0]
+    if C == 0:
+        return ca.SX(0, 1)
+    per_particle = []
+    for p in range(n_particles):
+        block = J[:, 3 * p:3 * p + 3]
+        per_particle.append(ca.sqrt(ca.sum2(block * block)))
+    norms = per_particle[0]
+    for column in per_particle[1:]:
+        norms = ca.fmax(norms, column)
+    return ca.if_else(norms > 0, norms, 1.0)
+
+
 def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     """Two Newton steps onto f = 0, the second sharing its factorization with the velocity
-    projection: (x, v, max|f| before the last step). The step loops (dopri) use it."""
+    projection: (x, v, residual before the last step, in metres: max_i |f_i| / s_i with the row
+    scales of ``row_scales_expr``). The step loops (dopri) use it."""
     minv = ca.DM(model.inverse_masses)
     _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
     x = x - dx
@@ -309,7 +326,7 @@ def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     fs, Js, f_ts = _select(f, rows), _select(J, rows), _select(f_t, rows)
     sol = schur_solve_graph(Js, Js, model.inverse_masses, ca.horzcat(fs, ca.mtimes(Js, v) + f_ts), linsol)
     return (x - minv * ca.mtimes(Js.T, sol[:, 0]), v - minv * ca.mtimes(Js.T, sol[:, 1]),
-            ca.mmax(ca.fabs(f)))
+            ca.mmax(ca.fabs(f) / row_scales_expr(J, model.n_particles)))
 
 
 # --- the per-model functions, built once and shared by every run --------------------------------

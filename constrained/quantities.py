@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import residual
 from .manifold import constraint_forces_along, multipliers_along
 from .model import Model
 from .trajectory import QUANTITIES, Trajectory
@@ -39,18 +40,8 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
             traj.constraint_forces = constraint_forces_along(model, X, t, lam)
     if "energy" in wanted:
         traj.energy = model.evaluate(model.energy, X, V, t)[0].ravel()
-    if "constraint_residual" in wanted:
-        if model.n_constraints:
-            f = model.evaluate(model.constraint, X, t)[0]
-            traj.constraint_residual = np.max(np.abs(f), axis=0)
-        else:
-            traj.constraint_residual = np.zeros(n)
-    if "velocity_residual" in wanted:
-        if model.n_constraints:
-            Jcat, f_t = model.evaluate(model.velocity_terms, X, t)
-            J = Jcat.reshape(model.n_constraints, n, -1).transpose(1, 0, 2)
-            c = np.einsum("kci,ki->kc", J, V.reshape(n, -1)) + f_t.T
-            traj.velocity_residual = np.max(np.abs(c), axis=1)
-        else:
-            traj.velocity_residual = np.zeros(n)
+    if "constraint_residual" in wanted:  # in metres, whatever the scale of the formulas
+        traj.constraint_residual = residual.position_residual_along(model, X, t)
+    if "velocity_residual" in wanted:  # in m/s
+        traj.velocity_residual = residual.velocity_residual_along(model, X, V.reshape(n, -1), t)
     return traj

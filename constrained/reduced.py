@@ -28,7 +28,7 @@ import casadi as ca
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from . import expressions
+from . import expressions, interrupt
 from .errors import InputError, SimulationError
 from .model import Model, assemble
 from .quantities import trajectory_from
@@ -336,13 +336,14 @@ class ReducedModel:
         t_eval=None,
         outputs=None,
         max_step: float = math.inf,
+        progress=None,
     ) -> Trajectory:
         """Integrate M q̈ = rhs with DOP853 from (initial, rates) at t_start to t_end.
 
         Returns a Trajectory of the mapped x, v with the Cartesian quantities (energy from
         the Cartesian energy function, constraint residuals, KKT multipliers/forces at the
-        mapped states); ``info`` holds ``coordinates``, ``q``, ``q_dot`` (T, n) and
-        ``hamiltonian`` (T,)."""
+        mapped states); ``progress(t)``, if given, is told the time reached. ``info`` holds
+        ``coordinates``, ``q``, ``q_dot`` (T, n) and ``hamiltonian`` (T,)."""
         t0 = self.t0 if t_start is None else _number(t_start, "t_start")
         t_end = _number(t_end, "t_end")
         if t_end <= t0:
@@ -358,10 +359,22 @@ class ReducedModel:
             nfev[0] += 1
             return np.asarray(ode(y, t)).ravel()
 
+        stopped_at: list[float] = []
+
+        def stop(t, y):  # Ctrl-C (constrained.interrupt): a terminal event ends the run at the
+            if progress is not None:  # end of the step in which it was seen (a root there)
+                progress(t)
+            if not interrupt.requested():
+                return 1.0
+            if not stopped_at:
+                stopped_at.append(t)
+            return stopped_at[0] - t
+
+        stop.terminal = True
         started = time.perf_counter()
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             sol = solve_ivp(fun, (t0, t_end), np.concatenate([q0, qd0]), method="DOP853", rtol=rtol,
-                            atol=atol, t_eval=t_eval, max_step=max_step)
+                            atol=atol, t_eval=t_eval, max_step=max_step, events=stop)
         wall = time.perf_counter() - started
         Y = sol.y.T
         n = self.n

@@ -8,14 +8,19 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from . import diagnostics, interrupt
 from .action import action
-from .errors import InputError, SimulationError
+from .errors import InputError, RunInterrupted, SimulationError
 from .model import Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
+from .solvers.base import INTERRUPTED
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
-from .trajectory import Trajectory
+from .trajectory import QUANTITIES, Trajectory
+
+#: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
+INTERRUPTED_QUANTITY_SAMPLES = 5000
 
 
 def simulate(
@@ -73,18 +78,29 @@ def simulate(
         max_correction=max_initial_correction, size=system.size(),
     )
     x0, v0, correction = start.x, start.v, start.correction
+    _refuse_nonfinite_start(model, x0, v0, float(t_start))
     started = time.perf_counter()
     solver = METHODS[method](start.manifold, rtol=rtol, atol=atol, dt=dt, **options)
     setup_time = time.perf_counter() - started
     with one_blas_thread():  # see constrained.threads
         started = time.perf_counter()
-        solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
+        # Ctrl-C becomes a request the solver honours after its current step or chunk
+        with interrupt.watch():
+            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
+        interrupted = bool(solution.failure and solution.failure.startswith(INTERRUPTED))
+        if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
+            # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
+            # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
+            skipped, wanted = sorted(wanted & set(QUANTITIES)), set()
+        else:
+            skipped = []
         traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
         if "action" in wanted and len(traj.t) >= 2:
             traj.action = action(model, traj).cumulative
+    reached = float(traj.t[-1]) if len(traj.t) else float(t_start)
     traj.info.update(
         {
             "initial_correction": correction,
@@ -93,13 +109,32 @@ def simulate(
             "rtol": rtol,
             "atol": atol,
             "active_terms": sorted(model.active_terms),
+            "status": "interrupted" if interrupted else ("stopped" if solution.failure else "completed"),
+            "t_end": float(t_end),
+            "t_end_reached": reached,
         }
     )
-    if solution.failure and solution.failure.startswith("interrupted"):
-        raise SimulationError(f"the run was {solution.failure}; what was computed is kept",
-                              trajectory=traj)
+    if interrupted:
+        note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
+                f"{len(traj.t)} samples)" if skipped else "")
+        if skipped:
+            traj.info["quantities_skipped"] = skipped
+        raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
+                             f"what was computed is kept{note}", trajectory=traj)
+    bad = None if solution.failure else _first_nonfinite(model, traj, wanted)
+    if bad is not None:
+        what, k = bad
+        state = (traj.x[k].ravel(), traj.v[k].ravel(), float(traj.t[k]))
+        kept = traj.head(k)
+        kept.info.update(status="stopped", t_end_reached=float(kept.t[-1]) if k else float(t_start))
+        raise SimulationError(
+            f"non-finite {what} at t = {traj.t[k]:.6g} s; "
+            f"{diagnostics.nonfinite_cause(model, *state)}",
+            trajectory=kept,
+        )
     if solution.failure:
         cause = ("" if "likely cause" in solution.failure else
+                 _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         raise SimulationError(
@@ -107,3 +142,57 @@ def simulate(
             trajectory=traj,
         )
     return traj
+
+
+def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: float, stats: dict) -> str:
+    """'; likely cause: stiffness: ...' when a barely stretched spring far faster than the run
+    explains a stop the solver could not name (diagnostics.StiffnessWatch), else ''."""
+    try:
+        watch = diagnostics.StiffnessWatch(model, x0, t0, t_end, method=stats.get("method", ""))
+        t = float(traj.t[-1]) if len(traj.t) else t0
+        element = watch.fastest()  # as at the start: an unstable step stretches it later
+        if element is None or not element.rigid_like:
+            return ""
+        dt = stats.get("dt")
+        limit = (f"; the fixed step dt = {dt:.3g} s is beyond its stability limit 2/ω = "
+                 f"{2 / element.omega:.3g} s" if dt and dt * element.omega > 2 else "")
+        return f"; {watch.describe(element, t, int(stats.get('steps', 0) or 0))}{limit}"
+    except Exception:  # a diagnosis must never hide the stop itself
+        return ""
+
+
+def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
+    """Stop before stepping when the forces (or the energy) are not finite at the start."""
+    F = np.asarray(model.dynamics(x0, v0, t0)[0], float).ravel()
+    E = float(np.asarray(model.energy(x0, v0, t0), float).ravel()[0])
+    if np.all(np.isfinite(F)) and np.isfinite(E):
+        return
+    what = "forces" if not np.all(np.isfinite(F)) else f"energy ({E:g} J)"
+    start = trajectory_from(model, [t0], np.asarray(x0)[None], np.asarray(v0)[None], set())
+    start.info.update(status="stopped", t_end_reached=t0)
+    raise SimulationError(f"non-finite {what} at the initial state (t = {t0:g} s); "
+                          f"{diagnostics.nonfinite_cause(model, x0, v0, t0)}", trajectory=start)
+
+
+def _first_nonfinite(model: Model, traj: Trajectory, wanted):
+    """(name, index) of the first sample where a state or a computed quantity is not finite
+    (the energy is checked at the last sample even when not asked for), or None."""
+    n = len(traj.t)
+    if n == 0:
+        return None
+    first = None
+    for name in ("x", "v", *QUANTITIES):
+        values = getattr(traj, name)
+        if values is None or name == "action":
+            continue
+        ok = np.all(np.isfinite(values.reshape(n, -1)), axis=1)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            if first is None or k < first[1]:
+                first = ({"x": "positions", "v": "velocities"}.get(name, name.replace("_", " ")), k)
+    if first is None and "energy" not in wanted:
+        E = np.asarray(model.energy(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1]), float)
+        if not np.all(np.isfinite(E)):  # then find the first sample where it is not
+            E = model.evaluate(model.energy, traj.x.reshape(n, -1), traj.v.reshape(n, -1), traj.t)[0]
+            first = ("energy", int(np.argmin(np.isfinite(np.asarray(E).ravel()))))
+    return first

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import residual
 from .errors import InconsistentStateError
 from .manifold import RANK, Manifold, RankPolicy, redundant_rows
 from .model import Model
@@ -45,12 +46,18 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     if model.n_constraints and not np.all(np.isfinite(f0)):
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
+    # residuals and tolerances in metres: each row divided by its scale (constrained.residual)
+    scales = residual.row_scales(model, x0, t0) if model.n_constraints else np.ones(0)
+    f0 = f0 / scales if np.all(np.isfinite(scales)) and np.all(scales > 0) else f0
     worst = int(np.argmax(np.abs(f0))) if f0.size else 0
-    result = manifold.project_positions(x0, t0, tol=1e-13 * size, max_iter=50)
+    s_min = float(np.min(scales)) if scales.size and np.isfinite(np.min(scales)) else 1.0
+    result = manifold.project_positions(x0, t0, tol=1e-13 * size * s_min, max_iter=50)
     x, err = result.x, result.residual
+    if np.isfinite(err) and err > 1e-8 * size * s_min:
+        err = residual.position_residual(model, x, t0)
     dx = float(np.max(np.linalg.norm((x - x0).reshape(-1, 3), axis=1), initial=0.0))
     if err > 1e-8 * size or not np.isfinite(err):
-        f = np.asarray(model.constraint(x, t0)).ravel()
+        f = np.asarray(model.constraint(x, t0)).ravel() / np.where(scales > 0, scales, 1.0)
         k = int(np.nanargmax(np.abs(f)))
         from .diagnostics import incompatible_constraints
 
@@ -59,14 +66,14 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
                  "; check that the constraints are compatible (lengths, triangle inequalities, anchors)")
         raise InconsistentStateError(
             f"the constraints cannot all be satisfied near the initial state: after projection "
-            f"constraint '{labels[k]}' is still violated by {abs(f[k]):.3g} (at the given start the "
-            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g}){named}"
+            f"constraint '{labels[k]}' is still violated by {abs(f[k]):.3g} m (at the given start the "
+            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g} m){named}"
         )
     limit = max_correction * size
     if dx > limit:
         raise InconsistentStateError(
             f"the initial positions are too far from the constraints: constraint '{labels[worst]}' "
-            f"is violated by {abs(f0[worst]):.3g} at t = {t0:g}, and the nearest consistent state "
+            f"is violated by {abs(f0[worst]):.3g} m at t = {t0:g}, and the nearest consistent state "
             f"moves a particle by {dx:.3g} m, more than the allowed {max_correction:g} × system size "
             f"{size:.3g} m = {limit:.3g} m. Correct the positions, or raise "
             "simulate.max_initial_correction"
@@ -76,7 +83,7 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
         rows = redundant_rows(model, x, t0, policy)
         if rows is not None:
             manifold = Manifold(model, rows=rows, policy=policy, compiled=compiled)
-            x = manifold.project_positions(x, t0, tol=1e-13 * size, max_iter=50).x
+            x = manifold.project_positions(x, t0, tol=1e-13 * size * s_min, max_iter=50).x
     v = manifold.project_velocities(x, v0, t0)
     dv = float(np.max(np.linalg.norm((v - v0).reshape(-1, 3), axis=1), initial=0.0))
     report = {

@@ -25,6 +25,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from . import residual
 from .errors import InputError
 from .manifold import Manifold, schur_solve, tangent_basis
 from .model import Model, assemble
@@ -341,14 +342,14 @@ def _anchor_reactions(model: Model, J: np.ndarray, lam: np.ndarray) -> list[tupl
     return out
 
 
-def _worst_residual(model: Model, r: np.ndarray, w: np.ndarray) -> str:
+def _worst_residual(model: Model, r: np.ndarray, w: np.ndarray, size: float = 1.0) -> str:
     n3 = model.n_coordinates
     k = int(np.nanargmax(np.abs(w * r)))
     if k < n3:
         name = model.system.particles[k // 3].name
         return f"the force balance F + Jᵀλ on particle '{name}' ({'xyz'[k % 3]}) is off by {abs(r[k]):.3g} N"
     label = model.constraint_labels[k - n3]
-    return f"constraint '{label}' is violated by {abs(r[k]):.3g}"
+    return f"constraint '{label}' is violated by {abs(r[k]) * w[k] * LENGTH_RTOL * size:.3g} m"
 
 
 # --- the equilibrium ---------------------------------------------------------------------------
@@ -397,8 +398,10 @@ def equilibrium(
     )
     force_scale = force_scale if force_scale > 0 else 1.0
     # residual weights: one unit of the scaled residual is the convergence tolerance
+    # (constraint rows in metres: each over its scale, constrained.residual)
     w = np.concatenate(
-        [np.full(n3, 1.0 / (FORCE_RTOL * force_scale)), np.full(C, 1.0 / (LENGTH_RTOL * size))]
+        [np.full(n3, 1.0 / (FORCE_RTOL * force_scale)),
+         1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t))]
     )
 
     def restore(z: np.ndarray) -> np.ndarray:
@@ -431,13 +434,12 @@ def equilibrium(
     if not converged or not np.all(np.isfinite(z)):
         raise InputError(
             f"no static equilibrium found near the guess after {iterations} iterations: "
-            f"{_worst_residual(model, r, w)}; try another starting configuration (x_guess, or the "
+            f"{_worst_residual(model, r, w, size)}; try another starting configuration (x_guess, or the "
             "particles' positions), or check that the forces can be balanced by the constraints"
         )
     x = z[:n3]
     F, J = _forces_at_rest(model, x, t)
     lam = _min_norm_multipliers(model, J, F)
-    f = np.asarray(model.constraint(x, t), float).ravel()
     N = tangent_basis(J, n3)
     K = np.asarray(kkt.stiffness(x, lam), float)
     knorm = float(np.linalg.norm(K, 2)) if K.size else 0.0
@@ -487,7 +489,7 @@ def equilibrium(
         stability_tolerance=tol,
         tangent_basis=N,
         method=used,
-        max_constraint_residual=float(np.max(np.abs(f), initial=0.0)),
+        max_constraint_residual=residual.position_residual(model, x, t),  # metres
     )
 
 

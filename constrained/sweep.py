@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from . import expressions
-from .errors import ExpressionError, InputError
+from .errors import ExpressionError, InputError, RunInterrupted
 from .scene import SceneError, apply_overrides, build_scene, expect_requirements, parse_override
 from .trajectory import atomic_write
 
@@ -453,6 +453,9 @@ def run_task(task: dict) -> dict:
             row.update(_expect_columns(scene, traj, model))
         row["steps"] = int(traj.stats.get("steps", 0) or 0)
         status = "ok"
+    except RunInterrupted:
+        # Ctrl-C stops the sweep, not just this run: it has no result (a rerun computes it)
+        raise KeyboardInterrupt from None
     except Exception as exc:  # a failing run is a row with its error; the sweep goes on
         status = _message(exc)
     return {
@@ -463,6 +466,14 @@ def run_task(task: dict) -> dict:
         "worker": f"{os.uname().nodename}:{os.getpid()}",
         "trajectory": traj if (task["save_trajectory"] and traj is not None and status == "ok") else None,
     }
+
+
+def _unfinished(record: dict) -> bool:
+    """Whether a result or record is of a run stopped by Ctrl-C (earlier versions recorded
+    those as failed runs): it has no result, so it is not kept and a rerun computes it."""
+    status = str(record.get("status", ""))
+    return (status.startswith("interrupted") or "the run was interrupted" in status
+            or "KeyboardInterrupt" in status)
 
 
 def _message(exc: BaseException) -> str:
@@ -592,8 +603,8 @@ def sweep(
     done: dict[str, dict] = {}
     for rid in ids:
         record = _read_record(runs_dir / f"{rid}.json")
-        if record is not None and (not save_trajectories or record["status"] != "ok"
-                                   or (runs_dir / f"{rid}.npz").is_file()):
+        if record is not None and not _unfinished(record) and (
+                not save_trajectories or record["status"] != "ok" or (runs_dir / f"{rid}.npz").is_file()):
             done[rid] = record
     todo = [i for i, rid in enumerate(ids) if rid not in done]
     if limit is not None:
@@ -623,6 +634,8 @@ def sweep(
     last_write = [time.monotonic()]
 
     def record(result: dict) -> None:
+        if _unfinished(result):
+            return
         rid = result["run_id"]
         i = index_of[rid]
         traj = result.pop("trajectory", None)

@@ -58,6 +58,14 @@ class Trajectory:
                 f"no particle '{name}' in this trajectory ({', '.join(self.particle_names)})"
             ) from None
 
+    def head(self, n: int) -> Trajectory:
+        """The first ``n`` samples (a copy of the arrays' views, same names and info)."""
+        cut = {k: (None if getattr(self, k) is None else getattr(self, k)[:n])
+               for k in ("t", "x", "v", *QUANTITIES)}
+        return Trajectory(**cut, particle_names=list(self.particle_names),
+                          constraint_labels=list(self.constraint_labels), stats=dict(self.stats),
+                          info=dict(self.info))
+
     def arrays(self, quantities=None) -> dict[str, np.ndarray]:
         """``t, x, v`` and the requested quantities that were computed, by contract name."""
         out = {"t": self.t, "x": self.x, "v": self.v}

@@ -17,9 +17,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import diagnostics, interrupt
 from ..errors import InputError
 from ..manifold import Manifold
 from ..model import Model
+
+#: The start of ``Solution.failure`` for a run stopped by Ctrl-C (simulate tells it apart).
+INTERRUPTED = "interrupted"
 
 
 @dataclass
@@ -73,6 +77,7 @@ class Solver:
             raise InputError(f"progress must be a function of the time reached, got {progress!r}")
         self._progress = progress
         self.stats = {"steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "projections": 0}
+        self._stiffness: diagnostics.StiffnessWatch | None = None
 
     def report(self, t: float) -> None:
         """Tell the ``progress`` callback (if any) that the run has reached time ``t``."""
@@ -86,6 +91,37 @@ class Solver:
         for key, value in self.manifold.counters.as_dict().items():
             stats[key] = max(int(stats.get(key, 0)), value)
         return stats
+
+    def watch_stiffness(self, x0, t0: float, t_end: float) -> None:
+        """Start watching the run for a stiff spring (diagnostics.StiffnessWatch)."""
+        self._stiffness = diagnostics.StiffnessWatch(self.model, x0, t0, t_end, method=self.name)
+
+    def too_stiff(self, t: float, steps: int, x=None) -> str | None:
+        """The ``failure`` that stops a run whose steps follow a stiff spring's oscillation
+        (after a few seconds of wall time, when t_end is far at that pace), else None."""
+        verdict = self._stiffness.check(t, steps, x) if self._stiffness is not None else None
+        if verdict is None:
+            return None
+        return f"the steps follow a fast oscillation at t = {float(t):.6g} s; {verdict}"
+
+    def stiff_hint(self) -> str:
+        """For the end-of-run stiffness warning: the fastest spring and what to do about it."""
+        e = self._stiffness.fastest() if self._stiffness is not None else None
+        if e is None:
+            return ""
+        hint = f"; the fastest spring, '{e.label}' (effect {e.index}), has period {e.period:.3g} s"
+        return hint + (f": {e.constraint_advice()}" if e.rigid_like else "")
+
+    @staticmethod
+    def stop_requested() -> bool:
+        """Whether Ctrl-C asked the run to stop (see constrained.interrupt): loops ask after
+        every step or chunk, and stop there keeping what they computed."""
+        return interrupt.requested()
+
+    @staticmethod
+    def interrupted_at(t: float) -> str:
+        """The ``failure`` of a run stopped by Ctrl-C after its last state, at time t."""
+        return f"{INTERRUPTED} at t = {float(t):.6g} s"
 
     def require_independent_constraints(self, why: str) -> None:
         """Refuse a run whose constraint rows are dependent (``Manifold.redundant``)."""

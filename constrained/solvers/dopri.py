@@ -23,6 +23,8 @@ used — or "Tsit5" (Tsitouras' 5(4) pair, 6 per step).
 
 from __future__ import annotations
 
+import time
+
 import casadi as ca
 import numpy as np
 
@@ -37,8 +39,10 @@ from .tableaus import TABLEAUS
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
 #: (the one-time C compile takes a few seconds there and is cached; beyond, it grows steeply).
 AUTO_COMPILE_COORDINATES = 200
-#: Attempts chained per CasADi call; Python picks the largest not above the expected count.
+#: Attempts chained per CasADi call; Python picks the largest not above the expected count
+#: (and not above one whose call took longer than CHUNK_SECONDS: Ctrl-C waits for a call).
 CHUNKS = (1, 8, 64)
+CHUNK_SECONDS = 0.1
 #: Up to this many constraint rows the whole step is one SX expression (the KKT solves
 #: written out symbolically): ~2.7x faster than calling the sparse linear solver.
 SYMBOLIC_MAX_CONSTRAINTS = 8
@@ -222,14 +226,26 @@ class Dopri(Solver):
         def derivative(t, y):
             return np.concatenate([y[n:], self.manifold.accelerations(y[:n], y[n:], t)[0]])
 
+        self.watch_stiffness(x0, t0, t_end)
+        longest = CHUNKS[-1]
         try:
             for target in targets:
                 state[TARGET] = target
                 while state[T] < target:
+                    if self.stop_requested():
+                        failure = self.interrupted_at(state[T])
+                        break
+                    failure = self.too_stiff(state[T], int(state[N_ACC]), state[:n])
+                    if failure:
+                        break
                     expected = (target - state[T]) / max(state[H], 1e-300) + 1
-                    k = max(c for c in CHUNKS if c <= max(expected, 1))
+                    k = max(c for c in CHUNKS if c <= max(expected, 1) and c <= longest)
                     before = state
+                    called = time.perf_counter()
                     (out,) = chunks[k](state)
+                    if k > 1 and time.perf_counter() - called > CHUNK_SECONDS:
+                        # Ctrl-C waits for the call: keep calls short on slow (large) models
+                        longest = max(c for c in CHUNKS if c < k)
                     cols = out.reshape(k, -1)
                     state = cols[-1]
                     if not np.all(np.isfinite(state)):
@@ -237,12 +253,11 @@ class Dopri(Solver):
                         last = cols[np.argmin(ok) - 1] if not ok[0] else before
                         state = last
                         failure = (f"non-finite state after t = {last[T]:.6g} s; "
-                                   + diagnostics.likely_cause(m, last[:n], last[n:2 * n], last[T],
-                                                              self.manifold))
+                                   + diagnostics.nonfinite_cause(m, last[:n], last[n:2 * n], last[T]))
                         break
                     if state[RES] > PROJECTION_FAIL * scale:
                         failure = (f"the state could not be kept on the constraints near "
-                                   f"t = {state[T]:.6g} s (residual {state[RES]:.3g} before the last "
+                                   f"t = {state[T]:.6g} s (residual {state[RES]:.3g} m before the last "
                                    "Newton step): reduce rtol")
                         break
                     if every_step:
@@ -275,7 +290,7 @@ class Dopri(Solver):
                     xs.append(state[:n])
                     vs.append(state[n:2 * n])
         except KeyboardInterrupt:
-            failure = f"interrupted at t = {state[T]:.6g} s"
+            failure = self.interrupted_at(ts[-1] if ts else t0)
         accepted, rejected = int(state[N_ACC]), int(state[N_REJ])
         evals = self.tableau.stages  # per attempt: s − 1 stages plus the projected last one
         self.stats.update({
@@ -285,6 +300,7 @@ class Dopri(Solver):
         })
         diagnostics.stiffness_verdict(
             self.stats, h_rho, rho_max, what=f"dopri's explicit {self.tableau.name}", stacklevel=4,
-            advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"')
+            advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"'
+            + self.stiff_hint())
         return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
                         self.counted(), failure)

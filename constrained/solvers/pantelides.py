@@ -20,8 +20,10 @@ import itertools
 import casadi as ca
 import numpy as np
 
+from .. import interrupt
 from ..errors import InputError
 from .base import Solution, Solver
+from .idas import SEGMENT_OUTPUTS
 
 
 class Pantelides(Solver):
@@ -72,20 +74,33 @@ class Pantelides(Solver):
         out_grid = grid[grid > t0]
         ts, xs, vs = ([t0], [x0], [v0]) if grid[0] <= t0 else ([], [], [])
         failure = None
-        integ = ca.integrator("pantelides", "idas", self.semi_explicit, t0, list(out_grid), {
-            "abstol": self.atol, "reltol": self.rtol, "max_num_steps": 10_000_000})
-        try:
-            sol = integ(x0=start["x0"], z0=start["z0"])
-        except RuntimeError as exc:
-            return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                            self.counted(), f"IDAS stopped ({str(exc).splitlines()[-1][:200]})")
-        stats = integ.stats()
-        self.stats.update(steps=int(stats.get("nsteps", 0)), nfev=int(stats.get("nfevals", 0)),
-                          nlu=int(stats.get("nlinsetups", 0)), rejected=int(stats.get("netfails", 0)),
-                          index=self.index)
-        X = np.asarray(self.to_original(xf=sol["xf"], zf=sol["zf"])["x_impl"])
-        ts += list(out_grid)
-        xs += list(X[:n3].T)
-        vs += list(X[n3:].T)
+        # one IDAS call per group of output times: Ctrl-C is honoured between the calls
+        state, z, t_prev = start["x0"], start["z0"], t0
+        self.stats.update(steps=0, nfev=0, nlu=0, rejected=0, index=self.index)
+        for k in range(0, len(out_grid), SEGMENT_OUTPUTS):
+            if self.stop_requested():
+                failure = self.interrupted_at(t_prev)
+                break
+            seg = list(out_grid[k:k + SEGMENT_OUTPUTS])
+            integ = ca.integrator("pantelides", "idas", self.semi_explicit, t_prev, seg, {
+                "abstol": self.atol, "reltol": self.rtol, "max_num_steps": 10_000_000})
+            try:
+                with interrupt.external():
+                    sol = integ(x0=state, z0=z)
+            except (RuntimeError, KeyboardInterrupt) as exc:
+                failure = (self.interrupted_at(t_prev) if self.stop_requested() or
+                           isinstance(exc, KeyboardInterrupt) else
+                           f"IDAS stopped after t = {t_prev:.6g} s ({str(exc).splitlines()[-1][:200]})")
+                break
+            stats = integ.stats()
+            for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
+                              ("rejected", "netfails")):
+                self.stats[key] += int(stats.get(skey, 0))
+            X = np.asarray(self.to_original(xf=sol["xf"], zf=sol["zf"])["x_impl"])
+            ts += seg
+            xs += list(X[:n3].T)
+            vs += list(X[n3:].T)
+            state, z, t_prev = sol["xf"][:, -1], sol["zf"][:, -1], seg[-1]
+            self.report(t_prev)
         return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
                         self.counted(), failure)

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.integrate import DOP853, RK45, Radau
 
 from .. import compiled as compiled_evaluation
-from .. import diagnostics
+from .. import diagnostics, interrupt, residual
 from ..errors import InputError
 from ..manifold import Manifold, acceleration_graph, per_model_cache
 from .base import Solution, Solver
@@ -33,6 +33,8 @@ PROJECTION_FAIL = 1e-8
 #: after every accepted step for models up to SINGULAR_WATCH_MAX coordinates.
 SINGULAR_TOL = 1e-4
 SINGULAR_WATCH_MAX = 300
+#: This many accepted steps in a row below 1e-14 of the run stop it (a collapsed step size).
+COLLAPSED_STEPS = 100
 
 
 
@@ -82,6 +84,12 @@ class Projection(Solver):
         m = self.manifold
         projected = m.project_positions(x, t, tol=self.position_tol)
         x, err = projected.x, projected.residual
+        # err is max |f|; in metres every row |f_i| / s_i ≤ err / s_min (constrained.residual),
+        # and where that bound is too coarse the residual is measured in metres
+        if np.isfinite(err):
+            err = err / self.row_scale
+            if err > PROJECTION_FAIL * self.scale:
+                err = residual.position_residual(self.model, x, t)
         if not np.isfinite(err) or err > PROJECTION_FAIL * self.scale:
             raise _ProjectionFailed(t, err)
         v = m.project_velocities(x, v, t)
@@ -101,12 +109,14 @@ class Projection(Solver):
 
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         self.scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
+        # tolerances are in metres: |f| ≤ tol × (smallest row scale) keeps every row within tol
+        self.row_scale = residual.smallest_scale(self.model, x0, t0)
         if self.base.startswith("CVODES"):
             return self._run_cvodes(x0, v0, t0, t_end, t_eval)
         m = self.model
         n = m.n_coordinates
         scale = self.scale
-        self.position_tol = 1e-14 * scale
+        self.position_tol = 1e-14 * scale * self.row_scale
 
         def rhs(t, y):
             dy = self.derivative(t, y)
@@ -131,16 +141,23 @@ class Projection(Solver):
         good = (t0, x0, v0)  # the last accepted, projected state
         watch_rank = self._watch_rank(x0, t0)
         watch = self.base in EXPLICIT
-        h_rho, rho_max = [], 0.0
+        h_rho, rho_max, tiny = [], 0.0, 0
+        self.watch_stiffness(x0, t0, t_end)
         while integ.status == "running":
+            if self.stop_requested():
+                failure = self.interrupted_at(good[0])
+                break
+            failure = self.too_stiff(good[0], self.stats["steps"], good[1])
+            if failure:
+                break
             try:
                 message = integ.step()
             except _NonFinite as exc:
                 failure = (f"non-finite accelerations at t = {exc.args[0]:.6g} s; "
-                           + self.diagnose(*good[1:], good[0]))
+                           + diagnostics.nonfinite_cause(m, *good[1:], good[0]))
                 break
             except KeyboardInterrupt:
-                failure = f"interrupted at t = {integ.t:.6g} s"
+                failure = self.interrupted_at(good[0])
                 break
             if integ.status == "failed":
                 failure = (f"the step size collapsed at t = {integ.t:.6g} s ({message}); "
@@ -148,6 +165,13 @@ class Projection(Solver):
                 break
             self.stats["steps"] += 1
             self.report(integ.t)
+            # SciPy only stops at h < 10 eps |t|, which near t = 0 is no limit at all: steps
+            # below 1e-14 of the run, many in a row, are a collapse too
+            tiny = tiny + 1 if (integ.step_size or 0.0) < 1e-14 * max(t_end - t0, abs(integ.t)) else 0
+            if tiny > COLLAPSED_STEPS:
+                failure = (f"the step size collapsed at t = {integ.t:.6g} s (h = {integ.step_size:.3g} s "
+                           f"for {tiny} steps); " + diagnostics.nonfinite_cause(m, *good[1:], good[0]))
+                break
             if watch and self.stats["steps"] % STIFFNESS_EVERY == 0 and integ.step_size:
                 rho = diagnostics.spectral_radius(self.derivative, integ.t, integ.y)
                 rho_max = max(rho_max, rho)
@@ -161,7 +185,7 @@ class Projection(Solver):
                         xk, vk = self.project(yk[:n], yk[n:], tk)
                     except _ProjectionFailed as exc:
                         failure = (f"the state could not be brought back onto the constraints at "
-                                   f"t = {tk:.6g} s (residual {exc.args[1]:.3g} after Newton); "
+                                   f"t = {tk:.6g} s (residual {exc.args[1]:.3g} m after Newton); "
                                    + self.diagnose(*good[1:], good[0]))
                         break
                     ts.append(tk)
@@ -174,7 +198,7 @@ class Projection(Solver):
                     x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
                 except _ProjectionFailed as exc:
                     failure = (f"the state could not be brought back onto the constraints at "
-                               f"t = {integ.t:.6g} s (residual {exc.args[1]:.3g} after Newton); "
+                               f"t = {integ.t:.6g} s (residual {exc.args[1]:.3g} m after Newton); "
                                + self.diagnose(*good[1:], good[0]))
                     break
                 y = np.concatenate([x, v])
@@ -198,7 +222,7 @@ class Projection(Solver):
             if pending is None:
                 ts.append(integ.t)
                 ys.append(y)
-        if watch:
+        if watch and not (failure or "").startswith("the steps follow"):  # (that stop says it)
             self._stiffness_verdict(h_rho, rho_max)
         self.stats["evaluation"] = self.manifold.evaluation
         Y = np.array(ys).reshape(-1, 2 * n)
@@ -207,7 +231,7 @@ class Projection(Solver):
     def _stiffness_verdict(self, h_rho, rho_max) -> None:
         diagnostics.stiffness_verdict(
             self.stats, h_rho, rho_max, what=f"the explicit base {self.base}",
-            advice='use base = "Radau" or base = "CVODES_BDF"')
+            advice='use base = "Radau" or base = "CVODES_BDF"' + self.stiff_hint())
 
     # --- CVODES base: CasADi integrates between projection points --------------------------
     #: Without t_eval, the state is projected this many times over the run.
@@ -254,8 +278,8 @@ class Projection(Solver):
 
         m = self.model
         n = m.n_coordinates
-        scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
-        self.position_tol = 1e-14 * scale
+        scale = self.scale
+        self.position_tol = 1e-14 * scale * self.row_scale
         grid = (np.asarray(t_eval, float) if t_eval is not None
                 else np.linspace(t0, t_end, self.CVODES_SEGMENTS + 1))
         integ = self._integrator
@@ -266,15 +290,26 @@ class Projection(Solver):
             vs.append(v0)
             grid = grid[1:]
         state, t_a, failure = np.concatenate([x0, v0]), t0, None
+        self.watch_stiffness(x0, t0, t_end)
         for t_b in grid:
+            if self.stop_requested():
+                failure = self.interrupted_at(t_a)
+                break
+            failure = self.too_stiff(t_a, self.stats["steps"], state[:n])
+            if failure:
+                break
             try:
-                out = integ(x0=state, p=[t_a, t_b - t_a])
+                with interrupt.external():
+                    out = integ(x0=state, p=[t_a, t_b - t_a])
+            except KeyboardInterrupt:
+                failure = self.interrupted_at(t_a)
+                break
             except RuntimeError as exc:
+                if self.stop_requested():  # Ctrl-C inside CVODES: its right-hand side "failed"
+                    failure = self.interrupted_at(t_a)
+                    break
                 failure = (f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]}); "
                            + self.diagnose(state[:n], state[n:], t_a))
-                break
-            except KeyboardInterrupt:
-                failure = f"interrupted at t = {t_a:.6g} s"
                 break
             stats = integ.stats()
             self.stats["steps"] += int(stats.get("nsteps", 0))

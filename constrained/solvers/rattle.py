@@ -27,6 +27,7 @@ import casadi as ca
 import numpy as np
 
 from .. import compiled as compiled_evaluation
+from .. import diagnostics, residual
 from ..errors import InputError
 from ..manifold import schur_solve_graph, velocity_correction_graph
 from .base import Solution, Solver
@@ -36,6 +37,8 @@ AUTO_COMPILE_COORDINATES = 90
 
 #: Largest number of output samples when the caller gives no output grid.
 DEFAULT_SAMPLES = 2000
+#: Coordinate-steps per chained call (see ``run``): 16384 steps of a 6-coordinate model.
+CHUNK_WORK = 6 << 14
 
 
 class Rattle(Solver):
@@ -87,7 +90,8 @@ class Rattle(Solver):
                 lam_k = lam_k - schur_solve_graph(J1, J0, 0.5 * h * h * m.inverse_masses, f1)
             v_half = v + 0.5 * h * minv * (F0 + ca.mtimes(J0.T, lam_k))
             x1 = x + h * v_half
-            residual = ca.mmax(ca.fabs(m.constraint(x1, t1)))
+            # in metres: each row over its scale at the start (constrained.residual)
+            residual = ca.mmax(ca.fabs(m.constraint(x1, t1)) / ca.DM(self.row_scales))
             F1, _, _ = m.dynamics(x1, v_half, t1)
             v_pred = v_half + 0.5 * h * minv * F1
             v1 = v_pred - velocity_correction_graph(m, x1, v_pred, t1, rows=rows)
@@ -128,6 +132,7 @@ class Rattle(Solver):
                     f"method 'rattle' outputs at multiples of its step ({h:.6g} s); "
                     "give t_eval on that grid or omit it"
                 )
+        self.row_scales = residual.row_scales(m, x0, t0) if C else np.zeros(0)
         step = self._step(h)
         lam0 = self.manifold.accelerations(x0, v0, t0)[1][self.rows] if C else np.zeros(0)
         state = np.concatenate([x0, v0, [t0], lam0, [0.0]])
@@ -138,24 +143,35 @@ class Rattle(Solver):
         # the regular gap between samples is one chunk, compiled once; other gaps are split
         # into powers of two (at most a few distinct folds)
         regular = int(np.bincount(gaps[gaps > 0]).argmax()) if np.any(gaps > 0) else 1
-        regular = min(regular, 1 << 14)
+        # a chunk is one call into CasADi, where Ctrl-C waits for its end: chunks of about
+        # CHUNK_WORK coordinate-steps keep each call near 0.1 s at most (checked in between)
+        regular = min(regular, 1 << 14, 1 << max(3, int(math.log2(max(CHUNK_WORK // n3, 1)))))
+        self.watch_stiffness(x0, t0, t_end)
         for target in sample_steps:
             while done < target:
+                if self.stop_requested():
+                    failure = self.interrupted_at(state[2 * n3])
+                    break
+                failure = self.too_stiff(state[2 * n3], done, state[:n3])
+                if failure:
+                    break
                 left = target - done
                 k = regular if left >= regular else 1 << (left.bit_length() - 1)
                 chunk = self._chunk(step, k, compile_it=self.compiled and k == regular and k >= 8)
                 try:
                     new = chunk(state).full().ravel()
                 except KeyboardInterrupt:
-                    failure = f"interrupted at t = {state[2 * n3]:.6g} s"
+                    failure = self.interrupted_at(state[2 * n3])
                     break
                 if not np.all(np.isfinite(new)):
-                    failure = f"non-finite state between t = {state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s"
+                    failure = (f"non-finite state between t = {state[2 * n3]:.6g} s and "
+                               f"{t0 + (done + k) * h:.6g} s; "
+                               + diagnostics.nonfinite_cause(m, state[:n3], state[n3:2 * n3], state[2 * n3]))
                     break
                 if new[-1] > self.newton_tol * self.scale:
                     failure = (
                         f"Newton for the position multipliers did not converge between t = "
-                        f"{state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s (|f| = {new[-1]:.3g} after "
+                        f"{state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s (|f| = {new[-1]:.3g} m after "
                         f"{self.newton_iterations} iterations): reduce dt"
                     )
                     break
@@ -163,6 +179,11 @@ class Rattle(Solver):
                 done += k
                 self.report(state[2 * n3])
             if failure:
+                # the state reached (the last good one) between two samples is kept
+                if t_eval is None and done > (sample_steps[len(ts) - 1] if ts else -1):
+                    ts.append(t0 + done * h)
+                    xs.append(state[:n3])
+                    vs.append(state[n3:2 * n3])
                 break
             ts.append(t0 + done * h)
             xs.append(state[:n3])

@@ -56,7 +56,9 @@ class Reduced(Solver):
     def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
         q0, qd0 = self.coordinates_of(np.asarray(x0, float), np.asarray(v0, float), t0)
         traj = self.reduced_model.solve(t_end, t_start=t0, initial=q0, rates=qd0, rtol=self.rtol,
-                                        atol=self.atol, t_eval=t_eval, outputs=())
+                                        atol=self.atol, t_eval=t_eval, outputs=(), progress=self.report)
         n = len(traj.t)
         self.stats.update({"nfev": traj.stats.get("nfev", 0), "steps": traj.stats.get("nfev", 0) // 12})
-        return Solution(traj.t, traj.x.reshape(n, -1), traj.v.reshape(n, -1), self.counted())
+        stopped = self.stop_requested() and (n == 0 or traj.t[-1] < t_end)
+        return Solution(traj.t, traj.x.reshape(n, -1), traj.v.reshape(n, -1), self.counted(),
+                        self.interrupted_at(traj.t[-1] if n else t0) if stopped else None)

@@ -1,0 +1,73 @@
+"""Ctrl-C during a run: a request to stop, honoured at the next safe point.
+
+Python's default SIGINT handler raises KeyboardInterrupt wherever the interpreter happens to
+be: inside a projection, half-way through building the output arrays, or inside a CasADi
+call (where SUNDIALS turns it into a failed residual). Runs then either lost what they had
+computed or carried on. ``watch()`` replaces the handler for the length of a run with one
+that only records the request; the solvers' loops ask ``requested()`` after every step or
+chunk and stop there, keeping every state computed so far.
+
+Long calls into CasADi (an IDAS or CVODES segment) cannot be left between steps, so they
+run inside ``external()``: there the handler raises KeyboardInterrupt as usual, which
+CasADi turns into an error of that call; the caller then sees ``requested()`` and keeps the
+state from before the call.
+
+Outside the main thread (where signal handlers cannot be set) both are no-ops and
+KeyboardInterrupt behaves as Python's default.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+
+_state = {"requested": False, "active": 0, "raising": 0}
+
+
+def requested() -> bool:
+    """Whether Ctrl-C was pressed since the current run began."""
+    return _state["requested"]
+
+
+def _handler(signum, frame):
+    _state["requested"] = True
+    if _state["raising"]:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def watch():
+    """Record SIGINT as a stop request (instead of KeyboardInterrupt) inside the block."""
+    if threading.current_thread() is not threading.main_thread() or _state["active"]:
+        yield
+        return
+    try:
+        previous = signal.signal(signal.SIGINT, _handler)
+    except (ValueError, OSError):  # not settable here (embedded interpreter)
+        yield
+        return
+    _state.update(requested=False, active=1, raising=0)
+    try:
+        yield
+    finally:
+        # the run has read the request (its Solution says "interrupted"); what runs next
+        # outside a watch must not see it
+        signal.signal(signal.SIGINT, previous)
+        _state.update(active=0, raising=0, requested=False)
+
+
+@contextlib.contextmanager
+def external():
+    """Inside the block SIGINT raises KeyboardInterrupt again (for long calls into C that check
+    Python's signals themselves); the request is recorded either way."""
+    _state["raising"] += 1
+    try:
+        yield
+    finally:
+        _state["raising"] -= 1
+
+
+def reset() -> None:
+    """Forget a recorded request (a new run begins)."""
+    _state["requested"] = False

@@ -1,0 +1,87 @@
+"""Constraint residuals in metres, whatever the scale a constraint's formula is written in.
+
+A surface ``1e8 * (x**2 + y**2 + z**2 - 1) = 0`` is the same sphere as the unscaled formula,
+but |f| is 1e8 times larger for the same miss, and ``1e-8 * (...)`` makes a particle 1e-8 m
+off the surface look like |f| = 1e-16. Residuals and tolerances are therefore measured per
+row as |f_i| / s_i with the row scale
+
+    s_i = max over particles p of |∂f_i/∂x_p|      (N/A rows with zero gradient: s_i = 1)
+
+— for a row that moves one particle (surface, pin, plane) |f_i|/s_i is, to first order, that
+particle's distance from the constraint in metres; for a distance constraint between two
+particles it is the error of the length. Velocity residuals |J_i v + f_t,i| / s_i are in m/s.
+
+The projections themselves are untouched (mass-weighted, in manifold/model): only the
+tolerances handed to them and the residuals reported are converted here.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from .manifold import per_model_cache, row_scales_expr
+
+_CACHE_KEY = "residual_in_metres"
+
+
+def functions(model) -> dict[str, ca.Function]:
+    """``scales(x, t) -> s`` (C,), ``position(x, t) -> max_i |f_i|/s_i`` (m) and
+    ``velocity(x, v, t) -> max_i |J_i v + f_t,i|/s_i`` (m/s), built once per model."""
+    cache = per_model_cache(model)
+    cached = cache.get(_CACHE_KEY)
+    if cached is not None:
+        return cached
+    n3 = model.n_coordinates
+    x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
+    f, J = model.jacobian(x, t)
+    _, f_t = model.velocity_terms(x, t)
+    s = row_scales_expr(J, model.n_particles)
+    if model.n_constraints:
+        position = ca.mmax(ca.fabs(f) / s)
+        velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s)
+    else:
+        position = velocity = ca.SX(0)
+    cached = {
+        "scales": ca.Function("row_scales", [x, t], [s]),
+        "position": ca.Function("residual_m", [x, t], [position]),
+        "velocity": ca.Function("velocity_residual_m", [x, v, t], [velocity]),
+    }
+    cache[_CACHE_KEY] = cached
+    return cached
+
+
+def row_scales(model, x, t: float = 0.0) -> np.ndarray:
+    """s_i (see the module) at (x, t), shape (C,)."""
+    if model.n_constraints == 0:
+        return np.zeros(0)
+    return np.asarray(functions(model)["scales"](np.asarray(x, float).ravel(), t), float).ravel()
+
+
+def smallest_scale(model, x, t: float = 0.0) -> float:
+    """min_i s_i at (x, t): a tolerance of ``tol`` metres on every row is |f| ≤ tol × this."""
+    s = row_scales(model, x, t)
+    return float(np.min(s)) if s.size else 1.0
+
+
+def position_residual(model, x, t: float = 0.0) -> float:
+    """max_i |f_i(x, t)| / s_i in metres at one state."""
+    if model.n_constraints == 0:
+        return 0.0
+    return float(np.asarray(functions(model)["position"](np.asarray(x, float).ravel(), t)).ravel()[0])
+
+
+def position_residual_along(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """max_i |f_i| / s_i (m) at each sample: X (T, 3N), t (T,)."""
+    n = len(t)
+    if model.n_constraints == 0 or n == 0:
+        return np.zeros(n)
+    return np.asarray(model.evaluate(functions(model)["position"], X, t)[0], float).ravel()
+
+
+def velocity_residual_along(model, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """max_i |J_i v + f_t,i| / s_i (m/s) at each sample."""
+    n = len(t)
+    if model.n_constraints == 0 or n == 0:
+        return np.zeros(n)
+    return np.asarray(model.evaluate(functions(model)["velocity"], X, V, t)[0], float).ravel()
