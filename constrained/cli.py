@@ -894,6 +894,8 @@ def _plot(args) -> int:
         raise InputError(f"plot: unknown kind(s) {', '.join(unknown)} (known: {', '.join(KINDS)})")
     try:
         trajectory = Trajectory.load(results)
+    except InputError as exc:
+        raise InputError(f"plot: {exc}") from None
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"plot: cannot read {results} as a trajectory ({exc})") from None
     system = load_scene(args.scene).system if args.scene else None

@@ -338,7 +338,7 @@ def _override_origin(key: str | None, applied: list[tuple[str, str]]) -> str | N
         return None
     for canon, text in reversed(applied):
         if key == canon or any(a.startswith(b + c) for a, b in ((key, canon), (canon, key)) for c in ".["):
-            return text
+            return text if len(text) <= 80 else text[:77] + "..."
     return None
 
 
@@ -358,6 +358,23 @@ def _join(prefix: str, key: str | int) -> str:
 def _suggest(word: str, choices: Iterable[str]) -> str:
     close = difflib.get_close_matches(str(word), list(choices), n=1)
     return f"; did you mean '{close[0]}'?" if close else ""
+
+
+def _why_singular(obj, system: System, t0: float) -> str:
+    """The likely reason an item is undefined at the start: two ends at one place."""
+    a, b, point = (getattr(obj, k, None) for k in ("a", "b", "point"))
+    if not isinstance(a, str):
+        return "; move the particles away from the singular point (e.g. r = 0 in a formula)"
+    names = [p.name for p in system.particles]
+    pos = np.asarray(system.positions, float).reshape(-1, 3)
+    here = pos[names.index(a)] if a in names else None
+    if isinstance(b, str) and b in names and here is not None and np.allclose(here, pos[names.index(b)]):
+        return (f": particles '{a}' and '{b}' start at the same position, where the direction "
+                "between them is undefined; move one of them")
+    if point is not None and here is not None:
+        return (f": particle '{a}' starts on the point {list(point)}, where the direction from "
+                "the point is undefined; move the particle (to the rod's length from the point)")
+    return "; move the particles away from the singular point"
 
 
 def _is_number(value) -> bool:
@@ -503,6 +520,10 @@ class _Builder:
     def finite_everywhere(self, value, key: str) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             self.fail(key, f"the number {value!r} is not finite (inf and nan are not accepted)")
+        if _is_number(value) and abs(value) > expressions.MAX_MAGNITUDE:
+            self.fail(key, f"the number {value!r} is too large: beyond {expressions.MAX_MAGNITUDE:g} "
+                      "in size, products and squares in the equations of motion overflow; use units "
+                      "that keep the numbers moderate")
         if isinstance(value, dict):
             for k, v in value.items():
                 self.finite_everywhere(v, _join(key, k))
@@ -549,6 +570,7 @@ class _Builder:
             self.fail(exc.where, exc.reason)
         self.check_formulas(system)
         settings = self.simulate()
+        self.regular_start(system, settings["t_start"])
         outputs = self.outputs()
         reduced = self.reduced(parameters)
         expect = self.raw.get("expect")
@@ -814,6 +836,44 @@ class _Builder:
                     self.fail(exc.where or key, exc.reason)
                 except (RuntimeError, TypeError, ZeroDivisionError) as exc:
                     self.fail(key, f"cannot be built: {exc}")
+
+    def regular_start(self, system: System, t0: float) -> None:
+        """Every constraint row, its gradient, and every effect's term and gradients must be
+        finite at the initial state: a rod whose particle sits on its anchor, or a 1/r potential
+        at r = 0, is refused here with the item's key instead of failing inside a solver."""
+        import casadi as ca
+
+        s = Symbols(system)
+        items, outputs = [], []
+        for section, objs in (("constraints", system.constraints), ("effects", system.effects)):
+            for i, obj in enumerate(objs):
+                try:
+                    if section == "constraints":
+                        value = ca.vertcat(*[row for row, _ in obj.rows(s)])
+                    else:
+                        value = ca.vertcat(obj.term(s))
+                except (InputError, RuntimeError, TypeError, ZeroDivisionError):
+                    continue  # check_formulas reports these
+                value = ca.SX(value)
+                parts = [value, ca.vec(ca.jacobian(value, s.x))]
+                if section == "effects":
+                    parts.append(ca.vec(ca.jacobian(value, s.v)))
+                items.append((_join(section, i), obj))
+                outputs.append(ca.vertcat(*parts))
+        if not items:
+            return
+        x0 = np.asarray(system.positions, float).reshape(-1)
+        v0 = np.asarray(system.velocities, float).reshape(-1)
+        with np.errstate(all="ignore"):
+            values = ca.Function("start", [s.x, s.v, s.t], outputs)(x0, v0, t0)
+        values = values if isinstance(values, list | tuple) else [values]
+        for (key, obj), value in zip(items, values, strict=True):
+            if np.all(np.isfinite(np.asarray(value, float))):
+                continue
+            what = "constraint" if key.startswith("constraints") else "effect"
+            self.fail(key, f"this {what} ({obj.label}) is undefined at the initial state "
+                      f"(t = {t0:g} s): its value or its gradient is not finite there"
+                      f"{_why_singular(obj, system, t0)}")
 
     def simulate(self) -> dict:
         table = self.raw.get("simulate", {})

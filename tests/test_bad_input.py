@@ -1,0 +1,144 @@
+"""Absurd input gets a one-paragraph message naming the file, the key and what is wrong, and
+exit status 2, never a traceback (issue 18, item 7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import pytest
+
+from constrained.cli import main
+from constrained.errors import ExpressionError
+from constrained.expressions import MAX_DEPTH, parse
+
+PENDULUM = """\
+[scene]
+name = "pendulum"
+
+[[particles]]
+name = "bob"
+mass = 1.0
+position = [1.0, 0.0, 0.0]
+
+[[constraints]]
+type = "distance"
+a = "bob"
+point = [0.0, 0.0, 0.0]
+length = 1.0
+
+[[effects]]
+type = "gravity"
+g = [0.0, -9.81, 0.0]
+
+[simulate]
+t_end = 0.01
+"""
+
+
+def cli(capsys, *argv) -> tuple[int, str]:
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err
+
+
+def one_line(err: str, *fragments: str) -> None:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("constrained: error: "), err
+    for fragment in fragments:
+        assert fragment in lines[0], err
+
+
+@pytest.fixture
+def scene(tmp_path) -> Path:
+    path = tmp_path / "scene.toml"
+    path.write_text(PENDULUM)
+    return path
+
+
+@pytest.mark.parametrize("verb", ["check", "run"])
+@pytest.mark.parametrize("override, key, words", [
+    ("particles.bob.mass=1e308", "particles[0].mass", "too large"),
+    ("particles.bob.mass=-1e308", "particles[0].mass", ""),
+    ("effects[0].g=[0, -1e200, 0]", "effects[0].g[1]", "too large"),
+    ("constraints[0].length=1e150", "constraints[0].length", "too large"),
+    ("constraints[0].length=0", "constraints[0].length", "pin"),
+    ("constraints[0].length=-1", "constraints[0].length", "positive length"),
+    ("particles.bob.position=[0, 0, 0]", "constraints[0]", "starts on the point"),
+    ("effects[0].g=[0, '9**9**9**9', 0]", "effects[0].g[1]", "too large"),
+    ("effects[0].g=[0, '10.0**400', 0]", "effects[0].g[1]", "too large"),
+    ("effects[0].g=[0, '1/0', 0]", "effects[0].g[1]", "divides by zero"),
+    ("effects[0].g=[0, '1e999', 0]", "effects[0].g[1]", "too large"),
+    ("effects[0].g=[0, 'exp(1000)', 0]", "effects[0].g[1]", "not a finite number"),
+    ("effects[0].g=[0, '" + "-" * 100_000 + "9.81', 0]", "effects[0].g[1]", "characters long"),
+    ("effects[0].g=[0, '" + "-" * 5_000 + "9.81', 0]", "effects[0].g[1]", "nested"),
+    ("effects[0].g=[0, '" + "(" * 300 + "1" + ")" * 300 + "', 0]", "effects[0].g[1]", "nested"),
+    ("effects[0].g=[0, '" + "sin(" * 150 + "t" + ")" * 150 + "', 0]", "effects[0].g[1]", "nested"),
+])
+def test_absurd_numbers_and_formulas_are_refused_in_one_line(capsys, scene, tmp_path, verb, override,
+                                                             key, words):
+    extra = ["--out", tmp_path / "out", "--quiet"] if verb == "run" else []
+    code, err = cli(capsys, verb, scene, "--set", override, *extra)
+    assert code == 2
+    one_line(err, f"scene file {scene}", f"key {key}", words)
+    assert len(err) < 2000  # the formula is not echoed in full
+    assert not (tmp_path / "out").exists()
+
+
+def test_two_particles_on_one_spot_joined_by_a_rod_are_refused(capsys, scene):
+    text = PENDULUM.replace('[[constraints]]', '[[particles]]\nname = "b2"\nmass = 1.0\n'
+                            'position = [1.0, 0.0, 0.0]\n\n[[constraints]]\ntype = "distance"\n'
+                            'a = "bob"\nb = "b2"\nlength = 1.0\n\n[[constraints]]', 1)
+    scene.write_text(text)
+    code, err = cli(capsys, "check", scene)
+    assert code == 2
+    one_line(err, "key constraints[0]", "'bob' and 'b2' start at the same position")
+
+
+def test_a_singular_potential_at_the_start_is_refused(capsys, scene):
+    scene.write_text(PENDULUM + '\n[[effects]]\ntype = "central"\na = "bob"\npoint = [1, 0, 0]\n'
+                     'expr = "1/r"\n')
+    code, err = cli(capsys, "check", scene)
+    assert code == 2
+    one_line(err, "key effects[1]", "not finite", "starts on the point")
+
+
+@pytest.mark.parametrize("text, words", [
+    ("x" + "**x" * (MAX_DEPTH + 5), "nested"),
+    ("-" * 100_000 + "x", "characters long"),
+    ("9**9**9**9", "too large"),
+    ("(-8)**(1/3)", "not a real number"),
+    ("1" + "0" * 5000, "cannot read"),
+])
+def test_the_parser_refuses_what_would_crash_it(text, words):
+    with pytest.raises(ExpressionError, match=words) as info:
+        parse(text, {"x": ca.SX.sym("x")}, where="effects[0].expr")
+    assert "effects[0].expr" in str(info.value)
+
+
+def test_long_flat_sums_are_no_nesting():
+    x = ca.SX.sym("x")
+    expr = parse("+".join(["x"] * 1500), {"x": x})
+    assert float(ca.evalf(ca.substitute(expr, x, 2.0))) == 3000.0
+    assert float(parse("2**10 - 3 - 4", {})) == 1017.0
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "array"])
+def test_plot_of_a_damaged_trajectory_file_is_refused(capsys, scene, tmp_path, damage):
+    out = tmp_path / "out"
+    assert main(["run", str(scene), "--out", str(out), "--quiet"]) == 0
+    npz = out / "trajectory.npz"
+    data = npz.read_bytes()
+    if damage == "truncate":
+        npz.write_bytes(data[: len(data) // 2])
+    elif damage == "garbage":
+        npz.write_bytes(b"not an archive")
+    else:
+        import numpy as np
+        with open(npz, "wb") as f:
+            np.save(f, np.zeros(3))
+    capsys.readouterr()
+    code, err = cli(capsys, "plot", npz, "--out", tmp_path / "figs")
+    assert code == 2
+    one_line(err, str(npz), "not a readable trajectory file", "run the scene again")
