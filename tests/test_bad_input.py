@@ -3,6 +3,9 @@ exit status 2, never a traceback (issue 18, item 7)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import casadi as ca
@@ -142,3 +145,20 @@ def test_plot_of_a_damaged_trajectory_file_is_refused(capsys, scene, tmp_path, d
     code, err = cli(capsys, "plot", npz, "--out", tmp_path / "figs")
     assert code == 2
     one_line(err, str(npz), "not a readable trajectory file", "run the scene again")
+
+
+@pytest.mark.parametrize("vary", [["parameters.k=lin(0.1, 1, 1e8)"],
+                                  ["parameters.k=lin(0.1, 1, 1000)", "parameters.c=log(1, 10, 1000)"]])
+def test_a_sweep_design_beyond_the_limit_is_refused_at_once(tmp_path, vary):
+    path = tmp_path / "scene.toml"
+    path.write_text(PENDULUM + "\n[parameters]\nk = 1.0\nc = 1.0\n")
+    argv = ["sweep", str(path), "--limit", "1", "--scheduler", "sequential", "--out", str(tmp_path / "sw")]
+    for v in vary:
+        argv += ["--vary", v]
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-m", "constrained.cli", *argv], capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "PYTHONPATH": str(root)})
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    one_line(proc.stderr, "100000", "more than")
+    assert not (tmp_path / "sw").exists()
