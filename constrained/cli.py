@@ -331,7 +331,7 @@ def _run(args) -> int:
         except InputError as exc:
             raise _scene_error(exc, file) from None
 
-    outs = OutputSet(out_dir, "run").open()
+    outs = OutputSet(out_dir, _run_files()).open()
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
@@ -361,6 +361,17 @@ def _run(args) -> int:
     if not args.quiet:
         _summary(scene, file, trajectory, written)
     return _report_expectations(scene, trajectory, args.quiet)
+
+
+def _run_files() -> list[str]:
+    """The files ``run`` owns in its --out folder: a new run replaces all of them (figures drawn
+    by ``plot`` from the earlier trajectory included)."""
+    try:
+        from .plot import KINDS
+    except ImportError:
+        KINDS = ()
+    return ["trajectory.npz", "trajectory.csv", "animation.gif", "animation.mp4",
+            *(f"{kind}.png" for kind in KINDS)]
 
 
 def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> int:
@@ -537,7 +548,7 @@ def _crosscheck(args) -> int:
         raise InputError(f"--out {out_dir} exists and is not a directory")
     from .reduced import cross_check, save_crosscheck_figure
 
-    outs = OutputSet(out_dir, "crosscheck").open()
+    outs = OutputSet(out_dir, ["crosscheck.png"]).open()
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             check = cross_check(scene, t_end)
@@ -572,7 +583,7 @@ def _statics(args) -> int:
         raise InputError(f"--out {out_dir} exists and is not a directory")
     from .statics import equilibrium, format_equilibrium, save_equilibrium_figure, write_equilibrium_json
 
-    outs = OutputSet(out_dir, "statics").open()
+    outs = OutputSet(out_dir, ["equilibrium.json", "statics.png"]).open()
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             eq = equilibrium(scene.system, t=scene.settings["t_start"])
@@ -793,7 +804,7 @@ def _bench(args) -> int:
                                 for k, v in opts.items() if k not in ("atol", "base"))
             print(f"  {method} ({setting})", flush=True)
 
-    outs = OutputSet(out_dir, "bench").open()
+    outs = OutputSet(out_dir, ["bench.csv", "bench.md", "bench.png"]).open()
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             from .scene import closed_form_error, closed_form_positions
@@ -856,7 +867,7 @@ def _path(args) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
     t0 = scene.settings["t_start"]
-    outs = OutputSet(out_dir, "path").open()
+    outs = OutputSet(out_dir, ["path.npz", "path.png"]).open()
     try:
         x_end = end_configuration(args.to, scene.system)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -917,7 +928,7 @@ def _plot(args) -> int:
         raise InputError(f"plot: cannot read {results} as a trajectory ({exc})") from None
     system = load_scene(args.scene).system if args.scene else None
     out_dir = Path(args.out) if args.out else results.parent
-    outs = OutputSet(out_dir, "plot").open()
+    outs = OutputSet(out_dir).open()
     written, skipped = [], []
     for kind in kinds:
         try:

@@ -2,26 +2,27 @@
 
 A verb that writes into ``--out DIR`` (run, bench, statics, crosscheck, path, plot) writes
 every file into a staging folder beside DIR (``.DIR.staging-<pid>-<id>``) and, once all are
-written, puts them into DIR together:
+written, puts them into DIR together. The files a verb *owns* are the names it writes (for
+``run``: the trajectory files and every figure kind, also those ``plot`` drew from an earlier
+trajectory); a new set replaces all of them, so an earlier run's csv or figures never stay
+beside a new trajectory:
 
-- DIR does not exist, or holds only this verb's files of an earlier run (and files derived
-  from them): the staging folder is renamed to DIR (the old DIR is renamed away first and
-  then deleted). A run killed at any moment leaves the old set or the new set, never a mix.
+- DIR does not exist, or holds only files the verb owns: the staging folder is renamed to
+  DIR (the old DIR renamed away first, then deleted). A run killed at any moment leaves the
+  old set or the new set, never a mix.
 - DIR holds other files too (another verb's outputs, the user's own files): the new files
-  are renamed into DIR one by one (each rename is atomic), then this verb's files of the
-  earlier run that the new run did not write are deleted. The window for a mix is the few
-  microseconds of those renames, not the seconds of drawing figures.
+  are renamed into DIR one by one (each rename is atomic), then the owned files the new set
+  lacks are deleted. The window for a mix is the microseconds of those renames, not the
+  seconds of drawing figures.
 
-Which files belong to which verb is kept in ``DIR/.constrained-outputs.json`` (file name ->
-verb and run id). A run that stops (bad input, an exception, Ctrl-C) removes its staging
-folder and leaves DIR as it was; a staging folder left by a killed process is removed by the
-next run into the same DIR. A run that had to stop with a partial trajectory commits that
-trajectory as its set, so DIR never shows it beside figures of an earlier run.
+A run that stops (bad input, an exception, Ctrl-C) removes its staging folder and leaves DIR
+as it was; a staging folder left by a killed process is removed by the next run into the
+same DIR. A run that had to stop with a partial trajectory commits that trajectory as its
+set, so DIR never shows it beside figures of an earlier run.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import shutil
@@ -30,22 +31,8 @@ from pathlib import Path
 
 from .errors import InputError
 
-__all__ = ["OutputSet", "MANIFEST", "user_path", "discard_uncommitted"]
+__all__ = ["OutputSet", "user_path", "discard_uncommitted"]
 
-MANIFEST = ".constrained-outputs.json"
-#: Files a verb's new set replaces besides its own earlier files: figures drawn by ``plot``
-#: from a trajectory are stale once ``run`` writes a new one.
-DERIVED = {"run": ("plot",), "path": ("plot",)}
-#: Before manifests existed: the names each verb wrote (treated as that verb's files).
-LEGACY = {
-    "run": ("trajectory.npz", "trajectory.csv", "trajectory.png", "energy.png", "constraint_residual.png",
-            "constraint_forces.png", "multipliers.png", "phase.png", "action.png", "animation.gif",
-            "animation.mp4"),
-    "bench": ("bench.csv", "bench.md", "bench.png"),
-    "statics": ("equilibrium.json", "statics.png"),
-    "crosscheck": ("crosscheck.png",),
-    "path": ("path.npz", "path.png"),
-}
 _STAGING = re.compile(r"^\.(?P<name>.+)\.(?:staging|old)-(?P<pid>\d+)-[0-9a-f]+$")
 
 
@@ -63,13 +50,14 @@ def user_path(path) -> str:
 
 
 class OutputSet:
-    """``with OutputSet(out_dir, verb) as outs:`` write to ``outs.dir / name`` (or
+    """``with OutputSet(out_dir, owns) as outs:`` write to ``outs.dir / name`` (or
     ``outs.path(name)``), then ``outs.commit()`` -> the final paths. Leaving the block without
-    committing discards what was written."""
+    committing discards what was written. ``owns``: the file names the new set supersedes
+    (besides those it writes), deleted when it lacks them."""
 
-    def __init__(self, out_dir, verb: str):
+    def __init__(self, out_dir, owns=()):
         self.out = Path(out_dir)
-        self.verb = verb
+        self.owns = set(owns)
         self.run_id = uuid.uuid4().hex[:12]
         self.final = self.out.absolute()
         if not self.final.name:
@@ -138,18 +126,12 @@ class OutputSet:
         """Put the set into the output folder; returns the final paths (of ``written``, staged
         paths, in that order, or of every file written)."""
         names = sorted(p.name for p in self.dir.iterdir())
-        manifest = self._read_manifest()
-        replaced = {self.verb, *DERIVED.get(self.verb, ())}
-        ours = {n for n, e in manifest.items() if e.get("verb") in replaced}
-        if not manifest and self.final.is_dir():
-            ours = {n for n in os.listdir(self.final) if n in LEGACY.get(self.verb, ())}
-        entries = {n: e for n, e in manifest.items() if n not in ours and n not in names}
-        entries.update({n: {"verb": self.verb, "run_id": self.run_id} for n in names})
         try:
-            others = set(os.listdir(self.final)) - ours - {MANIFEST} if self.final.is_dir() else set()
-            self._write_manifest(self.dir, entries)
+            present = set(os.listdir(self.final)) if self.final.is_dir() else set()
+            ours = present & (self.owns | set(names))
+            others = present - ours
             swap = not others and self.dir.parent == self.final.parent and not _holds_cwd(self.final)
-            if swap:  # the whole folder is this verb's: swap it
+            if swap:  # the whole folder is this set's: swap it
                 if self.final.is_dir():
                     try:
                         os.rename(self.final, self._old)
@@ -168,7 +150,6 @@ class OutputSet:
                         pass
                     except IsADirectoryError:
                         shutil.rmtree(self.final / n, ignore_errors=True)
-                os.replace(self.dir / MANIFEST, self.final / MANIFEST)
         except OSError as exc:
             raise InputError(f"cannot write the output folder {self.out}: {exc.strerror or exc}; "
                              "choose another --out") from None
@@ -178,22 +159,6 @@ class OutputSet:
         return [self.out / Path(p).name for p in written]
 
     # --- helpers ----------------------------------------------------------------------------
-    def _read_manifest(self) -> dict:
-        try:
-            data = json.loads((self.final / MANIFEST).read_text())
-        except (OSError, ValueError):
-            return {}
-        if not isinstance(data, dict) or not isinstance(data.get("files"), dict):
-            return {}
-        return {n: e for n, e in data["files"].items()
-                if isinstance(e, dict) and "/" not in n and n not in ("", ".", "..", MANIFEST)}
-
-    @staticmethod
-    def _write_manifest(folder: Path, entries: dict) -> None:
-        tmp = folder / (MANIFEST + ".tmp")
-        tmp.write_text(json.dumps({"files": entries}, indent=1, sort_keys=True))
-        os.replace(tmp, folder / MANIFEST)
-
     def _sweep_stale(self) -> None:
         """Remove staging folders (and swapped-out old folders) of dead processes."""
         for entry in self.final.parent.iterdir():

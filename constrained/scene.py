@@ -77,6 +77,12 @@ SIMULATE_DEFAULTS: dict[str, Any] = {
     "compiled": "auto",
 }
 
+#: Limits of [simulate]: output samples a run may store, fixed steps it may take (dt), and
+#: the largest |time| (beyond it a float cannot resolve a step).
+MAX_SAMPLES = 1_000_000
+MAX_STEPS = 1e10
+MAX_TIME = 1e12
+
 OUTPUT_QUANTITIES = ("positions", "velocities", *QUANTITIES)
 OUTPUT_PLOTS = (
     "trajectory",
@@ -695,6 +701,10 @@ class _Builder:
                 )
             seen[name] = i
             mass = self.positive(item["mass"], f"{key}.mass", "a finite positive number (kg)")
+            if mass < 1 / expressions.MAX_MAGNITUDE:
+                self.fail(f"{key}.mass", f"the mass {mass!r} kg is too small (below "
+                          f"{1 / expressions.MAX_MAGNITUDE:g}): 1/m overflows in the equations of motion; "
+                          "use units that keep the numbers moderate")
             position = self.numbers3(item["position"], f"{key}.position")
             velocity = self.numbers3(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity")
             try:
@@ -904,6 +914,7 @@ class _Builder:
                 self.fail(k + "samples", f"must be a whole number >= 2, got {_describe(n)}")
         if s["samples"] is not None and s["output_dt"] is not None:
             self.fail(k + "samples", "give either 'samples' or 'output_dt', not both")
+        self.run_size(s)
         mic = self.number(s["max_initial_correction"], k + "max_initial_correction")
         if mic < 0:
             self.fail(k + "max_initial_correction", f"must be zero or positive, got {mic!r}")
@@ -914,6 +925,26 @@ class _Builder:
             self.fail(k + "method", "method 'reduced' needs the scene's [reduced] section "
                       "(coordinates, initial, rates, map)")
         return s
+
+    def run_size(self, s: dict) -> None:
+        """Times a step can resolve, and a bounded number of output samples and fixed steps."""
+        k = "simulate."
+        for name in ("t_start", "t_end"):
+            if s[name] is not None and abs(s[name]) > MAX_TIME:
+                self.fail(k + name, f"{s[name]:g} s is beyond {MAX_TIME:g} s: at such times a float "
+                          "cannot resolve a time step; shift the clock (t_start = 0)")
+        if s["samples"] is not None and s["samples"] > MAX_SAMPLES:
+            self.fail(k + "samples", f"{s['samples']} output samples is more than the {MAX_SAMPLES} "
+                      "accepted; ask for fewer")
+        if s["t_end"] is None:
+            return
+        span = s["t_end"] - s["t_start"]
+        if s["output_dt"] is not None and span / s["output_dt"] > MAX_SAMPLES:
+            self.fail(k + "output_dt", f"{s['output_dt']:g} s over {span:g} s gives more than the "
+                      f"{MAX_SAMPLES} output samples accepted; use a larger output_dt")
+        if s["dt"] is not None and span / s["dt"] > MAX_STEPS:
+            self.fail(k + "dt", f"{s['dt']:g} s over {span:g} s is more than {MAX_STEPS:g} steps; "
+                      "use a larger dt")
 
     def method_and_base(self, method: str, base: str, base_given: bool) -> None:
         """``method`` must be a registered solver; ``base`` one its solver accepts."""

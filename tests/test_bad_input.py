@@ -78,6 +78,11 @@ def scene(tmp_path) -> Path:
     ("effects[0].g=[0, '" + "-" * 5_000 + "9.81', 0]", "effects[0].g[1]", "nested"),
     ("effects[0].g=[0, '" + "(" * 300 + "1" + ")" * 300 + "', 0]", "effects[0].g[1]", "nested"),
     ("effects[0].g=[0, '" + "sin(" * 150 + "t" + ")" * 150 + "', 0]", "effects[0].g[1]", "nested"),
+    ("particles.bob.mass=5e-324", "particles[0].mass", "too small"),
+    ("simulate.samples=9223372036854775807", "simulate.samples", "1000000"),
+    ("simulate.output_dt=1e-300", "simulate.output_dt", "1000000"),
+    ("simulate.dt=1e-300", "simulate.dt", "steps"),
+    ("simulate.t_start=-1e100", "simulate.t_start", "resolve a time step"),
 ])
 def test_absurd_numbers_and_formulas_are_refused_in_one_line(capsys, scene, tmp_path, verb, override,
                                                              key, words):

@@ -4,7 +4,6 @@ trajectory, never leaves files of two runs side by side in --out, nor a stray te
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 
 from constrained.cli import main
-from constrained.outputs import MANIFEST, user_path
+from constrained.outputs import user_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,7 +90,7 @@ def test_a_second_run_replaces_the_first_runs_whole_set(tmp_path, capsys):
     assert {"trajectory.npz", "trajectory.csv", "trajectory.png", "energy.png"} <= set(listing(out))
     small = scene(tmp_path, PENDULUM, "small.toml")
     assert main(["run", str(small), "--out", str(out), "--quiet", "--set", "simulate.t_end=0.1"]) == 0
-    assert sorted(listing(out)) == sorted([MANIFEST, "trajectory.npz"])  # no csv, no figures of run 1
+    assert sorted(listing(out)) == ["trajectory.npz"]  # no csv, no figures of run 1
     assert t_end_of(out / "trajectory.npz") == pytest.approx(0.1)
     no_strays(tmp_path)
 
@@ -146,7 +145,7 @@ def test_a_partial_trajectory_is_saved_as_its_own_set(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1
     assert f"saved in {out / 'trajectory.npz'}" in err and ".part" not in err and "staging" not in err
-    assert sorted(listing(out)) == sorted([MANIFEST, "trajectory.npz"])  # not the pendulum's figures
+    assert sorted(listing(out)) == ["trajectory.npz"]  # not the pendulum's figures
     assert 0 < t_end_of(out / "trajectory.npz") < 3.0
     no_strays(tmp_path)
 
@@ -172,8 +171,6 @@ def test_other_verbs_and_the_users_files_are_kept_each_verb_replaces_its_own(tmp
     assert main(["plot", str(out / "trajectory.npz"), "--kinds", "phase", "--quiet"]) == 0
     names = set(listing(out))
     assert {"notes.txt", "trajectory.npz", "trajectory.csv", "equilibrium.json", "phase.png"} <= names
-    manifest = json.loads((out / MANIFEST).read_text())["files"]
-    assert manifest["equilibrium.json"]["verb"] == "statics" and manifest["phase.png"]["verb"] == "plot"
     # a new run replaces its own files and the figures plot drew from the old trajectory
     assert main(["run", str(scene(tmp_path, PENDULUM, "p.toml")), "--out", str(out), "--quiet"]) == 0
     names = set(listing(out))
@@ -183,13 +180,13 @@ def test_other_verbs_and_the_users_files_are_kept_each_verb_replaces_its_own(tmp
     no_strays(tmp_path)
 
 
-def test_a_legacy_folder_without_a_record_is_cleaned_of_the_verbs_known_files(tmp_path, capsys):
+def test_a_folder_of_an_earlier_version_is_cleaned_of_the_runs_files(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
-    for name in ("trajectory.npz", "trajectory.csv", "energy.png"):
+    for name in ("trajectory.npz", "trajectory.csv", "energy.png", "animation.gif"):
         (out / name).write_bytes(b"old run")
     assert main(["run", str(scene(tmp_path, PENDULUM)), "--out", str(out), "--quiet"]) == 0
-    assert sorted(listing(out)) == sorted([MANIFEST, "trajectory.npz"])
+    assert sorted(listing(out)) == ["trajectory.npz"]
     assert (out / "trajectory.npz").read_bytes() != b"old run"
 
 
