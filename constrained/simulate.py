@@ -59,7 +59,15 @@ def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
     worst = int(np.argmax(np.abs(f0))) if f0.size else 0
-    x, err, _ = model.project_positions(x0, t0, tol=1e-13 * size, max_iter=50)
+    try:
+        x, err, _ = model.project_positions(x0, t0, tol=1e-13 * size, max_iter=50)
+    except RuntimeError:  # CasADi's solve with a singular J M⁻¹ Jᵀ (constraints that touch)
+        raise InconsistentStateError(
+            "the constraints cannot be projected onto near the initial state: their Jacobian is "
+            "singular there; the constraints may only touch (tangent surfaces, a rod just "
+            "reaching), or a particle sits on a singular point; "
+            f"the worst at the start is '{labels[worst]}', violated by {abs(f0[worst]):.3g}. "
+            "Check the lengths and anchors, or move the particles") from None
     dx = float(np.max(np.linalg.norm((x - x0).reshape(-1, 3), axis=1), initial=0.0))
     if err > 1e-8 * size or not np.isfinite(err):
         f = np.asarray(model.constraint(x, t0)).ravel()

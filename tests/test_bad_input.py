@@ -112,6 +112,39 @@ def test_a_singular_potential_at_the_start_is_refused(capsys, scene):
     one_line(err, "key effects[1]", "not finite", "starts on the point")
 
 
+TANGENT = """\
+[[particles]]
+name = "p1"
+mass = 1.0
+position = [0.0, 0.0, 1.0]
+
+[[constraints]]
+type = "surface"
+particles = ["p1"]
+expr = "x**2 + y**2 + z**2 - 1.0"
+
+[[constraints]]
+type = "distance"
+a = "p1"
+point = [0.0, 1.0, 0.0]
+length = 2
+
+[simulate]
+t_end = 0.001
+"""
+
+
+@pytest.mark.parametrize("verb", ["check", "run"])
+def test_constraints_that_only_touch_are_refused_not_a_casadi_traceback(capsys, scene, tmp_path, verb):
+    # a sphere of radius 1 and a rod of length 2 from (0, 1, 0) meet in the single point (0, -1, 0)
+    scene.write_text(TANGENT)
+    extra = ["--out", tmp_path / "out"] if verb == "run" else []
+    code, err = cli(capsys, verb, scene, *extra)
+    assert code == 2
+    one_line(err, f"scene file {scene}", "singular", "distance p1")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("text, words", [
     ("x" + "**x" * (MAX_DEPTH + 5), "nested"),
     ("-" * 100_000 + "x", "characters long"),

@@ -14,6 +14,7 @@ tests below. A longer, randomized exploration:
 from __future__ import annotations
 
 import contextlib
+import copy
 import functools
 import io
 import json
@@ -197,6 +198,12 @@ def valid_scene(draw) -> dict:
         scene["constraints"] = constraints
     if effects:
         scene["effects"] = effects
+    if draw(st.booleans()):  # checks of the finished run
+        scene["expect"] = {"energy_drift": 1.0, "final": {"x_p1": [0.0, 100.0]},
+                           "bounds": {"y_p1": [-100.0, 100.0]}}
+    if draw(st.booleans()):  # generalized coordinates: a translation of the whole system
+        mapping = {p: [f"{pos[p][0]!r} + q", repr(pos[p][1]), repr(pos[p][2])] for p in names}
+        scene["reduced"] = {"coordinates": ["q"], "initial": {"q": 0.0}, "rates": {"q": 0.0}, "map": mapping}
     return scene
 
 
@@ -215,7 +222,7 @@ def paths(value, prefix=()):
 def mutated_scene(draw) -> dict:
     """A valid scene with one to three small defects: a value replaced by something odd, a key
     removed or an unknown key added."""
-    scene = draw(valid_scene())
+    scene = copy.deepcopy(draw(valid_scene()))  # no shared lists: a mutation changes one place
     for _ in range(draw(st.integers(1, 3))):
         where = draw(st.sampled_from([p for p in paths(scene) if p]))
         parent = scene
@@ -224,14 +231,15 @@ def mutated_scene(draw) -> dict:
         op = draw(st.sampled_from(["replace", "replace", "replace", "delete", "add"]))
         last = where[-1]
         if op == "replace":
-            parent[last] = draw(weird)
+            parent[last] = copy.deepcopy(draw(weird))
         elif op == "delete":
             if isinstance(parent, dict):
                 del parent[last]
             else:
                 parent.pop(last)
         elif isinstance(parent, dict):
-            parent[draw(st.sampled_from(["extra", "Mass", "lenght", "type", "b", "point"]))] = draw(weird)
+            key = draw(st.sampled_from(["extra", "Mass", "lenght", "type", "b", "point"]))
+            parent[key] = copy.deepcopy(draw(weird))
     return scene
 
 
