@@ -150,8 +150,10 @@ def valid_scene(draw) -> dict:
         xa = np.array(pos[a])
         if kind == "distance":
             anchor = draw(vec3)
-            constraints.append({"type": "distance", "a": a, "point": anchor,
-                                "length": float(np.linalg.norm(xa - anchor))})
+            length = float(np.linalg.norm(xa - anchor))
+            if draw(st.booleans()):  # a moving anchor: formulas of t, equal to the point at t = 0
+                anchor = [f"{c!r} + 0.1*sin(3*t)" if i == 0 else c for i, c in enumerate(anchor)]
+            constraints.append({"type": "distance", "a": a, "point": anchor, "length": length})
         elif kind == "pair" and n > 1:
             b = draw(st.sampled_from([q for q in names if q != a]))
             constraints.append({"type": "distance", "a": a, "b": b,
@@ -180,15 +182,23 @@ def valid_scene(draw) -> dict:
         elif kind == "potential":
             effects.append({"type": "potential", "expr": f"0.5*k*x_{a}**2"})
         elif kind == "force":
-            effects.append({"type": "force", "particle": a, "expr": ["0", f"-y_{a}", "0.1*sin(t)"]})
+            expr = [f"-0.2*vx_{a}", f"-y_{a}", "0.1*sin(t)"]
+            effects.append({"type": "force", "particle": a, "expr": expr})
         else:
             effects.append({"type": "central", "a": a, "point": [5.0, 5.0, 5.0], "expr": "-1/r"})
+    simulate = {"t_end": draw(st.sampled_from([0.001, 0.003, 0.01])),
+                "method": draw(st.sampled_from(METHODS[:5])), "compiled": False}
+    if simulate["method"] == "rattle" or draw(st.booleans()):
+        simulate["dt"] = draw(st.sampled_from([1e-4, 5e-4, 1e-3]))
+    if draw(st.booleans()):
+        simulate[draw(st.sampled_from(["output_dt", "samples"]))] = draw(st.sampled_from([2, 5]))
+        if "output_dt" in simulate:
+            simulate["output_dt"] = simulate["t_end"] / simulate["output_dt"]
     scene = {
         "scene": {"name": "generated"},
         "parameters": {"k": 1.5},
         "particles": particles,
-        "simulate": {"t_end": draw(st.sampled_from([0.001, 0.003, 0.01])),
-                     "method": draw(st.sampled_from(METHODS[:5])), "compiled": False},
+        "simulate": simulate,
         "outputs": {"quantities": draw(st.lists(st.sampled_from(
                         ["multipliers", "constraint_forces", "energy", "constraint_residual",
                          "velocity_residual"]), unique=True)),
