@@ -130,7 +130,8 @@ class OutputSet:
             present = set(os.listdir(self.final)) if self.final.is_dir() else set()
             ours = present & (self.owns | set(names))
             others = present - ours
-            swap = not others and self.dir.parent == self.final.parent and not _holds_cwd(self.final)
+            swap = (not others and self.dir.parent == self.final.parent and not self.final.is_symlink()
+                    and not _holds_cwd(self.final))
             if swap:  # the whole folder is this set's: swap it
                 if self.final.is_dir():
                     try:

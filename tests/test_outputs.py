@@ -224,3 +224,16 @@ def test_a_failed_write_names_the_users_file_not_the_hidden_temporary(tmp_path, 
 def test_user_path_names_the_output_folder():
     assert user_path("/a/.out.staging-12-abc123/trajectory.npz") == "/a/out/trajectory.npz"
     assert user_path("/a/out/.out.staging-12-abc123/x.png") == "/a/out/x.png"
+
+
+def test_an_output_folder_given_as_a_symlink_stays_a_symlink(tmp_path, capsys):
+    real = tmp_path / "real"
+    real.mkdir()
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    path = scene(tmp_path, FULL)
+    assert main(["run", str(path), "--out", str(link), "--quiet"]) == 0
+    assert main(["run", str(path), "--out", str(link), "--quiet", "--set", "simulate.t_end=0.1"]) == 0
+    assert link.is_symlink()
+    assert t_end_of(real / "trajectory.npz") == pytest.approx(0.1)
+    no_strays(tmp_path)
