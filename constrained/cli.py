@@ -26,6 +26,7 @@ from .scene import (
     Scene,
     SceneError,
     check_expectations,
+    check_regular_start,
     expect_requirements,
     load_scene,
 )
@@ -295,6 +296,7 @@ def _run(args) -> int:
     file = args.scene
     s = scene.settings
     _end_time(scene, file)
+    check_regular_start(scene)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -578,6 +580,7 @@ def _statics(args) -> int:
     """Equilibrium near the scene's positions: report on stdout, DIR/equilibrium.json, statics.png."""
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
+    check_regular_start(scene)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -642,6 +645,7 @@ def _derive(args) -> int:
 def _check(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
+    check_regular_start(scene)
     from .analysis import constraint_report
     from .model import assemble
 
@@ -788,6 +792,7 @@ def _bench(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     t_end = _end_time(scene, file)
+    check_regular_start(scene)
     methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
     try:
         tolerances = (tuple(float(x) for x in args.tolerances.split(","))

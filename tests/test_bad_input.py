@@ -200,3 +200,21 @@ def test_a_sweep_design_beyond_the_limit_is_refused_at_once(tmp_path, vary):
     assert "Traceback" not in proc.stderr
     one_line(proc.stderr, "100000", "more than")
     assert not (tmp_path / "sw").exists()
+
+
+@pytest.mark.parametrize("verb", ["check", "run", "statics"])
+def test_with_reduced_coordinates_the_particle_start_is_checked_by_the_verbs_that_use_it(capsys, scene,
+                                                                                          tmp_path, verb):
+    # the particle positions of a scene with [reduced] may be placeholders for crosscheck's
+    # mapped start; the verbs that start from them refuse a singular one
+    scene.write_text(PENDULUM.replace("position = [1.0, 0.0, 0.0]", "position = [0.0, 0.0, 0.0]")
+                     + '\n[reduced]\ncoordinates = ["th"]\ninitial = { th = 1.0 }\n'
+                     'map = { bob = ["sin(th)", "-cos(th)", "0"] }\n')
+    from constrained.scene import load_scene
+
+    assert load_scene(scene).reduced is not None  # loads: crosscheck can use it
+    extra = ["--out", tmp_path / "out"] if verb != "check" else []
+    code, err = cli(capsys, verb, scene, *extra)
+    assert code == 2
+    one_line(err, f"scene file {scene}", "key constraints[0]", "starts on the point")
+    assert not (tmp_path / "out").exists()
