@@ -1,7 +1,8 @@
 """The ``constrained`` command: ``run`` and ``check`` a scene file.
 
 Exit status: 0 success, 1 a run that had to stop (what it computed is saved), 2 bad input
-(one-paragraph message naming the file and the key, nothing written), 130 interrupted.
+or an unwritable output folder (one-paragraph message naming the file and the key, nothing
+written), 130 interrupted. Outputs go through ``outputs.OutputSet``: one consistent set per run.
 """
 
 from __future__ import annotations
@@ -17,12 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
+from .outputs import OutputSet, discard_uncommitted, user_path
 from .scene import (
     _KEY_RE,
     SIMULATE_DEFAULTS,
     Scene,
     SceneError,
     check_expectations,
+    check_regular_start,
     expect_requirements,
     load_scene,
 )
@@ -62,7 +65,8 @@ particles.p1.mass=2 or particles[0].mass=2, parameters.k=3, effects[0].k=5.
 VALUE is read as TOML (2, [1, 0, 0], "sin(t)"); a bare word is a string.
 
 exit status: 0 done, 1 the run had to stop (partial trajectory saved),
-2 bad input (nothing written), 130 interrupted.
+2 bad input or an unwritable output folder (nothing written), 130 interrupted.
+Each run replaces its own earlier files in --out DIR as one set (never a mix of two runs).
 """
 
 
@@ -276,13 +280,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         _say_error(str(exc))
         return 2
-    except OSError as exc:  # writing the outputs: permissions, a full disk
-        target = exc.filename or getattr(args, "out", None) or "the output directory"
-        _say_error(f"cannot write {target}: {exc.strerror or exc}")
-        return 1
+    except OSError as exc:  # writing the outputs: permissions, a full disk (nothing is left half-written)
+        target = user_path(exc.filename) if exc.filename else (getattr(args, "out", None)
+                                                               or "the output directory")
+        _say_error(f"cannot write {target}: {exc.strerror or exc}; nothing was written (choose another "
+                   "--out, or free space)")
+        return 2
     except KeyboardInterrupt:
         _say_error("interrupted")
         return 130
+    finally:
+        discard_uncommitted()  # a verb that stopped early leaves its --out folder as it was
 
 
 # --- run -------------------------------------------------------------------------------------
@@ -307,6 +315,7 @@ def _run(args) -> int:
     file = args.scene
     s = scene.settings
     _end_time(scene, file)
+    check_regular_start(scene)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -330,6 +339,7 @@ def _run(args) -> int:
     except InputError as exc:
         raise _scene_error(exc, file) from None
 
+    outs = OutputSet(out_dir, _run_files()).open()
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
@@ -340,29 +350,41 @@ def _run(args) -> int:
         message = f"scene file {file}: {exc}"
         partial = exc.trajectory
         if partial is not None and len(partial.t):
-            path = partial.save(out_dir / "trajectory.npz", quantities=quantities)
+            (path,) = outs.commit([partial.save(outs.path("trajectory.npz"), quantities=quantities)])
             message += f"; what was computed up to t = {partial.t[-1]:.6g} s is saved in {path}"
         _say_error(message)
         return 130 if isinstance(exc, RunInterrupted) else 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
 
-    written = [trajectory.save(out_dir / "trajectory.npz", quantities=quantities)]
+    written = [trajectory.save(outs.path("trajectory.npz"), quantities=quantities)]
     if "csv" in scene.outputs["formats"]:
-        path = out_dir / "trajectory.csv"
+        path = outs.path("trajectory.csv")
         text = trajectory_csv(trajectory, quantities)
         atomic_write(path, lambda f: f.write(text.encode("utf-8")))
         written.append(path)
     if kinds and save_figures is not None:
-        written.extend(save_figures(trajectory, kinds, out_dir, system=scene.system))
+        written.extend(save_figures(trajectory, kinds, outs.dir, system=scene.system))
     if viewer:
         from .viewer import write_viewer
 
-        page = out_dir / "viewer.html"
+        page = outs.dir / "viewer.html"
         written.append(write_viewer(trajectory, page, system=scene.system, title=scene.name))
+    written = outs.commit(written)
     if not args.quiet:
         _summary(scene, file, trajectory, written)
     return _report_expectations(scene, trajectory, args.quiet)
+
+
+def _run_files() -> list[str]:
+    """The files ``run`` owns in its --out folder: a new run replaces all of them (figures drawn
+    by ``plot`` from the earlier trajectory included)."""
+    try:
+        from .plot import KINDS
+    except ImportError:
+        KINDS = ()
+    return ["trajectory.npz", "trajectory.csv", "animation.gif", "animation.mp4", "viewer.html",
+            *(f"{kind}.png" for kind in KINDS)]
 
 
 def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> int:
@@ -525,6 +547,7 @@ def _crosscheck(args) -> int:
     from .crosscheck import cross_check
     from .reduced import save_crosscheck_figure
 
+    outs = OutputSet(out_dir, ["crosscheck.png"]).open()
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             check = cross_check(scene, t_end)
@@ -535,9 +558,10 @@ def _crosscheck(args) -> int:
         raise _scene_error(exc, file) from None
     written = []
     try:
-        written.append(save_crosscheck_figure(check, out_dir / "crosscheck.png"))
+        written.append(save_crosscheck_figure(check, outs.path("crosscheck.png")))
     except ImportError as exc:
         _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    written = outs.commit(written)
     print(f"scene: {scene.name} ({file}), coordinates {', '.join(check.reduced_model.coordinates)}, "
           f"t = {check.t[0]:g} .. {check.t[-1]:g} s, rtol {check.settings['rtol']:g}")
     print(check.table())
@@ -553,21 +577,24 @@ def _statics(args) -> int:
     """Equilibrium near the scene's positions: report on stdout, DIR/equilibrium.json, statics.png."""
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
+    check_regular_start(scene)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
     from .statics import equilibrium, format_equilibrium, save_equilibrium_figure, write_equilibrium_json
 
+    outs = OutputSet(out_dir, ["equilibrium.json", "statics.png"]).open()
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             eq = equilibrium(scene.system, t=scene.settings["t_start"])
     except InputError as exc:
         raise _scene_error(exc, file) from None
-    written = [write_equilibrium_json(eq, out_dir / "equilibrium.json")]
+    written = [write_equilibrium_json(eq, outs.path("equilibrium.json"))]
     try:
-        written.append(save_equilibrium_figure(eq, scene.system, out_dir / "statics.png"))
+        written.append(save_equilibrium_figure(eq, scene.system, outs.path("statics.png")))
     except ImportError as exc:
         _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    written = outs.commit(written)
     if not args.quiet:
         print(format_equilibrium(eq, title=f"scene: {scene.name} ({file})"))
         print("wrote: " + ", ".join(str(p) for p in written))
@@ -615,6 +642,7 @@ def _derive(args) -> int:
 def _check(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
+    check_regular_start(scene)
     from .analysis import constraint_report
     from .model import assemble
 
@@ -761,6 +789,7 @@ def _bench(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     t_end = _end_time(scene, file)
+    check_regular_start(scene)
     methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
     try:
         tolerances = (tuple(float(x) for x in args.tolerances.split(","))
@@ -777,6 +806,7 @@ def _bench(args) -> int:
                                 for k, v in opts.items() if k not in ("atol", "base"))
             print(f"  {method} ({setting})", flush=True)
 
+    outs = OutputSet(out_dir, ["bench.csv", "bench.md", "bench.png"]).open()
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             from .scene import closed_form_error, closed_form_positions
@@ -790,7 +820,7 @@ def _bench(args) -> int:
                                     repeats=args.repeats, name=scene.name, progress=progress, **kwargs)
     except InputError as exc:
         raise _scene_error(exc, file) from None
-    written = result.write(out_dir)
+    written = outs.commit(result.write(outs.dir))
     if not args.quiet:
         print(result.markdown())
         print("wrote: " + ", ".join(str(p) for p in written))
@@ -839,6 +869,7 @@ def _path(args) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
     t0 = scene.settings["t_start"]
+    outs = OutputSet(out_dir, ["path.npz", "path.png"]).open()
     try:
         x_end = end_configuration(args.to, scene.system)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -849,22 +880,24 @@ def _path(args) -> int:
     except SimulationError as exc:
         message = f"scene file {file}: {exc}"
         if exc.trajectory is not None:
-            saved = exc.trajectory.save(out_dir / "path.npz")
-            message += f"; the last iterate is saved in {saved}"
+            staged = exc.trajectory.save(outs.path("path.npz"))
             if getattr(exc, "path", None) is not None:
                 try:
-                    save_path_figure(exc.path, out_dir / "path.png")
+                    save_path_figure(exc.path, outs.path("path.png"))
                 except ImportError:
                     pass
+            (saved,) = outs.commit([staged])
+            message += f"; the last iterate is saved in {saved}"
         _say_error(message)
         return 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
-    written = [result.trajectory.save(out_dir / "path.npz")]
+    written = [result.trajectory.save(outs.path("path.npz"))]
     try:
-        written.append(save_path_figure(result, out_dir / "path.png"))
+        written.append(save_path_figure(result, outs.path("path.png")))
     except ImportError as exc:
         _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    written = outs.commit(written)
     if not args.quiet:
         print(f"scene: {scene.name} ({file}), from the scene's positions at t = {t0:g} s to --to at "
               f"t = {t0 + args.time:g} s")
@@ -891,19 +924,24 @@ def _plot(args) -> int:
         raise InputError(f"plot: unknown kind(s) {', '.join(unknown)} (known: {', '.join(KINDS)})")
     try:
         trajectory = Trajectory.load(results)
+    except InputError as exc:
+        raise InputError(f"plot: {exc}") from None
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"plot: cannot read {results} as a trajectory ({exc})") from None
     system = load_scene(args.scene).system if args.scene else None
     out_dir = Path(args.out) if args.out else results.parent
+    outs = OutputSet(out_dir).open()
     written, skipped = [], []
     for kind in kinds:
         try:
-            written.extend(save_figures(trajectory, [kind], out_dir, system=system))
+            written.extend(save_figures(trajectory, [kind], outs.dir, system=system))
         except InputError as exc:
             if args.kinds:  # asked for by name: say why not
                 skipped.append(f"{kind} ({exc})")
             else:
                 skipped.append(kind)
+    if written:
+        written = outs.commit(written)
     if not args.quiet:
         if written:
             print("wrote: " + ", ".join(str(p) for p in written))

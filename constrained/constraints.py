@@ -72,6 +72,15 @@ class Distance(Constraint):
         self.name, self.where = name, where
         if (b is None) == (point is None):
             raise InputError("give exactly one of 'b' (a particle) or 'point'", where=self._where())
+        if isinstance(length, int | float) and not isinstance(length, bool) and length <= 0:
+            other = "'b'" if b is not None else "the point"
+            fix = ("a 'pin' constraint holds a particle at a point" if b is None
+                   else "merge the two particles into one")
+            raise InputError(
+                f"must be a positive length in m, got {length!r}: a rod of length {length!r} would hold "
+                f"'{a}' on {other}, where the direction of the rod, and so the constraint force, is "
+                f"undefined (the constraint's gradient vanishes); {fix}",
+                where=f"{self._where()}.length")
 
     @property
     def label(self) -> str:

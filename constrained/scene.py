@@ -75,6 +75,12 @@ SIMULATE_DEFAULTS: dict[str, Any] = {
     "compiled": "auto",
 }
 
+#: Limits of [simulate]: output samples a run may store, fixed steps it may take (dt), and
+#: the largest |time| (beyond it a float cannot resolve a step).
+MAX_SAMPLES = 1_000_000
+MAX_STEPS = 1e10
+MAX_TIME = 1e12
+
 OUTPUT_QUANTITIES = ("positions", "velocities", *QUANTITIES)
 OUTPUT_PLOTS = (
     "trajectory",
@@ -208,6 +214,17 @@ def build_scene(raw: Mapping, path: str | Path | None = None) -> Scene:
     return _Builder(raw, None if path is None else Path(path)).build()
 
 
+def check_regular_start(scene: Scene) -> None:
+    """Refuse (SceneError) a scene whose constraints or effects are undefined at its particles'
+    initial positions (a rod whose particle sits on its anchor, 1/r at r = 0). ``load_scene``
+    checks this itself, except for scenes with a [reduced] section, whose particle positions
+    may be placeholders for the mapped start of ``crosscheck``: verbs that start from the
+    particle positions call this."""
+    builder = _Builder(scene.raw, scene.path)
+    builder.names = [p.name for p in scene.system.particles]
+    builder.regular_start(scene.system, scene.settings["t_start"])
+
+
 def apply_overrides(raw: Mapping, overrides: Iterable[str] | None, *, file=None) -> dict:
     """A deep copy of ``raw`` with ``--set`` overrides ``"KEY=VALUE"`` applied.
 
@@ -337,7 +354,7 @@ def _override_origin(key: str | None, applied: list[tuple[str, str]]) -> str | N
         return None
     for canon, text in reversed(applied):
         if key == canon or any(a.startswith(b + c) for a, b in ((key, canon), (canon, key)) for c in ".["):
-            return text
+            return text if len(text) <= 80 else text[:77] + "..."
     return None
 
 
@@ -357,6 +374,23 @@ def _join(prefix: str, key: str | int) -> str:
 def _suggest(word: str, choices: Iterable[str]) -> str:
     close = difflib.get_close_matches(str(word), list(choices), n=1)
     return f"; did you mean '{close[0]}'?" if close else ""
+
+
+def _why_singular(obj, system: System, t0: float) -> str:
+    """The likely reason an item is undefined at the start: two ends at one place."""
+    a, b, point = (getattr(obj, k, None) for k in ("a", "b", "point"))
+    if not isinstance(a, str):
+        return "; move the particles away from the singular point (e.g. r = 0 in a formula)"
+    names = [p.name for p in system.particles]
+    pos = np.asarray(system.positions, float).reshape(-1, 3)
+    here = pos[names.index(a)] if a in names else None
+    if isinstance(b, str) and b in names and here is not None and np.allclose(here, pos[names.index(b)]):
+        return (f": particles '{a}' and '{b}' start at the same position, where the direction "
+                "between them is undefined; move one of them")
+    if point is not None and here is not None:
+        return (f": particle '{a}' starts on the point {list(point)}, where the direction from "
+                "the point is undefined; move the particle (to the rod's length from the point)")
+    return "; move the particles away from the singular point"
 
 
 def _is_number(value) -> bool:
@@ -502,6 +536,10 @@ class _Builder:
     def finite_everywhere(self, value, key: str) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             self.fail(key, f"the number {value!r} is not finite (inf and nan are not accepted)")
+        if _is_number(value) and abs(value) > expressions.MAX_MAGNITUDE:
+            self.fail(key, f"the number {value!r} is too large: beyond {expressions.MAX_MAGNITUDE:g} "
+                      "in size, products and squares in the equations of motion overflow; use units "
+                      "that keep the numbers moderate")
         if isinstance(value, dict):
             for k, v in value.items():
                 self.finite_everywhere(v, _join(key, k))
@@ -548,6 +586,8 @@ class _Builder:
             self.fail(exc.where, exc.reason)
         self.check_formulas(system)
         settings = self.simulate()
+        if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
+            self.regular_start(system, settings["t_start"])
         outputs = self.outputs()
         reduced = self.reduced(parameters)
         expect = self.raw.get("expect")
@@ -672,6 +712,10 @@ class _Builder:
                 )
             seen[name] = i
             mass = self.positive(item["mass"], f"{key}.mass", "a finite positive number (kg)")
+            if mass < 1 / expressions.MAX_MAGNITUDE:
+                self.fail(f"{key}.mass", f"the mass {mass!r} kg is too small (below "
+                          f"{1 / expressions.MAX_MAGNITUDE:g}): 1/m overflows in the equations of motion; "
+                          "use units that keep the numbers moderate")
             position = self.numbers3(item["position"], f"{key}.position")
             velocity = self.numbers3(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity")
             try:
@@ -814,6 +858,44 @@ class _Builder:
                 except (RuntimeError, TypeError, ZeroDivisionError) as exc:
                     self.fail(key, f"cannot be built: {exc}")
 
+    def regular_start(self, system: System, t0: float) -> None:
+        """Every constraint row, its gradient, and every effect's term and gradients must be
+        finite at the initial state: a rod whose particle sits on its anchor, or a 1/r potential
+        at r = 0, is refused here with the item's key instead of failing inside a solver."""
+        import casadi as ca
+
+        s = Symbols(system)
+        items, outputs = [], []
+        for section, objs in (("constraints", system.constraints), ("effects", system.effects)):
+            for i, obj in enumerate(objs):
+                try:
+                    if section == "constraints":
+                        value = ca.vertcat(*[row for row, _ in obj.rows(s)])
+                    else:
+                        value = ca.vertcat(obj.term(s))
+                except (InputError, RuntimeError, TypeError, ZeroDivisionError):
+                    continue  # check_formulas reports these
+                value = ca.SX(value)
+                parts = [value, ca.vec(ca.jacobian(value, s.x))]
+                if section == "effects":
+                    parts.append(ca.vec(ca.jacobian(value, s.v)))
+                items.append((_join(section, i), obj))
+                outputs.append(ca.vertcat(*parts))
+        if not items:
+            return
+        x0 = np.asarray(system.positions, float).reshape(-1)
+        v0 = np.asarray(system.velocities, float).reshape(-1)
+        with np.errstate(all="ignore"):
+            values = ca.Function("start", [s.x, s.v, s.t], outputs)(x0, v0, t0)
+        values = values if isinstance(values, list | tuple) else [values]
+        for (key, obj), value in zip(items, values, strict=True):
+            if np.all(np.isfinite(np.asarray(value, float))):
+                continue
+            what = "constraint" if key.startswith("constraints") else "effect"
+            self.fail(key, f"this {what} ({obj.label}) is undefined at the initial state "
+                      f"(t = {t0:g} s): its value or its gradient is not finite there"
+                      f"{_why_singular(obj, system, t0)}")
+
     def simulate(self) -> dict:
         table = self.raw.get("simulate", {})
         self.keys(table, "simulate", SIMULATE_DEFAULTS, what="[simulate]")
@@ -843,6 +925,7 @@ class _Builder:
                 self.fail(k + "samples", f"must be a whole number >= 2, got {_describe(n)}")
         if s["samples"] is not None and s["output_dt"] is not None:
             self.fail(k + "samples", "give either 'samples' or 'output_dt', not both")
+        self.run_size(s)
         mic = self.number(s["max_initial_correction"], k + "max_initial_correction")
         if mic < 0:
             self.fail(k + "max_initial_correction", f"must be zero or positive, got {mic!r}")
@@ -853,6 +936,26 @@ class _Builder:
             self.fail(k + "method", "method 'reduced' needs the scene's [reduced] section "
                       "(coordinates, initial, rates, map)")
         return s
+
+    def run_size(self, s: dict) -> None:
+        """Times a step can resolve, and a bounded number of output samples and fixed steps."""
+        k = "simulate."
+        for name in ("t_start", "t_end"):
+            if s[name] is not None and abs(s[name]) > MAX_TIME:
+                self.fail(k + name, f"{s[name]:g} s is beyond {MAX_TIME:g} s: at such times a float "
+                          "cannot resolve a time step; shift the clock (t_start = 0)")
+        if s["samples"] is not None and s["samples"] > MAX_SAMPLES:
+            self.fail(k + "samples", f"{s['samples']} output samples is more than the {MAX_SAMPLES} "
+                      "accepted; ask for fewer")
+        if s["t_end"] is None:
+            return
+        span = s["t_end"] - s["t_start"]
+        if s["output_dt"] is not None and span / s["output_dt"] > MAX_SAMPLES:
+            self.fail(k + "output_dt", f"{s['output_dt']:g} s over {span:g} s gives more than the "
+                      f"{MAX_SAMPLES} output samples accepted; use a larger output_dt")
+        if s["dt"] is not None and span / s["dt"] > MAX_STEPS:
+            self.fail(k + "dt", f"{s['dt']:g} s over {span:g} s is more than {MAX_STEPS:g} steps; "
+                      "use a larger dt")
 
     def method_and_base(self, method: str, base: str, base_given: bool) -> None:
         """``method`` must be a registered solver; ``base`` one its solver accepts."""

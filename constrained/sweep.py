@@ -71,12 +71,16 @@ __all__ = [
     "cell_edges",
     "boundary_function",
     "MODEL_CACHE_SIZE",
+    "MAX_DESIGN_RUNS",
 ]
 
 #: How many assembled Models one worker process keeps (least recently used dropped).
 MODEL_CACHE_SIZE = 64
 #: Seconds between rewrites of summary.csv while a sweep runs.
 SUMMARY_EVERY_S = 10.0
+#: The most runs one design may have (values of one spec, and grid x samples): a larger
+#: design is refused before it is built (it would take minutes and gigabytes to list).
+MAX_DESIGN_RUNS = 100_000
 
 RANDOM = ("uniform", "normal", "loguniform")
 RANGES = ("lin", "log")
@@ -156,6 +160,9 @@ def parse_spec(key: str, text: str) -> Spec:
                 raise InputError(f"the number of values must be a whole number >= 1, got {parts[2]}",
                                  where=where)
             n = int(n)
+            if n > MAX_DESIGN_RUNS:
+                raise InputError(f"{n} values is more than the {MAX_DESIGN_RUNS} runs a sweep may have; "
+                                 "use fewer values (or several sweeps)", where=where)
             a, b = nums[0], nums[1]
             if fn == "log":
                 if a <= 0 or b <= 0:
@@ -210,6 +217,11 @@ def design(specs: Sequence[Spec], samples: int | None = None, seed: int = 0) -> 
             raise InputError(f"--samples must be a whole number >= 1, got {samples!r}")
         if not rand:
             raise InputError("--samples needs at least one random spec (uniform, normal, loguniform)")
+    size = math.prod(len(s.values) for s in fixed) * (samples if rand else 1)
+    if size > MAX_DESIGN_RUNS:
+        counts = " x ".join([str(len(s.values)) for s in fixed] + ([f"{samples} samples"] if rand else []))
+        raise InputError(f"the design has {size} runs ({counts}), more than the {MAX_DESIGN_RUNS} a sweep "
+                         "may have; use fewer values or samples (or split it into several sweeps)")
     keys = [s.key for s in specs]
     if len(set(keys)) != len(keys):
         dup = next(k for k in keys if keys.count(k) > 1)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,14 +97,28 @@ class Trajectory:
         if not path.is_file():
             raise InputError(f"no such file: {path}")
         try:
-            with np.load(path, allow_pickle=False) as data:
+            data = np.load(path, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive of named arrays")
+            with data:
                 arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path} is not a trajectory file written by constrained ({exc})") from None
+            meta = json.loads(str(arrays.pop("meta"))) if "meta" in arrays else {}
+            if not isinstance(meta, dict):
+                raise ValueError("its 'meta' entry is not a table")
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
+            why = str(exc).split(". ")[0] if not isinstance(exc, zipfile.BadZipFile | EOFError | zlib.error) \
+                else "truncated or damaged archive"
+            if "pickled" in why:
+                why = "not an .npz archive of arrays"
+            raise InputError(f"{path} is not a readable trajectory file written by constrained ({why}); "
+                             "run the scene again to write it") from None
         missing = [k for k in ("t", "x", "v") if k not in arrays]
         if missing:
             raise InputError(f"{path} lacks the arrays {', '.join(missing)}")
-        meta = json.loads(str(arrays.pop("meta"))) if "meta" in arrays else {}
+        t, x, v = arrays["t"], arrays["x"], arrays["v"]
+        if t.ndim != 1 or x.ndim != 3 or x.shape[0] != len(t) or x.shape[2:] != (3,) or v.shape != x.shape:
+            raise InputError(f"{path}: the arrays t {t.shape}, x {x.shape}, v {v.shape} do not have the "
+                             "shapes of a trajectory (T,), (T, N, 3), (T, N, 3)")
         return cls(
             **{k: arrays.get(k) for k in ("t", "x", "v", *QUANTITIES)},
             particle_names=meta.get("particle_names", []),
@@ -122,16 +138,20 @@ class Trajectory:
 def atomic_write(path: Path, write) -> None:
     """Call ``write(fileobj)`` on a temporary file beside ``path``, then rename it into place."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
         with os.fdopen(fd, "wb") as f:
             write(f)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the mode open() would
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as exc:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) != str(path):
+            # name the user's file, not the hidden temporary one (or its folder)
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
 
 

@@ -172,18 +172,21 @@ quantities = ["energy", "constraint_residual"]
 
 
 @pytest.mark.parametrize("method", ["projection", "dopri", "rattle", "idas"])
-def test_an_infinite_potential_energy_stops_the_run_with_a_diagnosis(tmp_path, capsys, method):
+def test_an_infinite_potential_energy_at_the_start_is_refused_naming_the_effect(tmp_path, capsys, method):
+    """exp(1000 x) overflows at x = 1: the scene is bad input (exit 2, nothing written), the
+    message names the effect; a constant that overflows is refused by the formula parser."""
     from constrained.cli import main
 
     scene = tmp_path / "overflow.toml"
-    scene.write_text(OVERFLOW.replace("EXPR", "exp(1e308)"))
-    code = main(["run", str(scene), "--out", str(tmp_path / "out"), "--quiet",
-                 "--set", f"simulate.method={method}"])
-    err = capsys.readouterr().err
-    assert code == 1, err
-    assert "non-finite energy" in err and "'runaway'" in err and "overflows" in err
-    with np.load(tmp_path / "out" / "trajectory.npz") as data:
-        assert np.all(np.isfinite(data["x"])) and data["t"][-1] == 0.0
+    for expr, words in (("exp(1000 * x_p) ** 2", "(runaway) is undefined at the initial state"),
+                        ("exp(1e308)", "too large")):
+        scene.write_text(OVERFLOW.replace("EXPR", expr))
+        code = main(["run", str(scene), "--out", str(tmp_path / "out"), "--quiet",
+                     "--set", f"simulate.method={method}"])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        assert words in err and "effects[0]" in err and "Traceback" not in err
+        assert not (tmp_path / "out").exists()
 
 
 def test_energy_that_becomes_infinite_during_the_run_stops_it_where_it_does(tmp_path):

@@ -1,0 +1,135 @@
+"""The compile cache survives damage: a truncated, garbage or foreign library in place of a
+cached one is detected (size and checksum record), rebuilt with a one-line notice, and the
+run still gives the right answer. Each step runs in its own process, as separate runs do
+(a library a process has loaded must not be damaged under it)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from constrained import compiled
+
+ROOT = Path(__file__).resolve().parents[1]
+
+needs_cc = pytest.mark.skipif(compiled.compiler() is None, reason="no C compiler on this machine")
+
+# Two functions named alike (so their libraries are interchangeable by name) with different
+# shapes and values: f(x) = sin(x) + 2 x (3 entries), and its impostor (2 entries).
+SCRIPT = """
+import sys, casadi as ca, numpy as np
+from constrained import compiled
+which = sys.argv[1]
+if which == "f":
+    x = ca.SX.sym("x", 3); f = ca.Function("cachetest", [x], [ca.sin(x) + 2 * x])
+    arg, want = np.array([0.1, 0.2, 0.3]), np.sin([0.1, 0.2, 0.3]) + 2 * np.array([0.1, 0.2, 0.3])
+else:
+    x = ca.SX.sym("x", 2); f = ca.Function("cachetest", [x], [ca.cos(x)])
+    arg, want = np.array([0.1, 0.2]), np.cos([0.1, 0.2])
+g = compiled.compile_function(f)
+assert compiled.last_error is None, compiled.last_error
+assert g is not f and g.has_free() is False
+got = np.asarray(g(arg)).ravel()
+print("value-ok" if np.allclose(got, want, rtol=0, atol=1e-14) else f"value-wrong {got}")
+"""
+
+
+def run(which: str, cache: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, CONSTRAINED_CACHE=str(cache), PYTHONPATH=str(ROOT))
+    env.pop("CONSTRAINED_COMPILE", None)
+    return subprocess.run([sys.executable, "-c", SCRIPT, which], env=env, capture_output=True,
+                          text=True, timeout=120)
+
+
+def entry(cache: Path) -> Path:
+    (so,) = cache.glob("cachetest_*.so")
+    return so
+
+
+def damage_truncate(so: Path, cache: Path) -> None:
+    data = so.read_bytes()
+    so.write_bytes(data[: len(data) // 3])  # in place, as a disk-full or killed copy leaves it
+
+
+def damage_garbage(so: Path, cache: Path) -> None:
+    so.write_bytes(b"\x7fELF" + os.urandom(so.stat().st_size - 4))
+
+
+def damage_foreign_library(so: Path, cache: Path) -> None:
+    other = cache.parent / "other"
+    assert run("impostor", other).returncode == 0
+    shutil.copyfile(entry(other), so)  # a valid library, the wrong one
+
+
+def damage_foreign_entry(so: Path, cache: Path) -> None:
+    other = cache.parent / "other"
+    assert run("impostor", other).returncode == 0
+    shutil.copyfile(entry(other), so)  # library and its record: checksums agree, shapes do not
+    shutil.copyfile(entry(other).with_suffix(".json"), so.with_suffix(".json"))
+
+
+@needs_cc
+@pytest.mark.parametrize("damage", [damage_truncate, damage_garbage, damage_foreign_library,
+                                    damage_foreign_entry])
+def test_a_damaged_cache_entry_is_rebuilt_and_the_answer_is_right(tmp_path, damage):
+    cache = tmp_path / "cache"
+    first = run("f", cache)
+    assert first.returncode == 0 and "value-ok" in first.stdout, first.stderr
+    so = entry(cache)
+    record = json.loads(so.with_suffix(".json").read_text())
+    assert record["size"] == so.stat().st_size  # the record is written with the library
+    good = so.read_bytes()
+    damage(so, cache)
+    assert so.read_bytes() != good
+
+    again = run("f", cache)
+    assert again.returncode == 0, f"exit {again.returncode}: {again.stderr[-2000:]}"
+    assert "value-ok" in again.stdout
+    notices = [line for line in again.stderr.splitlines() if "compile cache" in line]
+    assert len(notices) == 1 and "rebuilding" in notices[0] and str(so) in notices[0]
+    assert json.loads(so.with_suffix(".json").read_text())["size"] == so.stat().st_size
+
+    third = run("f", cache)  # repaired: loaded from the cache without a notice
+    assert third.returncode == 0 and "value-ok" in third.stdout
+    assert "compile cache" not in third.stderr
+    assert not [p for p in cache.iterdir() if p.suffix not in (".so", ".json")]  # no temporaries
+
+
+@needs_cc
+def test_a_missing_record_means_rebuild_not_trust(tmp_path):
+    cache = tmp_path / "cache"
+    assert run("f", cache).returncode == 0
+    so = entry(cache)
+    so.with_suffix(".json").unlink()
+    damage_truncate(so, cache)
+    again = run("f", cache)
+    assert again.returncode == 0 and "value-ok" in again.stdout, again.stderr[-2000:]
+    assert "no size and checksum record" in again.stderr
+
+
+@needs_cc
+def test_concurrent_writers_leave_one_whole_entry(tmp_path):
+    cache = tmp_path / "cache"
+    env = dict(os.environ, CONSTRAINED_CACHE=str(cache), PYTHONPATH=str(ROOT))
+    procs = [subprocess.Popen([sys.executable, "-c", SCRIPT, "f"], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(3)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs
+    assert all("value-ok" in out for out, _ in outs)
+    so = entry(cache)
+    assert compiled._verify(so) is None
+    assert sorted(p.suffix for p in cache.iterdir()) == [".json", ".so"]
+
+
+def test_the_cache_folder_can_be_set_by_either_variable(monkeypatch, tmp_path):
+    monkeypatch.delenv("CONSTRAINED_CACHE", raising=False)
+    monkeypatch.setenv("CONSTRAINED_CACHE_DIR", str(tmp_path / "c2"))
+    assert compiled.cache_dir() == tmp_path / "c2"
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "c1"))
+    assert compiled.cache_dir() == tmp_path / "c1"
