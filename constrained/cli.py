@@ -8,30 +8,53 @@ from __future__ import annotations
 
 import argparse
 import csv
-import inspect
 import io
 import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
+from . import __version__
 from .errors import InconsistentStateError, InputError, SimulationError
-from .scene import (
-    _KEY_RE,
-    SIMULATE_DEFAULTS,
-    Scene,
-    SceneError,
-    check_expectations,
-    expect_requirements,
-    load_scene,
-)
-from .trajectory import QUANTITIES, Trajectory, atomic_write
+from .run_options import takes_base as _takes_base  # noqa: F401  (kept for callers of the old name)
+from .run_options import time_grid
+
+
+class _LazyNumpy:
+    """``np`` of this module: NumPy is imported on first use, so ``--help`` and ``--version``
+    stay fast (numpy, CasADi, SciPy and matplotlib are imported only when a verb runs)."""
+
+    def __getattr__(self, name):
+        import numpy
+
+        return getattr(numpy, name)
+
+
+np = _LazyNumpy()
+
+
+def _import_verb_modules() -> None:
+    """Bind the scene and trajectory names the verb handlers use (imported when a verb runs)."""
+    global _KEY_RE, SIMULATE_DEFAULTS, Scene, SceneError, check_expectations, expect_requirements
+    global load_scene, QUANTITIES, Trajectory, atomic_write
+    from .scene import (
+        _KEY_RE,
+        SIMULATE_DEFAULTS,
+        Scene,
+        SceneError,
+        check_expectations,
+        expect_requirements,
+        load_scene,
+    )
+    from .trajectory import QUANTITIES, Trajectory, atomic_write
 
 __all__ = ["main", "build_parser", "time_grid", "trajectory_csv"]
 
 PROG = "constrained"
+#: the kinds of ``constrained plot`` (constrained.plot.KINDS, spelled here so that --help does not
+#: import matplotlib; tests/test_cli.py checks that the two agree)
+PLOT_KINDS = ("trajectory", "energy", "constraint_residual", "constraint_forces", "multipliers",
+              "phase", "action", "animation")
 
 EPILOG = """\
 verbs:
@@ -84,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
     OUT = "output directory (default: out/<scene file stem>)"
@@ -97,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
           "Validate SCENE without simulating: particles, constraint rows, degrees of "
           "freedom, rank and redundancy, singular configuration, consistency of the initial state, "
           "and the terms the model assembles.",
-          "check scenarios/double_pendulum.toml")
+          "check scenarios/double_pendulum.toml", quiet=True)
     _verb(verbs, "crosscheck",
           "compare the Cartesian route with Lagrange's equations in the [reduced] coordinates",
           "Run SCENE both ways from the same start (the [reduced] initial values mapped "
@@ -105,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
           "generalized coordinates. Print the largest differences and energies; write "
           "DIR/crosscheck.png (position difference against time).",
           "crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2",
-          scene_help=WITH_REDUCED, out=OUT)
+          scene_help=WITH_REDUCED, out=OUT, quiet=True)
     _verb(verbs, "statics", "find the static equilibrium near the initial positions; reactions and stability",
           "Solve F(x) + Jᵀλ = 0, f(x) = 0 near the scene's initial positions (Newton on "
           "the KKT conditions): print positions, multipliers, constraint forces, support reactions, "
@@ -131,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
         "derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
         "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
         "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",
-        scene_help=WITH_REDUCED)
+        scene_help=WITH_REDUCED, quiet=True)
     derive.add_argument("--equation", action="append", default=[], metavar="EQ",
                         help="an equation of motion 'lhs = rhs' in q, q_dot, q_ddot, t (repeatable)")
     derive.add_argument("--lagrangian", action="append", default=[], metavar="L",
@@ -146,12 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_plot(verbs) -> None:
     """The ``plot`` verb: figures (and the animation) from a saved trajectory.npz."""
-    from .plot import KINDS
 
     p = verbs.add_parser(
         "plot", help="figures and animation from a saved trajectory.npz",
         description="Draw figures from RESULTS (a trajectory.npz written by 'run', or the directory "
-        f"holding it) into DIR (default: beside RESULTS). Kinds: {', '.join(KINDS)} "
+        f"holding it) into DIR (default: beside RESULTS). Kinds: {', '.join(PLOT_KINDS)} "
         "(animation.gif; also .mp4 when ffmpeg is on PATH). Kinds whose data the file lacks are "
         "skipped with a note.",
         epilog=f"example:\n  {PROG} plot out/dp/trajectory.npz --kinds trajectory,animation "
@@ -250,6 +273,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    _import_verb_modules()
     handlers = {"run": _run, "check": _check, "crosscheck": _crosscheck, "bench": _bench,
                 "statics": _statics, "derive": _derive, "sweep": _sweep, "path": _path, "plot": _plot}
     try:
@@ -293,43 +317,18 @@ def _run(args) -> int:
         raise InputError(f"--out {out_dir} exists and is not a directory")
     quantities = _contract_quantities(scene.outputs["quantities"])
     kinds = list(scene.outputs["plots"])
-    save_figures = None
-    if kinds:
-        try:
-            from .plot import save_figures
-        except ImportError as exc:
-            _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
-            kinds = []
-
-    from .simulate import simulate
-
-    kwargs = dict(
-        method=s["method"],
-        rtol=s["rtol"],
-        atol=s["atol"],
-        dt=s["dt"],
-        t_start=s["t_start"],
-        t_eval=time_grid(s["t_start"], s["t_end"], output_dt=s["output_dt"], samples=s["samples"]),
-        outputs=set(quantities) | expect_requirements(scene),
-        max_initial_correction=s["max_initial_correction"],
-        compiled=s["compiled"],
-    )
-    if _takes_base(s["method"]):
-        kwargs["base"] = s["base"]
-    if s["method"] == "reduced":
-        from .reduced import ReducedModel
-
-        try:
-            kwargs["reduced_model"] = ReducedModel.from_scene(scene)
-        except InputError as exc:
-            raise _scene_error(exc, file) from None
+    from .figure_process import FigureProcess
 
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
+        # The figures are drawn by a helper process that imports matplotlib during the run.
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
-                _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
-            trajectory = simulate(scene.system, s["t_end"], progress=progress, **kwargs)
+                _progress(args.quiet, s["t_start"], s["t_end"]) as progress, \
+                (FigureProcess() if kinds else _no_figures()) as figures:
+            result = scene.run(quantities=quantities, progress=progress)
+            trajectory = result.trajectory
+            written = _write_run_outputs(scene, trajectory, quantities, kinds, figures, out_dir, progress)
     except SimulationError as exc:
         message = f"scene file {file}: {exc}"
         partial = exc.trajectory
@@ -341,24 +340,45 @@ def _run(args) -> int:
     except InputError as exc:
         raise _scene_error(exc, file) from None
 
+    if not args.quiet:
+        _summary(scene, file, trajectory, written)
+    return _report_expectations(scene, trajectory, args.quiet, result.expectations)
+
+
+class _no_figures:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _write_run_outputs(scene, trajectory, quantities, kinds, figures, out_dir, progress) -> list:
+    """trajectory.npz, .csv and the figures of a run; the progress display counts the files."""
+    progress.stage("writing", 1 + ("csv" in scene.outputs["formats"]) + len(kinds), unit="file")
     written = [trajectory.save(out_dir / "trajectory.npz", quantities=quantities)]
+    progress.advance()
     if "csv" in scene.outputs["formats"]:
         path = out_dir / "trajectory.csv"
         text = trajectory_csv(trajectory, quantities)
         atomic_write(path, lambda f: f.write(text.encode("utf-8")))
         written.append(path)
-    if kinds and save_figures is not None:
-        written.extend(save_figures(trajectory, kinds, out_dir, system=scene.system))
-    if not args.quiet:
-        _summary(scene, file, trajectory, written)
-    return _report_expectations(scene, trajectory, args.quiet)
+        progress.advance()
+    if kinds:
+        try:
+            written.extend(figures.save(trajectory, kinds, out_dir, system=scene.system,
+                                        progress=progress.advance))
+        except ImportError as exc:
+            _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
+    return written
 
 
-def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> int:
+def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool, results=None) -> int:
     """Check the scene's [expect] section: one line per check; 1 when one fails, else 0."""
     if not scene.expectations:
         return 0
-    results = check_expectations(scene, trajectory)
+    if results is None:
+        results = check_expectations(scene, trajectory)
     failed = [r for r in results if not r.ok]
     if not quiet:
         print(f"expect: {len(results) - len(failed)} of {len(results)} checks pass")
@@ -371,65 +391,69 @@ def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> i
 
 
 class _progress:
-    """A progress bar over simulated time (tqdm, on stderr), shown once a run takes longer than
-    ~2 s; off with --quiet or when stderr is not a terminal. The solvers report the time they
-    have reached through their ``progress`` callback — this object is that callback."""
+    """The progress display of a run (tqdm, on stderr): a bar over simulated time, then one
+    over the files written (figures, the animation frame by frame). It appears once the run
+    has taken ~2 s (DELAY) in all, and only on a terminal and without --quiet. The solvers report
+    the time they have reached through their ``progress`` callback — this object is that callback."""
 
     DELAY = 2.0
 
-    def __init__(self, quiet: bool, t_start: float, t_end: float):
-        self.enabled = not quiet and sys.stderr.isatty()
+    def __init__(self, quiet: bool, t_start: float, t_end: float, *, stream=None):
+        import time
+
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = not quiet and self.stream.isatty()
         self.t_start, self.t_end = float(t_start), float(t_end)
         self.bar = None
+        self.started = time.perf_counter()
+        self.time = time.perf_counter
+
+    def _open(self, total: float, desc: str, bar_format: str | None = None, unit: str = "it"):
+        if not self.enabled:
+            return
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            return
+        # the delay counts from the start of the run, not from this stage
+        delay = max(0.0, self.DELAY - (self.time() - self.started))
+        self.bar = tqdm(total=total, desc=desc, delay=delay, file=self.stream, leave=False,
+                        unit=unit, bar_format=bar_format, mininterval=0.2)
 
     def __enter__(self):
-        if self.enabled:
-            try:
-                from tqdm import tqdm
-            except ImportError:
-                return self
-            self.bar = tqdm(total=self.t_end - self.t_start, desc="simulating", delay=self.DELAY,
-                            file=sys.stderr, leave=False,
-                            bar_format="{desc}: {percentage:3.0f}%|{bar}| t = {n:.4g} of {total:.4g} s "
-                                       "[{elapsed}<{remaining}]")
+        self._open(self.t_end - self.t_start, "simulating",
+                   "{desc}: {percentage:3.0f}%|{bar}| t = {n:.4g} of {total:.4g} s "
+                   "[{elapsed}<{remaining}]")
         return self
 
     def __call__(self, t: float) -> None:
         if self.bar is not None:
             self.bar.update(min(t - self.t_start, self.bar.total) - self.bar.n)
 
-    def __exit__(self, *exc):
+    def stage(self, desc: str, total: float, unit: str = "it") -> None:
+        """Close the current bar and open one for ``total`` units of a new stage."""
+        self._close()
+        self._open(total, desc, "{desc}: {n:.3g}/{total:.3g} " + unit + "s |{bar}| [{elapsed}<{remaining}]",
+                   unit=unit)
+
+    def advance(self, amount: float = 1.0) -> None:
+        """``amount`` more units of the current stage are done."""
+        if self.bar is not None:
+            self.bar.update(amount)
+
+    def _close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+            self.bar = None
+
+    def __exit__(self, *exc):
+        self._close()
         return False
-
-
-def _takes_base(method: str) -> bool:
-    """Whether the solver of ``method`` accepts a ``base`` integrator option."""
-    from .solvers import METHODS
-
-    cls = METHODS.get(method)
-    return cls is not None and "base" in inspect.signature(cls.__init__).parameters
 
 
 def _contract_quantities(names: Sequence[str]) -> list[str]:
     """Scene output names -> contract array names besides t, x, v (always written)."""
     return [q for q in QUANTITIES if q in names]
-
-
-def time_grid(t_start: float, t_end: float, *, output_dt=None, samples=None) -> np.ndarray | None:
-    """Output times: every ``output_dt`` from t_start (t_end included), or ``samples`` points."""
-    if samples is not None:
-        return np.linspace(t_start, t_end, int(samples))
-    if output_dt is None:
-        return None
-    n = int(np.floor((t_end - t_start) / output_dt + 1e-9))
-    grid = t_start + output_dt * np.arange(n + 1)
-    if t_end - grid[-1] > 1e-9 * max(1.0, abs(t_end)):
-        grid = np.append(grid, t_end)
-    else:
-        grid[-1] = t_end
-    return grid
 
 
 def trajectory_csv(trajectory: Trajectory, quantities: Sequence[str]) -> str:
@@ -541,6 +565,8 @@ def _crosscheck(args) -> int:
         written.append(save_crosscheck_figure(check, out_dir / "crosscheck.png"))
     except ImportError as exc:
         _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
+    if args.quiet:
+        return 0
     print(f"scene: {scene.name} ({file}), coordinates {', '.join(check.reduced_model.coordinates)}, "
           f"t = {check.t[0]:g} .. {check.t[-1]:g} s, rtol {check.settings['rtol']:g}")
     print(check.table())
@@ -594,7 +620,8 @@ def _derive(args) -> int:
     except InputError as exc:
         raise _scene_error(exc, file) from None
     if not (args.equation or args.lagrangian or args.force):
-        print(describe(rm))
+        if not args.quiet:
+            print(describe(rm))
         return 0
     checks = []
     try:
@@ -606,9 +633,13 @@ def _derive(args) -> int:
             checks += check_generalized_forces(rm, args.force)
     except InputError as exc:
         raise InputError(f"derive {file}: {exc}") from None
-    print(f"scene: {scene.name} ({file}), coordinates {', '.join(rm.coordinates)}")
+    if not args.quiet:
+        print(f"scene: {scene.name} ({file}), coordinates {', '.join(rm.coordinates)}")
     for check in checks:
-        print(f"{'OK' if check.ok else 'WRONG'}: {check.message}")
+        if not args.quiet:
+            print(f"{'OK' if check.ok else 'WRONG'}: {check.message}")
+        elif not check.ok:  # --quiet: only the failing checks, on stderr
+            print(f"{PROG}: WRONG: {check.message}", file=sys.stderr)
     return 0 if all(c.ok for c in checks) else 1
 
 
@@ -663,14 +694,16 @@ def _check(args) -> int:
         preview = _projection_preview(model, scene)
         out.append(preview)
         if preview.startswith("projection: FAILS"):  # incompatible constraints: refuse the scene
-            print("\n".join(out))
+            if not args.quiet:
+                print("\n".join(out))
             _say_error(f"scene file {file}: refused: {preview.removeprefix('projection: FAILS, ')}")
             return 2
     else:
         out.append("initial state: no constraints")
     terms = sorted(getattr(model, "active_terms", ()))
     out.append("model terms: " + (", ".join(terms) if terms else "none"))
-    print("\n".join(out))
+    if not args.quiet:
+        print("\n".join(out))
     return 0
 
 

@@ -166,14 +166,15 @@ def trajectory_figure(traj: Trajectory) -> Figure:
             ax.plot(*p[0][:, None], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
             ax.plot(*p[-1][:, None], "s", color=_colour(i), ms=6)
             handles.append(line)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
+        ax.set_xlabel("x [m]", labelpad=10)
+        ax.set_ylabel("y [m]", labelpad=10)
+        ax.set_zlabel("z [m]", labelpad=12)
         finite = x.reshape(-1, 3)[np.all(np.isfinite(x.reshape(-1, 3)), axis=1)]
         if len(finite):
             span = np.ptp(finite, axis=0)
             # a thin axis keeps a readable depth (its ticks would collide otherwise)
-            ax.set_box_aspect(np.maximum(span, 0.25 * max(span.max(), 1e-12)))
+            # zoom < 1 leaves room for the axis labels (the z label is cut off at 1)
+            ax.set_box_aspect(np.maximum(span, 0.25 * max(span.max(), 1e-12)), zoom=0.82)
         from matplotlib.ticker import MaxNLocator
 
         for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
@@ -499,8 +500,10 @@ def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_
 
 
 def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, fps: int = 15,
-                   dpi: int = 72, max_frames: int = MAX_FRAMES) -> list[Path]:
-    """Write ``path`` (GIF, pillow) and, when ffmpeg is on PATH, the same as ``.mp4``."""
+                   dpi: int = 72, max_frames: int = MAX_FRAMES, progress=None) -> list[Path]:
+    """Write ``path`` (GIF, pillow) and, when ffmpeg is on PATH, the same as ``.mp4``.
+
+    ``progress(fraction)`` is called after each frame written (fractions add up to 1)."""
     from matplotlib.animation import FFMpegWriter, PillowWriter
 
     path = Path(path)
@@ -510,11 +513,14 @@ def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, 
     if shutil.which("ffmpeg"):
         targets.append((path.with_suffix(".mp4"), FFMpegWriter(fps=fps)))
     written = []
+    callback = None
+    if progress is not None:
+        callback = lambda _i, n: progress(1.0 / (n * len(targets)))  # noqa: E731
     for target, writer in targets:
         fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
         os.close(fd)
         try:
-            anim.save(tmp, writer=writer, dpi=dpi)
+            anim.save(tmp, writer=writer, dpi=dpi, progress_callback=callback)
             os.replace(tmp, target)
         except BaseException:
             if os.path.exists(tmp):
@@ -557,12 +563,15 @@ KINDS = (*FIGURES, "animation")
 
 
 def save_figures(
-    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120, system=None
+    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120, system=None, progress=None,
+    parallel: bool = False,
 ) -> list[Path]:
     """Write ``out_dir/<kind>.png`` for each kind (atomically) and return the paths.
 
     The kind ``"animation"`` writes ``out_dir/animation.gif`` (and ``.mp4`` with ffmpeg); rods
-    are drawn when ``system`` (the scene's System) is given.
+    are drawn when ``system`` (the scene's System) is given. ``progress(amount)``, when given,
+    is told 1 per kind written (the animation in fractions, frame by frame). ``parallel``:
+    draw the PNG figures in forked worker processes (one per core), the animation here.
     """
     kinds = [kinds] if isinstance(kinds, str) else list(kinds)
     unknown = [k for k in kinds if k not in KINDS]
@@ -572,13 +581,58 @@ def save_figures(
             f"allowed: {', '.join(KINDS)}"
         )
     out_dir = Path(out_dir)
+    pngs = [k for k in kinds if k != "animation"]
+    if parallel and len(pngs) > 1 and _fork_context() is not None:
+        return _save_in_parallel(traj, kinds, pngs, out_dir, dpi=dpi, system=system, progress=progress)
     paths = []
     for kind in kinds:
         if kind == "animation":
-            paths.extend(save_animation(traj, out_dir / "animation.gif", system=system))
+            paths.extend(save_animation(traj, out_dir / "animation.gif", system=system,
+                                        progress=progress))
             continue
         fig = FIGURES[kind](traj)
         path = out_dir / f"{kind}.png"
         atomic_write(path, lambda f, fig=fig: fig.savefig(f, format="png", dpi=dpi))
         paths.append(path)
+        if progress is not None:
+            progress(1.0)
+    return paths
+
+
+def _fork_context():
+    """The multiprocessing "fork" context where there is one (not on Windows), else None."""
+    import multiprocessing
+
+    try:
+        return multiprocessing.get_context("fork")
+    except ValueError:
+        return None
+
+
+def _save_one(traj: Trajectory, kind: str, out_dir: Path, dpi: int) -> Path:
+    fig = FIGURES[kind](traj)
+    path = out_dir / f"{kind}.png"
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    return path
+
+
+def _save_in_parallel(traj, kinds, pngs, out_dir, *, dpi, system, progress) -> list[Path]:
+    """``save_figures`` with the PNGs drawn in forked processes (matplotlib is already imported
+    here, so a worker starts in milliseconds) while this process writes the animation."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    workers = max(1, min(len(pngs), os.cpu_count() or 1))
+    done: dict[str, Path] = {}
+    with ProcessPoolExecutor(workers, mp_context=_fork_context()) as pool:
+        futures = {pool.submit(_save_one, traj, kind, out_dir, dpi): kind for kind in pngs}
+        animation = []
+        if "animation" in kinds:
+            animation = save_animation(traj, out_dir / "animation.gif", system=system, progress=progress)
+        for future in as_completed(futures):
+            done[futures[future]] = future.result()
+            if progress is not None:
+                progress(1.0)
+    paths = []
+    for kind in kinds:
+        paths.extend(animation if kind == "animation" else [done[kind]])
     return paths

@@ -172,6 +172,35 @@ class Scene:
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {self.system!r})"
 
+    def with_overrides(self, overrides: Iterable[str]) -> Scene:
+        """A new Scene: this one's file contents with ``--set`` style ``"KEY=VALUE"`` overrides."""
+        file = None if self.path is None else str(self.path)
+        return build_scene(apply_overrides(self.raw, list(overrides), file=file), path=self.path)
+
+    def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None):
+        """Simulate with the scene's own ``[simulate]`` settings and check its ``[expect]``.
+
+        ``overrides``: ``"KEY=VALUE"`` strings as the CLI's ``--set`` (e.g.
+        ``["simulate.t_end=2"]``), applied to a copy. ``quantities``: what to compute besides
+        t, x, v (default: ``[outputs] quantities``). Returns a ``RunResult``: ``.trajectory``,
+        ``.expectations`` (one ``ExpectResult`` per check), ``.ok``, ``.failed``, ``.report()``;
+        it unpacks as ``trajectory, checks = scene.run()``.
+        """
+        from .run_options import RunResult, simulate_kwargs
+        from .simulate import simulate
+
+        scene = self.with_overrides(overrides) if overrides else self
+        s = scene.settings
+        if s["t_end"] is None:
+            raise SceneError("no end time: give t_end in [simulate], or override simulate.t_end",
+                             file=None if scene.path is None else str(scene.path), key="simulate.t_end")
+        wanted = set(scene.outputs["quantities"] if quantities is None else quantities)
+        kwargs = simulate_kwargs(scene, wanted | expect_requirements(scene))
+        if progress is not None:
+            kwargs["progress"] = progress
+        trajectory = simulate(scene.system, s["t_end"], **kwargs)
+        return RunResult(scene, trajectory, check_expectations(scene, trajectory))
+
 
 # --- public entry points ---------------------------------------------------------------------
 

@@ -123,6 +123,10 @@ class Spec:
         return names[-1] if names else self.key
 
 
+#: How to get Dask: the extra from the package index, or from a source checkout.
+DASK_INSTALL_HINT = ("pip install 'constrained[dask]' (from a source checkout: pip install '.[dask]' "
+                     "in its top folder)")
+
 def parse_spec(key: str, text: str) -> Spec:
     """Read one spec (see the module doc); an InputError says what is wrong."""
     where = f"--vary {key}={text}"
@@ -386,7 +390,8 @@ def _scene_for(task: dict):
 
 
 def _settings_kwargs(scene, outputs: set[str]) -> dict:
-    from .cli import _takes_base, time_grid
+    from .run_options import takes_base as _takes_base
+    from .run_options import time_grid
 
     s = scene.settings
     kw = dict(method=s["method"], rtol=s["rtol"], atol=s["atol"], dt=s["dt"], t_start=s["t_start"],
@@ -845,15 +850,18 @@ def _execute(tasks: list[dict], record, scheduler, *, progress: bool, workers: i
     try:
         import distributed
     except ImportError:
-        raise InputError("Dask is not installed: pip install 'constrained[dask]', or use --scheduler "
+        raise InputError(f"Dask is not installed: {DASK_INSTALL_HINT}, or use --scheduler "
                          "sequential") from None
     own_cluster = own_client = None
     if scheduler is None:
         if not tasks:
             return 0
         n = workers or os.cpu_count() or 1
+        # no dashboard: dashboard_address=None alone still serves HTTP on :8787 (and warns when
+        # that port is taken); ":0" is a free port, and dashboard=False serves no pages on it
         own_cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, host="127.0.0.1")
+                                               dashboard_address=":0", host="127.0.0.1",
+                                               scheduler_kwargs={"dashboard": False})
         client = own_client = distributed.Client(own_cluster)
     elif isinstance(scheduler, str):
         if not re.fullmatch(r"(tcp|tls|inproc|ucx)://\S+", scheduler):
