@@ -19,7 +19,7 @@ import os
 import statistics
 import sys
 import tempfile
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stderr
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -228,24 +228,28 @@ _CASADI_NOTES = {
 
 @contextmanager
 def _casadi_stderr():
-    """Capture what is printed on the process's stderr (file descriptor 2, where CasADi's C++
-    code writes its warnings) inside the block; yields the list of lines, filled at the end."""
+    """Capture what is printed on stderr inside the block — through ``sys.stderr`` (where
+    CasADi's Python bindings send its warnings) and on file descriptor 2 (C code writing
+    directly); yields the list of lines, filled at the end."""
     lines: list[str] = []
     sys.stderr.flush()
+    python_level = io.StringIO()  # CasADi's Python bindings write through sys.stderr
     try:
         saved = os.dup(2)
-    except OSError:  # no file descriptor 2: nothing to capture
-        yield lines
-        return
+    except OSError:  # no file descriptor 2: capture what goes through sys.stderr only
+        saved = None
     with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
+        if saved is not None:
+            os.dup2(tmp.fileno(), 2)
         try:
-            yield lines
+            with redirect_stderr(python_level):
+                yield lines
         finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
+            if saved is not None:
+                os.dup2(saved, 2)
+                os.close(saved)
             tmp.seek(0)
+            lines.extend(python_level.getvalue().splitlines())
             lines.extend(tmp.read().decode("utf-8", "replace").splitlines())
 
 

@@ -397,6 +397,8 @@ class _progress:
     the time they have reached through their ``progress`` callback — this object is that callback."""
 
     DELAY = 2.0
+    #: seconds between redraws of the bar
+    MININTERVAL = 0.2
 
     def __init__(self, quiet: bool, t_start: float, t_end: float, *, stream=None):
         import time
@@ -418,7 +420,7 @@ class _progress:
         # the delay counts from the start of the run, not from this stage
         delay = max(0.0, self.DELAY - (self.time() - self.started))
         self.bar = tqdm(total=total, desc=desc, delay=delay, file=self.stream, leave=False,
-                        unit=unit, bar_format=bar_format, mininterval=0.2)
+                        unit=unit, bar_format=bar_format, mininterval=self.MININTERVAL, miniters=1)
 
     def __enter__(self):
         self._open(self.t_end - self.t_start, "simulating",

@@ -253,6 +253,30 @@ class ReducedModel:
         Q[0], Qd[0], Ts[0] = self.initial, self.rates, self.t0
         return Q, Qd, Ts
 
+    def jacobi_integral_conserved(self, samples: int = 20, seed: int = 2, rtol: float = 1e-10) -> bool:
+        """Whether the Jacobi integral (energy function) ``h = Σ q̇_j ∂L/∂q̇_j − L`` is a
+        constant of the motion: ``dh/dt = −∂L/∂t + Q·q̇`` vanishes when ``L`` has no explicit t
+        (structurally, or numerically at sampled states) and no non-conservative generalized
+        force acts. It exists for driven (rheonomic) maps too, e.g. a bead on a uniformly
+        rotating hoop, where ``h ≠ T + V`` and ``T + V`` is not conserved."""
+        cached = getattr(self, "_jacobi", None)
+        if cached is not None:
+            return cached
+        ex = self.expressions
+        L, Q, T, V, U = ex["L"], ex["Q"], ex["T"], ex["V"], ex["U"]
+        q, qd, t = self.q, self.q_dot, self.t
+        probe = ca.Function("jacobi_probe", [q, qd, t], [
+            ca.jacobian(L, t), Q, ca.fabs(T) + ca.fabs(V) + ca.fabs(U) + ca.norm_1(ca.gradient(L, qd))])
+        ok = True
+        for qs, qds, ts in zip(*self.sample_states(samples, seed), strict=True):
+            dLdt, Qnc, scale = (np.asarray(v, float).ravel() for v in probe(qs, qds, ts))
+            size = max(float(scale[0]), 1e-300)
+            if abs(float(dLdt[0])) > rtol * size or np.any(np.abs(Qnc) > rtol * size):
+                ok = False
+                break
+        self._jacobi = ok
+        return ok
+
     def check_map(self, samples: int = 20, seed: int = 0) -> None:
         """Refuse a map that leaves the constraint manifold or does not parametrize it.
 
@@ -377,6 +401,8 @@ class ReducedModel:
             "q": Qs,
             "q_dot": Qds,
             "hamiltonian": self._along(self.hamiltonian, Qs, Qds, ts).ravel() if len(ts) else np.zeros(0),
+            # the same h = p·q̇ − L under its mechanics name, and whether it is a constant here
+            "jacobi_integral_conserved": self.jacobi_integral_conserved(),
             "rtol": rtol,
             "atol": atol,
         })
@@ -429,6 +455,27 @@ class CrossCheck:
     def energy_reduced(self) -> np.ndarray | None:
         return self.reduced.energy
 
+    @property
+    def jacobi_integral(self) -> np.ndarray | None:
+        """``h = Σ q̇ ∂L/∂q̇ − L`` along the reduced route (T,), or None."""
+        h = self.reduced.info.get("hamiltonian")
+        return None if h is None else np.asarray(h, float)
+
+    def jacobi_integral_line(self) -> str:
+        """One line on the Jacobi integral of the reduced route: value, drift and whether it is
+        a constant of the motion (then its drift measures the integration; for a driven scene
+        it is the conserved quantity that T + V is not)."""
+        h = self.jacobi_integral
+        if h is None or not len(h):
+            return ""
+        drift = float(np.max(np.abs(h - h[0])))
+        if self.reduced_model.jacobi_integral_conserved():
+            verdict = "conserved: L has no explicit t and no non-conservative force acts"
+        else:
+            verdict = "not a constant here: L depends on t or non-conservative forces act"
+        return (f"{'Jacobi integral h = p·q_dot − L':<34}h0 = {float(h[0]):.12g} J, "
+                f"max |h − h0| = {drift:.3e} J ({verdict})")
+
     def table(self) -> str:
         """A plain-text summary: differences, energies and residuals of both routes."""
         def drift(e):
@@ -443,6 +490,9 @@ class CrossCheck:
         if self.max_constraint_force_difference is not None:
             rows.append(("max constraint-force difference", f"{self.max_constraint_force_difference:.3e} N"))
         out = [f"{k:<34}{v}" for k, v in rows]
+        jacobi = self.jacobi_integral_line()
+        if jacobi:
+            out.append(jacobi)
         out.append("")
         out.append(f"{'route':<12}{'E(t0) [J]':>20}{'max |E - E0| [J]':>18}{'max |f|':>12}")
         for name, tr in (("cartesian", self.cartesian), ("reduced", self.reduced)):

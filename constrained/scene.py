@@ -28,7 +28,7 @@ from .constraints import CONSTRAINT_TYPES
 from .effects import EFFECT_TYPES
 from .errors import InputError
 from .symbols import Symbols
-from .system import Particle, System
+from .system import Particle, System, sketch
 from .trajectory import QUANTITIES
 
 __all__ = [
@@ -168,6 +168,8 @@ class Scene:
     expect: dict | None = None
     description: str = ""
     expectations: list | None = None
+    #: [scene] units: name (a parameter, a sweep summary column) -> unit, for axis labels
+    units: dict | None = None
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {self.system!r})"
@@ -199,6 +201,7 @@ class Scene:
         if progress is not None:
             kwargs["progress"] = progress
         trajectory = simulate(scene.system, s["t_end"], **kwargs)
+        trajectory.info.setdefault("sketch", sketch(scene.system))  # rods for `constrained plot`
         return RunResult(scene, trajectory, check_expectations(scene, trajectory))
 
 
@@ -593,6 +596,7 @@ class _Builder:
             expect=None if expect is None else copy.deepcopy(expect),
             description=description,
             expectations=expectations,
+            units=dict(self.raw.get("scene", {}).get("units", {})),
         )
 
     def expect_section(self, table: dict, system: System) -> list[dict]:
@@ -671,7 +675,11 @@ class _Builder:
 
     def scene_section(self) -> tuple[str, str]:
         table = self.raw.get("scene", {})
-        self.keys(table, "scene", ("name", "description"), what="[scene]")
+        self.keys(table, "scene", ("name", "description", "units"), what="[scene]")
+        units = table.get("units", {})
+        if not isinstance(units, dict) or not all(isinstance(v, str) for v in units.values()):
+            self.fail("scene.units", "must be a table of unit strings, e.g. units = { a = \"m\", "
+                      f"nu = \"rad/s\" }}, got {_describe(units)}")
         default = self.path.stem if self.path is not None else "scene"
         name = self.string(table["name"], "scene.name") if "name" in table else default
         description = table.get("description", "")
