@@ -80,9 +80,9 @@ def shell_commands(code: str) -> list[tuple[str, int]]:
     out, pending = [], ""
     for raw in code.splitlines():
         if raw.rstrip().endswith("\\"):
-            pending += raw.rstrip()[:-1] + " "
+            pending += raw.strip()[:-1].strip() + " "
             continue
-        line = (pending + raw).strip()
+        line = (pending + raw.strip()).strip()
         pending = ""
         if not line or line.startswith("#") or SKIPPED.search(line):
             continue
