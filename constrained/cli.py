@@ -356,6 +356,9 @@ class _no_figures:
 def _write_run_outputs(scene, trajectory, quantities, kinds, figures, out_dir, progress) -> list:
     """trajectory.npz, .csv and the figures of a run; the progress display counts the files."""
     progress.stage("writing", 1 + ("csv" in scene.outputs["formats"]) + len(kinds), unit="file")
+    if kinds:  # the helper draws the figures while this process writes the data files
+        out_dir.mkdir(parents=True, exist_ok=True)
+        figures.start(trajectory, kinds, out_dir, system=scene.system)
     written = [trajectory.save(out_dir / "trajectory.npz", quantities=quantities)]
     progress.advance()
     if "csv" in scene.outputs["formats"]:
@@ -366,8 +369,7 @@ def _write_run_outputs(scene, trajectory, quantities, kinds, figures, out_dir, p
         progress.advance()
     if kinds:
         try:
-            written.extend(figures.save(trajectory, kinds, out_dir, system=scene.system,
-                                        progress=progress.advance))
+            written.extend(figures.wait(progress.advance))
         except ImportError as exc:
             _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
     return written

@@ -57,17 +57,30 @@ class FigureProcess:
         self.proc.start()
         child.close()
 
-    def save(self, traj, kinds, out_dir, *, system=None, progress=None) -> list[Path]:
+    def start(self, traj, kinds, out_dir, *, system=None) -> None:
+        """Send the helper its work and return at once (``wait`` collects the result)."""
+        self.request = (traj, list(kinds), Path(out_dir), system)
+        self.sent = False
         if self.proc is not None:
             try:
-                self.conn.send((traj, list(kinds), Path(out_dir), system))
+                self.conn.send(self.request)
+                self.sent = True
             except Exception:  # noqa: BLE001 - e.g. something that does not pickle: draw here
                 self.close()
-            else:
-                return self._receive(progress)
+
+    def wait(self, progress=None) -> list[Path]:
+        """The paths written (by the helper, or here when it could not take the work)."""
+        if self.sent:
+            return self._receive(progress)
         from .plot import save_figures
 
+        traj, kinds, out_dir, system = self.request
         return save_figures(traj, kinds, out_dir, system=system, progress=progress, parallel=True)
+
+    def save(self, traj, kinds, out_dir, *, system=None, progress=None) -> list[Path]:
+        """``start`` and ``wait`` in one call."""
+        self.start(traj, kinds, out_dir, system=system)
+        return self.wait(progress)
 
     def _receive(self, progress) -> list[Path]:
         from .errors import InputError

@@ -133,3 +133,32 @@ def test_animation_is_large_and_draws_rods_without_the_scene(tmp_path):
     (gif,) = [p for p in plot.save_animation(saved, tmp_path / "a.gif", max_frames=6) if p.suffix == ".gif"]
     image = Image.open(gif)
     assert min(image.size) >= 560 and image.n_frames == 6
+
+
+def test_run_writes_its_figures_through_the_helper_process(tmp_path):
+    from constrained.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", str(SCENARIOS / "simple_pendulum.toml"), "--set", "simulate.t_end=0.5",
+                 "--set", "expect={}", "--out", str(out), "--quiet"]) == 0
+    for kind in C.load_scene(SCENARIOS / "simple_pendulum.toml").outputs["plots"]:
+        assert (out / f"{kind}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", kind
+    assert not (out / "animation.gif").exists()  # animations only when asked for
+
+
+def test_figure_process_draws_here_when_the_work_cannot_be_sent(tmp_path):
+    from constrained.figure_process import FigureProcess
+
+    tr = C.load_scene(SCENARIOS / "simple_pendulum.toml").run(["simulate.t_end=0.2", "expect={}"]).trajectory
+
+    class Unpicklable:
+        hook = None
+
+        def __reduce__(self):
+            raise TypeError("cannot be sent to another process")
+
+    done = []
+    with FigureProcess() as figures:
+        paths = figures.save(tr, ["energy"], tmp_path, system=Unpicklable(), progress=done.append)
+    assert [p.name for p in paths] == ["energy.png"] and (tmp_path / "energy.png").stat().st_size > 1000
+    assert sum(done) == 1
