@@ -7,8 +7,6 @@ import socket
 import warnings
 from pathlib import Path
 
-import pytest
-
 import constrained as C
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -34,8 +32,7 @@ def test_sweep_without_dask_names_both_install_commands(tmp_path, monkeypatch, c
 
 
 def test_local_cluster_serves_no_dashboard_and_does_not_fight_for_port_8787(tmp_path, caplog):
-    pytest.importorskip("distributed")  # the [test] extra installs it; CI has it
-    from constrained.sweep import sweep
+    from constrained.sweep import sweep  # Dask: the [test] extra installs it
 
     busy = socket.socket()
     busy.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
