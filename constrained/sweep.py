@@ -858,9 +858,9 @@ def _execute(tasks: list[dict], record, scheduler, *, progress: bool, workers: i
             return 0
         n = workers or os.cpu_count() or 1
         # no dashboard: dashboard_address=None alone still serves HTTP on :8787 (and warns when
-        # that port is taken); ":0" is a free port, and dashboard=False serves no pages on it
+        # that port is taken); a free loopback port, and dashboard=False serves no pages on it
         own_cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=":0", host="127.0.0.1",
+                                               dashboard_address="127.0.0.1:0", host="127.0.0.1",
                                                scheduler_kwargs={"dashboard": False})
         client = own_client = distributed.Client(own_cluster)
     elif isinstance(scheduler, str):
