@@ -323,9 +323,10 @@ def _run(args) -> int:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
         # The figures are drawn by a helper process that imports matplotlib during the run.
+        # (started before the progress bar: no tqdm thread exists yet when it forks)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
-                _progress(args.quiet, s["t_start"], s["t_end"]) as progress, \
-                (FigureProcess() if kinds else _no_figures()) as figures:
+                (FigureProcess() if kinds else _no_figures()) as figures, \
+                _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
             result = scene.run(quantities=quantities, progress=progress)
             trajectory = result.trajectory
             written = _write_run_outputs(scene, trajectory, quantities, kinds, figures, out_dir, progress)

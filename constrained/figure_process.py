@@ -75,7 +75,8 @@ class FigureProcess:
         from .plot import save_figures
 
         traj, kinds, out_dir, system = self.request
-        return save_figures(traj, kinds, out_dir, system=system, progress=progress, parallel=True)
+        # here, in a process that may run threads (CasADi, BLAS, tqdm): no forking, one by one
+        return save_figures(traj, kinds, out_dir, system=system, progress=progress)
 
     def save(self, traj, kinds, out_dir, *, system=None, progress=None) -> list[Path]:
         """``start`` and ``wait`` in one call."""
