@@ -475,6 +475,16 @@ def _animation_parts(traj: Trajectory, system, forces: bool, max_frames: int):
             in_plane = plane is not None and abs(np.dot(point - plane[0], np.cross(*plane[1]))) < 1e-9 * size
             if length and in_plane:
                 ax.add_patch(Circle(tuple(pq), length, fill=False, ls="--", lw=0.8, color="0.6"))
+    else:  # in 3-D the sphere a rod to a fixed pivot holds its particle on, as a faint wireframe
+        u, w = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
+        for _, point, length in anchors:
+            if not length:
+                continue
+            sphere = [point[0] + length * np.cos(u) * np.sin(w), point[1] + length * np.sin(u) * np.sin(w),
+                      point[2] + length * np.cos(w)]
+            inside = np.all([(c >= lo_ - 1e-9) & (c <= hi_ + 1e-9)
+                             for c, (lo_, hi_) in zip(sphere, limits, strict=True)], axis=0)
+            ax.plot_wireframe(*[np.where(inside, c, np.nan) for c in sphere], color="0.7", lw=0.4, alpha=0.6)
     trail_len = max(1, n_frames // 4)
     trails, dots = [], []
     for i in range(len(names)):

@@ -171,7 +171,8 @@ def sketch(system) -> dict:
     """What an animation draws of the constraints, as plain lists (stored in a trajectory's
     ``info["sketch"]`` so that ``constrained plot`` draws it without the scene file):
     ``rods`` — particle index pairs held at a distance; ``anchors`` — ``[index, point, length]``
-    for a distance to a fixed point (a rod to a pivot; ``length`` None when it is a formula);
+    for a distance to a fixed point (a rod to a pivot; ``length`` a number, or a parameter's
+    value, else None);
     moving points and formula-valued anchors are left out."""
     names = [p.name for p in system.particles]
     index = {n: k for k, n in enumerate(names)}
@@ -189,5 +190,7 @@ def sketch(system) -> dict:
             except (TypeError, ValueError):  # a moving anchor (formula of t): not drawn
                 continue
             length = getattr(c, "length", None)
+            if isinstance(length, str):  # a parameter's name; other formulas are not evaluated here
+                length = getattr(system, "parameters", {}).get(length.strip())
             anchors.append([index[a], anchor, float(length) if isinstance(length, int | float) else None])
     return {"rods": rods, "anchors": anchors}

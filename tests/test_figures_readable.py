@@ -162,3 +162,19 @@ def test_figure_process_draws_here_when_the_work_cannot_be_sent(tmp_path):
         paths = figures.save(tr, ["energy"], tmp_path, system=Unpicklable(), progress=done.append)
     assert [p.name for p in paths] == ["energy.png"] and (tmp_path / "energy.png").stat().st_size > 1000
     assert sum(done) == 1
+
+
+def test_animation_draws_the_sphere_or_circle_a_rod_to_a_pivot_allows():
+    from matplotlib.patches import Circle
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+    def run(name):
+        return C.load_scene(SCENARIOS / name).run(["simulate.t_end=0.5", "expect={}"]).trajectory
+
+    fig, _, _ = plot._animation_parts(run("spherical_pendulum.toml"), None, False, 4)
+    ax = fig.axes[0]
+    assert ax.name == "3d"
+    assert any(isinstance(c, Line3DCollection) for c in ax.collections)  # the wireframe sphere
+    fig, _, _ = plot._animation_parts(run("simple_pendulum.toml"), None, False, 4)
+    ax = fig.axes[0]
+    assert ax.name != "3d" and [p for p in ax.patches if isinstance(p, Circle)]  # the circle, planar
