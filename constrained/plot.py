@@ -425,7 +425,7 @@ def _animation_parts(traj: Trajectory, system, forces: bool, max_frames: int):
     fig = Figure(figsize=ANIMATION_SIZE)
     FigureCanvasAgg(fig)
     if plane is not None:
-        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.09, top=0.93)
+        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.93)
         origin, basis, (a, b) = plane
         shift = np.zeros(3) if a != "u" else origin
         project = lambda p: (np.asarray(p) - shift) @ basis.T  # noqa: E731
@@ -502,7 +502,11 @@ def _animation_parts(traj: Trajectory, system, forces: bool, max_frames: int):
     if scale:
         handles.append(Line2D([], [], color="C3", lw=2))
         labels.append(f"constraint force (arrow 1 m = {1 / scale:.3g} N)")
-    _legend(ax, handles, labels, loc="upper right")
+    if dim == 2:  # below the axes: inside, it would cover the pivot or the path
+        ax.legend(handles[:MAX_LEGEND], labels[:MAX_LEGEND], fontsize="small", loc="upper center",
+                  bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(handles)), frameon=False)
+    else:
+        _legend(ax, handles, labels, loc="upper right")
 
     def set_line(line, pts_):
         pts_ = np.asarray(pts_).reshape(-1, dim)
