@@ -38,8 +38,7 @@ _LAZY = {
                      "with_total_derivative"), "symmetry"),
     **dict.fromkeys(("Particle", "System"), "system"),
     "Trajectory": "trajectory",
-    "Scene": "scene",
-    "RunResult": "run_options",
+    **dict.fromkeys(("Scene", "RunResult"), "scene"),
 }
 
 

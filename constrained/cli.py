@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import inspect
 import io
 import math
 import sys
@@ -16,8 +17,6 @@ from pathlib import Path
 
 from . import __version__
 from .errors import InconsistentStateError, InputError, SimulationError
-from .run_options import takes_base as _takes_base  # noqa: F401  (kept for callers of the old name)
-from .run_options import time_grid
 
 
 class _LazyNumpy:
@@ -456,9 +455,32 @@ class _progress:
         return False
 
 
+def _takes_base(method: str) -> bool:
+    """Whether the solver of ``method`` accepts a ``base`` integrator option."""
+    from .solvers import METHODS
+
+    cls = METHODS.get(method)
+    return cls is not None and "base" in inspect.signature(cls.__init__).parameters
+
+
 def _contract_quantities(names: Sequence[str]) -> list[str]:
     """Scene output names -> contract array names besides t, x, v (always written)."""
     return [q for q in QUANTITIES if q in names]
+
+
+def time_grid(t_start: float, t_end: float, *, output_dt=None, samples=None) -> np.ndarray | None:
+    """Output times: every ``output_dt`` from t_start (t_end included), or ``samples`` points."""
+    if samples is not None:
+        return np.linspace(t_start, t_end, int(samples))
+    if output_dt is None:
+        return None
+    n = int(np.floor((t_end - t_start) / output_dt + 1e-9))
+    grid = t_start + output_dt * np.arange(n + 1)
+    if t_end - grid[-1] > 1e-9 * max(1.0, abs(t_end)):
+        grid = np.append(grid, t_end)
+    else:
+        grid[-1] = t_end
+    return grid
 
 
 def trajectory_csv(trajectory: Trajectory, quantities: Sequence[str]) -> str:

@@ -188,7 +188,7 @@ class Scene:
         ``.expectations`` (one ``ExpectResult`` per check), ``.ok``, ``.failed``, ``.report()``;
         it unpacks as ``trajectory, checks = scene.run()``.
         """
-        from .run_options import RunResult, simulate_kwargs
+        from .run_options import from_scene
         from .simulate import simulate
 
         scene = self.with_overrides(overrides) if overrides else self
@@ -197,12 +197,44 @@ class Scene:
             raise SceneError("no end time: give t_end in [simulate], or override simulate.t_end",
                              file=None if scene.path is None else str(scene.path), key="simulate.t_end")
         wanted = set(scene.outputs["quantities"] if quantities is None else quantities)
-        kwargs = simulate_kwargs(scene, wanted | expect_requirements(scene))
+        kwargs = from_scene(scene, outputs=wanted | expect_requirements(scene)).simulate_kwargs()
         if progress is not None:
             kwargs["progress"] = progress
         trajectory = simulate(scene.system, s["t_end"], **kwargs)
         trajectory.info.setdefault("sketch", sketch(scene.system))  # rods for `constrained plot`
         return RunResult(scene, trajectory, check_expectations(scene, trajectory))
+
+
+@dataclass
+class RunResult:
+    """A scene run with its own settings (``Scene.run()``): the Trajectory and the scene's
+    ``[expect]`` results. ``ok`` is True when every check passes (and when the scene has none);
+    ``failed`` lists the checks that did not; ``report()`` is the text ``constrained run``
+    prints. It unpacks as ``trajectory, checks = scene.run()``."""
+
+    scene: Scene
+    trajectory: Any
+    expectations: list
+
+    @property
+    def ok(self) -> bool:
+        return all(r.ok for r in self.expectations)
+
+    @property
+    def failed(self) -> list:
+        return [r for r in self.expectations if not r.ok]
+
+    def report(self) -> str:
+        n, bad = len(self.expectations), len(self.failed)
+        lines = [f"expect: {n - bad} of {n} checks pass", *("  " + r.line for r in self.expectations)]
+        return "\n".join(lines)
+
+    def __iter__(self):
+        return iter((self.trajectory, self.expectations))
+
+    def __repr__(self) -> str:
+        n, bad = len(self.expectations), len(self.failed)
+        return f"RunResult({self.scene.name!r}, {len(self.trajectory.t)} samples, expect {n - bad}/{n} pass)"
 
 
 # --- public entry points ---------------------------------------------------------------------

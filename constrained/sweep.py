@@ -390,8 +390,7 @@ def _scene_for(task: dict):
 
 
 def _settings_kwargs(scene, outputs: set[str]) -> dict:
-    from .run_options import takes_base as _takes_base
-    from .run_options import time_grid
+    from .cli import _takes_base, time_grid
 
     s = scene.settings
     kw = dict(method=s["method"], rtol=s["rtol"], atol=s["atol"], dt=s["dt"], t_start=s["t_start"],
