@@ -11,7 +11,7 @@ import importlib
 import sys
 import types
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 #: public name -> the submodule defining it
 _LAZY = {
@@ -27,7 +27,9 @@ _LAZY = {
     **dict.fromkeys(("ConstrainedError", "InconsistentStateError", "InputError", "SimulationError"),
                     "errors"),
     **dict.fromkeys(("Model", "assemble"), "model"),
-    **dict.fromkeys(("CrossCheck", "ReducedModel", "cross_check"), "reduced"),
+    **dict.fromkeys(("CrossCheck", "ReducedModel"), "reduced"),
+    # cross_check: its own module in the solver-core layout, in reduced.py before it
+    "cross_check": ("crosscheck", "reduced"),
     "simulate": "simulate",
     **dict.fromkeys(("Equilibrium", "constraint_virtual_work_residual", "equilibrium",
                      "generalized_forces", "virtual_work"), "statics"),
@@ -43,10 +45,19 @@ _LAZY = {
 
 
 def __getattr__(name: str):
-    module = _LAZY.get(name)
-    if module is None:
+    modules = _LAZY.get(name)
+    if modules is None:
         raise AttributeError(f"module 'constrained' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    for module in (modules,) if isinstance(modules, str) else modules:
+        try:
+            found = importlib.import_module(f".{module}", __name__)
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{module}":
+                raise
+            continue
+        if hasattr(found, name):
+            break
+    value = getattr(found, name)
     globals()[name] = value
     return value
 
