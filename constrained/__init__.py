@@ -27,9 +27,7 @@ _LAZY = {
     **dict.fromkeys(("ConstrainedError", "InconsistentStateError", "InputError", "SimulationError"),
                     "errors"),
     **dict.fromkeys(("Model", "assemble"), "model"),
-    **dict.fromkeys(("CrossCheck", "ReducedModel"), "reduced"),
-    # cross_check: its own module in the solver-core layout, in reduced.py before it
-    "cross_check": ("crosscheck", "reduced"),
+    **dict.fromkeys(("CrossCheck", "ReducedModel", "cross_check"), "reduced"),
     "simulate": "simulate",
     **dict.fromkeys(("Equilibrium", "constraint_virtual_work_residual", "equilibrium",
                      "generalized_forces", "virtual_work"), "statics"),
@@ -45,19 +43,10 @@ _LAZY = {
 
 
 def __getattr__(name: str):
-    modules = _LAZY.get(name)
-    if modules is None:
+    module = _LAZY.get(name)
+    if module is None:
         raise AttributeError(f"module 'constrained' has no attribute {name!r}")
-    for module in (modules,) if isinstance(modules, str) else modules:
-        try:
-            found = importlib.import_module(f".{module}", __name__)
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{__name__}.{module}":
-                raise
-            continue
-        if hasattr(found, name):
-            break
-    value = getattr(found, name)
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value
     return value
 
