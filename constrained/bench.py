@@ -15,7 +15,11 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import statistics
+import sys
+import tempfile
+from contextlib import contextmanager, redirect_stderr
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,44 +172,110 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
         "rheonomic", "dissipation", "applied_force", "time_dependent_forces"
     }
     for method in methods:
-        name, _, base = method.partition(":")  # "projection:CVODES" picks a base integrator
-        extra = {"base": base} if base else {}
-        settings = (
-            [dict(dt=dt) for dt in RATTLE_STEPS[: len(tolerances)]]
-            if name == "rattle"
-            else [dict(rtol=tol, atol=tol, **extra) for tol in tolerances]
-        )
-        for opts in settings:
-            if progress:
-                progress(method, opts)
-            row = {"method": method, "rtol": opts.get("rtol", float("nan")),
-                   "dt": opts.get("dt", float("nan")), "status": "ok"}
-            times = []
-            try:
-                for _ in range(repeats):
-                    tr = simulate(system, t_end, method=name, t_eval=[0.0, t_end], model=model,
-                                  outputs={"energy", "constraint_residual", "velocity_residual"}, **opts)
-                    times.append(tr.stats["wall_time_s"])
-            except RunInterrupted:  # Ctrl-C: not a failed method; the measurement stops
-                raise KeyboardInterrupt from None
-            except (InputError, SimulationError) as exc:
-                row["status"] = f"failed: {str(exc).splitlines()[0][:120]}"
-                result.rows.append(row)
-                continue
+        with _casadi_stderr() as printed:
+            _bench_method(result, system, t_end, method, tolerances, repeats, model, measure, progress)
+        _report_casadi_messages(result, method, printed)
+    return result
+
+
+def _bench_method(result, system, t_end, method, tolerances, repeats, model, measure, progress) -> None:
+    """The rows of one method: each setting timed ``repeats`` times, then measured densely."""
+    name, _, base = method.partition(":")  # "projection:CVODES" picks a base integrator
+    extra = {"base": base} if base else {}
+    settings = (
+        [dict(dt=dt) for dt in RATTLE_STEPS[: len(tolerances)]]
+        if name == "rattle"
+        else [dict(rtol=tol, atol=tol, **extra) for tol in tolerances]
+    )
+    for opts in settings:
+        if progress:
+            progress(method, opts)
+        row = {"method": method, "rtol": opts.get("rtol", float("nan")),
+               "dt": opts.get("dt", float("nan")), "status": "ok"}
+        times = []
+        try:
+            for _ in range(repeats):
+                tr = simulate(system, t_end, method=name, t_eval=[0.0, t_end], model=model,
+                              outputs={"energy", "constraint_residual", "velocity_residual"}, **opts)
+                times.append(tr.stats["wall_time_s"])
+        except RunInterrupted:  # Ctrl-C: not a failed method; the measurement stops
+            raise KeyboardInterrupt from None
+        except (InputError, SimulationError) as exc:
+            row["status"] = f"failed: {str(exc).splitlines()[0][:120]}"
+            result.rows.append(row)
+            continue
+        try:  # every step's residuals and energy (no output grid)
             dense = simulate(system, t_end, method=name, model=model, **opts,
                              outputs={"energy", "constraint_residual", "velocity_residual"})
-            row.update(
-                error=measure(tr),
-                constraint_residual=float(np.max(dense.constraint_residual)),
-                velocity_residual=float(np.max(dense.velocity_residual)),
-                energy_drift=(float(np.max(np.abs(dense.energy - dense.energy[0])))
-                              if result.conserves_energy else float("nan")),
-                wall_time_s=statistics.median(times),
-                steps=int(tr.stats.get("steps", 0)),
-                nfev=int(tr.stats.get("nfev", 0)),
-            )
+        except RunInterrupted:
+            raise KeyboardInterrupt from None
+        except (InputError, SimulationError) as exc:
+            row["status"] = f"failed without an output grid: {str(exc).splitlines()[0][:100]}"
             result.rows.append(row)
-    return result
+            continue
+        row.update(
+            error=measure(tr),
+            constraint_residual=float(np.max(dense.constraint_residual)),
+            velocity_residual=float(np.max(dense.velocity_residual)),
+            energy_drift=(float(np.max(np.abs(dense.energy - dense.energy[0])))
+                          if result.conserves_energy else float("nan")),
+            wall_time_s=statistics.median(times),
+            steps=int(tr.stats.get("steps", 0)),
+            nfev=int(tr.stats.get("nfev", 0)),
+        )
+        result.rows.append(row)
+
+
+#: CasADi messages a bench summarizes in a note instead of repeating: pattern -> plain words
+_CASADI_NOTES = {
+    "NLP is overconstrained": (
+        "CasADi said {count} time(s) that an NLP \"is overconstrained\": {method} set up a "
+        "system with more equations than unknowns (the constraints together with their time "
+        "derivatives, which agree on the constraint manifold). It is a notice, not a failure: the "
+        "rows are measured all the same, so judge {method} by its error and residual columns."
+    ),
+}
+
+
+@contextmanager
+def _casadi_stderr():
+    """Capture what is printed on stderr inside the block — through ``sys.stderr`` (where
+    CasADi's Python bindings send its warnings) and on file descriptor 2 (C code writing
+    directly); yields the list of lines, filled at the end."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    python_level = io.StringIO()  # CasADi's Python bindings write through sys.stderr
+    try:
+        saved = os.dup(2)
+    except OSError:  # no file descriptor 2: capture what goes through sys.stderr only
+        saved = None
+    with tempfile.TemporaryFile() as tmp:
+        if saved is not None:
+            os.dup2(tmp.fileno(), 2)
+        try:
+            with redirect_stderr(python_level):
+                yield lines
+        finally:
+            if saved is not None:
+                os.dup2(saved, 2)
+                os.close(saved)
+            tmp.seek(0)
+            lines.extend(python_level.getvalue().splitlines())
+            lines.extend(tmp.read().decode("utf-8", "replace").splitlines())
+
+
+def _report_casadi_messages(result: BenchResult, method: str, lines: list[str]) -> None:
+    """Known CasADi warnings become one note per method; anything else is printed as it was."""
+    counts = dict.fromkeys(_CASADI_NOTES, 0)
+    for line in lines:
+        known = next((k for k in _CASADI_NOTES if k in line), None)
+        if known:
+            counts[known] += 1
+        elif line.strip():
+            print(line, file=sys.stderr)
+    for key, count in counts.items():
+        if count:
+            result.notes.append(_CASADI_NOTES[key].format(count=count, method=method))
 
 
 def _err(error: float, reference_error: float) -> str:

@@ -15,25 +15,48 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
+from ._version import __version__
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
-from .outputs import OutputSet, discard_uncommitted, user_path
-from .scene import (
-    _KEY_RE,
-    SIMULATE_DEFAULTS,
-    Scene,
-    SceneError,
-    check_expectations,
-    check_regular_start,
-    expect_requirements,
-    load_scene,
-)
-from .trajectory import QUANTITIES, Trajectory, atomic_write
+
+
+class _LazyNumpy:
+    """``np`` of this module: NumPy is imported on first use, so ``--help`` and ``--version``
+    stay fast (numpy, CasADi, SciPy and matplotlib are imported only when a verb runs)."""
+
+    def __getattr__(self, name):
+        import numpy
+
+        return getattr(numpy, name)
+
+
+np = _LazyNumpy()
+
+
+def _import_verb_modules() -> None:
+    """Bind the scene and trajectory names the verb handlers use (imported when a verb runs)."""
+    global _KEY_RE, SIMULATE_DEFAULTS, Scene, SceneError, check_expectations, expect_requirements
+    global load_scene, QUANTITIES, Trajectory, atomic_write, check_regular_start
+    global OutputSet, discard_uncommitted, user_path
+    from .outputs import OutputSet, discard_uncommitted, user_path
+    from .scene import (
+        _KEY_RE,
+        SIMULATE_DEFAULTS,
+        Scene,
+        SceneError,
+        check_expectations,
+        check_regular_start,
+        expect_requirements,
+        load_scene,
+    )
+    from .trajectory import QUANTITIES, Trajectory, atomic_write
 
 __all__ = ["main", "build_parser", "trajectory_csv"]
 
 PROG = "constrained"
+#: the kinds of ``constrained plot`` (constrained.plot.KINDS, spelled here so that --help does not
+#: import matplotlib; tests/test_cli.py checks that the two agree)
+PLOT_KINDS = ("trajectory", "energy", "constraint_residual", "constraint_forces", "multipliers",
+              "phase", "action", "animation")
 
 EPILOG = """\
 verbs:
@@ -89,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     verbs = parser.add_subparsers(dest="verb", metavar="VERB", required=True, parser_class=_Parser)
 
     OUT = "output directory (default: out/<scene file stem>)"
@@ -102,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
           "Validate SCENE without simulating: particles, constraint rows, degrees of "
           "freedom, rank and redundancy, singular configuration, consistency of the initial state, "
           "and the terms the model assembles.",
-          "check scenarios/double_pendulum.toml")
+          "check scenarios/double_pendulum.toml", quiet=True)
     _verb(verbs, "crosscheck",
           "compare the Cartesian route with Lagrange's equations in the [reduced] coordinates",
           "Run SCENE both ways from the same start (the [reduced] initial values mapped "
@@ -110,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
           "generalized coordinates. Print the largest differences and energies; write "
           "DIR/crosscheck.png (position difference against time).",
           "crosscheck scenarios/double_pendulum.toml --set simulate.t_end=2",
-          scene_help=WITH_REDUCED, out=OUT)
+          scene_help=WITH_REDUCED, out=OUT, quiet=True)
     _verb(verbs, "statics", "find the static equilibrium near the initial positions; reactions and stability",
           "Solve F(x) + Jᵀλ = 0, f(x) = 0 near the scene's initial positions (Newton on "
           "the KKT conditions): print positions, multipliers, constraint forces, support reactions, "
@@ -136,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
         "derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
         "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
         "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",
-        scene_help=WITH_REDUCED)
+        scene_help=WITH_REDUCED, quiet=True)
     derive.add_argument("--equation", action="append", default=[], metavar="EQ",
                         help="an equation of motion 'lhs = rhs' in q, q_dot, q_ddot, t (repeatable)")
     derive.add_argument("--lagrangian", action="append", default=[], metavar="L",
@@ -152,12 +176,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_plot(verbs) -> None:
     """The ``plot`` verb: figures (and the animation) from a saved trajectory.npz."""
-    from .plot import KINDS
 
     p = verbs.add_parser(
         "plot", help="figures and animation from a saved trajectory.npz",
         description="Draw figures from RESULTS (a trajectory.npz written by 'run', or the directory "
-        f"holding it) into DIR (default: beside RESULTS). Kinds: {', '.join(KINDS)} "
+        f"holding it) into DIR (default: beside RESULTS). Kinds: {', '.join(PLOT_KINDS)} "
         "(animation.gif; also .mp4 when ffmpeg is on PATH). Kinds whose data the file lacks are "
         "skipped with a note.",
         epilog=f"example:\n  {PROG} plot out/dp/trajectory.npz --kinds trajectory,animation "
@@ -272,6 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    _import_verb_modules()
     handlers = {"run": _run, "check": _check, "crosscheck": _crosscheck, "bench": _bench,
                 "statics": _statics, "derive": _derive, "sweep": _sweep, "path": _path, "plot": _plot,
                 "view": _view}
@@ -323,29 +347,21 @@ def _run(args) -> int:
     kinds = list(scene.outputs["plots"])
     viewer = "viewer" in kinds  # an HTML page (constrained.viewer), not a matplotlib figure
     kinds = [k for k in kinds if k != "viewer"]
-    save_figures = None
-    if kinds:
-        try:
-            from .plot import save_figures
-        except ImportError as exc:
-            _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
-            kinds = []
-
-    from .run_options import from_scene
-    from .simulate import simulate
-
-    try:
-        kwargs = from_scene(scene, outputs=set(quantities) | expect_requirements(scene)).simulate_kwargs()
-    except InputError as exc:
-        raise _scene_error(exc, file) from None
+    from .figure_process import FigureProcess
 
     outs = OutputSet(out_dir, _run_files()).open()
     try:
         # The solvers detect non-finite values themselves and stop with a SimulationError;
         # NumPy's floating-point warnings on the way there would only repeat it, noisily.
+        # The figures are drawn by a helper process that imports matplotlib during the run.
+        # (started before the progress bar: no tqdm thread exists yet when it forks)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
+                (FigureProcess() if kinds else _no_figures()) as figures, \
                 _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
-            trajectory = simulate(scene.system, s["t_end"], progress=progress, **kwargs)
+            result = scene.run(quantities=quantities, progress=progress)
+            trajectory = result.trajectory
+            written = _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs,
+                                         progress)
     except SimulationError as exc:  # RunInterrupted (Ctrl-C) too: exit status 130
         message = f"scene file {file}: {exc}"
         partial = exc.trajectory
@@ -357,23 +373,47 @@ def _run(args) -> int:
     except InputError as exc:
         raise _scene_error(exc, file) from None
 
+    written = outs.commit(written)
+    if not args.quiet:
+        _summary(scene, file, trajectory, written)
+    return _report_expectations(scene, trajectory, args.quiet, result.expectations)
+
+
+class _no_figures:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs, progress) -> list:
+    """trajectory.npz, .csv, the figures and the viewer page of a run, into the run's output set
+    (committed by the caller); the progress display counts the files."""
+    count = 1 + ("csv" in scene.outputs["formats"]) + len(kinds) + bool(viewer)
+    progress.stage("writing", count, unit="file")
+    if kinds:  # the helper draws the figures while this process writes the data files
+        figures.start(trajectory, kinds, outs.dir, system=scene.system)
     written = [trajectory.save(outs.path("trajectory.npz"), quantities=quantities)]
+    progress.advance()
     if "csv" in scene.outputs["formats"]:
         path = outs.path("trajectory.csv")
         text = trajectory_csv(trajectory, quantities)
         atomic_write(path, lambda f: f.write(text.encode("utf-8")))
         written.append(path)
-    if kinds and save_figures is not None:
-        written.extend(save_figures(trajectory, kinds, outs.dir, system=scene.system))
+        progress.advance()
     if viewer:
         from .viewer import write_viewer
 
         page = outs.dir / "viewer.html"
         written.append(write_viewer(trajectory, page, system=scene.system, title=scene.name))
-    written = outs.commit(written)
-    if not args.quiet:
-        _summary(scene, file, trajectory, written)
-    return _report_expectations(scene, trajectory, args.quiet)
+        progress.advance()
+    if kinds:
+        try:
+            written.extend(figures.wait(progress.advance))
+        except (ImportError, RuntimeError) as exc:  # no matplotlib, or the drawing process died
+            _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
+    return written
 
 
 def _run_files() -> list[str]:
@@ -387,11 +427,12 @@ def _run_files() -> list[str]:
             *(f"{kind}.png" for kind in KINDS)]
 
 
-def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> int:
+def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool, results=None) -> int:
     """Check the scene's [expect] section: one line per check; 1 when one fails, else 0."""
     if not scene.expectations:
         return 0
-    results = check_expectations(scene, trajectory)
+    if results is None:
+        results = check_expectations(scene, trajectory)
     failed = [r for r in results if not r.ok]
     if not quiet:
         built = sum(r.by_construction for r in results)
@@ -406,29 +447,43 @@ def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool) -> i
 
 
 class _progress:
-    """A progress bar over simulated time (tqdm, on stderr), shown once a run takes longer than
-    ~2 s; off with --quiet or when stderr is not a terminal. The solvers report the time they
-    have reached through their ``progress`` callback — this object is that callback."""
+    """The progress display of a run (tqdm, on stderr): a bar over simulated time, then one
+    over the files written (figures, the animation frame by frame). It appears once the run
+    has taken ~2 s (DELAY) in all, and only on a terminal and without --quiet. The solvers report
+    the time they have reached through their ``progress`` callback — this object is that callback."""
 
     DELAY = 2.0
+    #: seconds between redraws of the bar
+    MININTERVAL = 0.2
 
-    def __init__(self, quiet: bool, t_start: float, t_end: float):
-        self.enabled = not quiet and sys.stderr.isatty()
+    def __init__(self, quiet: bool, t_start: float, t_end: float, *, stream=None):
+        import time
+
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = not quiet and self.stream.isatty()
         self.t_start, self.t_end = float(t_start), float(t_end)
         self.bar = None
+        self.started = time.perf_counter()
+        self.time = time.perf_counter
         # once the time loop runs (its first report), one line says how to stop it
         self.announce = not quiet
 
+    def _open(self, total: float, desc: str, bar_format: str | None = None, unit: str = "it"):
+        if not self.enabled:
+            return
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            return
+        # the delay counts from the start of the run, not from this stage
+        delay = max(0.0, self.DELAY - (self.time() - self.started))
+        self.bar = tqdm(total=total, desc=desc, delay=delay, file=self.stream, leave=False,
+                        unit=unit, bar_format=bar_format, mininterval=self.MININTERVAL, miniters=1)
+
     def __enter__(self):
-        if self.enabled:
-            try:
-                from tqdm import tqdm
-            except ImportError:
-                return self
-            self.bar = tqdm(total=self.t_end - self.t_start, desc="simulating", delay=self.DELAY,
-                            file=sys.stderr, leave=False,
-                            bar_format="{desc}: {percentage:3.0f}%|{bar}| t = {n:.4g} of {total:.4g} s "
-                                       "[{elapsed}<{remaining}]")
+        self._open(self.t_end - self.t_start, "simulating",
+                   "{desc}: {percentage:3.0f}%|{bar}| t = {n:.4g} of {total:.4g} s "
+                   "[{elapsed}<{remaining}]")
         return self
 
     def __call__(self, t: float) -> None:
@@ -439,9 +494,24 @@ class _progress:
         if self.bar is not None:
             self.bar.update(min(t - self.t_start, self.bar.total) - self.bar.n)
 
-    def __exit__(self, *exc):
+    def stage(self, desc: str, total: float, unit: str = "it") -> None:
+        """Close the current bar and open one for ``total`` units of a new stage."""
+        self._close()
+        self._open(total, desc, "{desc}: {n:.3g}/{total:.3g} " + unit + "s |{bar}| [{elapsed}<{remaining}]",
+                   unit=unit)
+
+    def advance(self, amount: float = 1.0) -> None:
+        """``amount`` more units of the current stage are done."""
+        if self.bar is not None:
+            self.bar.update(amount)
+
+    def _close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+            self.bar = None
+
+    def __exit__(self, *exc):
+        self._close()
         return False
 
 
@@ -562,6 +632,8 @@ def _crosscheck(args) -> int:
     except ImportError as exc:
         _say(f"{PROG}: warning: figure skipped ({exc})", always=True)
     written = outs.commit(written)
+    if args.quiet:
+        return 0
     print(f"scene: {scene.name} ({file}), coordinates {', '.join(check.reduced_model.coordinates)}, "
           f"t = {check.t[0]:g} .. {check.t[-1]:g} s, rtol {check.settings['rtol']:g}")
     print(check.table())
@@ -618,7 +690,8 @@ def _derive(args) -> int:
     except InputError as exc:
         raise _scene_error(exc, file) from None
     if not (args.equation or args.lagrangian or args.force):
-        print(describe(rm))
+        if not args.quiet:
+            print(describe(rm))
         return 0
     checks = []
     try:
@@ -630,9 +703,13 @@ def _derive(args) -> int:
             checks += check_generalized_forces(rm, args.force)
     except InputError as exc:
         raise InputError(f"derive {file}: {exc}") from None
-    print(f"scene: {scene.name} ({file}), coordinates {', '.join(rm.coordinates)}")
+    if not args.quiet:
+        print(f"scene: {scene.name} ({file}), coordinates {', '.join(rm.coordinates)}")
     for check in checks:
-        print(f"{'OK' if check.ok else 'WRONG'}: {check.message}")
+        if not args.quiet:
+            print(f"{'OK' if check.ok else 'WRONG'}: {check.message}")
+        elif not check.ok:  # --quiet: only the failing checks, on stderr
+            print(f"{PROG}: WRONG: {check.message}", file=sys.stderr)
     return 0 if all(c.ok for c in checks) else 1
 
 
@@ -688,14 +765,16 @@ def _check(args) -> int:
         preview = _projection_preview(model, scene)
         out.append(preview)
         if preview.startswith("projection: FAILS"):  # incompatible constraints: refuse the scene
-            print("\n".join(out))
+            if not args.quiet:
+                print("\n".join(out))
             _say_error(f"scene file {file}: refused: {preview.removeprefix('projection: FAILS, ')}")
             return 2
     else:
         out.append("initial state: no constraints")
     terms = sorted(getattr(model, "active_terms", ()))
     out.append("model terms: " + (", ".join(terms) if terms else "none"))
-    print("\n".join(out))
+    if not args.quiet:
+        print("\n".join(out))
     return 0
 
 

@@ -223,15 +223,35 @@ class Conservation:
             drift = self.momentum_drift.get(c)
             more = f", drift {drift:.3g}" if drift is not None else ""
             lines.append(f"p_{c} = ∂L/∂{c}_dot  ({tag}{more})")
-        h = "conserved" if self.hamiltonian_conserved else "not conserved"
-        e = "= T + V" if self.hamiltonian_is_energy else "≠ T + V"
-        line = f"H = p·q_dot − L  ({h}; H {e}"
+        if self.hamiltonian_conserved:
+            h = "a constant of the motion: ∂L/∂t = 0, no non-conservative forces"
+        else:
+            h = "not conserved: L depends on t or non-conservative forces act"
+        e = "h = T + V" if self.hamiltonian_is_energy else "h ≠ T + V"
+        line = f"Jacobi integral h = p·q_dot − L  ({h}; {e}"
         if self.hamiltonian_drift is not None:
-            line += f"; drift {self.hamiltonian_drift:.3g}"
+            line += f"; measured drift {self.hamiltonian_drift:.3g}"
+        elif self.hamiltonian_conserved:
+            line += "; not measured: pass a reduced trajectory to see its drift"
         if self.energy_drift is not None:
             line += f"; T + V drift {self.energy_drift:.3g}"
         lines.append(line + ")")
         return "\n".join(lines)
+
+    @property
+    def jacobi_integral_conserved(self) -> bool:
+        """Whether the Jacobi integral h = p·q̇ − L (``hamiltonian``) is a constant of the motion."""
+        return self.hamiltonian_conserved
+
+    @property
+    def jacobi_integral(self) -> np.ndarray | None:
+        """h = p·q̇ − L along the trajectory given (None without one)."""
+        return self.hamiltonian
+
+    @property
+    def jacobi_integral_drift(self) -> float | None:
+        """max |h − h0| / |h0| along the trajectory given (None without one)."""
+        return self.hamiltonian_drift
 
 
 def _rel_drift(values: np.ndarray) -> float:

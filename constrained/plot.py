@@ -166,14 +166,15 @@ def trajectory_figure(traj: Trajectory) -> Figure:
             ax.plot(*p[0][:, None], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
             ax.plot(*p[-1][:, None], "s", color=_colour(i), ms=6)
             handles.append(line)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
+        ax.set_xlabel("x [m]", labelpad=10)
+        ax.set_ylabel("y [m]", labelpad=10)
+        ax.set_zlabel("z [m]", labelpad=12)
         finite = x.reshape(-1, 3)[np.all(np.isfinite(x.reshape(-1, 3)), axis=1)]
         if len(finite):
             span = np.ptp(finite, axis=0)
             # a thin axis keeps a readable depth (its ticks would collide otherwise)
-            ax.set_box_aspect(np.maximum(span, 0.25 * max(span.max(), 1e-12)))
+            # zoom < 1 leaves room for the axis labels (the z label is cut off at 1)
+            ax.set_box_aspect(np.maximum(span, 0.25 * max(span.max(), 1e-12)), zoom=0.82)
         from matplotlib.ticker import MaxNLocator
 
         for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
@@ -199,8 +200,26 @@ def _legend_markers(ax, markers) -> None:
 # ------------------------------------------------------------------------ time series figures
 
 
+#: model terms (``Trajectory.info["active_terms"]``) that make E = T + V change physically,
+#: with the words for them
+NOT_CONSERVING = {
+    "rheonomic": "moving (rheonomic) constraints",
+    "time_dependent_forces": "time-dependent forces",
+    "dissipation": "damping",
+    "applied_force": "applied forces",
+}
+
+
+def driving_terms(traj: Trajectory) -> list[str]:
+    """What keeps the energy of this run from being conserved (empty for a free scene)."""
+    active = set(traj.info.get("active_terms", ()) if traj.info else ())
+    return [words for term, words in NOT_CONSERVING.items() if term in active]
+
+
 def energy_figure(traj: Trajectory) -> Figure:
-    """Energy drift E(t) − E(0) in joules; E(0) is given in the title."""
+    """E(t) − E(0) in joules; E(0) is given in the title. Called "drift" only where E is
+    conserved: a driven or damped scene's title says what changes E (the energy is not a
+    check of the integration there)."""
     energy = _need(traj, "energy", "energy")
     t = np.asarray(traj.t, dtype=float)
     e0 = energy[0]
@@ -214,10 +233,13 @@ def energy_figure(traj: Trajectory) -> Figure:
     finite = drift[np.isfinite(drift)]
     worst = float(np.max(np.abs(finite))) if len(finite) else float("nan")
     rel = f" (relative {worst / abs(e0):.2e})" if e0 != 0 and np.isfinite(e0) else ""
-    ax.set_title(
-        f"Energy drift (E(0) = {e0:.6g} J)\nmax |E − E(0)| = {worst:.3g} J{rel}",
-        fontsize="medium",
-    )
+    driven = driving_terms(traj)
+    if driven:
+        title = (f"Energy change (E(0) = {e0:.6g} J): not conserved here, by physics\n"
+                 f"{' and '.join(driven)} change E; max |E − E(0)| = {worst:.3g} J")
+    else:
+        title = f"Energy drift (E(0) = {e0:.6g} J)\nmax |E − E(0)| = {worst:.3g} J{rel}"
+    ax.set_title(title, fontsize="medium")
     return fig
 
 
@@ -267,12 +289,9 @@ def residual_figure(traj: Trajectory) -> Figure:
             worst = "identically zero"
         else:
             worst = f"max {finite.max():.2e}"
-        ax.set_title(f"{title} ({worst})", fontsize="medium")
-        if zeros:
-            ax.text(
-                0.99, 0.03, f"{zeros} exact zero{'s' if zeros > 1 else ''} drawn at {floor:.0e}",
-                transform=ax.transAxes, ha="right", va="bottom", fontsize="x-small", color="0.4",
-            )
+        # the note on exact zeros goes in the title: inside the axes it would cover the curve
+        note = f"\n{zeros} exact zero{'s' if zeros > 1 else ''} drawn at {floor:.0e}" if zeros else ""
+        ax.set_title(f"{title} ({worst}){note}", fontsize="medium")
     return fig
 
 
@@ -362,23 +381,18 @@ def phase_figure(traj: Trajectory) -> Figure:
 MAX_FRAMES = 120
 
 
-def _links(system, names: list[str]) -> tuple[list[tuple[int, int]], list[tuple[int, np.ndarray]]]:
-    """Rods to draw: (i, j) pairs of particle-particle distances and (i, point) fixed anchors."""
-    pairs, anchors = [], []
-    if system is None:
-        return pairs, anchors
-    index = {n: k for k, n in enumerate(names)}
-    for c in getattr(system, "constraints", ()):
-        a, b, point = getattr(c, "a", None), getattr(c, "b", None), getattr(c, "point", None)
-        if type(c).__name__ not in ("Distance", "Pin") or a not in index:
-            continue
-        if b in index:
-            pairs.append((index[a], index[b]))
-        elif point is not None and type(c).__name__ == "Distance":
-            try:
-                anchors.append((index[a], np.asarray([float(v) for v in point])))
-            except (TypeError, ValueError):  # a moving anchor (formula of t): not drawn
-                pass
+def _links(system, traj: Trajectory) -> tuple[list[tuple[int, int]], list[tuple[int, np.ndarray, float | None]]]:  # noqa: E501
+    """Rods to draw: (i, j) particle pairs and (i, point, length) rods to fixed pivots, from
+    ``system`` when given, else from the sketch the run stored in ``traj.info``."""
+    if system is not None:
+        from .system import sketch
+
+        found = sketch(system)
+    else:
+        found = (traj.info or {}).get("sketch") or {"rods": [], "anchors": []}
+    n = traj.x.shape[1]
+    pairs = [(int(i), int(j)) for i, j in found["rods"] if i < n and j < n]
+    anchors = [(int(i), np.asarray(p, dtype=float), length) for i, p, length in found["anchors"] if i < n]
     return pairs, anchors
 
 
@@ -389,27 +403,29 @@ def _resample(t: np.ndarray, data: np.ndarray, times: np.ndarray) -> np.ndarray:
     return out.reshape((len(times), *data.shape[1:]))
 
 
-def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_frames: int = MAX_FRAMES):
-    """``(fig, FuncAnimation)``: particles, their trails, rods (when ``system`` is given) and
-    constraint-force arrows (when ``forces`` and the trajectory has them), in 2D for planar
-    motion, else 3D. Frames are uniform in time, at most ``max_frames``."""
-    from matplotlib.animation import FuncAnimation
+#: Animation size: inches and dots per inch of a frame (640 × 600 px).
+ANIMATION_SIZE, ANIMATION_DPI = (6.4, 6.0), 100
 
+
+def _animation_parts(traj: Trajectory, system, forces: bool, max_frames: int):
+    """``(fig, draw, n_frames)``: the figure with its static parts, and ``draw(k)`` which sets
+    frame k and returns the artists that change."""
     t = np.asarray(traj.t, dtype=float)
     names = _names(traj)
     n_frames = int(max(2, min(max_frames, len(t))))
     times = np.linspace(t[0], t[-1], n_frames)
-    x = _resample(t, np.asarray(traj.x, dtype=float), times)
+    x_all = np.asarray(traj.x, dtype=float)
+    x = _resample(t, x_all, times)
     f = None
     if forces and traj.constraint_forces is not None:
         f = _resample(t, np.asarray(traj.constraint_forces, dtype=float), times)
-    pairs, anchors = _links(system, names)
-    plane = motion_plane(np.asarray(traj.x, dtype=float))
+    pairs, anchors = _links(system, traj)
+    plane = motion_plane(x_all)
     # a fixed layout: the constrained-layout engine would re-run on every frame
-    fig = Figure(figsize=(5.0, 4.8))
+    fig = Figure(figsize=ANIMATION_SIZE)
     FigureCanvasAgg(fig)
-    fig.subplots_adjust(left=0.14, right=0.96, bottom=0.11, top=0.92)
     if plane is not None:
+        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.93)
         origin, basis, (a, b) = plane
         shift = np.zeros(3) if a != "u" else origin
         project = lambda p: (np.asarray(p) - shift) @ basis.T  # noqa: E731
@@ -419,15 +435,18 @@ def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_
         ax.set_aspect("equal", adjustable="box")
         dim = 2
     else:
+        fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.95)
         project = np.asarray
         ax = fig.add_subplot(projection="3d")
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
+        ax.set_xlabel("x [m]", labelpad=8)
+        ax.set_ylabel("y [m]", labelpad=8)
+        ax.set_zlabel("z [m]", labelpad=8)
         dim = 3
     q = project(x)  # (F, N, dim)
-    pts = q.reshape(-1, dim)
-    anchor_q = [project(p) for _, p in anchors]
+    path = project(x_all)
+    pts = path.reshape(-1, dim)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    anchor_q = [project(p) for _, p, _ in anchors]
     if anchor_q:
         pts = np.vstack([pts, *anchor_q])
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -443,14 +462,34 @@ def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_
     ax.set_ylim(*limits[1])
     if dim == 3:
         ax.set_zlim(*limits[2])
-        ax.set_box_aspect([max(h - l_, 0.05 * size) for l_, h in limits])
+        ax.set_box_aspect([max(h - l_, 0.05 * size) for l_, h in limits], zoom=0.85)
     else:
         ax.grid(True, alpha=0.3)
+    # the whole path, faint: the curve or surface the constraints hold each particle to shows up
+    for i in range(len(names)):
+        ax.plot(*[path[:, i, k] for k in range(dim)], color=_colour(i), lw=0.6, alpha=0.25)
+    if dim == 2:  # a rod to a fixed pivot: the circle it holds its particle on, dashed
+        from matplotlib.patches import Circle
+
+        for (_, point, length), pq in zip(anchors, anchor_q, strict=True):
+            in_plane = plane is not None and abs(np.dot(point - plane[0], np.cross(*plane[1]))) < 1e-9 * size
+            if length and in_plane:
+                ax.add_patch(Circle(tuple(pq), length, fill=False, ls="--", lw=0.8, color="0.6"))
+    else:  # in 3-D the sphere a rod to a fixed pivot holds its particle on, as a faint wireframe
+        u, w = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
+        for _, point, length in anchors:
+            if not length:
+                continue
+            sphere = [point[0] + length * np.cos(u) * np.sin(w), point[1] + length * np.sin(u) * np.sin(w),
+                      point[2] + length * np.cos(w)]
+            inside = np.all([(c >= lo_ - 1e-9) & (c <= hi_ + 1e-9)
+                             for c, (lo_, hi_) in zip(sphere, limits, strict=True)], axis=0)
+            ax.plot_wireframe(*[np.where(inside, c, np.nan) for c in sphere], color="0.7", lw=0.4, alpha=0.6)
     trail_len = max(1, n_frames // 4)
     trails, dots = [], []
     for i in range(len(names)):
-        (trail,) = ax.plot(*([[]] * dim), color=_colour(i), lw=1.0, alpha=0.5)
-        (dot,) = ax.plot(*([[]] * dim), "o", color=_colour(i), ms=8, label=names[i])
+        (trail,) = ax.plot(*([[]] * dim), color=_colour(i), lw=1.2, alpha=0.7)
+        (dot,) = ax.plot(*([[]] * dim), "o", color=_colour(i), ms=9, label=names[i])
         trails.append(trail)
         dots.append(dot)
     rods = [ax.plot(*([[]] * dim), color="0.25", lw=2.0)[0] for _ in pairs + anchors]
@@ -463,7 +502,11 @@ def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_
     if scale:
         handles.append(Line2D([], [], color="C3", lw=2))
         labels.append(f"constraint force (arrow 1 m = {1 / scale:.3g} N)")
-    _legend(ax, handles, labels, loc="upper right")
+    if dim == 2:  # below the axes: inside, it would cover the pivot or the path
+        ax.legend(handles[:MAX_LEGEND], labels[:MAX_LEGEND], fontsize="small", loc="upper center",
+                  bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(handles)), frameon=False)
+    else:
+        _legend(ax, handles, labels, loc="upper right")
 
     def set_line(line, pts_):
         pts_ = np.asarray(pts_).reshape(-1, dim)
@@ -481,40 +524,99 @@ def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_
             set_line(dots[i], q[k, i])
         for rod, (i, j) in zip(rods, pairs, strict=False):
             set_line(rod, np.stack([q[k, i], q[k, j]]))
-        for rod, (i, _), p in zip(rods[len(pairs):], anchors, anchor_q, strict=True):
+        for rod, (i, _, _), p in zip(rods[len(pairs):], anchors, anchor_q, strict=True):
             set_line(rod, np.stack([p, q[k, i]]))
         if scale:
             vec = (f[k] @ basis.T if dim == 2 else f[k]) * scale
             if dim == 2:
                 arrows.append(ax.quiver(q[k, :, 0], q[k, :, 1], vec[:, 0], vec[:, 1], color="C3",
-                                        angles="xy", scale_units="xy", scale=1, width=0.006))
+                                        angles="xy", scale_units="xy", scale=1, width=0.005))
             else:
                 arrows.append(ax.quiver(q[k, :, 0], q[k, :, 1], q[k, :, 2], vec[:, 0], vec[:, 1],
                                         vec[:, 2], color="C3"))
         title.set_text(f"t = {times[k]:.3f} s")
-        return [*trails, *dots, *rods, *arrows, title]
+        return [*trails, *rods, *dots, *arrows, title]
 
+    return fig, draw, n_frames
+
+
+def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_frames: int = MAX_FRAMES):
+    """``(fig, FuncAnimation)``: particles, their trails and faint full paths, rods and the
+    circles rods to fixed pivots hold their particles on (from ``system``, or from the sketch a
+    run stores in the trajectory), and constraint-force arrows (when ``forces`` and the
+    trajectory has them), in 2D for planar motion, else 3D. Frames are uniform in time, at most
+    ``max_frames``."""
+    from matplotlib.animation import FuncAnimation
+
+    fig, draw, n_frames = _animation_parts(traj, system, forces, max_frames)
     anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
     return fig, anim
 
 
+def _gif(fig, draw, n_frames: int, path: Path, fps: int, progress=None) -> None:
+    """Write the frames as a GIF: the static parts are drawn once, each frame only redraws the
+    artists that move (several times faster than a full redraw per frame)."""
+    from PIL import Image
+
+    canvas = fig.canvas
+    for artist in draw(0):
+        artist.set_animated(True)
+    canvas.draw()
+    background = canvas.copy_from_bbox(fig.bbox)
+    frames = []
+    for k in range(n_frames):
+        canvas.restore_region(background)
+        for artist in draw(k):
+            artist.set_animated(True)
+            if hasattr(artist, "do_3d_projection"):
+                artist.do_3d_projection()
+            fig.draw_artist(artist)
+        rgba = np.asarray(canvas.buffer_rgba())
+        frames.append(Image.fromarray(rgba[..., :3].copy()).quantize(colors=128, dither=Image.Dither.NONE))
+        if progress is not None:
+            progress(k, n_frames)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
+                       duration=int(round(1000 / fps)), loop=0)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
 def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, fps: int = 15,
-                   dpi: int = 72, max_frames: int = MAX_FRAMES) -> list[Path]:
-    """Write ``path`` (GIF, pillow) and, when ffmpeg is on PATH, the same as ``.mp4``."""
-    from matplotlib.animation import FFMpegWriter, PillowWriter
+                   dpi: int = ANIMATION_DPI, max_frames: int = MAX_FRAMES, progress=None) -> list[Path]:
+    """Write ``path`` (GIF) and, when ffmpeg is on PATH, the same as ``.mp4``.
+
+    ``progress(fraction)`` is called after each frame written (fractions add up to 1)."""
+    from matplotlib.animation import FFMpegWriter
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig, anim = animation_figure(traj, system=system, forces=forces, max_frames=max_frames)
-    targets = [(path, PillowWriter(fps=fps))]
-    if shutil.which("ffmpeg"):
-        targets.append((path.with_suffix(".mp4"), FFMpegWriter(fps=fps)))
-    written = []
-    for target, writer in targets:
+    fig, draw, n_frames = _animation_parts(traj, system, forces, max_frames)
+    fig.set_dpi(dpi)
+    video = shutil.which("ffmpeg") is not None
+    targets = 2 if video else 1
+    callback = None
+    if progress is not None:
+        callback = lambda _i, n: progress(1.0 / (n * targets))  # noqa: E731
+    _gif(fig, draw, n_frames, path, fps, callback)
+    written = [path]
+    if video:
+        from matplotlib.animation import FuncAnimation
+
+        for artist in fig.findobj():
+            if hasattr(artist, "set_animated"):
+                artist.set_animated(False)
+        anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
+        target = path.with_suffix(".mp4")
         fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
         os.close(fd)
         try:
-            anim.save(tmp, writer=writer, dpi=dpi)
+            anim.save(tmp, writer=FFMpegWriter(fps=fps), dpi=dpi, progress_callback=callback)
             os.replace(tmp, target)
         except BaseException:
             if os.path.exists(tmp):
@@ -557,12 +659,15 @@ KINDS = (*FIGURES, "animation")
 
 
 def save_figures(
-    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120, system=None
+    traj: Trajectory, kinds: Iterable[str], out_dir, *, dpi: int = 120, system=None, progress=None,
+    parallel: bool = False,
 ) -> list[Path]:
     """Write ``out_dir/<kind>.png`` for each kind (atomically) and return the paths.
 
     The kind ``"animation"`` writes ``out_dir/animation.gif`` (and ``.mp4`` with ffmpeg); rods
-    are drawn when ``system`` (the scene's System) is given.
+    are drawn when ``system`` (the scene's System) is given. ``progress(amount)``, when given,
+    is told 1 per kind written (the animation in fractions, frame by frame). ``parallel``:
+    draw the PNG figures in forked worker processes (one per core), the animation here.
     """
     kinds = [kinds] if isinstance(kinds, str) else list(kinds)
     unknown = [k for k in kinds if k not in KINDS]
@@ -572,13 +677,58 @@ def save_figures(
             f"allowed: {', '.join(KINDS)}"
         )
     out_dir = Path(out_dir)
+    pngs = [k for k in kinds if k != "animation"]
+    if parallel and len(pngs) > 1 and _fork_context() is not None:
+        return _save_in_parallel(traj, kinds, pngs, out_dir, dpi=dpi, system=system, progress=progress)
     paths = []
     for kind in kinds:
         if kind == "animation":
-            paths.extend(save_animation(traj, out_dir / "animation.gif", system=system))
+            paths.extend(save_animation(traj, out_dir / "animation.gif", system=system,
+                                        progress=progress))
             continue
         fig = FIGURES[kind](traj)
         path = out_dir / f"{kind}.png"
         atomic_write(path, lambda f, fig=fig: fig.savefig(f, format="png", dpi=dpi))
         paths.append(path)
+        if progress is not None:
+            progress(1.0)
+    return paths
+
+
+def _fork_context():
+    """The multiprocessing "fork" context where there is one (not on Windows), else None."""
+    import multiprocessing
+
+    try:
+        return multiprocessing.get_context("fork")
+    except ValueError:
+        return None
+
+
+def _save_one(traj: Trajectory, kind: str, out_dir: Path, dpi: int) -> Path:
+    fig = FIGURES[kind](traj)
+    path = out_dir / f"{kind}.png"
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    return path
+
+
+def _save_in_parallel(traj, kinds, pngs, out_dir, *, dpi, system, progress) -> list[Path]:
+    """``save_figures`` with the PNGs drawn in forked processes (matplotlib is already imported
+    here, so a worker starts in milliseconds) while this process writes the animation."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    workers = max(1, min(len(pngs), os.cpu_count() or 1))
+    done: dict[str, Path] = {}
+    with ProcessPoolExecutor(workers, mp_context=_fork_context()) as pool:
+        futures = {pool.submit(_save_one, traj, kind, out_dir, dpi): kind for kind in pngs}
+        animation = []
+        if "animation" in kinds:
+            animation = save_animation(traj, out_dir / "animation.gif", system=system, progress=progress)
+        for future in as_completed(futures):
+            done[futures[future]] = future.result()
+            if progress is not None:
+                progress(1.0)
+    paths = []
+    for kind in kinds:
+        paths.extend(animation if kind == "animation" else [done[kind]])
     return paths

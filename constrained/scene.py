@@ -26,7 +26,7 @@ from .constraints import CONSTRAINT_TYPES
 from .effects import EFFECT_TYPES
 from .errors import InputError
 from .symbols import Symbols
-from .system import Particle, System
+from .system import Particle, System, sketch
 from .trajectory import QUANTITIES
 
 __all__ = [
@@ -173,9 +173,73 @@ class Scene:
     expect: dict | None = None
     description: str = ""
     expectations: list | None = None
+    #: [scene] units: name (a parameter, a sweep summary column) -> unit, for axis labels
+    units: dict | None = None
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {self.system!r})"
+
+    def with_overrides(self, overrides: Iterable[str]) -> Scene:
+        """A new Scene: this one's file contents with ``--set`` style ``"KEY=VALUE"`` overrides."""
+        file = None if self.path is None else str(self.path)
+        return build_scene(apply_overrides(self.raw, list(overrides), file=file), path=self.path)
+
+    def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None):
+        """Simulate with the scene's own ``[simulate]`` settings and check its ``[expect]``.
+
+        ``overrides``: ``"KEY=VALUE"`` strings as the CLI's ``--set`` (e.g.
+        ``["simulate.t_end=2"]``), applied to a copy. ``quantities``: what to compute besides
+        t, x, v (default: ``[outputs] quantities``). Returns a ``RunResult``: ``.trajectory``,
+        ``.expectations`` (one ``ExpectResult`` per check), ``.ok``, ``.failed``, ``.report()``;
+        it unpacks as ``trajectory, checks = scene.run()``.
+        """
+        from .run_options import from_scene
+        from .simulate import simulate
+
+        scene = self.with_overrides(overrides) if overrides else self
+        s = scene.settings
+        if s["t_end"] is None:
+            raise SceneError("no end time: give t_end in [simulate], or override simulate.t_end",
+                             file=None if scene.path is None else str(scene.path), key="simulate.t_end")
+        wanted = set(scene.outputs["quantities"] if quantities is None else quantities)
+        kwargs = from_scene(scene, outputs=wanted | expect_requirements(scene)).simulate_kwargs()
+        if progress is not None:
+            kwargs["progress"] = progress
+        trajectory = simulate(scene.system, s["t_end"], **kwargs)
+        trajectory.info.setdefault("sketch", sketch(scene.system))  # rods for `constrained plot`
+        return RunResult(scene, trajectory, check_expectations(scene, trajectory))
+
+
+@dataclass
+class RunResult:
+    """A scene run with its own settings (``Scene.run()``): the Trajectory and the scene's
+    ``[expect]`` results. ``ok`` is True when every check passes (and when the scene has none);
+    ``failed`` lists the checks that did not; ``report()`` is the text ``constrained run``
+    prints. It unpacks as ``trajectory, checks = scene.run()``."""
+
+    scene: Scene
+    trajectory: Any
+    expectations: list
+
+    @property
+    def ok(self) -> bool:
+        return all(r.ok for r in self.expectations)
+
+    @property
+    def failed(self) -> list:
+        return [r for r in self.expectations if not r.ok]
+
+    def report(self) -> str:
+        n, bad = len(self.expectations), len(self.failed)
+        lines = [f"expect: {n - bad} of {n} checks pass", *("  " + r.line for r in self.expectations)]
+        return "\n".join(lines)
+
+    def __iter__(self):
+        return iter((self.trajectory, self.expectations))
+
+    def __repr__(self) -> str:
+        n, bad = len(self.expectations), len(self.failed)
+        return f"RunResult({self.scene.name!r}, {len(self.trajectory.t)} samples, expect {n - bad}/{n} pass)"
 
 
 # --- public entry points ---------------------------------------------------------------------
@@ -603,6 +667,7 @@ class _Builder:
             expect=None if expect is None else copy.deepcopy(expect),
             description=description,
             expectations=expectations,
+            units=dict(self.raw.get("scene", {}).get("units", {})),
         )
 
     def expect_section(self, table: dict, system: System) -> list[dict]:
@@ -681,7 +746,11 @@ class _Builder:
 
     def scene_section(self) -> tuple[str, str]:
         table = self.raw.get("scene", {})
-        self.keys(table, "scene", ("name", "description"), what="[scene]")
+        self.keys(table, "scene", ("name", "description", "units"), what="[scene]")
+        units = table.get("units", {})
+        if not isinstance(units, dict) or not all(isinstance(v, str) for v in units.values()):
+            self.fail("scene.units", "must be a table of unit strings, e.g. units = { a = \"m\", "
+                      f"nu = \"rad/s\" }}, got {_describe(units)}")
         default = self.path.stem if self.path is not None else "scene"
         name = self.string(table["name"], "scene.name") if "name" in table else default
         description = table.get("description", "")

@@ -127,6 +127,10 @@ class Spec:
         return names[-1] if names else self.key
 
 
+#: How to get Dask: the extra from the package index, or from a source checkout.
+DASK_INSTALL_HINT = ("pip install 'constrained[dask]' (from a source checkout: pip install '.[dask]' "
+                     "in its top folder)")
+
 def parse_spec(key: str, text: str) -> Spec:
     """Read one spec (see the module doc); an InputError says what is wrong."""
     where = f"--vary {key}={text}"
@@ -860,15 +864,18 @@ def _execute(tasks: list[dict], record, scheduler, *, progress: bool, workers: i
     try:
         import distributed
     except ImportError:
-        raise InputError("Dask is not installed: pip install 'constrained[dask]', or use --scheduler "
+        raise InputError(f"Dask is not installed: {DASK_INSTALL_HINT}, or use --scheduler "
                          "sequential") from None
     own_cluster = own_client = None
     if scheduler is None:
         if not tasks:
             return 0
         n = workers or os.cpu_count() or 1
+        # no dashboard: dashboard_address=None alone still serves HTTP on :8787 (and warns when
+        # that port is taken); a free loopback port, and dashboard=False serves no pages on it
         own_cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, host="127.0.0.1")
+                                               dashboard_address="127.0.0.1:0", host="127.0.0.1",
+                                               scheduler_kwargs={"dashboard": False})
         client = own_client = distributed.Client(own_cluster)
     elif isinstance(scheduler, str):
         if not re.fullmatch(r"(tcp|tls|inproc|ucx)://\S+", scheduler):
@@ -968,6 +975,26 @@ def boundary_function(formula: str, axes: Sequence[str], parameters: dict[str, f
     return f
 
 
+#: units of the scene keys a sweep can vary, by the key's last name (parameters: [scene] units)
+KEY_UNITS = {"t_end": "s", "t_start": "s", "dt": "s", "output_dt": "s", "mass": "kg", "position": "m",
+             "velocity": "m/s", "length": "m", "rest": "m", "offset": "m", "point": "m", "k": "N/m",
+             "coefficient": "N·s/m", "g": "m/s²", "charge": "C"}
+
+
+def axis_label(key: str, units: dict | None = None) -> str:
+    """``"a [m]"`` for ``parameters.a`` with ``units = {a = "m"}``; known keys get their SI unit
+    (``particles.p1.mass [kg]``); a summary column is looked up in ``units`` by its name."""
+    units = units or {}
+    parts = re.split(r"[.\[\]]+", key.strip("."))
+    names = [p for p in parts if p and not p.isdigit()]
+    last = names[-1] if names else key
+    if key.startswith("parameters."):
+        unit = units.get(last)
+        return f"{last} [{unit}]" if unit else f"{last} (parameter)"
+    unit = units.get(key) or (KEY_UNITS.get(last) if "." in key else None)
+    return f"{key} [{unit}]" if unit else key
+
+
 def save_sweep_figure(result: SweepResult, path, *, column: str | None = None, boundary: str | None = None,
                       scene_text: str | None = None, file: str = "scene", overrides=()) -> Path | None:
     """1-D: ``column`` against the parameter; 2-D grid: a map, with the zero contour of ``boundary``."""
@@ -991,14 +1018,18 @@ def save_sweep_figure(result: SweepResult, path, *, column: str | None = None, b
         return None
     if any(not all(isinstance(v, int | float) for v in (s.values or (0.0,))) for s in specs):
         return None
+    units = {}
+    if scene_text is not None:
+        scene_table = _load_raw(scene_text, file).get("scene", {})
+        units = scene_table.get("units", {}) if isinstance(scene_table, dict) else {}
     fig, ax = plt.subplots(figsize=(6.4, 4.8), constrained_layout=True)
     if len(specs) == 1:
         s = specs[0]
         x = np.array([r[s.key] for r in result.rows], float)
         order = np.argsort(x)
         ax.plot(x[order], z[order], "o-", ms=3)
-        ax.set_xlabel(s.key)
-        ax.set_ylabel(column)
+        ax.set_xlabel(axis_label(s.key, units))
+        ax.set_ylabel(axis_label(column, units))
         if s.log:
             ax.set_xscale("log")
         ax.grid(True, alpha=0.3)
@@ -1025,7 +1056,7 @@ def save_sweep_figure(result: SweepResult, path, *, column: str | None = None, b
                                shading="flat")
             gx = np.geomspace(ex[0], ex[-1], 400) if sx.log else np.linspace(ex[0], ex[-1], 400)
             gy = np.geomspace(ey[0], ey[-1], 400) if sy.log else np.linspace(ey[0], ey[-1], 400)
-        fig.colorbar(im, ax=ax, label=column)
+        fig.colorbar(im, ax=ax, label=axis_label(column, units))
         if boundary:
             params = {}
             if scene_text is not None:
@@ -1036,8 +1067,8 @@ def save_sweep_figure(result: SweepResult, path, *, column: str | None = None, b
             ax.contour(GX, GY, fb(GX, GY), levels=[0.0], colors="k", linewidths=1.5)
             ax.plot([], [], "k-", label=f"{boundary} = 0")
             ax.legend(loc="upper right", fontsize=8)
-        ax.set_xlabel(sx.key)
-        ax.set_ylabel(sy.key)
+        ax.set_xlabel(axis_label(sx.key, units))
+        ax.set_ylabel(axis_label(sy.key, units))
         if sx.log:
             ax.set_xscale("log")
         if sy.log:

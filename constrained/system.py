@@ -165,3 +165,32 @@ class System:
             f"System({self.name!r}: {self.n_particles} particles, "
             f"{len(self.constraints)} constraints, {len(self.effects)} effects)"
         )
+
+
+def sketch(system) -> dict:
+    """What an animation draws of the constraints, as plain lists (stored in a trajectory's
+    ``info["sketch"]`` so that ``constrained plot`` draws it without the scene file):
+    ``rods`` — particle index pairs held at a distance; ``anchors`` — ``[index, point, length]``
+    for a distance to a fixed point (a rod to a pivot; ``length`` a number, or a parameter's
+    value, else None);
+    moving points and formula-valued anchors are left out."""
+    names = [p.name for p in system.particles]
+    index = {n: k for k, n in enumerate(names)}
+    rods, anchors = [], []
+    for c in getattr(system, "constraints", ()):
+        kind = type(c).__name__
+        a, b, point = getattr(c, "a", None), getattr(c, "b", None), getattr(c, "point", None)
+        if kind not in ("Distance", "Pin") or a not in index:
+            continue
+        if b in index:
+            rods.append([index[a], index[b]])
+        elif point is not None and kind == "Distance":
+            try:
+                anchor = [float(v) for v in point]
+            except (TypeError, ValueError):  # a moving anchor (formula of t): not drawn
+                continue
+            length = getattr(c, "length", None)
+            if isinstance(length, str):  # a parameter's name; other formulas are not evaluated here
+                length = getattr(system, "parameters", {}).get(length.strip())
+            anchors.append([index[a], anchor, float(length) if isinstance(length, int | float) else None])
+    return {"rods": rods, "anchors": anchors}

@@ -101,12 +101,12 @@ def test_an_interrupted_run_leaves_the_earlier_set_untouched(tmp_path, capsys, m
     assert main(["run", str(path), "--out", str(out), "--quiet"]) == 0
     before = listing(out)
 
-    import constrained.plot
+    import constrained.figure_process
 
-    def interrupted(*args, **kwargs):  # Ctrl-C after the npz was written, while drawing
+    def interrupted(*args, **kwargs):  # Ctrl-C after the npz was written, while the figures are drawn
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(constrained.plot, "save_figures", interrupted)
+    monkeypatch.setattr(constrained.figure_process.FigureProcess, "wait", interrupted)
     assert main(["run", str(path), "--out", str(out), "--quiet", "--set", "simulate.t_end=0.1"]) == 130
     assert listing(out) == before
     no_strays(tmp_path)
@@ -121,11 +121,11 @@ def test_a_run_killed_between_the_npz_and_the_figures_leaves_one_set(tmp_path):
     assert first.returncode == 0, first.stderr
     before = listing(out)
     killer = (
-        "import os, signal, sys, constrained.plot as p\n"
+        "import os, signal, sys, constrained.figure_process as fp\n"
         "from constrained.cli import main\n"
         "def die(*a, **k):\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
-        "p.save_figures = die\n"
+        "fp.FigureProcess.wait = die\n"
         "sys.exit(main(sys.argv[1:]))\n"
     )
     killed = subprocess.run([sys.executable, "-c", killer, "run", str(path), "--out", str(out), "--quiet",

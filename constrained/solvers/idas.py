@@ -90,7 +90,9 @@ class _IdasBase(Solver):
         # Ctrl-C is honoured between calls, and inside one it loses only that call's part.
         # A call that runs out of steps (STEPS_PER_CALL) is split at intermediate times (not
         # outputs), so wall time is watched between calls and a stiff spring is named.
-        per_call = 1 if self.project_outputs else SEGMENT_OUTPUTS
+        # ggl's index-2 corrector restarts badly at tight tolerances (a tiny first step, a
+        # 1/h² Newton matrix): one call for the whole grid, split only by the pace watch below
+        per_call = 1 if self.project_outputs else max(len(grid), 1)
         queue = deque([(tk, True) for tk in grid[k:k + per_call]] for k in range(0, len(grid), per_call))
         opts["max_num_steps"] = STEPS_PER_CALL
         self.watch_stiffness(x0, t0, t_end)

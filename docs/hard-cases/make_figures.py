@@ -15,6 +15,7 @@ from matplotlib.figure import Figure
 
 import constrained as C
 from constrained import diagnostics
+from constrained.plot import driving_terms
 
 ROOT = Path(__file__).resolve().parents[2]
 HARD = ROOT / "scenarios" / "hard"
@@ -59,12 +60,19 @@ def figure(name, sc, tr, note):
     fig = Figure(figsize=(7.5, 6.6 if cond else 4.6))
     FigureCanvasAgg(fig)
     axes = fig.subplots(3 if cond else 2, 1, sharex=True)
+    zeros = int(np.count_nonzero(tr.constraint_residual == 0))
     res = np.maximum(tr.constraint_residual, 1e-17)
     axes[0].semilogy(tr.t, res, lw=0.8)
     axes[0].set_ylabel("max |f| (m)")
+    if zeros:
+        plural = "s" if zeros > 1 else ""
+        axes[0].set_title(f"constraint residual ({zeros} exact zero{plural} drawn at 1e-17)", fontsize=8)
     e = tr.energy
     axes[1].plot(tr.t, e - e[0], lw=0.8)
     axes[1].set_ylabel("E − E(0) (J)")
+    driven = driving_terms(tr)
+    axes[1].set_title("energy: changed by physics here (" + " and ".join(driven) + "), not a drift"
+                      if driven else "energy drift (E is conserved by this scene)", fontsize=8)
     if cond:
         c = diagnostics.conditioning(C.assemble(sc.system), tr)
         axes[2].semilogy(c.t, c.cond, lw=0.8, label="cond(J M⁻¹ Jᵀ)")
