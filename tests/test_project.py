@@ -83,3 +83,10 @@ def test_no_import_cycles_counting_imports_inside_functions():
     for name in sorted(graph):
         if name not in state:
             visit(name, [])
+
+
+def test_architecture_shows_the_real_import_graph():
+    from import_graph import text
+
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    assert text() in doc, "docs/architecture.md: regenerate the import graph (python tests/import_graph.py)"
