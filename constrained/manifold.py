@@ -223,12 +223,26 @@ def tangent_basis(J: np.ndarray, n: int | None = None, policy: RankPolicy = RANK
 SPARSE_FROM = 100
 
 
+def _dense_jacobian(model: Model) -> FastCall:
+    """``(x, t) -> J`` dense (column-major, flat) through a FunctionBuffer, once per model."""
+    cache = per_model_cache(model)
+    if "dense_jacobian" not in cache:
+        X, T = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("t")
+        cache["dense_jacobian"] = FastCall(ca.Function("dense_jacobian", [X, T],
+                                                       [ca.densify(model.jacobian(X, T)[1])]))
+    return cache["dense_jacobian"]
+
+
 def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
     """None when the rows of J(x, t) are independent; otherwise the independent subset to
     solve with (the others are implied by it). This is the run's redundancy, a value."""
     if model.n_constraints == 0:
         return None
-    J = model.jacobian(np.asarray(x, float).ravel(), t)[1]
+    x = np.asarray(x, float).ravel()
+    if model.n_constraints > SPARSE_FROM:
+        J = model.jacobian(x, t)[1]  # CasADi-sparse: the O(N) factorization
+    else:
+        J = _dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
     if full_row_rank(J, model.inverse_masses, policy):
         return None
     rows = independent_rows(np.asarray(J, float), model.inverse_masses, policy)
@@ -245,10 +259,15 @@ def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None =
     Schur complement; RATTLE's Newton step takes J at two states). ``linsol``: a CasADi
     linear solver plugin for MX graphs, None for SX (solved symbolically).
 
-    Scaled like the NumPy solve, D_l A D_r z = D_l rhs, y = D_r z, with D = diag(J M⁻¹ Jᵀ)^(-1/2)
-    of each side: CasADi's sparse QR takes pivots below an absolute 1e-12 or so for zero, and
-    h² M⁻¹ of a heavy particle is far below that."""
+    Numeric linear solvers are scaled like the NumPy solve, D_l A D_r z = D_l rhs, y = D_r z,
+    with D = diag(J M⁻¹ Jᵀ)^(-1/2) of each side: CasADi's sparse QR takes pivots below an
+    absolute 1e-12 or so for zero, and h² M⁻¹ of a heavy particle is far below that. Symbolic
+    solves (SX, "symbolicqr": the factorization written out, no pivot threshold) are not:
+    scaling there only adds operations to every step of a compiled loop."""
     minv = ca.DM(inverse_masses)
+    if linsol in (None, "symbolicqr"):  # exact algebra, no pivot threshold: no scaling needed
+        A = ca.mtimes(ca.mtimes(J_left, ca.diag(minv)), J_right.T)
+        return ca.solve(A, rhs) if linsol is None else ca.solve(A, rhs, linsol)
 
     def scale(J):
         return 1.0 / ca.sqrt(ca.mtimes(J * J, minv))

@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from .manifold import per_model_cache, row_scales_expr
+from .model import FastCall
 
 _CACHE_KEY = "residual_in_metres"
 
@@ -44,6 +45,7 @@ def functions(model) -> dict[str, ca.Function]:
         position = velocity = ca.SX(0)
     cached = {
         "scales": ca.Function("row_scales", [x, t], [s]),
+        "scales_fast": FastCall(ca.Function("row_scales_dense", [x, t], [ca.densify(s)])),
         "position": ca.Function("residual_m", [x, t], [position]),
         "velocity": ca.Function("velocity_residual_m", [x, v, t], [velocity]),
     }
@@ -55,7 +57,7 @@ def row_scales(model, x, t: float = 0.0) -> np.ndarray:
     """s_i (see the module) at (x, t), shape (C,)."""
     if model.n_constraints == 0:
         return np.zeros(0)
-    return np.asarray(functions(model)["scales"](np.asarray(x, float).ravel(), t), float).ravel()
+    return functions(model)["scales_fast"](np.asarray(x, float).ravel(), t)[0]
 
 
 def smallest_scale(model, x, t: float = 0.0) -> float:

@@ -1281,7 +1281,8 @@ def _by_construction(c, symbols: Symbols, tr, method: str | None) -> str:
     kind = c["kind"]
     if kind in ("constraint_residual", "velocity_residual"):
         return f"method '{method}' projects onto the constraints" if method in PROJECTING_METHODS else ""
-    if kind not in ("final", "closed_form", "bounds", "period") or _uses_forces(c["lhs"]):
+    if (kind not in ("final", "closed_form", "bounds", "period") or _uses_forces(c["lhs"])
+            or method not in PROJECTING_METHODS):
         return ""
     try:
         expr = ca.SX(symbols.parse(c["lhs"], c["key"], velocities=True))

@@ -6,12 +6,14 @@ import math
 import time
 from collections.abc import Iterable
 
+import casadi as ca
 import numpy as np
 
 from . import diagnostics, interrupt
 from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
-from .model import Model, assemble
+from .manifold import per_model_cache
+from .model import FastCall, Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
 from .solvers.base import INTERRUPTED
@@ -161,10 +163,22 @@ def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: fl
         return ""
 
 
+def _forces_and_energy(model: Model) -> FastCall:
+    """``(x, v, t) -> (F, E)`` through a FunctionBuffer (a few µs a call), once per model."""
+    cache = per_model_cache(model)
+    if "forces_and_energy" not in cache:
+        x, v, t = (ca.SX.sym(k, n) for k, n in (("x", model.n_coordinates), ("v", model.n_coordinates),
+                                                 ("t", 1)))
+        F = ca.densify(model.dynamics(x, v, t)[0])
+        cache["forces_and_energy"] = FastCall(ca.Function("forces_and_energy", [x, v, t],
+                                                          [F, model.energy(x, v, t)]))
+    return cache["forces_and_energy"]
+
+
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
     """Stop before stepping when the forces (or the energy) are not finite at the start."""
-    F = np.asarray(model.dynamics(x0, v0, t0)[0], float).ravel()
-    E = float(np.asarray(model.energy(x0, v0, t0), float).ravel()[0])
+    F, E = _forces_and_energy(model)(x0, v0, t0)
+    E = float(E[0])
     if np.all(np.isfinite(F)) and np.isfinite(E):
         return
     what = "forces" if not np.all(np.isfinite(F)) else f"energy ({E:g} J)"
@@ -191,7 +205,7 @@ def _first_nonfinite(model: Model, traj: Trajectory, wanted):
             if first is None or k < first[1]:
                 first = ({"x": "positions", "v": "velocities"}.get(name, name.replace("_", " ")), k)
     if first is None and "energy" not in wanted:
-        E = np.asarray(model.energy(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1]), float)
+        E = _forces_and_energy(model)(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1])[1]
         if not np.all(np.isfinite(E)):  # then find the first sample where it is not
             E = model.evaluate(model.energy, traj.x.reshape(n, -1), traj.v.reshape(n, -1), traj.t)[0]
             first = ("energy", int(np.argmin(np.isfinite(np.asarray(E).ravel()))))

@@ -78,7 +78,7 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
             f"{size:.3g} m = {limit:.3g} m. Correct the positions, or raise "
             "simulate.max_initial_correction"
         )
-    if not manifold.redundant and not np.array_equal(x, x0):
+    if not manifold.redundant and dx > 1e-8 * size:
         # the rows may be dependent on the manifold though not at the given start
         rows = redundant_rows(model, x, t0, policy)
         if rows is not None:

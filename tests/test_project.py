@@ -89,4 +89,4 @@ def test_architecture_shows_the_real_import_graph():
     from import_graph import text
 
     doc = (ROOT / "docs" / "architecture.md").read_text()
-    assert text() in doc, "docs/architecture.md: regenerate the import graph (python tests/import_graph.py)"
+    assert text() in doc, "docs/architecture.md: run python tests/update_import_graph.py"
