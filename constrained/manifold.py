@@ -262,10 +262,11 @@ def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None =
     Numeric linear solvers are scaled like the NumPy solve, D_l A D_r z = D_l rhs, y = D_r z,
     with D = diag(J M⁻¹ Jᵀ)^(-1/2) of each side: CasADi's sparse QR takes pivots below an
     absolute 1e-12 or so for zero, and h² M⁻¹ of a heavy particle is far below that. Symbolic
-    solves (SX, "symbolicqr": the factorization written out, no pivot threshold) are not:
-    scaling there only adds operations to every step of a compiled loop."""
+    solves (SX, "symbolicqr": the factorization written out) and the sparse LDLᵀ (no pivoting,
+    so invariant to a symmetric diagonal scaling) are not scaled: there it would only add
+    operations to every step of a compiled loop."""
     minv = ca.DM(inverse_masses)
-    if linsol in (None, "symbolicqr"):  # exact algebra, no pivot threshold: no scaling needed
+    if linsol in (None, "symbolicqr", "ldl"):  # no absolute pivot threshold: unscaled
         A = ca.mtimes(ca.mtimes(J_left, ca.diag(minv)), J_right.T)
         return ca.solve(A, rhs) if linsol is None else ca.solve(A, rhs, linsol)
 
