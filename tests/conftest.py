@@ -31,6 +31,16 @@ DP_REF, DP_ENERGY = _reference()
 DP_REF_T2 = DP_REF[2.0]
 
 
+def pendulum_toml(t_end: float, position=(0.0, -1.0, 0.0), velocity=(1.0, 0.0, 0.0)) -> str:
+    """A small scene file: a 1 kg bob on a 1 m rod from the origin, gravity along −y."""
+    moving = f"velocity = [{', '.join(map(str, map(float, velocity)))}]\n" if velocity is not None else ""
+    return (f'[scene]\nname = "pendulum"\n\n[[particles]]\nname = "bob"\nmass = 1.0\n'
+            f"position = [{', '.join(map(str, map(float, position)))}]\n{moving}\n"
+            '[[constraints]]\ntype = "distance"\na = "bob"\npoint = [0.0, 0.0, 0.0]\nlength = 1.0\n\n'
+            '[[effects]]\ntype = "gravity"\ng = [0.0, -9.81, 0.0]\n\n'
+            f"[simulate]\nt_end = {t_end}\n")
+
+
 def planar_pendulum(theta0: float, omega0: float = 0.0, *, m=1.0, l=1.0, g=9.81) -> C.System:
     """A particle on a rod of length l from the origin, in the plane z = 0, gravity along −y."""
     s = C.System(name="pendulum")

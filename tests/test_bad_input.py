@@ -10,33 +10,13 @@ from pathlib import Path
 
 import casadi as ca
 import pytest
+from conftest import pendulum_toml
 
 from constrained.cli import main
 from constrained.errors import ExpressionError
 from constrained.expressions import MAX_DEPTH, parse
 
-PENDULUM = """\
-[scene]
-name = "pendulum"
-
-[[particles]]
-name = "bob"
-mass = 1.0
-position = [1.0, 0.0, 0.0]
-
-[[constraints]]
-type = "distance"
-a = "bob"
-point = [0.0, 0.0, 0.0]
-length = 1.0
-
-[[effects]]
-type = "gravity"
-g = [0.0, -9.81, 0.0]
-
-[simulate]
-t_end = 0.01
-"""
+PENDULUM = pendulum_toml(0.01, position=(1.0, 0.0, 0.0), velocity=None)
 
 
 def cli(capsys, *argv) -> tuple[int, str]:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import pendulum_toml
 
 from constrained.cli import main
 from constrained.run_options import time_grid
@@ -18,29 +19,7 @@ from constrained.trajectory import Trajectory
 ROOT = Path(__file__).resolve().parents[1]
 DOUBLE_PENDULUM = ROOT / "scenarios" / "double_pendulum.toml"
 
-PENDULUM = """\
-[scene]
-name = "pendulum"
-
-[[particles]]
-name = "bob"
-mass = 1.0
-position = [0.0, -1.0, 0.0]
-velocity = [1.0, 0.0, 0.0]
-
-[[constraints]]
-type = "distance"
-a = "bob"
-point = [0.0, 0.0, 0.0]
-length = 1.0
-
-[[effects]]
-type = "gravity"
-g = [0.0, -9.81, 0.0]
-
-[simulate]
-t_end = 0.5
-"""
+PENDULUM = pendulum_toml(0.5)
 
 
 def write(tmp_path: Path, text: str, name: str = "scene.toml") -> Path:

@@ -12,35 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import pendulum_toml
 
 from constrained.cli import main
 from constrained.outputs import user_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-PENDULUM = """\
-[scene]
-name = "pendulum"
-
-[[particles]]
-name = "bob"
-mass = 1.0
-position = [0.0, -1.0, 0.0]
-velocity = [1.0, 0.0, 0.0]
-
-[[constraints]]
-type = "distance"
-a = "bob"
-point = [0.0, 0.0, 0.0]
-length = 1.0
-
-[[effects]]
-type = "gravity"
-g = [0.0, -9.81, 0.0]
-
-[simulate]
-t_end = 0.2
-"""
+PENDULUM = pendulum_toml(0.2)
 FULL = PENDULUM + """
 [outputs]
 quantities = ["energy"]
