@@ -419,12 +419,10 @@ def _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, ou
 def _run_files() -> list[str]:
     """The files ``run`` owns in its --out folder: a new run replaces all of them (figures drawn
     by ``plot`` from the earlier trajectory included)."""
-    try:
-        from .plot import KINDS
-    except ImportError:
-        KINDS = ()
+    from .scene import OUTPUT_PLOTS  # not constrained.plot: that imports matplotlib (0.25 s)
+
     return ["trajectory.npz", "trajectory.csv", "animation.gif", "animation.mp4", "viewer.html",
-            *(f"{kind}.png" for kind in KINDS)]
+            *(f"{kind}.png" for kind in OUTPUT_PLOTS if kind not in ("animation", "viewer"))]
 
 
 def _report_expectations(scene: Scene, trajectory: Trajectory, quiet: bool, results=None) -> int:
