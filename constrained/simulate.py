@@ -16,7 +16,7 @@ from .manifold import per_model_cache
 from .model import FastCall, Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
-from .solvers.base import INTERRUPTED
+from .solvers.base import Status
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
 from .trajectory import QUANTITIES, Trajectory
@@ -92,7 +92,7 @@ def simulate(
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
-        interrupted = bool(solution.failure and solution.failure.startswith(INTERRUPTED))
+        interrupted = solution.status is Status.INTERRUPTED
         if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
             # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
             # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
@@ -112,6 +112,7 @@ def simulate(
             "atol": atol,
             "active_terms": sorted(model.active_terms),
             "status": "interrupted" if interrupted else ("stopped" if solution.failure else "completed"),
+            "stop": solution.status.value,  # solvers.base.Status: how the run ended
             "t_end": float(t_end),
             "t_end_reached": reached,
         }

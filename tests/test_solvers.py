@@ -179,3 +179,31 @@ def test_baumgarte_refuses_the_cvodes_bases():
     # CVODES would integrate projection's equations, silently dropping the feedback terms
     with pytest.raises(C.InputError, match="method 'baumgarte' steps in SciPy"):
         C.simulate(double_pendulum(), 0.1, method="baumgarte", base="CVODES")
+
+
+def test_a_stop_carries_its_status_not_only_words():
+    """Solvers report how a run ended as a Status (one message each); simulate branches on it
+    and records it in trajectory.info["stop"]."""
+    from constrained.solvers.base import Failure, Status
+
+    assert all(isinstance(s.message, str) and s.message for s in Status)
+    with pytest.raises(C.SimulationError) as info:
+        C.simulate(double_pendulum(), 2.0, method="dopri", rtol=1e-12, atol=1e-14, max_steps=20,
+                   compiled=False)
+    assert info.value.trajectory.info["stop"] == Status.STEP_LIMIT.value
+
+    import os
+    import signal
+
+    def stop(t):  # Ctrl-C, as the terminal sends it, once the run is under way
+        if t > 0.3:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    for method, extra in (("projection", {}), ("rattle", {"dt": 1e-3, "compiled": False})):
+        with pytest.raises(C.RunInterrupted) as info:
+            C.simulate(double_pendulum(), 2.0, method=method, progress=stop, **extra)
+        assert info.value.trajectory.info["stop"] == Status.INTERRUPTED.value
+    done = C.simulate(double_pendulum(), 0.1, method="dopri", compiled=False)
+    assert done.info["stop"] == Status.COMPLETED.value
+    text = Failure(Status.NON_FINITE, "non-finite state at t = 1 s")
+    assert text.status is Status.NON_FINITE and text.startswith("non-finite")

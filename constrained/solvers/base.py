@@ -13,6 +13,7 @@ multipliers of a run are always the minimum-norm ones over every row.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,8 +23,51 @@ from ..errors import InputError
 from ..manifold import Manifold
 from ..model import Model
 
-#: The start of ``Solution.failure`` for a run stopped by Ctrl-C (simulate tells it apart).
-INTERRUPTED = "interrupted"
+
+class Status(enum.Enum):
+    """How a run ended; ``message`` is one plain sentence for each."""
+
+    COMPLETED = "completed"
+    INTERRUPTED = "interrupted"
+    STEP_SIZE_COLLAPSED = "step size collapsed"
+    PROJECTION_FAILED = "projection failed"
+    NON_FINITE = "non-finite values"
+    SINGULAR_CONFIGURATION = "singular configuration"
+    STIFF = "stiff"
+    STEP_LIMIT = "step limit"
+    SOLVER_FAILED = "solver failed"
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.COMPLETED: "the run reached t_end",
+    Status.INTERRUPTED: "the run was stopped by Ctrl-C; what was computed is kept",
+    Status.STEP_SIZE_COLLAPSED: "the step size fell to round-off before t_end",
+    Status.PROJECTION_FAILED: "the state could not be brought back onto the constraints",
+    Status.NON_FINITE: "positions, velocities or forces became infinite or NaN",
+    Status.SINGULAR_CONFIGURATION: "the constraints became dependent (a singular configuration)",
+    Status.STIFF: "the steps follow an oscillation far faster than the run (stiffness)",
+    Status.STEP_LIMIT: "the run took more steps than allowed",
+    Status.SOLVER_FAILED: "the integrator (SUNDIALS) stopped with an error",
+}
+
+#: Status.INTERRUPTED's value: the start of the text of an interrupted run.
+INTERRUPTED = Status.INTERRUPTED.value
+
+
+class Failure(str):
+    """The text of a stop, carrying its ``status``: reads as the sentence a user sees, and
+    simulate branches on ``status`` instead of parsing the words."""
+
+    status: Status
+
+    def __new__(cls, status: Status, text: str):
+        obj = super().__new__(cls, text)
+        obj.status = status
+        return obj
 
 
 @dataclass
@@ -32,7 +76,13 @@ class Solution:
     x: np.ndarray  # (T, 3N)
     v: np.ndarray  # (T, 3N)
     stats: dict = field(default_factory=dict)
-    failure: str | None = None  # why the run stopped early, if it did
+    failure: str | None = None  # why the run stopped early, if it did (a Failure)
+
+    @property
+    def status(self) -> Status:
+        if not self.failure:
+            return Status.COMPLETED
+        return getattr(self.failure, "status", Status.SOLVER_FAILED)
 
 
 class Solver:
@@ -102,7 +152,8 @@ class Solver:
         verdict = self._stiffness.check(t, steps, x) if self._stiffness is not None else None
         if verdict is None:
             return None
-        return f"the steps follow a fast oscillation at t = {float(t):.6g} s; {verdict}"
+        return Failure(Status.STIFF,
+            f"the steps follow a fast oscillation at t = {float(t):.6g} s; {verdict}")
 
     def stiff_hint(self) -> str:
         """For the end-of-run stiffness warning: the fastest spring and what to do about it."""
@@ -121,7 +172,7 @@ class Solver:
     @staticmethod
     def interrupted_at(t: float) -> str:
         """The ``failure`` of a run stopped by Ctrl-C after its last state, at time t."""
-        return f"{INTERRUPTED} at t = {float(t):.6g} s"
+        return Failure(Status.INTERRUPTED, f"{INTERRUPTED} at t = {float(t):.6g} s")
 
     def require_independent_constraints(self, why: str) -> None:
         """Refuse a run whose constraint rows are dependent (``Manifold.redundant``)."""

@@ -33,7 +33,7 @@ from .. import diagnostics
 from ..errors import InputError
 from ..manifold import acceleration_function, per_model_cache, projection_graph, symbolic_acceleration
 from ..model import FastCall
-from .base import Solution, Solver
+from .base import Failure, Solution, Solver, Status
 from .tableaus import TABLEAUS
 
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
@@ -252,13 +252,14 @@ class Dopri(Solver):
                         ok = np.all(np.isfinite(cols), axis=1)
                         last = cols[np.argmin(ok) - 1] if not ok[0] else before
                         state = last
-                        failure = (f"non-finite state after t = {last[T]:.6g} s; "
-                                   + diagnostics.nonfinite_cause(m, last[:n], last[n:2 * n], last[T]))
+                        failure = Failure(Status.NON_FINITE, (f"non-finite state after t = {last[T]:.6g} s; "
+                                   + diagnostics.nonfinite_cause(m, last[:n], last[n:2 * n], last[T])))
                         break
                     if state[RES] > PROJECTION_FAIL * scale:
-                        failure = (f"the state could not be kept on the constraints near "
+                        failure = Failure(Status.PROJECTION_FAILED,
+                            (f"the state could not be kept on the constraints near "
                                    f"t = {state[T]:.6g} s (residual {state[RES]:.3g} m before the last "
-                                   "Newton step): reduce rtol")
+                                   "Newton step): reduce rtol"))
                         break
                     if every_step:
                         t_prev = before[T]
@@ -269,13 +270,15 @@ class Dopri(Solver):
                                 vs.append(col[n:2 * n])
                                 t_prev = col[T]
                     if state[T] < target and state[H] < 1e-14 * max(1.0, abs(state[T])):
-                        failure = (f"the step size collapsed at t = {state[T]:.6g} s "
+                        failure = Failure(Status.STEP_SIZE_COLLAPSED,
+                            (f"the step size collapsed at t = {state[T]:.6g} s "
                                    f"(h = {state[H]:.3g} s); "
                                    + diagnostics.likely_cause(m, state[:n], state[n:2 * n], state[T],
-                                                            self.manifold))
+                                                            self.manifold)))
                         break
                     if state[N_ACC] + state[N_REJ] > self.max_steps:
-                        failure = f"more than max_steps = {self.max_steps} steps before t = {target:.6g} s"
+                        failure = Failure(Status.STEP_LIMIT,
+                            f"more than max_steps = {self.max_steps} steps before t = {target:.6g} s")
                         break
                     if state[N_ACC] - checked >= diagnostics.STIFFNESS_EVERY:
                         checked = state[N_ACC]

@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import interrupt, residual
 from ..errors import InputError
-from .base import Solution, Solver
+from .base import Failure, Solution, Solver, Status
 
 #: Output times integrated per IDAS call by pantelides: every restart builds an integrator and
 #: takes tiny first steps again (2.4x slower at 10 than in one call), while Ctrl-C reaches inside
@@ -142,7 +142,7 @@ class _IdasBase(Solver):
                     inner = [(tk, False) for tk in np.linspace(t_prev, times[0], SPLIT + 1)[1:-1]]
                     queue.extendleft(reversed([[item] for item in inner] + [seg]))
                     continue
-                failure = f"IDAS stopped after t = {t_prev:.6g} s ({reason})"
+                failure = Failure(Status.SOLVER_FAILED, f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
                 element = self._stiffness.fastest(state[:n3], t_prev) if self._stiffness else None
                 if element is not None and any(k in reason for k in STIFF_FAILURES):
                     failure += "; " + self._stiffness.describe(element, t_prev, self.stats["steps"])

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import interrupt
 from ..errors import InputError
-from .base import Solution, Solver
+from .base import Failure, Solution, Solver, Status
 from .idas import SEGMENT_OUTPUTS
 
 
@@ -90,7 +90,8 @@ class Pantelides(Solver):
             except (RuntimeError, KeyboardInterrupt) as exc:
                 failure = (self.interrupted_at(t_prev) if self.stop_requested() or
                            isinstance(exc, KeyboardInterrupt) else
-                           f"IDAS stopped after t = {t_prev:.6g} s ({str(exc).splitlines()[-1][:200]})")
+                           Failure(Status.SOLVER_FAILED, f"IDAS stopped after t = {t_prev:.6g} s "
+                                                         f"({str(exc).splitlines()[-1][:200]})"))
                 break
             stats = integ.stats()
             for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),

@@ -16,7 +16,7 @@ from .. import compiled as compiled_evaluation
 from .. import diagnostics, interrupt, residual
 from ..errors import InputError
 from ..manifold import Manifold, acceleration_graph, per_model_cache
-from .base import Solution, Solver
+from .base import Failure, Solution, Solver, Status
 
 #: "CVODES" is Adams with functional iteration (non-stiff, cheapest per step); "CVODES_BDF"
 #: is BDF with Newton iteration, for stiff scenes (springs with k/m = 1e8 beside constraints).
@@ -153,15 +153,16 @@ class Projection(Solver):
             try:
                 message = integ.step()
             except _NonFinite as exc:
-                failure = (f"non-finite accelerations at t = {exc.args[0]:.6g} s; "
-                           + diagnostics.nonfinite_cause(m, *good[1:], good[0]))
+                failure = Failure(Status.NON_FINITE, (f"non-finite accelerations at t = {exc.args[0]:.6g} s; "
+                           + diagnostics.nonfinite_cause(m, *good[1:], good[0])))
                 break
             except KeyboardInterrupt:
                 failure = self.interrupted_at(good[0])
                 break
             if integ.status == "failed":
-                failure = (f"the step size collapsed at t = {integ.t:.6g} s ({message}); "
-                           + self.diagnose(*good[1:], good[0]))
+                failure = Failure(Status.STEP_SIZE_COLLAPSED,
+                    (f"the step size collapsed at t = {integ.t:.6g} s ({message}); "
+                           + self.diagnose(*good[1:], good[0])))
                 break
             self.stats["steps"] += 1
             self.report(integ.t)
@@ -169,8 +170,9 @@ class Projection(Solver):
             # below 1e-14 of the run, many in a row, are a collapse too
             tiny = tiny + 1 if (integ.step_size or 0.0) < 1e-14 * max(t_end - t0, abs(integ.t)) else 0
             if tiny > COLLAPSED_STEPS:
-                failure = (f"the step size collapsed at t = {integ.t:.6g} s (h = {integ.step_size:.3g} s "
-                           f"for {tiny} steps); " + diagnostics.nonfinite_cause(m, *good[1:], good[0]))
+                failure = Failure(Status.STEP_SIZE_COLLAPSED,
+                    (f"the step size collapsed at t = {integ.t:.6g} s (h = {integ.step_size:.3g} s "
+                           f"for {tiny} steps); " + diagnostics.nonfinite_cause(m, *good[1:], good[0])))
                 break
             if watch and self.stats["steps"] % STIFFNESS_EVERY == 0 and integ.step_size:
                 rho = diagnostics.spectral_radius(self.derivative, integ.t, integ.y)
@@ -184,9 +186,10 @@ class Projection(Solver):
                     try:
                         xk, vk = self.project(yk[:n], yk[n:], tk)
                     except _ProjectionFailed as exc:
-                        failure = (f"the state could not be brought back onto the constraints at "
+                        failure = Failure(Status.PROJECTION_FAILED,
+                            (f"the state could not be brought back onto the constraints at "
                                    f"t = {tk:.6g} s (residual {exc.args[1]:.3g} m after Newton); "
-                                   + self.diagnose(*good[1:], good[0]))
+                                   + self.diagnose(*good[1:], good[0])))
                         break
                     ts.append(tk)
                     ys.append(np.concatenate([xk, vk]))
@@ -197,14 +200,16 @@ class Projection(Solver):
                 try:
                     x, v = self.project(integ.y[:n], integ.y[n:], integ.t)
                 except _ProjectionFailed as exc:
-                    failure = (f"the state could not be brought back onto the constraints at "
+                    failure = Failure(Status.PROJECTION_FAILED,
+                        (f"the state could not be brought back onto the constraints at "
                                f"t = {integ.t:.6g} s (residual {exc.args[1]:.3g} m after Newton); "
-                               + self.diagnose(*good[1:], good[0]))
+                               + self.diagnose(*good[1:], good[0])))
                     break
                 y = np.concatenate([x, v])
                 if not np.all(np.isfinite(y)):
-                    failure = (f"non-finite state after projection at t = {integ.t:.6g} s; "
-                               + self.diagnose(*good[1:], good[0]))
+                    failure = Failure(Status.NON_FINITE,
+                        (f"non-finite state after projection at t = {integ.t:.6g} s; "
+                               + self.diagnose(*good[1:], good[0])))
                     break
                 integ.y = y
                 if hasattr(integ, "f"):  # keep first-same-as-last consistent with the new state
@@ -212,8 +217,9 @@ class Projection(Solver):
             if watch_rank:
                 sigma = diagnostics.rank_sigma(m, y[:n], integ.t, watch_rank)
                 if sigma < self.singular_tol:
-                    failure = (f"singular configuration reached at t = {integ.t:.6g} s; likely cause: "
-                               + diagnostics.singularity(m, y[:n], integ.t, rank=watch_rank).describe())
+                    failure = Failure(Status.SINGULAR_CONFIGURATION,
+                        (f"singular configuration reached at t = {integ.t:.6g} s; likely cause: "
+                               + diagnostics.singularity(m, y[:n], integ.t, rank=watch_rank).describe()))
                     if pending is None:
                         ts.append(integ.t)
                         ys.append(y)
@@ -222,7 +228,7 @@ class Projection(Solver):
             if pending is None:
                 ts.append(integ.t)
                 ys.append(y)
-        if watch and not (failure or "").startswith("the steps follow"):  # (that stop says it)
+        if watch and getattr(failure, "status", None) is not Status.STIFF:  # (that stop says it)
             self._stiffness_verdict(h_rho, rho_max)
         self.stats["evaluation"] = self.manifold.evaluation
         Y = np.array(ys).reshape(-1, 2 * n)
@@ -308,8 +314,9 @@ class Projection(Solver):
                 if self.stop_requested():  # Ctrl-C inside CVODES: its right-hand side "failed"
                     failure = self.interrupted_at(t_a)
                     break
-                failure = (f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]}); "
-                           + self.diagnose(state[:n], state[n:], t_a))
+                failure = Failure(Status.SOLVER_FAILED,
+                    (f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]}); "
+                           + self.diagnose(state[:n], state[n:], t_a)))
                 break
             stats = integ.stats()
             self.stats["steps"] += int(stats.get("nsteps", 0))
@@ -318,11 +325,13 @@ class Projection(Solver):
             try:
                 x, v = self.project(yb[:n], yb[n:], t_b)
             except _ProjectionFailed as exc:
-                failure = (f"the state could not be brought back onto the constraints at t = {t_b:.6g} s "
-                           f"(residual {exc.args[1]:.3g}); " + self.diagnose(state[:n], state[n:], t_a))
+                failure = Failure(Status.PROJECTION_FAILED,
+                    (f"the state could not be brought back onto the constraints at t = {t_b:.6g} s "
+                           f"(residual {exc.args[1]:.3g}); " + self.diagnose(state[:n], state[n:], t_a)))
                 break
             if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
-                failure = f"non-finite state at t = {t_b:.6g} s; " + self.diagnose(state[:n], state[n:], t_a)
+                failure = Failure(Status.NON_FINITE,
+                    f"non-finite state at t = {t_b:.6g} s; " + self.diagnose(state[:n], state[n:], t_a))
                 break
             ts.append(t_b)
             xs.append(x)

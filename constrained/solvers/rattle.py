@@ -30,7 +30,7 @@ from .. import compiled as compiled_evaluation
 from .. import diagnostics, residual
 from ..errors import InputError
 from ..manifold import schur_solve_graph, velocity_correction_graph
-from .base import Solution, Solver
+from .base import Failure, Solution, Solver, Status
 
 #: Under compiled="auto", RATTLE's folded steps are compiled for models up to this size.
 AUTO_COMPILE_COORDINATES = 90
@@ -164,16 +164,17 @@ class Rattle(Solver):
                     failure = self.interrupted_at(state[2 * n3])
                     break
                 if not np.all(np.isfinite(new)):
-                    failure = (f"non-finite state between t = {state[2 * n3]:.6g} s and "
+                    failure = Failure(Status.NON_FINITE,
+                        (f"non-finite state between t = {state[2 * n3]:.6g} s and "
                                f"{t0 + (done + k) * h:.6g} s; "
-                               + diagnostics.nonfinite_cause(m, state[:n3], state[n3:2 * n3], state[2 * n3]))
+                               + diagnostics.nonfinite_cause(m, state[:n3], state[n3:2 * n3], state[2 * n3])))
                     break
                 if new[-1] > self.newton_tol * self.scale:
-                    failure = (
+                    failure = Failure(Status.PROJECTION_FAILED, (
                         f"Newton for the position multipliers did not converge between t = "
                         f"{state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s (|f| = {new[-1]:.3g} m after "
                         f"{self.newton_iterations} iterations): reduce dt"
-                    )
+                    ))
                     break
                 state = new
                 done += k
