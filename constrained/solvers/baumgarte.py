@@ -3,7 +3,8 @@
 Instead of ``J a + γ = 0`` the method imposes
 ``J a + γ + 2α (J v + f_t) + β² f = 0``, so a constraint violation obeys the damped
 oscillator ``f'' + 2α f' + β² f = 0`` and decays instead of drifting. The ODE is then
-integrated by SciPy's DOP853 (the projection module's step loop) without any projection.
+integrated by SciPy's DOP853 (the projection module's step loop, composed: a Projection
+with this right-hand side and its projections off).
 Defaults α = β = 10 s⁻¹ (decay time 0.1 s); the drift left is of the order of the
 integrator's local error times 1/α — small, not zero (tests/test_solvers.py measures it:
 on the double pendulum at rtol 1e-6 it is 65× below the unstabilized ODE's).
@@ -16,25 +17,27 @@ import numpy as np
 
 from ..errors import InputError
 from ..manifold import acceleration_graph
-from .projection import Projection
+from .base import Solution, Solver
+from .projection import SINGULAR_TOL, Projection
 
 
-class Baumgarte(Projection):
-    """Projection's SciPy step loop with the stabilized acceleration and no projection; the
-    KKT solve with feedback is the manifold's (``acceleration_graph(feedback=...)``)."""
+class Baumgarte(Solver):
+    """The stabilized acceleration (the manifold's ``acceleration_graph(feedback=...)``) stepped
+    by projection's SciPy loop, composed with projections turned off."""
 
     name = "baumgarte"
-    projecting = False
     OPTIONS = ("base", "alpha", "beta", "singular_tol")
     BASES = ("DOP853", "RK45", "Radau")
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, alpha: float = 10.0,
-                 beta: float = 10.0, base: str = "DOP853", **options):
+                 beta: float = 10.0, base: str = "DOP853", singular_tol=SINGULAR_TOL, compiled="auto",
+                 progress=None, **options):
         if isinstance(base, str) and base.startswith("CVODES"):
             # the CVODES route integrates projection's equations, not the stabilized ones
             raise InputError(f"method 'baumgarte' steps in SciPy: base must be DOP853, RK45 or "
                              f"Radau, got {base!r} (for CVODES use method 'projection')")
-        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, base=base, **options)
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, compiled=compiled, progress=progress,
+                         **options)
         for key, value in (("alpha", alpha), ("beta", beta)):
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
                 raise InputError(f"{key} must be a non-negative number (1/s), got {value!r}")
@@ -47,8 +50,17 @@ class Baumgarte(Projection):
         acc, _ = acceleration_graph(m, X, V, T, rows=self.manifold.rows, linsol="qr",
                                     feedback=(self.alpha, self.beta))
         self._rhs = ca.Function("baumgarte_rhs", [T, ca.vertcat(X, V)], [ca.vertcat(V, acc)])
+        self._loop = Projection(self.manifold, rtol=rtol, atol=atol, dt=dt, base=base,
+                                singular_tol=singular_tol, compiled=compiled, progress=progress,
+                                right_hand_side=self.derivative, project=False)
+        self._loop.name = self.name  # its diagnoses speak of this method
+        self.order = self._loop.order
 
     def derivative(self, t, y):
+        """(x', v') with the stabilized acceleration."""
         self.manifold.counters.nfev += 1
         self.manifold.counters.nlu += 1
         return self._rhs(t, y).full().ravel()
+
+    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
+        return self._loop.run(x0, v0, t0, t_end, t_eval)

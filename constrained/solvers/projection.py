@@ -54,8 +54,14 @@ class Projection(Solver):
     projecting = True
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
-                 singular_tol: float | None = SINGULAR_TOL, **options):
+                 singular_tol: float | None = SINGULAR_TOL, right_hand_side=None, project: bool = True,
+                 **options):
+        """``right_hand_side(t, y) -> y'`` replaces the KKT acceleration and ``project=False``
+        turns the projections off: how another method (Baumgarte) runs this step loop on its
+        own equations (programmatic only, not scene options)."""
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
+        self._right_hand_side = right_hand_side
+        self.projecting = bool(project)
         if singular_tol is not None and not (isinstance(singular_tol, int | float) and 0 <= singular_tol < 1):
             raise InputError(f"singular_tol must be a number in [0, 1) or None, got {singular_tol!r}")
         self.singular_tol = singular_tol
@@ -74,6 +80,8 @@ class Projection(Solver):
 
     def derivative(self, t, y):
         """(x', v') = (v, a(x, v, t)) with a from the KKT system."""
+        if self._right_hand_side is not None:
+            return self._right_hand_side(t, y)
         n = self.model.n_coordinates
         a, _ = self.manifold.accelerations(y[:n], y[n:], t)
         return np.concatenate([y[n:], a])
