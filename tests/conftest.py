@@ -31,6 +31,23 @@ DP_REF, DP_ENERGY = _reference()
 DP_REF_T2 = DP_REF[2.0]
 
 
+#: A particle pushed by a force that blows up (exp(exp(5 t))): every method must stop early.
+BLOWUP_TOML = """\
+[[particles]]
+name = "p"
+mass = 1.0
+position = [0.0, 0.0, 0.0]
+
+[[effects]]
+type = "force"
+particle = "p"
+expr = ["exp(exp(5*t))", "0", "0"]
+
+[simulate]
+t_end = 3.0
+"""
+
+
 def pendulum_toml(t_end: float, position=(0.0, -1.0, 0.0), velocity=(1.0, 0.0, 0.0)) -> str:
     """A small scene file: a 1 kg bob on a 1 m rod from the origin, gravity along −y."""
     moving = f"velocity = [{', '.join(map(str, map(float, velocity)))}]\n" if velocity is not None else ""

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import pendulum_toml
+from conftest import BLOWUP_TOML, pendulum_toml
 
 from constrained.cli import main
 from constrained.run_options import time_grid
@@ -99,20 +99,7 @@ def test_run_default_out_dir_is_out_slash_stem(tmp_path, monkeypatch):
 
 
 def test_run_that_has_to_stop_saves_partial_trajectory(tmp_path, capsys):
-    text = """\
-[[particles]]
-name = "p"
-mass = 1.0
-position = [0.0, 0.0, 0.0]
-
-[[effects]]
-type = "force"
-particle = "p"
-expr = ["exp(exp(5*t))", "0", "0"]
-
-[simulate]
-t_end = 3.0
-"""
+    text = BLOWUP_TOML
     out = tmp_path / "out"
     code = main(["run", str(write(tmp_path, text)), "--out", str(out)])
     err = capsys.readouterr().err

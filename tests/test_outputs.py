@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import pendulum_toml
+from conftest import BLOWUP_TOML, pendulum_toml
 
 from constrained.cli import main
 from constrained.outputs import user_path
@@ -26,20 +26,7 @@ quantities = ["energy"]
 plots = ["trajectory", "energy"]
 formats = ["npz", "csv"]
 """
-BLOWUP = """\
-[[particles]]
-name = "p"
-mass = 1.0
-position = [0.0, 0.0, 0.0]
-
-[[effects]]
-type = "force"
-particle = "p"
-expr = ["exp(exp(5*t))", "0", "0"]
-
-[simulate]
-t_end = 3.0
-"""
+BLOWUP = BLOWUP_TOML
 
 
 def scene(tmp_path: Path, text: str, name: str = "scene.toml") -> Path:
