@@ -35,9 +35,9 @@ import scipy.sparse as sp
 
 from .analysis import jacobian_rank
 from .errors import InputError, SimulationError
-from .manifold import Manifold, multipliers_along, schur_solve, tangent_basis
+from .manifold import Manifold, schur_solve, tangent_basis
 from .model import Model, assemble
-from .quantities import OUTPUT_NAMES, trajectory_from
+from .quantities import OUTPUT_NAMES, multipliers_along, trajectory_from
 from .trajectory import Trajectory, atomic_write
 
 __all__ = [

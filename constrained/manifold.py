@@ -225,12 +225,11 @@ SPARSE_FROM = 100
 
 def _dense_jacobian(model: Model) -> FastCall:
     """``(x, t) -> J`` dense (column-major, flat) through a FunctionBuffer, once per model."""
-    cache = per_model_cache(model)
-    if "dense_jacobian" not in cache:
+    def build():
         X, T = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("t")
-        cache["dense_jacobian"] = FastCall(ca.Function("dense_jacobian", [X, T],
-                                                       [ca.densify(model.jacobian(X, T)[1])]))
-    return cache["dense_jacobian"]
+        return FastCall(ca.Function("dense_jacobian", [X, T], [ca.densify(model.jacobian(X, T)[1])]))
+
+    return built_once(model, "dense_jacobian", build)
 
 
 def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
@@ -405,20 +404,28 @@ def per_model_cache(model: Model) -> dict:
         return _built.setdefault(model, {})
 
 
+def built_once(model: Model, key, build):
+    """``build()`` the first time ``key`` is asked for on ``model``, the kept value after that
+    (two threads asking at once may both build; either result serves)."""
+    cache = per_model_cache(model)
+    if key not in cache:
+        cache[key] = build()
+    return cache[key]
+
+
 def acceleration_function(model: Model, rows=None, *, symbolic: bool = False) -> ca.Function:
     """``(x, v, t) -> (a, λ_rows)`` as one Function, built once per model and row set: step
     loops call it as a node of their graphs. MX with a sparse LDLᵀ inside, or (``symbolic``)
     one SX expression with the KKT solve written out: fastest for a few constraint rows, where
     a step loop can expand it into one SX graph; its size grows with the cube of the rows."""
-    cache = per_model_cache(model)
-    key = ("acceleration", rows, symbolic)
-    if key not in cache:
+    def build():
         n3 = model.n_coordinates
         kind = ca.SX if symbolic else ca.MX
         X, V, T = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
         graph = acceleration_graph(model, X, V, T, rows=rows, linsol=None if symbolic else "ldl")
-        cache[key] = ca.Function("acceleration_sx" if symbolic else "acceleration", [X, V, T], list(graph))
-    return cache[key]
+        return ca.Function("acceleration_sx" if symbolic else "acceleration", [X, V, T], list(graph))
+
+    return built_once(model, ("acceleration", rows, symbolic), build)
 
 
 def symbolic_acceleration(model: Model, rows=None) -> ca.Function:
@@ -532,87 +539,3 @@ class Manifold:
         J, f_t = (np.asarray(o, float) for o in m.velocity_terms(x, t))
         c = J @ v + f_t.ravel()
         return v - m.inverse_masses * (J.T @ self.schur_solve(J, c))
-
-    def multipliers_along(self, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """λ at each sample (T, C), minimum-norm over every row (see ``multipliers_along``)."""
-        return multipliers_along(self.model, X, V, t, policy=self.policy, full_rank=not self.redundant)
-
-
-# --- along a trajectory ---------------------------------------------------------------------------
-#: Samples evaluated per block along a trajectory: bounds the dense (samples × rows × coordinates)
-#: Jacobians held at once to about this many floats.
-BLOCK_FLOATS = 4_000_000
-
-
-def _blocks(n: int, per_sample: int):
-    size = max(1, BLOCK_FLOATS // max(per_sample, 1))
-    for start in range(0, n, size):
-        yield slice(start, min(n, start + size))
-
-
-def _checked_multipliers(model: Model) -> ca.Function:
-    """``(x, v, t) -> (λ, r)``: the sparse scaled LDLᵀ multipliers and the relative residual
-    r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) of the acceleration they give. A factorization
-    that met dependent rows gives large λ without a NaN; r shows it."""
-    cache = per_model_cache(model)
-    if "checked_multipliers" not in cache:
-        n3 = model.n_coordinates
-        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        a, lam = acceleration_function(model)(X, V, T)
-        F, J, gamma = model.dynamics(X, V, T)
-        load = ca.mtimes(J, ca.DM(model.inverse_masses) * F)
-        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
-        r = ca.mmax(ca.fabs(ca.mtimes(J, a) + gamma)) / scale
-        cache["checked_multipliers"] = ca.Function("checked_multipliers", [X, V, T], [lam, r])
-    return cache["checked_multipliers"]
-
-
-def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, *,
-                      policy: RankPolicy = RANK, full_rank: bool | None = None) -> np.ndarray:
-    """λ at each sample (T, C) from the KKT system at (x, v, t), in blocks of samples.
-
-    Independent rows (``full_rank``; None: decided at the first sample): the sparse scaled
-    LDLᵀ, mapped over the samples (O(N) per sample on a chain), kept where the acceleration it
-    gives satisfies J a + γ = 0 to 1e-9. Other samples, and redundant rows, take the dense
-    ``schur_solve`` (minimum-norm, accurate whatever the spread of the masses)."""
-    t = np.asarray(t, float)
-    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
-    if C == 0:
-        return np.zeros((n, 0))
-    X, V = np.asarray(X, float).reshape(n, n3), np.asarray(V, float).reshape(n, n3)
-    if full_rank is None:
-        full_rank = n == 0 or redundant_rows(model, X[0], float(t[0]), policy) is None
-    lam = np.full((n, C), np.nan)
-    if full_rank:
-        fast = _checked_multipliers(model)
-        for block in _blocks(n, 4 * (C + n3)):
-            values, residual = model.evaluate(fast, X[block], V[block], t[block])
-            good = np.asarray(residual, float).ravel() <= 1e-9
-            lam[block] = np.where(good[:, None], np.asarray(values, float).T, np.nan)
-    redo = np.flatnonzero(~np.all(np.isfinite(lam), axis=1))
-    minv = model.inverse_masses
-    per_block = max(1, BLOCK_FLOATS // (C * n3))
-    for start in range(0, len(redo), per_block):
-        rows = redo[start:start + per_block]
-        F, Jcat, gamma = model.evaluate(model.dynamics, X[rows], V[rows], t[rows])
-        J = Jcat.reshape(C, len(rows), n3).transpose(1, 0, 2)
-        for i, k in enumerate(rows):
-            lam[k] = schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
-                                 policy=policy, full_rank=full_rank)
-    return lam
-
-
-def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """(Jᵀλ)_i for each particle, (T, N, 3), in blocks of samples."""
-    t = np.asarray(t, float)
-    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
-    out = np.zeros((n, model.n_particles, 3))
-    if C == 0:
-        return out
-    X = np.asarray(X, float).reshape(n, n3)
-    for block in _blocks(n, C * n3):
-        _, Jcat = model.evaluate(model.jacobian, X[block], t[block])
-        k = len(t[block])
-        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
-        out[block] = np.einsum("kci,kc->ki", J, lam[block]).reshape(k, model.n_particles, 3)
-    return out

@@ -1,15 +1,19 @@
 """Derived quantities along a trajectory: multipliers, constraint forces, energy, residuals.
 
+Everything here works in blocks of samples, so no dense (samples × rows × coordinates)
+array is ever held whole.
+
 Only what a run asks for (``wanted``) is computed. The action, which needs the Lagrangian
 along the path, is added by the caller (constrained.action).
 """
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 
 from . import residual
-from .manifold import constraint_forces_along, multipliers_along
+from .manifold import RANK, RankPolicy, acceleration_function, built_once, redundant_rows, schur_solve
 from .model import Model
 from .trajectory import QUANTITIES, Trajectory
 
@@ -45,3 +49,83 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
     if "velocity_residual" in wanted:  # in m/s
         traj.velocity_residual = residual.velocity_residual_along(model, X, V.reshape(n, -1), t)
     return traj
+
+
+# --- along a trajectory ---------------------------------------------------------------------------
+#: Samples evaluated per block along a trajectory: bounds the dense (samples × rows × coordinates)
+#: Jacobians held at once to about this many floats.
+BLOCK_FLOATS = 4_000_000
+
+
+def _blocks(n: int, per_sample: int):
+    size = max(1, BLOCK_FLOATS // max(per_sample, 1))
+    for start in range(0, n, size):
+        yield slice(start, min(n, start + size))
+
+
+def _checked_multipliers(model: Model) -> ca.Function:
+    """``(x, v, t) -> (λ, r)``: the sparse LDLᵀ multipliers and the relative residual
+    r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) of the acceleration they give. A factorization
+    that met dependent rows gives large λ without a NaN; r shows it."""
+    def build():
+        n3 = model.n_coordinates
+        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+        a, lam = acceleration_function(model)(X, V, T)
+        F, J, gamma = model.dynamics(X, V, T)
+        load = ca.mtimes(J, ca.DM(model.inverse_masses) * F)
+        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
+        r = ca.mmax(ca.fabs(ca.mtimes(J, a) + gamma)) / scale
+        return ca.Function("checked_multipliers", [X, V, T], [lam, r])
+
+    return built_once(model, "checked_multipliers", build)
+
+
+def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, *,
+                      policy: RankPolicy = RANK, full_rank: bool | None = None) -> np.ndarray:
+    """λ at each sample (T, C) from the KKT system at (x, v, t), in blocks of samples.
+
+    Independent rows (``full_rank``; None: decided at the first sample): the sparse LDLᵀ,
+    mapped over the samples (O(N) per sample on a chain), kept where the acceleration it
+    gives satisfies J a + γ = 0 to 1e-9. Other samples, and redundant rows, take the dense
+    ``schur_solve`` (minimum-norm, accurate whatever the spread of the masses)."""
+    t = np.asarray(t, float)
+    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
+    if C == 0:
+        return np.zeros((n, 0))
+    X, V = np.asarray(X, float).reshape(n, n3), np.asarray(V, float).reshape(n, n3)
+    if full_rank is None:
+        full_rank = n == 0 or redundant_rows(model, X[0], float(t[0]), policy) is None
+    lam = np.full((n, C), np.nan)
+    if full_rank:
+        fast = _checked_multipliers(model)
+        for block in _blocks(n, 4 * (C + n3)):
+            values, residual = model.evaluate(fast, X[block], V[block], t[block])
+            good = np.asarray(residual, float).ravel() <= 1e-9
+            lam[block] = np.where(good[:, None], np.asarray(values, float).T, np.nan)
+    redo = np.flatnonzero(~np.all(np.isfinite(lam), axis=1))
+    minv = model.inverse_masses
+    per_block = max(1, BLOCK_FLOATS // (C * n3))
+    for start in range(0, len(redo), per_block):
+        rows = redo[start:start + per_block]
+        F, Jcat, gamma = model.evaluate(model.dynamics, X[rows], V[rows], t[rows])
+        J = Jcat.reshape(C, len(rows), n3).transpose(1, 0, 2)
+        for i, k in enumerate(rows):
+            lam[k] = schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
+                                 policy=policy, full_rank=full_rank)
+    return lam
+
+
+def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """(Jᵀλ)_i for each particle, (T, N, 3), in blocks of samples."""
+    t = np.asarray(t, float)
+    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
+    out = np.zeros((n, model.n_particles, 3))
+    if C == 0:
+        return out
+    X = np.asarray(X, float).reshape(n, n3)
+    for block in _blocks(n, C * n3):
+        _, Jcat = model.evaluate(model.jacobian, X[block], t[block])
+        k = len(t[block])
+        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
+        out[block] = np.einsum("kci,kc->ki", J, lam[block]).reshape(k, model.n_particles, 3)
+    return out

@@ -20,19 +20,19 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .manifold import per_model_cache, row_scales_expr
+from .manifold import built_once, row_scales_expr
 from .model import FastCall
 
 _CACHE_KEY = "residual_in_metres"
 
 
 def functions(model) -> dict[str, ca.Function]:
-    """``scales(x, t) -> s`` (C,), ``position(x, t) -> max_i |f_i|/s_i`` (m) and
+    """``scales(x, t) -> s`` (C,; a FunctionBuffer call), ``position(x, t) -> max_i |f_i|/s_i`` (m) and
     ``velocity(x, v, t) -> max_i |J_i v + f_t,i|/s_i`` (m/s), built once per model."""
-    cache = per_model_cache(model)
-    cached = cache.get(_CACHE_KEY)
-    if cached is not None:
-        return cached
+    return built_once(model, _CACHE_KEY, lambda: _build(model))
+
+
+def _build(model) -> dict:
     n3 = model.n_coordinates
     x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
     f, J = model.jacobian(x, t)
@@ -43,21 +43,18 @@ def functions(model) -> dict[str, ca.Function]:
         velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s)
     else:
         position = velocity = ca.SX(0)
-    cached = {
-        "scales": ca.Function("row_scales", [x, t], [s]),
-        "scales_fast": FastCall(ca.Function("row_scales_dense", [x, t], [ca.densify(s)])),
+    return {
+        "scales": FastCall(ca.Function("row_scales", [x, t], [ca.densify(s)])),
         "position": ca.Function("residual_m", [x, t], [position]),
         "velocity": ca.Function("velocity_residual_m", [x, v, t], [velocity]),
     }
-    cache[_CACHE_KEY] = cached
-    return cached
 
 
 def row_scales(model, x, t: float = 0.0) -> np.ndarray:
     """s_i (see the module) at (x, t), shape (C,)."""
     if model.n_constraints == 0:
         return np.zeros(0)
-    return functions(model)["scales_fast"](np.asarray(x, float).ravel(), t)[0]
+    return functions(model)["scales"](np.asarray(x, float).ravel(), t)[0]
 
 
 def smallest_scale(model, x, t: float = 0.0) -> float:

@@ -23,11 +23,6 @@ def method_options(method: str) -> tuple[str, ...]:
     return () if cls is None else tuple(cls.OPTIONS)
 
 
-def takes_option(method: str, option: str) -> bool:
-    """Whether ``method`` declares ``option`` (e.g. ``base``)."""
-    return option in method_options(method)
-
-
 def time_grid(t_start: float, t_end: float, *, output_dt=None, samples=None) -> np.ndarray | None:
     """Output times: every ``output_dt`` from t_start (t_end included), or ``samples`` points,
     or None (the method's own steps)."""

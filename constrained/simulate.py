@@ -12,7 +12,7 @@ import numpy as np
 from . import diagnostics, interrupt
 from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
-from .manifold import per_model_cache
+from .manifold import built_once
 from .model import FastCall, Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
@@ -166,14 +166,13 @@ def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: fl
 
 def _forces_and_energy(model: Model) -> FastCall:
     """``(x, v, t) -> (F, E)`` through a FunctionBuffer (a few µs a call), once per model."""
-    cache = per_model_cache(model)
-    if "forces_and_energy" not in cache:
-        x, v, t = (ca.SX.sym(k, n) for k, n in (("x", model.n_coordinates), ("v", model.n_coordinates),
-                                                 ("t", 1)))
+    def build():
+        x, v = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("v", model.n_coordinates)
+        t = ca.SX.sym("t")
         F = ca.densify(model.dynamics(x, v, t)[0])
-        cache["forces_and_energy"] = FastCall(ca.Function("forces_and_energy", [x, v, t],
-                                                          [F, model.energy(x, v, t)]))
-    return cache["forces_and_energy"]
+        return FastCall(ca.Function("forces_and_energy", [x, v, t], [F, model.energy(x, v, t)]))
+
+    return built_once(model, "forces_and_energy", build)
 
 
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:

@@ -15,7 +15,8 @@ import constrained as C
 from constrained import diagnostics
 from constrained.analysis import jacobian_rank
 from constrained.cli import main
-from constrained.manifold import Manifold, multipliers_along, schur_solve
+from constrained.manifold import Manifold, schur_solve
+from constrained.quantities import multipliers_along
 from constrained.simulate import consistent_state
 
 HARD = Path(__file__).resolve().parent.parent / "scenarios" / "hard"

@@ -54,10 +54,6 @@ _MESSAGES = {
     Status.SOLVER_FAILED: "the integrator (SUNDIALS) stopped with an error",
 }
 
-#: Status.INTERRUPTED's value: the start of the text of an interrupted run.
-INTERRUPTED = Status.INTERRUPTED.value
-
-
 class Failure(str):
     """The text of a stop, carrying its ``status``: reads as the sentence a user sees, and
     simulate branches on ``status`` instead of parsing the words."""
@@ -172,7 +168,7 @@ class Solver:
     @staticmethod
     def interrupted_at(t: float) -> str:
         """The ``failure`` of a run stopped by Ctrl-C after its last state, at time t."""
-        return Failure(Status.INTERRUPTED, f"{INTERRUPTED} at t = {float(t):.6g} s")
+        return Failure(Status.INTERRUPTED, f"{Status.INTERRUPTED.value} at t = {float(t):.6g} s")
 
     def require_independent_constraints(self, why: str) -> None:
         """Refuse a run whose constraint rows are dependent (``Manifold.redundant``)."""
