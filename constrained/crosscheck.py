@@ -37,19 +37,14 @@ def cross_check(scene, t_end: float | None = None, **settings) -> CrossCheck:
     base.setdefault("rtol", 1e-10)
     base.setdefault("atol", 1e-10)
     if all(settings.get(k) is None and base.get(k) is None for k in ("t_eval", "samples", "output_dt")):
-        settings["samples"] = DEFAULT_SAMPLES
-        base.setdefault("samples", None)
+        base["samples"] = DEFAULT_SAMPLES
     options = from_settings(base, scene=scene, t_end=t_end, **settings)
     t_start, rtol, atol = options.t_start, options.rtol, options.atol
     rm = ReducedModel.from_scene(scene, parameters=extra_parameters, t0=t_start)
     x0, v0 = rm.state(rm.initial, rm.rates, t_start)
     system = scene.system.with_state(x0, v0)
     kwargs = options.simulate_kwargs()
-    t_eval = kwargs.pop("t_eval")
-    for key in ("rtol", "atol", "t_start"):
-        kwargs.pop(key)
-    kwargs.update(passthrough)
-    cart = simulate(system, t_end, rtol=rtol, atol=atol, t_eval=t_eval, t_start=t_start, **kwargs)
+    cart = simulate(system, t_end, **kwargs, **passthrough)
     red = rm.solve(t_end, t_start=t_start, rtol=rtol, atol=atol, t_eval=cart.t)
     dx = np.max(np.linalg.norm(cart.x - red.x, axis=2), axis=1)
     dv = np.max(np.linalg.norm(cart.v - red.v, axis=2), axis=1)
@@ -70,6 +65,5 @@ def cross_check(scene, t_end: float | None = None, **settings) -> CrossCheck:
         max_velocity_difference=float(np.max(dv)),
         max_energy_difference=de,
         max_constraint_force_difference=dF,
-        settings={"rtol": rtol, "atol": atol, "t_start": t_start, "t_end": t_end,
-                  **{k: v for k, v in kwargs.items() if k not in ("progress", "model")}},
+        settings={"t_end": t_end, **{k: v for k, v in kwargs.items() if k != "t_eval"}},
     )
