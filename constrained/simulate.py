@@ -16,7 +16,7 @@ from .manifold import built_once
 from .model import FastCall, Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
-from .solvers.base import Status
+from .solvers.base import Event, Status
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
 from .trajectory import QUANTITIES, Trajectory
@@ -38,6 +38,7 @@ def simulate(
     outputs: Iterable[str] | None = None,
     max_initial_correction: float = 1e-3,
     model: Model | None = None,
+    events: Iterable[Event] = (),
     **options,
 ) -> Trajectory:
     """Simulate ``system`` from ``t_start`` to ``t_end`` and return a Trajectory.
@@ -45,6 +46,9 @@ def simulate(
     ``method`` picks the solver (see ``constrained.solvers.METHODS``); ``outputs`` limits the
     derived quantities computed (default: all). The initial state is projected onto the
     constraints first; the correction is in ``trajectory.info["initial_correction"]``.
+    ``events`` are ``Event(name, g(t, x, v), direction, terminal)``: their zero crossings are
+    located to round-off and listed in ``trajectory.info["events"]``; a terminal one ends the
+    run there (``info["stop"]`` is then "terminal event").
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
@@ -88,11 +92,12 @@ def simulate(
         started = time.perf_counter()
         # Ctrl-C becomes a request the solver honours after its current step or chunk
         with interrupt.watch():
-            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
+            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval, events=events)
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
         interrupted = solution.status is Status.INTERRUPTED
+        ended_by_event = solution.status is Status.EVENT
         if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
             # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
             # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
@@ -111,10 +116,13 @@ def simulate(
             "rtol": rtol,
             "atol": atol,
             "active_terms": sorted(model.active_terms),
-            "status": "interrupted" if interrupted else ("stopped" if solution.failure else "completed"),
+            "status": "interrupted" if interrupted else ("stopped" if solution.failure and not ended_by_event
+                                                         else "completed"),
             "stop": solution.status.value,  # solvers.base.Status: how the run ended
             "t_end": float(t_end),
             "t_end_reached": reached,
+            "events": [{"t": hit.t, "name": hit.event.name, "x": hit.x, "v": hit.v}
+                       for hit in solution.events],
         }
     )
     if interrupted:
@@ -124,7 +132,8 @@ def simulate(
             traj.info["quantities_skipped"] = skipped
         raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
                              f"what was computed is kept{note}", trajectory=traj)
-    bad = None if solution.failure else _first_nonfinite(model, traj, wanted)
+    failure = None if ended_by_event else solution.failure
+    bad = None if failure else _first_nonfinite(model, traj, wanted)
     if bad is not None:
         what, k = bad
         state = (traj.x[k].ravel(), traj.v[k].ravel(), float(traj.t[k]))
@@ -135,13 +144,13 @@ def simulate(
             f"{diagnostics.nonfinite_cause(model, *state)}",
             trajectory=kept,
         )
-    if solution.failure:
-        cause = ("" if "likely cause" in solution.failure else
+    if failure:
+        cause = ("" if "likely cause" in failure else
                  _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         raise SimulationError(
-            f"the run stopped early: {solution.failure}; the last good state is at {last}{cause}",
+            f"the run stopped early: {failure}; the last good state is at {last}{cause}",
             trajectory=traj,
         )
     return traj
