@@ -223,7 +223,7 @@ def tangent_basis(J: np.ndarray, n: int | None = None, policy: RankPolicy = RANK
 SPARSE_FROM = 100
 
 
-def _dense_jacobian(model: Model) -> FastCall:
+def dense_jacobian(model: Model) -> FastCall:
     """``(x, t) -> J`` dense (column-major, flat) through a FunctionBuffer, once per model."""
     def build():
         X, T = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("t")
@@ -241,7 +241,7 @@ def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tupl
     if model.n_constraints > SPARSE_FROM:
         J = model.jacobian(x, t)[1]  # CasADi-sparse: the O(N) factorization
     else:
-        J = _dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
+        J = dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
     if full_row_rank(J, model.inverse_masses, policy):
         return None
     rows = independent_rows(np.asarray(J, float), model.inverse_masses, policy)

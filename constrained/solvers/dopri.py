@@ -85,6 +85,8 @@ class Dopri(Stepper):
         self._chunks = self._functions()  # the one-time cost, outside the run's wall time
         self._longest = CHUNKS[-1]
         self._scale = None
+        n = model.n_coordinates
+        self._slots = tuple(_slot(n, k) for k in ("t", "h", "n_acc", "n_rej", "res", "t_target"))
 
     # --- the step as a CasADi graph -------------------------------------------------------
     def _state_size(self) -> int:
@@ -211,10 +213,8 @@ class Dopri(Stepper):
 
     def step(self, state, t_stop) -> Advance:
         """One call of the chained steps (CHUNKS) towards t_stop: its accepted columns."""
-        m = self.model
-        n = m.n_coordinates
-        T, H, N_ACC, N_REJ, RES, TARGET = (
-            _slot(n, k) for k in ("t", "h", "n_acc", "n_rej", "res", "t_target"))
+        n = self.model.n_coordinates
+        T, H, N_ACC, N_REJ, RES, TARGET = self._slots
         state = state.copy()
         state[TARGET] = t_stop
         expected = (t_stop - state[T]) / max(state[H], 1e-300) + 1
@@ -225,28 +225,28 @@ class Dopri(Stepper):
             # Ctrl-C waits for the call: keep calls short on slow (large) models
             self._longest = max(c for c in CHUNKS if c < k)
         cols = out.reshape(k, -1)
-        finite = np.all(np.isfinite(cols), axis=1)
-        good = cols[:np.argmin(finite)] if not finite.all() else cols
-        t_prev, taken = state[T], []
-        for i, col in enumerate(good):
-            if col[T] > t_prev:
-                taken.append(i)
-                t_prev = col[T]
-        taken = good[taken]
+        finite = bool(np.isfinite(out).all())
+        good = cols if finite else cols[:np.argmin(np.isfinite(cols).all(axis=1))]
+        # a rejected attempt (or one skipped at t_stop) leaves t as it was: the accepted
+        # columns are those whose t moved on
+        t = good[:, T]
+        moved = np.empty(len(t), bool)
+        if len(t):
+            moved[0] = t[0] > state[T]
+            moved[1:] = t[1:] > t[:-1]
+        taken = good[moved]
         new = good[-1] if len(good) else state
         self.stats.update(steps=int(new[N_ACC]), rejected=int(new[N_REJ]))
         samples = dict(t=taken[:, T], x=taken[:, :n], v=taken[:, n:2 * n], a=taken[:, 2 * n:3 * n],
                        h=float(new[H]))
-        if not finite.all():
+        if not finite:
             return Advance(new, **samples, status=Status.NON_FINITE,
                            message=f"non-finite state after t = {new[T]:.6g} s; "
-                           + diagnostics.nonfinite_cause(m, new[:n], new[n:2 * n], new[T]))
+                           + diagnostics.nonfinite_cause(self.model, new[:n], new[n:2 * n], new[T]))
         if new[RES] > PROJECTION_FAIL * self._scale:
-            return Advance(state, samples["t"][:0], samples["x"][:0], samples["v"][:0],
-                           status=Status.PROJECTION_FAILED,
-                           message=(f"the state could not be kept on the constraints near "
-                                    f"t = {new[T]:.6g} s (residual {new[RES]:.3g} m before the last "
-                                    "Newton step): reduce rtol"))
+            return Advance.empty(state, n, Status.PROJECTION_FAILED,
+                                 f"the state could not be kept on the constraints near t = {new[T]:.6g} s "
+                                 f"(residual {new[RES]:.3g} m before the last Newton step): reduce rtol")
         if new[T] < t_stop and new[H] < 1e-14 * max(1.0, abs(new[T])):
             return Advance(new, **samples, status=Status.STEP_SIZE_COLLAPSED,
                            message=(f"the step size collapsed at t = {new[T]:.6g} s (h = {new[H]:.3g} s); "

@@ -58,13 +58,16 @@ class _Run:
         self.sampled = diagnostics.STIFFNESS_MIN_STEPS // 2
 
     def keep(self, t: float, x, v) -> None:
-        self.ts.append(t)
-        self.xs.append(x)
-        self.vs.append(v)
+        self.ts.append(np.array([t]))
+        self.xs.append(np.asarray(x)[None])
+        self.vs.append(np.asarray(v)[None])
+
+    def kept_until(self) -> float:
+        return float(self.ts[-1][-1]) if self.ts else -np.inf
 
     def keep_reached(self) -> None:
         """On a stop between two outputs of the method's own grid, keep the state reached."""
-        if not self.from_caller and not self.every_step and (not self.ts or self.last[0] > self.ts[-1]):
+        if not self.from_caller and not self.every_step and self.last[0] > self.kept_until():
             self.keep(*self.last)
 
     def t_stop(self) -> float:
@@ -73,9 +76,8 @@ class _Run:
     def checked(self, adv: Advance, t_stop: float) -> tuple[int, Failure | None]:
         """How many of the advance's samples are good, and the failure it reports, if any."""
         k = len(adv.t)
-        finite = np.isfinite(adv.x).all(axis=-1) & np.isfinite(adv.v).all(axis=-1)
-        if k and not finite.all():
-            k = int(np.argmin(finite))
+        if k and not (np.isfinite(adv.x).all() and np.isfinite(adv.v).all()):
+            k = int(np.argmin(np.isfinite(adv.x).all(axis=-1) & np.isfinite(adv.v).all(axis=-1)))
             t = float(adv.t[k - 1]) if k else self.last[0]
             return k, Failure(Status.NON_FINITE, f"non-finite state after t = {t:.6g} s; "
                               + diagnostics.nonfinite_cause(self.stepper.model, *self.last[1:], self.last[0]))
@@ -92,6 +94,18 @@ class _Run:
     def take(self, adv: Advance, k: int) -> EventHit | None:
         """Record the first k samples of an advance (outputs, events); a terminal hit stops it."""
         stepper = self.stepper
+        if k and not self.events and (self.every_step or stepper.lands):  # no dense output needed
+            t = adv.t[:k]
+            if self.every_step:
+                self.ts.append(t)
+                self.xs.append(adv.x[:k])
+                self.vs.append(adv.v[:k])
+            while self.pending and self.pending[0] <= t[-1]:  # the output times landed on
+                i = int(np.searchsorted(t, self.pending.pop(0)))
+                self.keep(t[i], adv.x[i], adv.v[i])
+            self.last = (float(t[-1]), adv.x[k - 1], adv.v[k - 1])
+            self.last_a = adv.a[k - 1] if adv.a is not None else None
+            return None
         for i in range(k):
             sample = (float(adv.t[i]), adv.x[i], adv.v[i])
             a = adv.a[i] if adv.a is not None else None
@@ -183,7 +197,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
             if hit is not None:
                 failure = Failure(Status.EVENT, f"the terminal event '{hit.event.name}' at t = {hit.t:.6g} s")
                 break
-            if failure is None and k:
+            if failure is None and k and run.last[0] < t_end:  # (a finished run needs no watch)
                 reason = run.singular.check(run.last[1], run.last[0])
                 failure = Failure(Status.SINGULAR_CONFIGURATION, reason) if reason else None
             if failure is None and stepper.max_steps and \
@@ -204,5 +218,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
     run.stiffness_verdict(stats, failure)
     stats["events"] = len(run.hits)
     n = x0.size
-    return Solution(np.array(run.ts), np.array(run.xs).reshape(-1, n), np.array(run.vs).reshape(-1, n),
-                    stats, failure, run.hits)
+    if not run.ts:
+        return Solution(np.zeros(0), np.zeros((0, n)), np.zeros((0, n)), stats, failure, run.hits)
+    return Solution(np.concatenate(run.ts), np.concatenate(run.xs).reshape(-1, n),
+                    np.concatenate(run.vs).reshape(-1, n), stats, failure, run.hits)

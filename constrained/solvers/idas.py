@@ -30,10 +30,11 @@ from .driver import Stepper
 
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
-#: at 100), doubling while calls take under a quarter of CALL_SECONDS and halving above it, so
+#: at 100), growing 4x while calls take under 1/16 of CALL_SECONDS (2x under 1/4) and halving
+#: above it, so
 #: progress, the watches and the step limit are honoured between calls, each call stays short
 #: for Ctrl-C, and a failing call is retried in halves (a failure loses one output interval).
-FIRST_CALL_OUTPUTS = 8
+FIRST_CALL_OUTPUTS = 50
 CALL_SECONDS = 0.25
 #: Steps one IDAS call may take; a call that needs more is split into SPLIT parts.
 STEPS_PER_CALL = 20_000
@@ -51,7 +52,9 @@ class CallSize:
     def took(self, seconds: float) -> None:
         if self.fixed:
             return
-        if seconds < CALL_SECONDS / 4:
+        if seconds < CALL_SECONDS / 16:
+            self.size *= 4
+        elif seconds < CALL_SECONDS / 4:
             self.size *= 2
         elif seconds > CALL_SECONDS:
             self.size = max(1, self.size // 2)
@@ -160,9 +163,13 @@ class _IdasBase(Stepper):
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
                                  f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
         self._calls.took(time.perf_counter() - called)
-        if self._step0:
-            opts["step0"], self._retries = self._step0, list(RESTART_STEPS)
         stats = integ.stats()
+        if self._step0:
+            # the next call restarts at order 1: a tenth of the last step taken (RESTART_STEPS
+            # retries other first steps should the corrector fail there)
+            last = float(stats.get("hlast", 0.0))
+            opts["step0"] = 0.1 * last if np.isfinite(last) and last > 0 else self._step0
+            self._retries = list(RESTART_STEPS)
         self._pace = int(stats.get("nsteps", 0)) / max(seg[-1] - t_prev, 1e-300)  # steps per second
         for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
                           ("rejected", "netfails")):

@@ -160,10 +160,12 @@ class Projection(Stepper):
             why = (f"the step size collapsed at t = {integ.t:.6g} s (h = {integ.step_size:.3g} s "
                    f"for {self._tiny} steps); ")
             return self._stopped(integ, Status.STEP_SIZE_COLLAPSED, why, t_good, y_good)
-        dense = integ.dense_output()
+        dense = []  # built on first use (DOP853's costs three more evaluations), before the next step
 
         def interpolant(t):
-            y = dense(t)
+            if not dense:
+                dense.append(integ.dense_output())
+            y = dense[0](t)
             return y[:n], y[n:]
 
         y = integ.y

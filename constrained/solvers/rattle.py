@@ -30,6 +30,7 @@ from .. import compiled as compiled_evaluation
 from .. import diagnostics, residual
 from ..errors import InputError
 from ..manifold import schur_solve_graph, velocity_correction_graph
+from ..model import FastCall
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 
@@ -67,7 +68,7 @@ class Rattle(Stepper):
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
         self.newton_tol = newton_tol
-        self._chunks: dict[int, ca.Function] = {}
+        self._chunks: dict[int, FastCall] = {}
 
     def _step(self, h: float) -> ca.Function:
         """One RATTLE step on the state (x, v, t, λ, err) — err: running max of |f| after Newton."""
@@ -106,13 +107,14 @@ class Rattle(Stepper):
         state = ca.vertcat(x, v, t, err)
         return ca.Function("verlet_step", [state], [ca.vertcat(x1, v_half + 0.5 * h * minv * F1, t1, err)])
 
-    def _chunk(self, step: ca.Function, k: int, *, compile_it: bool = False) -> ca.Function:
+    def _chunk(self, step: ca.Function, k: int, *, compile_it: bool = False) -> FastCall:
+        """k steps folded into one call (compiled when asked), called through its buffer."""
         chunk = self._chunks.get(k)
         if chunk is None:
-            chunk = step.fold(k) if k > 1 else step
+            function = step.fold(k) if k > 1 else step
             if compile_it:
-                chunk = compiled_evaluation.compile_function(chunk)
-            self._chunks[k] = chunk
+                function = compiled_evaluation.compile_function(function)
+            chunk = self._chunks[k] = FastCall(function)
         return chunk
 
     def prepare(self, t0, t_end, t_eval) -> None:
@@ -162,7 +164,7 @@ class Rattle(Stepper):
         k = self._regular if left >= self._regular else 1 << (left.bit_length() - 1)
         compile_it = self.compiled and k == self._regular and k >= 8
         chunk = self._chunk(self._step_function, k, compile_it=compile_it)
-        new = chunk(y).full().ravel()
+        (new,) = chunk(y)
         t_new = self._t0 + (done + k) * self.h
         if abs(t_new - t_stop) <= 1e-9 * self.h:
             t_new = t_stop

@@ -80,7 +80,13 @@ class Reduced(Stepper):
                            status=Status.STEP_SIZE_COLLAPSED,
                            message=f"the step size collapsed at t = {integ.t:.6g} s ({message})")
         self.stats["steps"] += 1
-        dense = integ.dense_output()
+        dense = []  # built on first use, before the next step
+
+        def interpolant(t):
+            if not dense:
+                dense.append(integ.dense_output())
+            return self._cartesian(dense[0](t), t)
+
         x, v = self._cartesian(integ.y, integ.t)
-        return Advance(integ, np.array([integ.t]), x[None], v[None],
-                       interpolant=lambda t: self._cartesian(dense(t), t), h=integ.step_size)
+        return Advance(integ, np.array([integ.t]), x[None], v[None], interpolant=interpolant,
+                       h=integ.step_size)

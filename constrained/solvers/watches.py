@@ -9,14 +9,16 @@ import time
 import numpy as np
 
 from .. import diagnostics
-from ..manifold import Manifold
+from ..manifold import Manifold, dense_jacobian
 from .base import Solver
 
 #: Up to this many coordinates the singular watch takes the dense SVD of the row-normalized J.
 DENSE_WATCH_MAX = 300
 #: The singular watch may take this fraction of a run's wall time at most (it is skipped
 #: until this much time has passed since its last, measured, cost).
-WATCH_SHARE = 0.1
+WATCH_SHARE = 0.05
+#: The cost a first check is taken to have (a small model's SVD and Jacobian).
+FIRST_CHECK_S = 1e-4
 #: Up to this many coordinates a failed step is checked for a limit position passed
 #: (diagnostics.incompatible_constraints: a dense least-squares solve).
 LIMIT_CHECK_MAX = 3000
@@ -36,7 +38,9 @@ class SingularWatch:
         self.model, self.rows, self.tol = m, rows, tol
         self.on = bool(tol) and bool(rows)
         self.dense = m.n_coordinates <= DENSE_WATCH_MAX
-        self.next_check = 0.0
+        # as if a first check had cost FIRST_CHECK_S: a run shorter than FIRST_CHECK_S / WATCH_SHARE
+        # is not slowed by the watch at all
+        self.next_check = time.perf_counter() + FIRST_CHECK_S / WATCH_SHARE
         self._vector = None
 
     def singularity(self, x, t: float) -> diagnostics.Singularity:
@@ -74,6 +78,16 @@ class SingularWatch:
         self._vector = y / np.linalg.norm(y)
         return self._described(float(np.sqrt(max(lam, 0.0))), self._vector)
 
+    def _dense_sigma(self, x, t: float) -> float:
+        """The rank-th singular value of the row-normalized J (a FunctionBuffer call and a
+        small SVD: tens of µs)."""
+        m = self.model
+        J = dense_jacobian(m)(x, t)[0].reshape(m.n_coordinates, m.n_constraints).T
+        norms = np.linalg.norm(J, axis=1)
+        sv = np.linalg.svd(J / np.where(norms > 0, norms, 1.0)[:, None], compute_uv=False)
+        rank = len(self.rows)
+        return float(sv[rank - 1]) if rank <= sv.size else 0.0
+
     def _described(self, sigma: float, u: np.ndarray, ignore: float = 0.05) -> diagnostics.Singularity:
         w = u**2
         order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
@@ -88,8 +102,7 @@ class SingularWatch:
         now = time.perf_counter()
         if now < self.next_check:
             return None
-        sigma = (diagnostics.rank_sigma(self.model, x, t, len(self.rows)) if self.dense
-                 else self.singularity(x, t).sigma)
+        sigma = self._dense_sigma(x, t) if self.dense else self.singularity(x, t).sigma
         self.next_check = now + (time.perf_counter() - now) / WATCH_SHARE
         if sigma >= self.tol:
             return None
