@@ -155,3 +155,17 @@ def test_every_method_stops_on_an_interrupt_keeping_what_it_computed(method):
     kept = err.value.trajectory
     assert 0.3 <= kept.t[-1] < 2.0 and np.all(np.isin(kept.t, t_eval))
     assert kept.info["stop"] == "interrupted"
+
+
+@pytest.mark.parametrize("method", ["projection", "dopri", "baumgarte", "idas", "ggl"])
+def test_a_short_flight_lands_at_twice_the_rise_time(method):
+    """Thrown up at u = 0.03 m/s from y = 0 (the gap starts at exactly zero), the particle is
+    back at y = 0 after 2u/g: a flight far shorter than the run's steps."""
+    s = C.System(name="hop")
+    s.add_particle("p", 1.0, [0.0, 0.0, 0.0], [0.0, 0.03, 0.0])
+    s.add(C.Plane("p", [0, 0, 1]), C.Gravity([0, -G, 0]))
+    landing = C.Event("landing", lambda t, x, v: x[1], direction=-1)
+    tr = C.simulate(s, 1.0, method=method, events=[landing], **ACCURATE[method])
+    (hit,) = tr.info["events"]
+    assert abs(hit["t"] - 2 * 0.03 / G) < ACCURACY[method]
+    assert abs(hit["v"][1] + 0.03) < 1e3 * ACCURACY[method]  # it comes down as fast as it went up

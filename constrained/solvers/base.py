@@ -100,9 +100,10 @@ class Event:
             raise InputError(f"event '{self.name}': direction must be -1, 0 or 1, got {self.direction!r}")
 
     def crossed(self, g_before: float, g_after: float) -> bool:
-        """Whether g went through zero between two samples in the allowed direction."""
-        rising = g_before < 0 <= g_after
-        falling = g_before > 0 >= g_after
+        """Whether g went through zero between two samples in the allowed direction (from
+        exactly zero too: a gap that starts closed and opens the forbidden way)."""
+        rising = g_before <= 0 < g_after or g_before < 0 == g_after
+        falling = g_before >= 0 > g_after or g_before > 0 == g_after
         return {1: rising, -1: falling, 0: rising or falling}[self.direction]
 
 
@@ -235,8 +236,9 @@ class Solver:
         """Output times when the caller gives none: None means every accepted step."""
         return None
 
-    def init(self, x0: np.ndarray, v0: np.ndarray, t0: float, t_end: float):
-        """The stepper's state at a consistent (x0, v0, t0), for a run (or a restart) to t_end."""
+    def init(self, x0: np.ndarray, v0: np.ndarray, t0: float, t_end: float, first_step: float | None = None):
+        """The stepper's state at a consistent (x0, v0, t0), for a run (or a restart) to t_end;
+        ``first_step``: the step to try first (an event's refinement lands in one step)."""
         raise NotImplementedError
 
     def step(self, state, t_stop: float) -> Advance:

@@ -55,6 +55,7 @@ class Baumgarte(Stepper):
         self._loop.stats = self.stats  # one set of counters
         self.order = self._loop.order
         self.lands = self._loop.lands
+        self.refines_events = self._loop.refines_events
         self.explicit = base in EXPLICIT
 
     def derivative(self, t, y):
@@ -63,8 +64,8 @@ class Baumgarte(Stepper):
         self.manifold.counters.nlu += 1
         return self._rhs(t, y).full().ravel()
 
-    def init(self, x0, v0, t0, t_end):
-        return self._loop.init(x0, v0, t0, t_end)
+    def init(self, x0, v0, t0, t_end, first_step=None):
+        return self._loop.init(x0, v0, t0, t_end, first_step)
 
     def step(self, state, t_stop) -> Advance:
         return self._loop.step(state, t_stop)

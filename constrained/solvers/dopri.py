@@ -202,9 +202,9 @@ class Dopri(Stepper):
             h1 = (0.01 / max(d1, d2)) ** (1 / (order + 1))
         return min(100 * h0, h1, t_end - t0)
 
-    def init(self, x0, v0, t0, t_end):
+    def init(self, x0, v0, t0, t_end, first_step=None):
         a0, _ = self.manifold.accelerations(x0, v0, t0)
-        h = self._initial_step(x0, v0, a0, t0, t_end)
+        h = first_step if first_step else self._initial_step(x0, v0, a0, t0, t_end)
         if self._scale is None:  # the run's scale, from its start (not a restart's)
             self._scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
         start = {"t": t0, "h": h, "t_target": t0, "rtol": self.rtol, "atol": self.atol,

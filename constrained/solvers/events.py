@@ -1,7 +1,8 @@
 """Locating events: a sign change of g(t, x, v) between two accepted samples, found on the
-dense output and refined to round-off on the method's own solution (restarting the stepper
-at the sample before and landing on candidate instants; Illinois' regula falsi on those
-exact values)."""
+dense output. Methods whose dense output is their own solution between steps (SciPy's
+interpolants) take its root (brentq, to round-off); the others refine it on their own
+solution: one step of the method from the accepted sample before to each candidate instant
+(a smooth function of the instant), Illinois' regula falsi on those values."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from .base import Event, EventHit, Solver, Status
 
 #: Refinement of an event instant: at most this many landings on candidate instants.
 EVENT_REFINEMENTS = 12
+#: brentq's smallest relative tolerance (4 machine epsilons).
+BRENTQ_RTOL = 4 * np.finfo(float).eps
 
 
 def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
@@ -26,12 +29,13 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
         return g(t, *dense(t))
 
     try:
-        t1 = brentq(on_dense, ta, tb, xtol=1e-15 * max(1.0, abs(tb)), rtol=4e-16)
-    except ValueError:  # the interpolant does not change sign: start in the middle
-        t1 = ta - ga * (tb - ta) / (gb - ga)
+        t1 = brentq(on_dense, ta, tb, xtol=1e-15 * max(1.0, abs(tb)), rtol=BRENTQ_RTOL)
+    except ValueError:  # the interpolant does not change sign: a secant guess
+        t1 = ta - ga * (tb - ta) / (gb - ga) if gb != ga else 0.5 * (ta + tb)
     if not stepper.refines_events:
         x1, v1 = stepper.output(t1, *dense(t1))
         return EventHit(event, float(t1), x1, v1)
+    origin = before
     best = (tb, xb, vb) if abs(gb) <= abs(ga) else (ta, xa, va)
     side = 0
     for _ in range(EVENT_REFINEMENTS):
@@ -39,7 +43,9 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
         if not ta < t1 < tb:
             break
         try:
-            x1, v1 = _land(stepper, ta, xa, va, t1)
+            # always one step from the accepted sample before: g is then a smooth function
+            # of t1 whose root the regula falsi finds to round-off
+            x1, v1 = _land(stepper, *origin, t1)
         except RuntimeError:  # the method cannot land there: the dense output's root stands
             x1, v1 = stepper.output(t1, *dense(t1))
             return EventHit(event, float(t1), x1, v1)
@@ -64,7 +70,7 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
 
 def _land(stepper: Solver, ta: float, xa, va, t1: float):
     """The method's state at t1, stepping from the accepted sample (ta, xa, va)."""
-    state = stepper.init(xa, va, ta, t1)
+    state = stepper.init(xa, va, ta, t1, first_step=t1 - ta)
     while True:
         adv = stepper.step(state, t1)
         state = adv.state

@@ -96,7 +96,7 @@ class _IdasBase(Stepper):
     def default_grid(self, t0, t_end):
         return np.linspace(t0, t_end, 201)
 
-    def init(self, x0, v0, t0, t_end):
+    def init(self, x0, v0, t0, t_end, first_step=None):
         m = self.model
         if not hasattr(self, "row_scales"):  # the run's scales and DAE, from its start
             # constraint rows divided by their scale at the start (constrained.residual), so IDAS

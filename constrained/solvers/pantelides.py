@@ -67,7 +67,7 @@ class Pantelides(Stepper):
     def default_grid(self, t0, t_end):
         return np.linspace(t0, t_end, 201)
 
-    def init(self, x0, v0, t0, t_end):
+    def init(self, x0, v0, t0, t_end, first_step=None):
         """Consistent values of the reduced DAE (CasADi's ``dae_init_gen``) at our start."""
         n3, C = self.model.n_coordinates, len(self.rows)
         a0, lam0 = self.manifold.accelerations(x0, v0, t0)

@@ -45,6 +45,7 @@ class Projection(Stepper):
     #: Whether accepted steps and outputs are projected onto the constraint manifolds.
     projecting = True
     lands = False  # SciPy's integrators stop at their t_bound only: outputs are dense
+    refines_events = False  # SciPy's interpolant is the method's solution between steps
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
                  right_hand_side=None, project: bool = True, **options):
@@ -68,7 +69,7 @@ class Projection(Stepper):
         # built here, so its cost is setup (stats["setup_time_s"]), not the run
         self._integrator = self._cvodes_integrator() if base.startswith("CVODES") else None
         if self._integrator is not None:
-            self.lands = True
+            self.lands = self.refines_events = True
         self.scale = None
 
     def derivative(self, t, y):
@@ -119,7 +120,7 @@ class Projection(Stepper):
             raise _NonFinite(t)
         return dy
 
-    def init(self, x0, v0, t0, t_end):
+    def init(self, x0, v0, t0, t_end, first_step=None):
         if self.scale is None:  # the run's scales, from its start (not a restart's)
             self.scale = max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
             # tolerances are in metres: |f| ≤ tol × (smallest row scale) keeps every row within tol
@@ -130,8 +131,9 @@ class Projection(Stepper):
             return (float(t0), y0)
         self._tiny = 0
         self._span = t_end - t0
+        first_step = first_step or self.dt
         return BASES[self.base](self._rhs, t0, y0, t_end, rtol=self.rtol, atol=self.atol,
-                                first_step=min(self.dt, t_end - t0) if self.dt else None)
+                                first_step=min(first_step, t_end - t0) if first_step else None)
 
     def _stopped(self, integ, status, text, t_good, y_good) -> Advance:
         """The failed call's Advance: ``text`` and the likely cause from the last good state."""

@@ -142,7 +142,7 @@ class Rattle(Stepper):
             steps.append(self._n_steps)
         return t0 + self.h * np.array(steps, float)
 
-    def init(self, x0, v0, t0, t_end):
+    def init(self, x0, v0, t0, t_end, first_step=None):
         m = self.model
         n3, C = m.n_coordinates, len(self.rows)
         if not hasattr(self, "row_scales"):  # the run's scales, from its start

@@ -22,6 +22,7 @@ class Reduced(Stepper):
     order = 8  # SciPy's DOP853 on Lagrange's equations
     OPTIONS = ("reduced_model", *DRIVER_OPTIONS)
     lands = False  # outputs from the dense output, mapped to x and v
+    refines_events = False  # SciPy's interpolant is the method's solution between steps
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, reduced_model=None, **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
@@ -56,7 +57,7 @@ class Reduced(Stepper):
         qd = np.linalg.lstsq(Jq, v0 - dxdt, rcond=None)[0]
         return q, qd
 
-    def init(self, x0, v0, t0, t_end):
+    def init(self, x0, v0, t0, t_end, first_step=None):
         q0, qd0 = self.coordinates_of(np.asarray(x0, float), np.asarray(v0, float), t0)
         ode = self.reduced_model._ode
 
@@ -64,7 +65,8 @@ class Reduced(Stepper):
             self.stats["nfev"] += 1
             return np.asarray(ode(y, t)).ravel()
 
-        return DOP853(fun, t0, np.concatenate([q0, qd0]), t_end, rtol=self.rtol, atol=self.atol)
+        return DOP853(fun, t0, np.concatenate([q0, qd0]), t_end, rtol=self.rtol, atol=self.atol,
+                      first_step=first_step)
 
     def _cartesian(self, y, t):
         rm = self.reduced_model
