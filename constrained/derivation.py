@@ -32,6 +32,8 @@ __all__ = [
     "conservation",
     "describe",
     "pretty",
+    "symbolic_reduced",
+    "to_sympy",
 ]
 
 #: A candidate equation is right when |residual| ≤ EQUATION_RTOL × (sum of |terms|) everywhere.
@@ -334,30 +336,50 @@ _UNARY = {
 }
 
 
-def pretty(expr, digits: int = 6, *, simplify: bool = True) -> str:
+def pretty(expr, digits: int = 6, *, simplify: bool = True, latex: bool = False) -> str:
     """A compact infix string of a scalar SX expression (``sq(x)`` → ``x^2``).
 
     With SymPy installed (the ``pretty`` extra) and ``simplify``, the expression is
     expanded and trigonometrically simplified first (``cos(a)cos(b) + sin(a)sin(b)`` →
-    ``cos(a - b)``); without it, CasADi's graph is printed as it is.
+    ``cos(a - b)``); without it, CasADi's graph is printed as it is. ``latex``: LaTeX
+    (through SymPy, which it needs).
     """
     expr = ca.SX(expr)
     if expr.numel() != 1:
-        return "[" + ", ".join(pretty(expr[k], digits, simplify=simplify)
-                               for k in range(expr.numel())) + "]"
-    if simplify:
-        try:
-            import sympy
-        except ImportError:
-            sympy = None
+        parts = [pretty(expr[k], digits, simplify=simplify, latex=latex) for k in range(expr.numel())]
+        return (r"\left[" + ", ".join(parts) + r"\right]") if latex else "[" + ", ".join(parts) + "]"
+    if simplify or latex:
+        sympy = _sympy(required=latex)
         if sympy is not None:
-            simplified = sympy.trigsimp(sympy.expand(_to_sympy(expr, sympy, {})))
+            converted = _to_sympy(expr, sympy, {})
+            simplified = sympy.trigsimp(sympy.expand(converted)) if simplify else converted
             if simplified.atoms(sympy.Float):
                 simplified = simplified.evalf(digits)
                 simplified = simplified.xreplace({f: sympy.Integer(int(f)) for f in
                                                   simplified.atoms(sympy.Float) if float(f).is_integer()})
-            return str(simplified).replace("**", "^")
+            return sympy.latex(simplified) if latex else str(simplified).replace("**", "^")
     return _pp(expr, digits)[0]
+
+
+def _sympy(*, required: bool):
+    """The sympy module, or None when it is not installed (InputError when ``required``)."""
+    try:
+        import sympy
+    except ImportError:
+        if required:
+            raise InputError("LaTeX output needs SymPy: install the 'pretty' extra "
+                             "(pip install 'constrained[pretty]') or leave LaTeX off") from None
+        return None
+    return sympy
+
+
+def to_sympy(expr):
+    """A scalar CasADi SX expression as a SymPy expression (symbols keep their names: the
+    coordinates, their rates and the parameters). Needs SymPy (the ``pretty`` extra)."""
+    expr = ca.SX(expr)
+    if expr.numel() != 1:
+        raise InputError(f"to_sympy takes a scalar expression, got {expr.numel()} entries")
+    return _to_sympy(expr, _sympy(required=True), {})
 
 
 def _to_sympy(e, sympy, names: dict):
@@ -433,9 +455,15 @@ def _pp(e, digits: int) -> tuple[str, int]:
     return str(e), 3
 
 
-def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int = 4000) -> str:
-    """T, V, L, the conjugate momenta and Lagrange's equations ``M q̈ = rhs`` as text."""
-    rm = _reduced(scene_or_model, parameters)
+def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int = 4000,
+             latex: bool = False) -> str:
+    """T, V, L, the conjugate momenta and Lagrange's equations ``M q̈ = rhs`` as text, in the
+    names of the coordinates, their rates and the scene's parameters (``m1``, ``l1``, ``g``:
+    their values are not substituted). ``latex``: LaTeX lines (needs SymPy, the ``pretty``
+    extra)."""
+    rm = symbolic_reduced(_reduced(scene_or_model, parameters))
+    if latex:
+        return _describe_latex(rm)
     ex = rm.expressions
     lines = [f"coordinates: {', '.join(rm.coordinates)}" + ("  (rheonomic map)" if rm.rheonomic else "")]
     for name in ("T", "V", "U", "R", "L"):
@@ -452,6 +480,46 @@ def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int =
     if len(text) > max_chars:
         text = text[:max_chars] + "\n… (truncated)"
     return text
+
+
+def symbolic_reduced(rm: ReducedModel) -> ReducedModel:
+    """The same reduced model with the system's parameters and definitions as SX symbols and
+    expressions named after them (``expressions`` only: no Functions, no checks)."""
+    if rm.symbolic_parameters:
+        return rm
+    system = rm.system
+    extra = {k: v for k, v in rm.parameters.items()
+             if k not in system.parameters and k not in system.definitions}
+    return ReducedModel(system, rm.coordinates, rm.map, parameters=extra, t0=rm.t0, check=False,
+                        symbolic_parameters=True)
+
+
+def _describe_latex(rm: ReducedModel) -> str:
+    """describe's lines as LaTeX: q̇ as \\dot q, q̈ as \\ddot q."""
+    sympy = _sympy(required=True)
+    names: dict = {}
+    for c in rm.coordinates:
+        base = sympy.latex(sympy.Symbol(c))
+        names[f"{c}_dot"] = sympy.Symbol(rf"\dot{{{base}}}", real=True)
+        names[f"{c}_ddot"] = sympy.Symbol(rf"\ddot{{{base}}}", real=True)
+
+    def tex(e) -> str:
+        s = sympy.trigsimp(sympy.expand(_to_sympy(ca.SX(e), sympy, names)))
+        s = s.xreplace({f: sympy.Integer(int(f)) for f in s.atoms(sympy.Float) if float(f).is_integer()})
+        return sympy.latex(s)
+
+    ex = rm.expressions
+    lines = []
+    for name in ("T", "V", "U", "R", "L"):
+        if name in ("U", "R") and ca.SX(ex[name]).is_zero():
+            continue
+        lines.append(f"{name} = {tex(ex[name])}")
+    for j, c in enumerate(rm.coordinates):
+        lines.append(f"p_{{{sympy.latex(sympy.Symbol(c))}}} = {tex(ex['p'][j])}")
+    E = ca.mtimes(ex["M"], rm.q_ddot) - ex["rhs"]
+    for j in range(len(rm.coordinates)):
+        lines.append(f"{tex(E[j])} = 0")
+    return "\n".join(lines)
 
 
 # --- candidate Lagrangians and generalized forces ----------------------------------------------

@@ -25,6 +25,7 @@ from . import expressions
 from .constraints import CONSTRAINT_TYPES
 from .effects import EFFECT_TYPES
 from .errors import InputError
+from .parameters import RESERVED_NAMES
 from .symbols import Symbols
 from .system import Particle, System, sketch
 from .trajectory import QUANTITIES
@@ -55,6 +56,7 @@ TOP_LEVEL_TABLES = (
     "constraints",
     "effects",
     "parameters",
+    "definitions",
     "simulate",
     "outputs",
     "reduced",
@@ -135,9 +137,7 @@ EFFECT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "electromagnetic": (("charges",), ("phi", "A")),
 }
 # Names a parameter or a reduced coordinate may not take (they mean something in formulas).
-RESERVED_NAMES = frozenset(
-    {"t", "x", "y", "z", "r", "vx", "vy", "vz"} | set(expressions.FUNCTIONS) | set(expressions.CONSTANTS)
-)
+RESERVED_NAMES = RESERVED_NAMES
 
 
 class SceneError(InputError):
@@ -630,7 +630,7 @@ class _Builder:
                     f"unknown top-level table '{k}' (allowed: {', '.join(TOP_LEVEL_TABLES)})"
                     f"{_suggest(k, TOP_LEVEL_TABLES)}",
                 )
-        for k in ("scene", "parameters", "simulate", "outputs", "reduced", "expect"):
+        for k in ("scene", "parameters", "definitions", "simulate", "outputs", "reduced", "expect"):
             if k in self.raw:
                 self.table(self.raw[k], k, f"a table [{k}]")
         for k in TOP_LEVEL_TABLES:
@@ -640,12 +640,13 @@ class _Builder:
         name, description = self.scene_section()
         particles = self.particles()
         parameters = self.parameters()
+        definitions = self.definitions(parameters)
         constraints = [
             self.item(i, item, "constraints") for i, item in enumerate(self.array_of_tables("constraints"))
         ]
         effects = [self.item(i, item, "effects") for i, item in enumerate(self.array_of_tables("effects"))]
         try:
-            system = System(particles, constraints, effects, parameters, name)
+            system = System(particles, constraints, effects, parameters, name, definitions)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
         self.check_formulas(system)
@@ -653,7 +654,7 @@ class _Builder:
         if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
             self.regular_start(system, settings["t_start"])
         outputs = self.outputs()
-        reduced = self.reduced(parameters)
+        reduced = self.reduced({**parameters, **definitions})
         expect = self.raw.get("expect")
         expectations = None if expect is None else self.expect_section(expect, system)
         return Scene(
@@ -780,13 +781,18 @@ class _Builder:
                     f"duplicate particle name '{name}' (also particles[{seen[name]}])",
                 )
             seen[name] = i
-            mass = self.positive(item["mass"], f"{key}.mass", "a finite positive number (kg)")
-            if mass < 1 / expressions.MAX_MAGNITUDE:
+            mass = item["mass"]
+            if isinstance(mass, str):  # a formula of the parameters, evaluated by the System
+                mass = self.formula(mass, f"{key}.mass")
+            elif self.positive(mass, f"{key}.mass", "a finite positive number (kg) or a formula "
+                               "of the parameters") < 1 / expressions.MAX_MAGNITUDE:
                 self.fail(f"{key}.mass", f"the mass {mass!r} kg is too small (below "
                           f"{1 / expressions.MAX_MAGNITUDE:g}): 1/m overflows in the equations of motion; "
                           "use units that keep the numbers moderate")
-            position = self.numbers3(item["position"], f"{key}.position")
-            velocity = self.numbers3(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity")
+            position = self.formulas(item["position"], f"{key}.position", 3,
+                                     "numbers or formulas of the parameters (x, y, z)")
+            velocity = self.formulas(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity", 3,
+                                     "numbers or formulas of the parameters (x, y, z)")
             try:
                 out.append(Particle(name, mass, position, velocity, where=key))
             except InputError as exc:
@@ -821,6 +827,19 @@ class _Builder:
                 )
             out[k] = self.number(v, key, "a number")
         return out
+
+    def definitions(self, parameters: dict) -> dict:
+        """[definitions]: name -> a formula in parameters and other definitions (or a number)."""
+        table = self.raw.get("definitions", {})
+        reserved = self.reserved_for_formulas()
+        for k, v in table.items():
+            key = _join("definitions", k)
+            self.identifier(k, key, "a definition name")
+            if k in reserved or k in parameters:
+                what = "a parameter" if k in parameters else "it already means something in formulas"
+                self.fail(key, f"the definition name '{k}' is taken ({what})")
+            self.formula(v, key)
+        return dict(table)
 
     def item(self, i: int, item: dict, section: str):
         """One [[constraints]] or [[effects]] entry -> the library object."""

@@ -38,6 +38,7 @@ def simulate(
     outputs: Iterable[str] | None = None,
     max_initial_correction: float = 1e-3,
     model: Model | None = None,
+    parameters: dict[str, float] | None = None,
     **options,
 ) -> Trajectory:
     """Simulate ``system`` from ``t_start`` to ``t_end`` and return a Trajectory.
@@ -45,6 +46,9 @@ def simulate(
     ``method`` picks the solver (see ``constrained.solvers.METHODS``); ``outputs`` limits the
     derived quantities computed (default: all). The initial state is projected onto the
     constraints first; the correction is in ``trajectory.info["initial_correction"]``.
+    ``parameters`` (name -> value) replaces some of the system's parameters for this run:
+    the ``model`` (passed in, or assembled once) is reused for them without rebuilding, and
+    the initial state is the system's for those values (``Model.with_parameters``).
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
@@ -73,7 +77,9 @@ def simulate(
         raise InputError("the system has no particles")
 
     started = time.perf_counter()
-    model = model or assemble(system)
+    model = (model or assemble(system)).with_parameters(parameters)
+    if parameters:  # the initial state (and masses) for these values
+        system = model.system
     build_time = time.perf_counter() - started
     start = consistent_start(
         model, system.positions, system.velocities, t_start,
