@@ -10,6 +10,7 @@ optional ``[reduced]`` coordinates and the raw ``[expect]`` table. Every problem
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import math
 import re
@@ -184,19 +185,31 @@ class Scene:
         file = None if self.path is None else str(self.path)
         return build_scene(apply_overrides(self.raw, list(overrides), file=file), path=self.path)
 
-    def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None):
+    def with_parameters(self, parameters: Mapping[str, float] | None) -> Scene:
+        """A new Scene whose system has these parameters' values (``System.with_parameters``);
+        the same as ``with_overrides(["parameters.NAME=VALUE", ...])`` without reading the
+        scene again."""
+        if not parameters:
+            return self
+        return dataclasses.replace(self, system=self.system.with_parameters(parameters))
+
+    def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None,
+            parameters: Mapping[str, float] | None = None, model=None):
         """Simulate with the scene's own ``[simulate]`` settings and check its ``[expect]``.
 
         ``overrides``: ``"KEY=VALUE"`` strings as the CLI's ``--set`` (e.g.
         ``["simulate.t_end=2"]``), applied to a copy. ``quantities``: what to compute besides
         t, x, v (default: ``[outputs] quantities``). Returns a ``RunResult``: ``.trajectory``,
         ``.expectations`` (one ``ExpectResult`` per check), ``.ok``, ``.failed``, ``.report()``;
-        it unpacks as ``trajectory, checks = scene.run()``.
+        it unpacks as ``trajectory, checks = scene.run()``. ``parameters`` (name -> value):
+        new values of the scene's [parameters] for this run (its [expect] formulas see them
+        too); ``model``: a Model of this scene (``assemble(scene.system)``), reused for the new
+        values without rebuilding anything.
         """
         from .run_options import from_scene
         from .simulate import simulate
 
-        scene = self.with_overrides(overrides) if overrides else self
+        scene = (self.with_overrides(overrides) if overrides else self).with_parameters(parameters)
         s = scene.settings
         if s["t_end"] is None:
             raise SceneError("no end time: give t_end in [simulate], or override simulate.t_end",
@@ -205,6 +218,8 @@ class Scene:
         kwargs = from_scene(scene, outputs=wanted | expect_requirements(scene)).simulate_kwargs()
         if progress is not None:
             kwargs["progress"] = progress
+        if model is not None:  # the given Model, for this scene's values (nothing rebuilt)
+            kwargs.update(model=model, parameters=dict(scene.system.parameters))
         trajectory = simulate(scene.system, s["t_end"], **kwargs)
         trajectory.info.setdefault("sketch", sketch(scene.system))  # rods for `constrained plot`
         return RunResult(scene, trajectory, check_expectations(scene, trajectory))

@@ -323,3 +323,29 @@ def test_describe_gives_latex_through_sympy():
 
     tex = describe(scene(), latex=True)
     assert r"\ddot{q_{1}}" in tex and "m_{2}" in tex and r"\cos" in tex
+
+
+def test_scene_run_with_parameters_equals_the_overridden_scene():
+    sc = scene()
+    model = assemble(sc.system)
+    before = Structure.builds
+    run = sc.run(parameters={"l2": 0.5, "m1": 2.0}, model=model, quantities=["energy"])
+    assert Structure.builds == before
+    reference = sc.run(["parameters.l2=0.5", "parameters.m1=2.0"], quantities=["energy"])
+    np.testing.assert_array_equal(run.trajectory.x, reference.trajectory.x)
+    np.testing.assert_array_equal(run.trajectory.energy, reference.trajectory.energy)
+    x = run.trajectory.x[-1]
+    assert np.linalg.norm(x[1] - x[0]) == pytest.approx(0.5, abs=1e-9)
+
+
+def test_cli_derive_prints_names_and_latex(capsys, tmp_path, monkeypatch):
+    from constrained.cli import main
+
+    path = tmp_path / "dp.toml"
+    path.write_text(DOUBLE_PENDULUM)
+    assert main(["derive", str(path), "--set", "parameters.g=2"]) == 0
+    out = capsys.readouterr().out
+    assert "equation for q1:" in out and "g*" in out and "m1" in out
+    monkeypatch.setitem(__import__("sys").modules, "sympy", None)  # SymPy not installed
+    assert main(["derive", str(path), "--latex"]) == 2
+    assert "LaTeX output needs SymPy" in capsys.readouterr().err
