@@ -64,7 +64,8 @@ class Structure:
     constants, so Models for other parameter values share one Structure
     (``Model.with_parameters``) and nothing is parsed or differentiated again.
 
-    ``functions``: name -> parametric Function; ``parameter_names``: the order of ``p``.
+    ``functions`` / ``function(name)``: the parametric Functions; ``parameter_names``: the
+    order of ``p``.
     """
 
     #: Structures built in this process (each one parses and differentiates the system).
@@ -143,15 +144,14 @@ class Structure:
             m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
         T = 0.5 * ca.dot(m3 * v, v)
         energy = T + V + U - ca.dot(v, dU_dv)
-        self.functions: dict[str, ca.Function] = {}
-        # A Function whose outputs do not depend on p is the same for every parameter value:
-        # kept in ``fixed`` without p too, shared by all Models of this structure.
-        self.fixed: dict[str, ca.Function] = {}
+        # The Functions are made when first asked for (making one sorts its whole graph).
+        self._p = p
+        self._parts: dict[str, tuple] = {}
+        self._functions: dict[str, ca.Function] = {}
+        self._fixed: dict[str, ca.Function | None] = {}
 
         def function(name, inputs, in_names, outputs, out_names):
-            self.functions[name] = ca.Function(name, [*inputs, p], outputs, [*in_names, "p"], out_names)
-            if not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs):
-                self.fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names)
+            self._parts[name] = (inputs, in_names, outputs, out_names)
 
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
         function("jacobian", [x, t], ["x", "t"], [f, J], ["f", "J"])
@@ -162,12 +162,36 @@ class Structure:
         function("kinetic", [v], ["v"], [T], ["T"])
         Structure.builds += 1
 
+    def function(self, name: str) -> ca.Function:
+        """The parametric Function ``name``: the Model's inputs, then ``p``."""
+        if name not in self._functions:
+            inputs, in_names, outputs, out_names = self._parts[name]
+            self._functions[name] = ca.Function(name, [*inputs, self._p], outputs,
+                                                [*in_names, "p"], out_names)
+        return self._functions[name]
+
+    @property
+    def functions(self) -> dict[str, ca.Function]:
+        """name -> parametric Function (``constraint(x, t, p)``, ``dynamics(x, v, t, p)``, …)."""
+        return {name: self.function(name) for name in self._parts}
+
+    def fixed(self, name: str) -> ca.Function | None:
+        """The Function ``name`` without ``p`` when its outputs do not depend on p (the same
+        for every parameter value, shared by all Models of this structure), else None."""
+        if name not in self._fixed:
+            inputs, in_names, outputs, out_names = self._parts[name]
+            p = self._p
+            free = not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs)
+            self._fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names) if free else None
+        return self._fixed[name]
+
     def bind(self, name: str, values: np.ndarray) -> ca.Function:
         """The Function ``name`` without its last input ``p``: p fixed at ``values`` (an SX
         Function of the same inputs and outputs as the Model's public ones)."""
-        if name in self.fixed:
-            return self.fixed[name]
-        fun = self.functions[name]
+        fixed = self.fixed(name)
+        if fixed is not None:
+            return fixed
+        fun = self.function(name)
         inputs = [ca.SX.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in() - 1)]
         outputs = fun.call([*inputs, ca.DM(values)])
         return ca.Function(name, inputs, outputs, fun.name_in()[:-1], fun.name_out())

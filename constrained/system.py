@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -87,6 +88,13 @@ class Particle:
                 self.formulas[key] = value
                 value = np.full(3, math.nan)
             setattr(self, key, value)
+
+    def copy(self) -> Particle:
+        """An independent copy (its arrays and formulas copied too)."""
+        other = copy.copy(self)
+        other.position, other.velocity = self.position.copy(), self.velocity.copy()
+        other.formulas = {k: list(v) if isinstance(v, list) else v for k, v in self.formulas.items()}
+        return other
 
     def spec(self) -> tuple:
         """``(name, mass, position, velocity)`` as given: formulas where formulas were given."""
@@ -220,9 +228,17 @@ class System:
         if not parameters:
             return self
         check_parameter_names(parameters, self.parameters, self.definitions)
-        values = {**self.parameters, **{k: check_value(k, v) for k, v in parameters.items()}}
-        particles = [Particle(*p.spec(), where=p.where) for p in self.particles]
-        return System(particles, self.constraints, self.effects, values, self.name, self.definitions)
+        new = copy.copy(self)  # the particles' names were checked when they were added
+        new.parameters = {**self.parameters, **{k: check_value(k, v) for k, v in parameters.items()}}
+        new.definitions, new._values = dict(self.definitions), None
+        new.constraints, new.effects = list(self.constraints), list(self.effects)
+        new.particles = [p.copy() for p in self.particles]
+        if any(p.formulas for p in new.particles):
+            values = new.parameter_values
+            for p in new.particles:
+                if p.formulas:
+                    p.resolve(values)
+        return new
 
     # --- reading ---------------------------------------------------------------------------
     @property
