@@ -737,10 +737,18 @@ def _check(args) -> int:
     out = [f"scene: {scene.name} ({file})"]
     if scene.description:
         out.append(f"  {scene.description}")
+    values = sysm.parameter_values
+    if sysm.parameters:  # inputs of the model's functions: --set parameters.NAME=VALUE
+        out.append("parameters: " + ", ".join(f"{k} = {v:g}" for k, v in sysm.parameters.items()))
+    if sysm.definitions:
+        out.append("definitions: " + ", ".join(f"{k} = {f} = {values[k]:g}"
+                                               for k, f in sysm.definitions.items()))
     out.append(f"particles ({sysm.n_particles}):")
     for p in sysm.particles:
+        given = f" ({p.formulas['mass']})" if "mass" in p.formulas else ""
         out.append(
-            f"  {p.name}: mass {p.mass:g} kg, position {_vec(p.position)} m, velocity {_vec(p.velocity)} m/s"
+            f"  {p.name}: mass {p.mass:g} kg{given}, position {_vec(p.position)} m, "
+            f"velocity {_vec(p.velocity)} m/s"
         )
     labels = list(getattr(report, "labels", None) or getattr(model, "constraint_labels", []))
     out.append(f"constraints ({len(sysm.constraints)} given, {len(labels)} scalar rows):")

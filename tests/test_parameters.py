@@ -349,3 +349,15 @@ def test_cli_derive_prints_names_and_latex(capsys, tmp_path, monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "sympy", None)  # SymPy not installed
     assert main(["derive", str(path), "--latex"]) == 2
     assert "LaTeX output needs SymPy" in capsys.readouterr().err
+
+
+def test_cli_check_lists_parameters_and_definitions(capsys, tmp_path):
+    from constrained.cli import main
+
+    path = tmp_path / "dp.toml"
+    path.write_text(DOUBLE_PENDULUM)
+    main(["check", str(path), "--set", "parameters.th1=0.5"])
+    out = capsys.readouterr().out
+    assert "parameters: m1 = 1, m2 = 1.5, l1 = 1, l2 = 0.8, g = 9.81, th1 = 0.5, th2 = 2.5" in out
+    assert f"y1 = -l1*cos(th1) = {-math.cos(0.5):g}" in out
+    assert "mass 1.5 kg (m2)" in out
