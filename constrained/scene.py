@@ -191,7 +191,10 @@ class Scene:
         scene again."""
         if not parameters:
             return self
-        return dataclasses.replace(self, system=self.system.with_parameters(parameters))
+        system = self.system.with_parameters(parameters)
+        raw = copy.deepcopy(self.raw)  # the file's contents with the new values, as --set gives
+        raw.setdefault("parameters", {}).update(system.parameters)
+        return dataclasses.replace(self, system=system, raw=raw)
 
     def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None,
             parameters: Mapping[str, float] | None = None, model=None):

@@ -361,3 +361,13 @@ def test_cli_check_lists_parameters_and_definitions(capsys, tmp_path):
     assert "parameters: m1 = 1, m2 = 1.5, l1 = 1, l2 = 0.8, g = 9.81, th1 = 0.5, th2 = 2.5" in out
     assert f"y1 = -l1*cos(th1) = {-math.cos(0.5):g}" in out
     assert "mass 1.5 kg (m2)" in out
+
+
+def test_scene_with_parameters_is_the_overridden_scene():
+    sc = scene()
+    changed = sc.with_parameters({"th2": 1.0})
+    assert changed.system.parameters == scene(th2=1.0).system.parameters
+    np.testing.assert_array_equal(changed.system.positions, scene(th2=1.0).system.positions)
+    # later overrides start from the new values, as after --set
+    again = changed.with_overrides(["simulate.t_end=0.5"])
+    assert again.system.parameters["th2"] == 1.0 and sc.system.parameters["th2"] == 2.5
