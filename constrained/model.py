@@ -8,7 +8,10 @@ needs are built: ``active_terms`` lists them.
 
 from __future__ import annotations
 
+import collections
 import functools
+import hashlib
+import json
 import threading
 from collections.abc import Mapping
 
@@ -291,7 +294,76 @@ class Model:
         )
 
 
-def assemble(system, parameters: Mapping[str, float] | None = None) -> Model:
+def assemble(system, parameters: Mapping[str, float] | None = None, *, reuse: bool = True) -> Model:
     """Build the Model of a System (the only step that makes CasADi symbols), for the
-    system's parameter values updated by ``parameters``."""
-    return Model(system).with_parameters(parameters)
+    system's parameter values updated by ``parameters``.
+
+    ``reuse``: a System with the same structure as one assembled before in this process (the
+    same particles and masses, constraints, effects, parameter names and definitions; initial
+    state and parameter values may differ) gets that Structure again instead of a new one
+    (see ``structure_fingerprint``; the most recent few, up to STRUCTURE_CACHE_COORDINATES
+    coordinates in all, are kept)."""
+    structure = _cached_structure(system) if reuse else None
+    return Model(system, structure=structure).with_parameters(parameters)
+
+
+#: The Structures ``assemble`` keeps for reuse hold this many coordinates at most, in all.
+STRUCTURE_CACHE_COORDINATES = 3000
+_structures: collections.OrderedDict[str, Structure] = collections.OrderedDict()
+_structures_lock = threading.Lock()
+
+
+class _NotPlain(Exception):
+    """A value structure_fingerprint cannot describe exactly."""
+
+
+def _plain(value):
+    """``value`` as JSON-able data that determines it exactly (floats by their repr)."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return ["ndarray", value.dtype.str, list(value.shape), value.tolist()]
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        return ["mapping", [[_plain(k), _plain(v)] for k, v in value.items()]]
+    raise _NotPlain(type(value).__name__)
+
+
+def structure_fingerprint(system) -> str | None:
+    """A hash of everything a Structure is built from: particle names and masses (numbers, or
+    their formulas), each constraint and effect (its class and every attribute), the parameter
+    names in order and the definitions. Not the initial state, not the parameters' values.
+    None when an item holds a value that cannot be described exactly (then nothing is reused)."""
+    try:
+        data = [
+            [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas else p.mass]
+             for p in system.particles],
+            [[type(item).__module__, type(item).__qualname__, _plain(vars(item))]
+             for item in (*system.constraints, *system.effects)],
+            list(system.parameters),
+            _plain(system.definitions),
+        ]
+        text = json.dumps(data)
+    except (_NotPlain, TypeError, ValueError):
+        return None
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _cached_structure(system) -> Structure:
+    key = structure_fingerprint(system)
+    if key is None:
+        return Structure(system)
+    with _structures_lock:
+        structure = _structures.get(key)
+        if structure is not None:
+            _structures.move_to_end(key)
+            return structure
+    structure = Structure(system)
+    with _structures_lock:
+        _structures[key] = structure
+        while sum(s.n_coordinates for s in _structures.values()) > STRUCTURE_CACHE_COORDINATES:
+            _structures.popitem(last=False)
+    return structure

@@ -2,11 +2,13 @@
 
 A Model for other parameter values (``Model.with_parameters``, ``simulate(parameters=…)``)
 shares the structure (counted: ``Structure.builds`` does not grow) and gives exactly what
-rebuilding the scene with those numbers gives."""
+the scene gives with those numbers written into its formulas (``literal_scene``)."""
 
 from __future__ import annotations
 
 import math
+import re
+import tomllib
 
 import numpy as np
 import pytest
@@ -142,11 +144,28 @@ expr = ["F0*cos(t)", "0", "0"]
 
 
 def scene(text=DOUBLE_PENDULUM, **values):
-    """The scene rebuilt from its text with [parameters] changed: the reference."""
-    sc = build_scene(__import__("tomllib").loads(text))
+    """The scene from its text, with [parameters] changed as by --set."""
+    sc = build_scene(tomllib.loads(text))
     if values:
         sc = sc.with_overrides([f"parameters.{k}={v!r}" for k, v in values.items()])
     return sc
+
+
+def literal_scene(text=DOUBLE_PENDULUM, **values):
+    """The reference: the scene with every parameter's value (``values`` over the file's)
+    written as a number into each formula, as if the scene had no parameters."""
+    raw = tomllib.loads(text)
+    numbers = {**raw.get("parameters", {}), **values}
+
+    def substitute(match):
+        formula = match.group(0)
+        for name, value in numbers.items():
+            formula = re.sub(rf"\b{name}\b", f"({value!r})", formula)
+        return formula
+
+    raw = tomllib.loads(re.sub(r'"[^"\n]*"', substitute, text))
+    raw.setdefault("parameters", {}).update(values)
+    return build_scene(raw)
 
 
 def random_states(model, n=5, seed=0):
@@ -188,7 +207,9 @@ def test_with_parameters_equals_rebuilding_and_builds_nothing(text, values):
     changed = model.with_parameters(values)
     assert Structure.builds == before
     assert changed.structure is model.structure
-    rebuilt = assemble(scene(text, **values).system)
+    rebuilt = assemble(literal_scene(text, **values).system)
+    assert rebuilt.structure is not model.structure
+    assert all(rebuilt.structure.fixed(name) is not None for name in FUNCTIONS)  # numbers only, no p
     assert changed.parameters == rebuilt.parameters
     np.testing.assert_array_equal(changed.masses, rebuilt.masses)
     np.testing.assert_array_equal(changed.system.positions, rebuilt.system.positions)
@@ -211,7 +232,8 @@ def test_a_run_with_new_parameters_ends_where_the_rebuilt_scene_does(values, met
     run = C.simulate(system, 1.0, method=method, rtol=1e-10, atol=1e-12, model=model,
                      parameters=values)
     assert Structure.builds == before, "a Model passed back in with new parameters rebuilt"
-    reference = C.simulate(scene(**values).system, 1.0, method=method, rtol=1e-10, atol=1e-12)
+    reference = C.simulate(literal_scene(**values).system, 1.0, method=method, rtol=1e-10, atol=1e-12)
+    assert len(run.t) == len(reference.t)
     np.testing.assert_allclose(run.x[-1], reference.x[-1], rtol=0, atol=1e-12)
     np.testing.assert_allclose(run.energy, reference.energy, rtol=1e-12, atol=1e-12)
     # the start follows the parameters: rods of the new lengths, at the new angle
@@ -221,9 +243,33 @@ def test_a_run_with_new_parameters_ends_where_the_rebuilt_scene_does(values, met
 
 def test_a_fresh_simulate_builds_the_structure_once():
     system = scene().system
+    system.add(C.Spring("p1", "p2", k=123.456))  # a structure no other test has
     before = Structure.builds
     C.simulate(system, 0.2, parameters={"m2": 2.0})
     assert Structure.builds == before + 1
+
+
+def test_assemble_reuses_the_structure_of_an_equal_system():
+    """A scene loaded again (another System object, other values, another start) gets the
+    Structure built before; any structural change builds a new one."""
+    first = assemble(scene().system)
+    before = Structure.builds
+    again = assemble(scene(m1=2.0, th1=0.3).system)
+    assert Structure.builds == before and again.structure is first.structure
+    reference = assemble(scene(m1=2.0, th1=0.3).system, reuse=False)
+    assert Structure.builds == before + 1
+    assert_same_functions(again, reference)
+    changed = [
+        DOUBLE_PENDULUM.replace('length = "l2"', 'length = "l2 + 0"'),   # a formula
+        DOUBLE_PENDULUM.replace('mass = "m2"', "mass = 1.5"),            # a mass
+        DOUBLE_PENDULUM.replace('name = "p2"', 'name = "q2"').replace('b = "p2"', 'b = "q2"')
+        .replace('particles = ["p1", "p2"]', 'particles = ["p1", "q2"]').replace("p2 = [", "q2 = ["),
+        DOUBLE_PENDULUM.replace("[parameters]", "[parameters]\nunused = 1.0"),  # parameter names
+    ]
+    for k, text in enumerate(changed):
+        model = assemble(scene(text).system)
+        assert model.structure is not first.structure, k
+    assert Structure.builds == before + 1 + len(changed)
 
 
 def test_a_spring_period_follows_its_constant():
