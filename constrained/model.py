@@ -60,6 +60,11 @@ class FastCall:
         return [r.copy() for r in res]
 
 
+#: Functions bound to parameter values that a Structure keeps (the most recent), so that
+#: Models with equal values share them.
+BOUND_FUNCTIONS_KEPT = 64
+
+
 class Structure:
     """What the structure of a System decides, built once: which particles, constraints and
     effects, which formulas. Its Functions take the parameter vector ``p`` as their last input
@@ -152,6 +157,8 @@ class Structure:
         self._parts: dict[str, tuple] = {}
         self._functions: dict[str, ca.Function] = {}
         self._fixed: dict[str, ca.Function | None] = {}
+        self._bound: collections.OrderedDict[tuple, ca.Function] = collections.OrderedDict()
+        self._lock = threading.Lock()
 
         def function(name, inputs, in_names, outputs, out_names):
             self._parts[name] = (inputs, in_names, outputs, out_names)
@@ -194,10 +201,18 @@ class Structure:
         fixed = self.fixed(name)
         if fixed is not None:
             return fixed
-        fun = self.function(name)
-        inputs = [ca.SX.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in() - 1)]
-        outputs = fun.call([*inputs, ca.DM(values)])
-        return ca.Function(name, inputs, outputs, fun.name_in()[:-1], fun.name_out())
+        key = (name, np.asarray(values, float).tobytes())
+        bound = self._bound.get(key)
+        if bound is None:  # Models with equal values share the Function objects
+            fun = self.function(name)
+            inputs = [ca.SX.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in() - 1)]
+            outputs = fun.call([*inputs, ca.DM(values)])
+            bound = ca.Function(name, inputs, outputs, fun.name_in()[:-1], fun.name_out())
+            with self._lock:
+                self._bound[key] = bound
+                while len(self._bound) > BOUND_FUNCTIONS_KEPT:
+                    self._bound.popitem(last=False)
+        return bound
 
 
 class Model:

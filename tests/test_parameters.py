@@ -417,3 +417,12 @@ def test_scene_with_parameters_is_the_overridden_scene():
     # later overrides start from the new values, as after --set
     again = changed.with_overrides(["simulate.t_end=0.5"])
     assert again.system.parameters["th2"] == 1.0 and sc.system.parameters["th2"] == 2.5
+
+
+def test_models_with_equal_values_share_their_functions():
+    model = assemble(scene().system)
+    a, b = model.with_parameters({"g": 2.0}), model.with_parameters({"g": 2.0})
+    assert a is not b and a.dynamics is b.dynamics  # the same bound Function object
+    assert model.with_parameters({"g": 3.0}).dynamics is not a.dynamics
+    numbers = assemble(literal_scene().system)  # its Functions do not depend on p at all
+    assert numbers.with_parameters({"g": 2.0}).dynamics is numbers.dynamics
