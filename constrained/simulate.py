@@ -78,8 +78,7 @@ def simulate(
 
     started = time.perf_counter()
     model = (model or assemble(system)).with_parameters(parameters)
-    if parameters:  # the initial state (and masses) for these values
-        system = model.system
+    system = system.with_parameters(parameters)  # its initial state for these values
     build_time = time.perf_counter() - started
     start = consistent_start(
         model, system.positions, system.velocities, t_start,

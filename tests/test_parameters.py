@@ -426,3 +426,13 @@ def test_models_with_equal_values_share_their_functions():
     assert model.with_parameters({"g": 3.0}).dynamics is not a.dynamics
     numbers = assemble(literal_scene().system)  # its Functions do not depend on p at all
     assert numbers.with_parameters({"g": 2.0}).dynamics is numbers.dynamics
+
+
+def test_simulate_starts_from_the_given_system_for_the_new_values():
+    """The Model carries the equations; the start is the system's (its own state), with
+    formulas evaluated for the new values."""
+    system = scene().system
+    model = assemble(system)
+    moved = system.with_state(np.array([[0.0, -1.0, 0.0], [0.0, -1.8, 0.0]]))  # hanging, at rest
+    run = C.simulate(moved, 0.5, model=model, parameters={"g": 1.0}, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(run.x[-1], [[0.0, -1.0, 0.0], [0.0, -1.8, 0.0]], atol=1e-9)
