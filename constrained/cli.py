@@ -154,13 +154,16 @@ def build_parser() -> argparse.ArgumentParser:
     derive = _verb(
         verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
         "Without options print T, V, L, the momenta and Lagrange's equations of "
-        "SCENE's [reduced] coordinates. With options check each candidate at random states "
+        "SCENE's [reduced] coordinates, in the names of its [parameters] (--latex: as LaTeX, "
+        "through SymPy, the 'pretty' extra). With options check each candidate at random states "
         "and print one verdict line per check (OK or WRONG with where it disagrees); exit "
         "0 when all are right, 1 when one is wrong, 2 on bad input.",
         "derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
         "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
         "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",
         scene_help=WITH_REDUCED, quiet=True)
+    derive.add_argument("--latex", action="store_true",
+                        help="print the equations as LaTeX (needs SymPy: the 'pretty' extra)")
     derive.add_argument("--equation", action="append", default=[], metavar="EQ",
                         help="an equation of motion 'lhs = rhs' in q, q_dot, q_ddot, t (repeatable)")
     derive.add_argument("--lagrangian", action="append", default=[], metavar="L",
@@ -689,7 +692,10 @@ def _derive(args) -> int:
         raise _scene_error(exc, file) from None
     if not (args.equation or args.lagrangian or args.force):
         if not args.quiet:
-            print(describe(rm))
+            try:
+                print(describe(rm, latex=args.latex))
+            except InputError as exc:  # --latex without SymPy
+                raise InputError(f"derive {file}: {exc}") from None
         return 0
     checks = []
     try:
@@ -731,10 +737,18 @@ def _check(args) -> int:
     out = [f"scene: {scene.name} ({file})"]
     if scene.description:
         out.append(f"  {scene.description}")
+    values = sysm.parameter_values
+    if sysm.parameters:  # inputs of the model's functions: --set parameters.NAME=VALUE
+        out.append("parameters: " + ", ".join(f"{k} = {v:g}" for k, v in sysm.parameters.items()))
+    if sysm.definitions:
+        out.append("definitions: " + ", ".join(f"{k} = {f} = {values[k]:g}"
+                                               for k, f in sysm.definitions.items()))
     out.append(f"particles ({sysm.n_particles}):")
     for p in sysm.particles:
+        given = f" ({p.formulas['mass']})" if "mass" in p.formulas else ""
         out.append(
-            f"  {p.name}: mass {p.mass:g} kg, position {_vec(p.position)} m, velocity {_vec(p.velocity)} m/s"
+            f"  {p.name}: mass {p.mass:g} kg{given}, position {_vec(p.position)} m, "
+            f"velocity {_vec(p.velocity)} m/s"
         )
     labels = list(getattr(report, "labels", None) or getattr(model, "constraint_labels", []))
     out.append(f"constraints ({len(sysm.constraints)} given, {len(labels)} scalar rows):")

@@ -7,7 +7,7 @@
 - ``conservation``: conjugate momenta ``p = ∂L/∂q̇``, cyclic coordinates (``∂L/∂q_j = 0``
   and no non-conservative generalized force on q_j), the Hamiltonian ``H = p·q̇ − L`` and
   whether it equals ``T + V``; their drift along a reduced trajectory.
-- ``describe``: a readable printout of T, V, L and the equations for small systems.
+- ``describe`` (from constrained.printing): a readable printout of T, V, L and the equations.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 
 from . import expressions
 from .errors import InputError
+from .printing import describe, pretty, symbolic_reduced, to_sympy  # noqa: F401 (public here too)
 from .reduced import ReducedModel
 
 __all__ = [
@@ -32,6 +33,8 @@ __all__ = [
     "conservation",
     "describe",
     "pretty",
+    "symbolic_reduced",
+    "to_sympy",
 ]
 
 #: A candidate equation is right when |residual| ≤ EQUATION_RTOL × (sum of |terms|) everywhere.
@@ -320,138 +323,6 @@ def conservation(scene_or_model, trajectory=None, *, samples: int = 20, seed: in
         result.hamiltonian_drift = _rel_drift(H)
         result.energy_drift = _rel_drift(E)
     return result
-
-
-# --- readable printout -----------------------------------------------------------------------
-
-_BINARY = {
-    ca.OP_ADD: ("+", 1), ca.OP_SUB: ("-", 1), ca.OP_MUL: ("*", 2), ca.OP_DIV: ("/", 2),
-}
-_UNARY = {
-    ca.OP_SIN: "sin", ca.OP_COS: "cos", ca.OP_TAN: "tan", ca.OP_EXP: "exp", ca.OP_LOG: "log",
-    ca.OP_SQRT: "sqrt", ca.OP_ASIN: "asin", ca.OP_ACOS: "acos", ca.OP_ATAN: "atan",
-    ca.OP_SINH: "sinh", ca.OP_COSH: "cosh", ca.OP_TANH: "tanh", ca.OP_FABS: "abs",
-}
-
-
-def pretty(expr, digits: int = 6, *, simplify: bool = True) -> str:
-    """A compact infix string of a scalar SX expression (``sq(x)`` → ``x^2``).
-
-    With SymPy installed (the ``pretty`` extra) and ``simplify``, the expression is
-    expanded and trigonometrically simplified first (``cos(a)cos(b) + sin(a)sin(b)`` →
-    ``cos(a - b)``); without it, CasADi's graph is printed as it is.
-    """
-    expr = ca.SX(expr)
-    if expr.numel() != 1:
-        return "[" + ", ".join(pretty(expr[k], digits, simplify=simplify)
-                               for k in range(expr.numel())) + "]"
-    if simplify:
-        try:
-            import sympy
-        except ImportError:
-            sympy = None
-        if sympy is not None:
-            simplified = sympy.trigsimp(sympy.expand(_to_sympy(expr, sympy, {})))
-            if simplified.atoms(sympy.Float):
-                simplified = simplified.evalf(digits)
-                simplified = simplified.xreplace({f: sympy.Integer(int(f)) for f in
-                                                  simplified.atoms(sympy.Float) if float(f).is_integer()})
-            return str(simplified).replace("**", "^")
-    return _pp(expr, digits)[0]
-
-
-def _to_sympy(e, sympy, names: dict):
-    """The SX graph of ``e`` as a SymPy expression (same op-codes as ``_pp``)."""
-    if e.is_symbolic():
-        return names.setdefault(e.name(), sympy.Symbol(e.name(), real=True))
-    if e.is_constant():
-        v = float(e)
-        return sympy.Integer(int(v)) if v.is_integer() and abs(v) < 1e15 else sympy.Float(v)
-    op = e.op()
-    a = _to_sympy(e.dep(0), sympy, names)
-    if op == ca.OP_NEG:
-        return -a
-    if op == ca.OP_SQ:
-        return a**2
-    if op == ca.OP_TWICE:
-        return 2 * a
-    if op == ca.OP_INV:
-        return 1 / a
-    if op in _UNARY:
-        return getattr(sympy, {"abs": "Abs"}.get(_UNARY[op], _UNARY[op]))(a)
-    b = _to_sympy(e.dep(1), sympy, names)
-    if op in (ca.OP_POW, ca.OP_CONSTPOW):
-        return a**b
-    if op == ca.OP_ATAN2:
-        return sympy.atan2(a, b)
-    ops = {ca.OP_ADD: a + b, ca.OP_SUB: a - b, ca.OP_MUL: a * b} if op != ca.OP_DIV else {op: a / b}
-    if op in ops:
-        return ops[op]
-    return sympy.sympify(str(e))
-
-
-def _num(value: float, digits: int) -> str:
-    if float(value).is_integer() and abs(value) < 1e15:
-        return str(int(value))
-    return f"{value:.{digits}g}"
-
-
-def _pp(e, digits: int) -> tuple[str, int]:
-    """(text, precedence): 3 atom, 2 product, 1 sum."""
-    if e.is_symbolic():
-        return e.name(), 3
-    if e.is_constant():
-        v = float(e)
-        return (_num(v, digits), 3 if v >= 0 else 1)
-    op = e.op()
-    if op == ca.OP_NEG:
-        s, p = _pp(e.dep(0), digits)
-        return "-" + (s if p >= 2 else f"({s})"), 1
-    if op == ca.OP_SQ:
-        s, p = _pp(e.dep(0), digits)
-        return (s if p >= 3 else f"({s})") + "^2", 3
-    if op == ca.OP_TWICE:
-        s, p = _pp(e.dep(0), digits)
-        return "2*" + (s if p >= 2 else f"({s})"), 2
-    if op == ca.OP_POW or op == ca.OP_CONSTPOW:
-        a, pa = _pp(e.dep(0), digits)
-        b, pb = _pp(e.dep(1), digits)
-        return (a if pa >= 3 else f"({a})") + "^" + (b if pb >= 3 else f"({b})"), 3
-    if op in _UNARY:
-        return f"{_UNARY[op]}({_pp(e.dep(0), digits)[0]})", 3
-    if op in _BINARY:
-        sym, prec = _BINARY[op]
-        a, pa = _pp(e.dep(0), digits)
-        b, pb = _pp(e.dep(1), digits)
-        if pa < prec:
-            a = f"({a})"
-        if pb < prec or (pb == prec and sym in "-/"):
-            b = f"({b})"
-        if sym == "+" and b.startswith("-"):
-            return f"{a} - {b[1:]}" if pb >= 2 else f"{a} + ({b})", 1
-        return (f"{a} {sym} {b}" if prec == 1 else f"{a}*{b}" if sym == "*" else f"{a}/{b}"), prec
-    return str(e), 3
-
-
-def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int = 4000) -> str:
-    """T, V, L, the conjugate momenta and Lagrange's equations ``M q̈ = rhs`` as text."""
-    rm = _reduced(scene_or_model, parameters)
-    ex = rm.expressions
-    lines = [f"coordinates: {', '.join(rm.coordinates)}" + ("  (rheonomic map)" if rm.rheonomic else "")]
-    for name in ("T", "V", "U", "R", "L"):
-        e = ex[name]
-        if name in ("U", "R") and ca.SX(e).is_zero():
-            continue
-        lines.append(f"{name} = {pretty(e)}")
-    for j, c in enumerate(rm.coordinates):
-        lines.append(f"p_{c} = {pretty(ex['p'][j])}")
-    E = ca.mtimes(ex["M"], rm.q_ddot) - ex["rhs"]
-    for j, c in enumerate(rm.coordinates):
-        lines.append(f"equation for {c}: {pretty(E[j])} = 0")
-    text = "\n".join(lines)
-    if len(text) > max_chars:
-        text = text[:max_chars] + "\n… (truncated)"
-    return text
 
 
 # --- candidate Lagrangians and generalized forces ----------------------------------------------

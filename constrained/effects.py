@@ -56,7 +56,8 @@ class Gravity(Effect):
             return 0.0
         # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
         P = ca.horzcat(*[s.position(p, where) for p in names])
-        m = ca.DM([[s.masses[s.index(p, where)] for p in names]])
+        ms = [s.masses[s.index(p, where)] for p in names]  # numbers, or SX of p (symbolic masses)
+        m = ca.horzcat(*map(ca.SX, ms)) if any(isinstance(m, ca.SX) for m in ms) else ca.DM([ms])
         return -ca.dot(ca.mtimes(g.T, P), m)
 
 
@@ -148,8 +149,10 @@ class Pairwise(Effect):
         pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
         if not pairs:
             return ca.SX(0)
-        pair = ca.Function("pair_potential", [r, s.x, s.t], [V])  # V may also use t, coordinates
-        return sum((pair(ca.norm_2(positions[i] - positions[j]), s.x, s.t) for i, j in pairs), ca.SX(0))
+        # V may also use t, coordinates and (symbolic) parameters p
+        pair = ca.Function("pair_potential", [r, s.x, s.t, s.p], [V])
+        return sum((pair(ca.norm_2(positions[i] - positions[j]), s.x, s.t, s.p) for i, j in pairs),
+                   ca.SX(0))
 
 
 class Damping(Effect):

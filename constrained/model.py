@@ -8,7 +8,12 @@ needs are built: ``active_terms`` lists them.
 
 from __future__ import annotations
 
+import collections
+import functools
+import hashlib
+import json
 import threading
+from collections.abc import Mapping
 
 import casadi as ca
 import numpy as np
@@ -55,31 +60,33 @@ class FastCall:
         return [r.copy() for r in res]
 
 
-class Model:
-    """An assembled system: CasADi Functions in (x, v, t). Immutable once built: runs keep
-    their counters and redundancy in their own ``Manifold`` (constrained.manifold), which
-    also holds the KKT solve.
+#: Functions bound to parameter values that a Structure keeps (the most recent), so that
+#: Models with equal values share them.
+BOUND_FUNCTIONS_KEPT = 64
 
-    Functions (all with flat 3N vectors):
-      ``constraint(x, t) -> f``                (C,)
-      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C, 3N)
-      ``velocity_terms(x, t) -> (J, f_t)``
-      ``dynamics(x, v, t) -> (F, J, γ)``        what the acceleration-level KKT needs
-      ``energy(x, v, t) -> h``                 h = T + V + U − v·∂U/∂v (the energy function)
-      ``kinetic(v) -> T``
+
+class Structure:
+    """What the structure of a System decides, built once: which particles, constraints and
+    effects, which formulas. Its Functions take the parameter vector ``p`` as their last input
+    (``dynamics(x, v, t, p)``, ...); the numbers of a scene are values of ``p``, never
+    constants, so Models for other parameter values share one Structure
+    (``Model.with_parameters``) and nothing is parsed or differentiated again.
+
+    ``functions`` / ``function(name)``: the parametric Functions; ``parameter_names``: the
+    order of ``p``.
     """
 
+    #: Structures built in this process (each one parses and differentiates the system).
+    builds = 0
+
     def __init__(self, system):
-        self.system = system
-        s = Symbols(system)
-        self.symbols = s
-        x, v, t = s.x, s.v, s.t
+        s = Symbols(system, symbolic_parameters=True)
+        x, v, t, p = s.x, s.v, s.t, s.p
         n3 = 3 * system.n_particles
+        self.parameter_names: tuple[str, ...] = tuple(system.parameters)
         self.n_particles = system.n_particles
         self.n_coordinates = n3
-        self.masses = np.repeat(system.masses, 3)
-        self.inverse_masses = 1.0 / self.masses
-        self.masses.flags.writeable = self.inverse_masses.flags.writeable = False
+        self.particle_names = tuple(q.name for q in system.particles)
         active = set()
 
         rows, labels, owners = [], [], []
@@ -139,19 +146,151 @@ class Model:
             active.add("time_dependent_forces")
         self.active_terms = frozenset(active)
 
-        T = 0.5 * ca.dot(ca.DM(self.masses) * v, v)
+        if any(isinstance(m, ca.SX) for m in s.masses):  # a mass given by a formula of p
+            m3 = ca.vertcat(*[ca.SX(m) for m in s.masses for _ in range(3)])
+        else:
+            m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
+        T = 0.5 * ca.dot(m3 * v, v)
         energy = T + V + U - ca.dot(v, dU_dv)
-        self.constraint = ca.Function("constraint", [x, t], [f], ["x", "t"], ["f"])
-        self.jacobian = ca.Function("jacobian", [x, t], [f, J], ["x", "t"], ["f", "J"])
-        self.velocity_terms = ca.Function("velocity_terms", [x, t], [J, f_t], ["x", "t"], ["J", "f_t"])
-        self.dynamics = ca.Function(
-            "dynamics", [x, v, t], [F, J, gamma], ["x", "v", "t"], ["F", "J", "gamma"]
-        )
-        self.energy = ca.Function("energy", [x, v, t], [energy], ["x", "v", "t"], ["E"])
-        self.potential = ca.Function("potential", [x, t], [V], ["x", "t"], ["V"])
-        self.kinetic = ca.Function("kinetic", [v], [T], ["v"], ["T"])
+        # The Functions are made when first asked for (making one sorts its whole graph).
+        self._p = p
+        self._parts: dict[str, tuple] = {}
+        self._functions: dict[str, ca.Function] = {}
+        self._fixed: dict[str, ca.Function | None] = {}
+        self._bound: collections.OrderedDict[tuple, ca.Function] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+        def function(name, inputs, in_names, outputs, out_names):
+            self._parts[name] = (inputs, in_names, outputs, out_names)
+
+        function("constraint", [x, t], ["x", "t"], [f], ["f"])
+        function("jacobian", [x, t], ["x", "t"], [f, J], ["f", "J"])
+        function("velocity_terms", [x, t], ["x", "t"], [J, f_t], ["J", "f_t"])
+        function("dynamics", [x, v, t], ["x", "v", "t"], [F, J, gamma], ["F", "J", "gamma"])
+        function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
+        function("potential", [x, t], ["x", "t"], [V], ["V"])
+        function("kinetic", [v], ["v"], [T], ["T"])
+        Structure.builds += 1
+
+    def function(self, name: str) -> ca.Function:
+        """The parametric Function ``name``: the Model's inputs, then ``p``."""
+        if name not in self._functions:
+            inputs, in_names, outputs, out_names = self._parts[name]
+            self._functions[name] = ca.Function(name, [*inputs, self._p], outputs,
+                                                [*in_names, "p"], out_names)
+        return self._functions[name]
+
+    @property
+    def functions(self) -> dict[str, ca.Function]:
+        """name -> parametric Function (``constraint(x, t, p)``, ``dynamics(x, v, t, p)``, …)."""
+        return {name: self.function(name) for name in self._parts}
+
+    def fixed(self, name: str) -> ca.Function | None:
+        """The Function ``name`` without ``p`` when its outputs do not depend on p (the same
+        for every parameter value, shared by all Models of this structure), else None."""
+        if name not in self._fixed:
+            inputs, in_names, outputs, out_names = self._parts[name]
+            p = self._p
+            free = not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs)
+            self._fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names) if free else None
+        return self._fixed[name]
+
+    def bind(self, name: str, values: np.ndarray) -> ca.Function:
+        """The Function ``name`` without its last input ``p``: p fixed at ``values`` (an SX
+        Function of the same inputs and outputs as the Model's public ones)."""
+        fixed = self.fixed(name)
+        if fixed is not None:
+            return fixed
+        key = (name, np.asarray(values, float).tobytes())
+        bound = self._bound.get(key)
+        if bound is None:  # Models with equal values share the Function objects
+            fun = self.function(name)
+            inputs = [ca.SX.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in() - 1)]
+            outputs = fun.call([*inputs, ca.DM(values)])
+            bound = ca.Function(name, inputs, outputs, fun.name_in()[:-1], fun.name_out())
+            with self._lock:
+                self._bound[key] = bound
+                while len(self._bound) > BOUND_FUNCTIONS_KEPT:
+                    self._bound.popitem(last=False)
+        return bound
+
+
+class Model:
+    """An assembled system: CasADi Functions in (x, v, t) for the system's parameter values.
+    Immutable once built: runs keep their counters and redundancy in their own ``Manifold``
+    (constrained.manifold), which also holds the KKT solve.
+
+    Functions (all with flat 3N vectors; the parameters at ``parameter_values``):
+      ``constraint(x, t) -> f``                (C,)
+      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C, 3N)
+      ``velocity_terms(x, t) -> (J, f_t)``
+      ``dynamics(x, v, t) -> (F, J, γ)``        what the acceleration-level KKT needs
+      ``energy(x, v, t) -> h``                 h = T + V + U − v·∂U/∂v (the energy function)
+      ``potential(x, t) -> V``
+      ``kinetic(v) -> T``
+
+    The parameters are inputs, not constants: ``structure.functions`` holds the same Functions
+    with ``p`` (values in the order of ``parameter_names``) as their last input, and
+    ``with_parameters({"m1": 1.2})`` gives the Model for other values without building
+    anything again (the ``structure`` is shared).
+    """
+
+    def __init__(self, system, *, structure: Structure | None = None):
+        structure = structure if structure is not None else Structure(system)
+        if tuple(system.parameters) != structure.parameter_names:
+            raise InputError(
+                f"the system's parameters ({', '.join(system.parameters) or 'none'}) are not "
+                f"those of the structure ({', '.join(structure.parameter_names) or 'none'}); "
+                "use Model.with_parameters on a Model of this system")
+        self.structure = structure
+        self.system = system
+        self.parameter_names: tuple[str, ...] = structure.parameter_names
+        self.parameter_values = np.array([system.parameters[k] for k in self.parameter_names], float)
+        self.n_particles = structure.n_particles
+        self.n_coordinates = structure.n_coordinates
+        self.masses = np.repeat(system.masses, 3)
+        self.inverse_masses = 1.0 / self.masses
+        for array in (self.parameter_values, self.masses, self.inverse_masses):
+            array.flags.writeable = False
+        self.constraint_labels: list[str] = structure.constraint_labels
+        self.constraint_owner = structure.constraint_owner
+        self.n_constraints = structure.n_constraints
+        self.rheonomic = structure.rheonomic
+        self.active_terms = structure.active_terms
         #: The system's data the numeric side needs, copied so the Model does not change.
-        self.particle_names = tuple(p.name for p in system.particles)
+        self.particle_names = structure.particle_names
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """The parameters' values, name -> number."""
+        return dict(zip(self.parameter_names, self.parameter_values.tolist(), strict=True))
+
+    def with_parameters(self, parameters: Mapping[str, float] | None = None) -> Model:
+        """The Model for other values of some parameters (the rest keep theirs). Shares this
+        Model's structure: nothing is parsed or differentiated again (``Structure.builds``
+        does not grow). Masses, initial positions and velocities given by formulas follow
+        (``model.system`` is ``system.with_parameters(parameters)``). Unknown names,
+        non-finite values and masses that come out non-positive raise InputError."""
+        if not parameters:
+            return self
+        return Model(self.system.with_parameters(parameters), structure=self.structure)
+
+    @functools.cached_property
+    def symbols(self) -> Symbols:
+        """Symbols of ``system`` with the parameters' values as numbers, for analyses that
+        build their own expressions (effects' terms, formulas) to go with this Model's."""
+        return Symbols(self.system)
+
+    def _bound(self, name: str) -> ca.Function:
+        return self.structure.bind(name, self.parameter_values)
+
+    constraint = functools.cached_property(lambda self: self._bound("constraint"))
+    jacobian = functools.cached_property(lambda self: self._bound("jacobian"))
+    velocity_terms = functools.cached_property(lambda self: self._bound("velocity_terms"))
+    dynamics = functools.cached_property(lambda self: self._bound("dynamics"))
+    energy = functools.cached_property(lambda self: self._bound("energy"))
+    potential = functools.cached_property(lambda self: self._bound("potential"))
+    kinetic = functools.cached_property(lambda self: self._bound("kinetic"))
 
     # --- batch evaluation along a trajectory ----------------------------------------------
     def evaluate(self, function: ca.Function, *columns: np.ndarray) -> list[np.ndarray]:
@@ -170,6 +309,76 @@ class Model:
         )
 
 
-def assemble(system) -> Model:
-    """Build the Model of a System (the only step that makes CasADi symbols)."""
-    return Model(system)
+def assemble(system, parameters: Mapping[str, float] | None = None, *, reuse: bool = True) -> Model:
+    """Build the Model of a System (the only step that makes CasADi symbols), for the
+    system's parameter values updated by ``parameters``.
+
+    ``reuse``: a System with the same structure as one assembled before in this process (the
+    same particles and masses, constraints, effects, parameter names and definitions; initial
+    state and parameter values may differ) gets that Structure again instead of a new one
+    (see ``structure_fingerprint``; the most recent few, up to STRUCTURE_CACHE_COORDINATES
+    coordinates in all, are kept)."""
+    structure = _cached_structure(system) if reuse else None
+    return Model(system, structure=structure).with_parameters(parameters)
+
+
+#: The Structures ``assemble`` keeps for reuse hold this many coordinates at most, in all.
+STRUCTURE_CACHE_COORDINATES = 3000
+_structures: collections.OrderedDict[str, Structure] = collections.OrderedDict()
+_structures_lock = threading.Lock()
+
+
+class _NotPlain(Exception):
+    """A value structure_fingerprint cannot describe exactly."""
+
+
+def _plain(value):
+    """``value`` as JSON-able data that determines it exactly (floats by their repr)."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return ["ndarray", value.dtype.str, list(value.shape), value.tolist()]
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        return ["mapping", [[_plain(k), _plain(v)] for k, v in value.items()]]
+    raise _NotPlain(type(value).__name__)
+
+
+def structure_fingerprint(system) -> str | None:
+    """A hash of everything a Structure is built from: particle names and masses (numbers, or
+    their formulas), each constraint and effect (its class and every attribute), the parameter
+    names in order and the definitions. Not the initial state, not the parameters' values.
+    None when an item holds a value that cannot be described exactly (then nothing is reused)."""
+    try:
+        data = [
+            [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas else p.mass]
+             for p in system.particles],
+            [[type(item).__module__, type(item).__qualname__, _plain(vars(item))]
+             for item in (*system.constraints, *system.effects)],
+            list(system.parameters),
+            _plain(system.definitions),
+        ]
+        text = json.dumps(data)
+    except (_NotPlain, TypeError, ValueError):
+        return None
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _cached_structure(system) -> Structure:
+    key = structure_fingerprint(system)
+    if key is None:
+        return Structure(system)
+    with _structures_lock:
+        structure = _structures.get(key)
+        if structure is not None:
+            _structures.move_to_end(key)
+            return structure
+    structure = Structure(system)
+    with _structures_lock:
+        _structures[key] = structure
+        while sum(s.n_coordinates for s in _structures.values()) > STRUCTURE_CACHE_COORDINATES:
+            _structures.popitem(last=False)
+    return structure

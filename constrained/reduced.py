@@ -85,23 +85,31 @@ class ReducedModel:
         samples: int = 20,
         seed: int = 0,
         check: bool = True,
+        symbolic_parameters: bool = False,
     ):
+        # the system's own parameters take the given values everywhere (masses, effects, map);
+        # other names are extra numbers for the map's formulas
+        own = {k: v for k, v in (parameters or {}).items() if k in system.parameters}
+        system = system.with_parameters(own)
         self.system = system
-        self.model = model or assemble(system)
+        self.symbolic_parameters = symbolic_parameters
+        self.model = None if symbolic_parameters else (model or assemble(system)).with_parameters(own)
         coords = self._coordinates(coordinates, system)
         self.coordinates: list[str] = coords
+        self.map = map
         n = len(coords)
         self.n = n
-        self.parameters = dict(system.parameters)
+        s = Symbols(system, symbolic_parameters=symbolic_parameters)
+        self.parameters = dict(s.parameters)  # numbers, or SX symbols named after them
         for k, v in (parameters or {}).items():
             if not isinstance(k, str) or not k.isidentifier():
                 raise InputError(f"parameter name {k!r} must be a plain identifier", where="parameters")
-            self.parameters[k] = _number(v, f"parameters.{k}")
+            if k not in own:
+                self.parameters[k] = _number(v, f"parameters.{k}")
         self.initial = self._values(initial, "initial", complete=initial is not None)
         self.rates = self._values(rates, "rates", complete=False)
         self.t0 = _number(t0, "t0")
 
-        s = Symbols(system)
         self.symbols = s
         t = s.t
         q = ca.vertcat(*[ca.SX.sym(c) for c in coords])
@@ -118,7 +126,8 @@ class ReducedModel:
         xq = self.map_formulas
         Jq = ca.jacobian(xq, q)
         xdot = ca.mtimes(Jq, qd) + ca.jacobian(xq, t)
-        masses = ca.DM(np.repeat(system.masses, 3))
+        masses = ca.vertcat(*[ca.SX(m) for m in s.masses for _ in range(3)]) if symbolic_parameters \
+            else ca.DM(np.repeat(system.masses, 3))
         T = 0.5 * ca.dot(masses * xdot, xdot)
 
         slots: dict[str, list] = {"potential": [], "generalized_potential": [], "dissipation": [],
@@ -146,6 +155,8 @@ class ReducedModel:
                             "Q": Q, "p": p, "M": M, "rhs": rhs, "H": H, "dL_dq": dLdq}
         self.rheonomic = bool(ca.depends_on(xq, t))
         self.active_terms = frozenset(k for k, v in slots.items() if v)
+        if symbolic_parameters:  # expressions in the parameters' names, for printing: no Functions
+            return
 
         args, names = [q, qd, t], ["q", "q_dot", "t"]
         self.position = ca.Function("position", [q, t], [xq], ["q", "t"], ["x"])
@@ -193,7 +204,7 @@ class ReducedModel:
         if isinstance(coordinates, str) or not isinstance(coordinates, Sequence) or not coordinates:
             raise InputError(f"must be a non-empty list of names, got {coordinates!r}",
                              where="reduced.coordinates")
-        taken = set(system.parameters)
+        taken = set(system.parameters) | set(system.definitions)
         for p in system.names:
             taken |= {f"{a}_{p}" for a in ("x", "y", "z", "vx", "vy", "vz")}
         out: list[str] = []

@@ -10,6 +10,7 @@ optional ``[reduced]`` coordinates and the raw ``[expect]`` table. Every problem
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import math
 import re
@@ -25,6 +26,7 @@ from . import expressions
 from .constraints import CONSTRAINT_TYPES
 from .effects import EFFECT_TYPES
 from .errors import InputError
+from .parameters import RESERVED_NAMES
 from .symbols import Symbols
 from .system import Particle, System, sketch
 from .trajectory import QUANTITIES
@@ -55,6 +57,7 @@ TOP_LEVEL_TABLES = (
     "constraints",
     "effects",
     "parameters",
+    "definitions",
     "simulate",
     "outputs",
     "reduced",
@@ -135,9 +138,7 @@ EFFECT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "electromagnetic": (("charges",), ("phi", "A")),
 }
 # Names a parameter or a reduced coordinate may not take (they mean something in formulas).
-RESERVED_NAMES = frozenset(
-    {"t", "x", "y", "z", "r", "vx", "vy", "vz"} | set(expressions.FUNCTIONS) | set(expressions.CONSTANTS)
-)
+RESERVED_NAMES = RESERVED_NAMES
 
 
 class SceneError(InputError):
@@ -184,19 +185,34 @@ class Scene:
         file = None if self.path is None else str(self.path)
         return build_scene(apply_overrides(self.raw, list(overrides), file=file), path=self.path)
 
-    def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None):
+    def with_parameters(self, parameters: Mapping[str, float] | None) -> Scene:
+        """A new Scene whose system has these parameters' values (``System.with_parameters``);
+        the same as ``with_overrides(["parameters.NAME=VALUE", ...])`` without reading the
+        scene again."""
+        if not parameters:
+            return self
+        system = self.system.with_parameters(parameters)
+        raw = copy.deepcopy(self.raw)  # the file's contents with the new values, as --set gives
+        raw.setdefault("parameters", {}).update(system.parameters)
+        return dataclasses.replace(self, system=system, raw=raw)
+
+    def run(self, overrides: Iterable[str] | None = None, *, quantities=None, progress=None,
+            parameters: Mapping[str, float] | None = None, model=None):
         """Simulate with the scene's own ``[simulate]`` settings and check its ``[expect]``.
 
         ``overrides``: ``"KEY=VALUE"`` strings as the CLI's ``--set`` (e.g.
         ``["simulate.t_end=2"]``), applied to a copy. ``quantities``: what to compute besides
         t, x, v (default: ``[outputs] quantities``). Returns a ``RunResult``: ``.trajectory``,
         ``.expectations`` (one ``ExpectResult`` per check), ``.ok``, ``.failed``, ``.report()``;
-        it unpacks as ``trajectory, checks = scene.run()``.
+        it unpacks as ``trajectory, checks = scene.run()``. ``parameters`` (name -> value):
+        new values of the scene's [parameters] for this run (its [expect] formulas see them
+        too); ``model``: a Model of this scene (``assemble(scene.system)``), reused for the new
+        values without rebuilding anything.
         """
         from .run_options import from_scene
         from .simulate import simulate
 
-        scene = self.with_overrides(overrides) if overrides else self
+        scene = (self.with_overrides(overrides) if overrides else self).with_parameters(parameters)
         s = scene.settings
         if s["t_end"] is None:
             raise SceneError("no end time: give t_end in [simulate], or override simulate.t_end",
@@ -205,6 +221,8 @@ class Scene:
         kwargs = from_scene(scene, outputs=wanted | expect_requirements(scene)).simulate_kwargs()
         if progress is not None:
             kwargs["progress"] = progress
+        if model is not None:  # the given Model, for this scene's values (nothing rebuilt)
+            kwargs.update(model=model, parameters=dict(scene.system.parameters))
         trajectory = simulate(scene.system, s["t_end"], **kwargs)
         trajectory.info.setdefault("sketch", sketch(scene.system))  # rods for `constrained plot`
         return RunResult(scene, trajectory, check_expectations(scene, trajectory))
@@ -630,7 +648,7 @@ class _Builder:
                     f"unknown top-level table '{k}' (allowed: {', '.join(TOP_LEVEL_TABLES)})"
                     f"{_suggest(k, TOP_LEVEL_TABLES)}",
                 )
-        for k in ("scene", "parameters", "simulate", "outputs", "reduced", "expect"):
+        for k in ("scene", "parameters", "definitions", "simulate", "outputs", "reduced", "expect"):
             if k in self.raw:
                 self.table(self.raw[k], k, f"a table [{k}]")
         for k in TOP_LEVEL_TABLES:
@@ -640,12 +658,13 @@ class _Builder:
         name, description = self.scene_section()
         particles = self.particles()
         parameters = self.parameters()
+        definitions = self.definitions(parameters)
         constraints = [
             self.item(i, item, "constraints") for i, item in enumerate(self.array_of_tables("constraints"))
         ]
         effects = [self.item(i, item, "effects") for i, item in enumerate(self.array_of_tables("effects"))]
         try:
-            system = System(particles, constraints, effects, parameters, name)
+            system = System(particles, constraints, effects, parameters, name, definitions)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
         self.check_formulas(system)
@@ -653,7 +672,7 @@ class _Builder:
         if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
             self.regular_start(system, settings["t_start"])
         outputs = self.outputs()
-        reduced = self.reduced(parameters)
+        reduced = self.reduced({**parameters, **definitions})
         expect = self.raw.get("expect")
         expectations = None if expect is None else self.expect_section(expect, system)
         return Scene(
@@ -780,13 +799,18 @@ class _Builder:
                     f"duplicate particle name '{name}' (also particles[{seen[name]}])",
                 )
             seen[name] = i
-            mass = self.positive(item["mass"], f"{key}.mass", "a finite positive number (kg)")
-            if mass < 1 / expressions.MAX_MAGNITUDE:
+            mass = item["mass"]
+            if isinstance(mass, str):  # a formula of the parameters, evaluated by the System
+                mass = self.formula(mass, f"{key}.mass")
+            elif self.positive(mass, f"{key}.mass", "a finite positive number (kg) or a formula "
+                               "of the parameters") < 1 / expressions.MAX_MAGNITUDE:
                 self.fail(f"{key}.mass", f"the mass {mass!r} kg is too small (below "
                           f"{1 / expressions.MAX_MAGNITUDE:g}): 1/m overflows in the equations of motion; "
                           "use units that keep the numbers moderate")
-            position = self.numbers3(item["position"], f"{key}.position")
-            velocity = self.numbers3(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity")
+            position = self.formulas(item["position"], f"{key}.position", 3,
+                                     "numbers or formulas of the parameters (x, y, z)")
+            velocity = self.formulas(item.get("velocity", [0.0, 0.0, 0.0]), f"{key}.velocity", 3,
+                                     "numbers or formulas of the parameters (x, y, z)")
             try:
                 out.append(Particle(name, mass, position, velocity, where=key))
             except InputError as exc:
@@ -821,6 +845,19 @@ class _Builder:
                 )
             out[k] = self.number(v, key, "a number")
         return out
+
+    def definitions(self, parameters: dict) -> dict:
+        """[definitions]: name -> a formula in parameters and other definitions (or a number)."""
+        table = self.raw.get("definitions", {})
+        reserved = self.reserved_for_formulas()
+        for k, v in table.items():
+            key = _join("definitions", k)
+            self.identifier(k, key, "a definition name")
+            if k in reserved or k in parameters:
+                what = "a parameter" if k in parameters else "it already means something in formulas"
+                self.fail(key, f"the definition name '{k}' is taken ({what})")
+            self.formula(v, key)
+        return dict(table)
 
     def item(self, i: int, item: dict, section: str):
         """One [[constraints]] or [[effects]] entry -> the library object."""

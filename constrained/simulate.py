@@ -38,6 +38,7 @@ def simulate(
     outputs: Iterable[str] | None = None,
     max_initial_correction: float = 1e-3,
     model: Model | None = None,
+    parameters: dict[str, float] | None = None,
     events: Iterable[Event] = (),
     **options,
 ) -> Trajectory:
@@ -46,6 +47,9 @@ def simulate(
     ``method`` picks the solver (see ``constrained.solvers.METHODS``); ``outputs`` limits the
     derived quantities computed (default: all). The initial state is projected onto the
     constraints first; the correction is in ``trajectory.info["initial_correction"]``.
+    ``parameters`` (name -> value) replaces some of the system's parameters for this run:
+    the ``model`` (passed in, or assembled once) is reused for them without rebuilding, and
+    the initial state is the system's for those values (``Model.with_parameters``).
     ``events`` are ``Event(name, g(t, x, v), direction, terminal)``: their zero crossings are
     located to round-off and listed in ``trajectory.info["events"]``; a terminal one ends the
     run there (``info["stop"]`` is then "terminal event").
@@ -77,7 +81,8 @@ def simulate(
         raise InputError("the system has no particles")
 
     started = time.perf_counter()
-    model = model or assemble(system)
+    model = (model or assemble(system)).with_parameters(parameters)
+    system = system.with_parameters(parameters)  # its initial state for these values
     build_time = time.perf_counter() - started
     start = consistent_start(
         model, system.positions, system.velocities, t_start,

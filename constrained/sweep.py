@@ -324,8 +324,12 @@ _STATE_TABLES = ("simulate", "outputs", "expect", "scene", "reduced")
 
 
 def structure_key(raw: dict) -> str:
-    """Hash of what the Model depends on: the scene without initial state and run settings."""
+    """Hash of what the Model's structure depends on: the scene without initial state, run
+    settings and the values of [parameters] (inputs of the Model's Functions: their names
+    count, their values do not; ``Model.with_parameters`` gives each run its values)."""
     slim = {k: v for k, v in raw.items() if k not in _STATE_TABLES}
+    if isinstance(slim.get("parameters"), dict):
+        slim["parameters"] = sorted(slim["parameters"])
     if isinstance(slim.get("particles"), list):
         slim["particles"] = [
             {k: v for k, v in p.items() if k not in ("position", "velocity")} if isinstance(p, dict) else p
@@ -353,22 +357,27 @@ def _cached_model(raw: dict, system):
 
 
 def _summary_function(entry: dict, summary: Summary):
+    """``(x, v, t, p) -> value`` of a summary formula, p the model's parameters (one Function
+    per structure and formula, for every run's values)."""
     import casadi as ca
+
+    from .symbols import Symbols
 
     fun = entry["summaries"].get(summary.formula)
     if fun is None:
-        s = entry["model"].symbols
+        s = entry.get("symbols") or entry.setdefault(
+            "symbols", Symbols(entry["model"].system, symbolic_parameters=True))
         expr = ca.SX(expressions.parse(summary.formula, s.state_names, where=f"--summary {summary.name}"))
-        fun = ca.Function(f"summary_{summary.name}", [s.x, s.v, s.t], [expr])
+        fun = ca.Function(f"summary_{summary.name}", [s.x, s.v, s.t, s.p], [expr])
         entry["summaries"][summary.formula] = fun
     return fun
 
 
-def _series(fun, traj) -> np.ndarray:
+def _series(fun, traj, parameters) -> np.ndarray:
     n = len(traj.t)
     x = np.asarray(traj.x, float).reshape(n, -1).T
     v = np.asarray(traj.v, float).reshape(n, -1).T
-    return np.asarray(fun.map(n)(x, v, np.asarray(traj.t, float)[None, :])).ravel()
+    return np.asarray(fun.map(n)(x, v, np.asarray(traj.t, float)[None, :], parameters)).ravel()
 
 
 def _reduce(values: np.ndarray, how: str) -> float:
@@ -399,8 +408,9 @@ def _scene_for(task: dict):
 def _settings_kwargs(scene, outputs: set[str]) -> dict:
     """simulate's keywords for one variant, from the one map of settings (run_options).
 
-    Every variant is a new model (its parameters are constants in the graph), so a compiled
-    step loop would be compiled again for each: "auto" means none here."""
+    Variants share a model's structure, but the Functions the solvers build their step loops
+    on hold each variant's parameter values, so a compiled step loop would be compiled again
+    for each: "auto" means none here."""
     from .run_options import from_scene
 
     return from_scene(scene, outputs=outputs, compiled=scene.settings["compiled"] is True).simulate_kwargs()
@@ -437,7 +447,7 @@ def run_task(task: dict) -> dict:
             raise SceneError("no end time: give t_end in [simulate] or vary/set simulate.t_end",
                              file=task["file"], key="simulate.t_end")
         entry = _cached_model(raw, scene.system)
-        model = entry["model"]
+        model = entry["model"].with_parameters(scene.system.parameters)  # nothing rebuilt
         outputs = {"energy", "constraint_residual", "velocity_residual"}
         if scene.expectations:
             outputs |= set(expect_requirements(scene))
@@ -464,7 +474,7 @@ def run_task(task: dict) -> dict:
             if traj.velocity_residual is not None:
                 row["max_velocity_residual"] = float(np.max(traj.velocity_residual))
             for summary in task["summaries"]:
-                values = _series(_summary_function(entry, summary), traj)
+                values = _series(_summary_function(entry, summary), traj, model.parameter_values)
                 row[summary.name] = _reduce(values, summary.reduction)
             row.update(_expect_columns(scene, traj, model))
         row["steps"] = int(traj.stats.get("steps", 0) or 0)

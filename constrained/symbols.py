@@ -12,22 +12,40 @@ from collections.abc import Sequence
 import casadi as ca
 import numpy as np
 
-from . import expressions
+from . import expressions, parameters
 from .errors import ExpressionError, InputError
 
 
 class Symbols:
-    """CasADi SX symbols ``x``, ``v``, ``t`` for a System, plus the scene's parameters."""
+    """CasADi SX symbols ``x``, ``v``, ``t`` for a System, plus the scene's parameters.
 
-    def __init__(self, system):
+    By default the parameters and definitions are numbers (``parameters`` maps each name to
+    its value) and ``masses`` is the numeric array: expressions come out with the values
+    inside. With ``symbolic_parameters`` each parameter is an SX symbol named after it,
+    stacked into ``p`` (in the order of ``system.parameters``), each definition an SX
+    expression of them, and ``masses`` a list (a float, or an SX expression for a mass given
+    by a formula): the Model builds its parametric Functions of ``p`` from these.
+    """
+
+    def __init__(self, system, *, symbolic_parameters: bool = False):
         self.system = system
         n = system.n_particles
         self.x = ca.SX.sym("x", 3 * n)
         self.v = ca.SX.sym("v", 3 * n)
         self.t = ca.SX.sym("t")
-        self.masses = system.masses
         self._index = {p.name: i for i, p in enumerate(system.particles)}
-        self.parameters = dict(system.parameters)
+        self.symbolic_parameters = symbolic_parameters
+        if symbolic_parameters:
+            self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
+            self.masses = [
+                expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
+                if "mass" in p.formulas else p.mass
+                for p in system.particles
+            ]
+        else:
+            self.p = ca.SX(0, 1)
+            self.parameters = system.parameter_values
+            self.masses = system.masses
         # One split each instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs in
         # CasADi's Python layer, and a big chain asks for thousands of them.
         self._xp = ca.vertsplit(self.x, 3) if n else []

@@ -133,3 +133,78 @@ def test_the_cache_folder_can_be_set_by_either_variable(monkeypatch, tmp_path):
     assert compiled.cache_dir() == tmp_path / "c2"
     monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "c1"))
     assert compiled.cache_dir() == tmp_path / "c1"
+
+
+def test_the_key_holds_everything_that_decides_the_machine_code(monkeypatch, tmp_path):
+    """Same functions, same setup: same key. A different CasADi version, compiler binary,
+    flag set, CPU architecture or platform: a different key (never a foreign library)."""
+    import casadi as ca
+
+    def function():
+        x = ca.SX.sym("x", 2)
+        return ca.Function("keytest", [x], [ca.sin(x) * 3])
+
+    cc = tmp_path / "cc"
+    cc.write_text("#!/bin/sh\n")
+    base = compiled.cache_key([function()], str(cc))
+    assert compiled.cache_key([function()], str(cc)) == base  # deterministic, rebuilt graph
+    assert compiled.cache_key([function()], str(cc), flags=("-O3",)) != base
+    x = ca.SX.sym("x", 2)
+    assert compiled.cache_key([ca.Function("keytest", [x], [ca.sin(x) * 4])], str(cc)) != base
+    other = tmp_path / "cc2"
+    other.write_text("#!/bin/sh\n# another compiler\n")
+    assert compiled.cache_key([function()], str(other)) != base
+    native = compiled.build_environment(str(cc), ("-O2", "-march=native"))
+    assert "cpu" in native and "cpu" not in compiled.build_environment(str(cc))
+    for module, name, value in ((compiled.platform, "machine", lambda: "riscv64"),
+                                (compiled.sys, "platform", "plan9"), (ca, "__version__", "0.0.1")):
+        with monkeypatch.context() as m:
+            m.setattr(module, name, value)
+            assert compiled.cache_key([function()], str(cc)) != base, name
+
+
+@needs_cc
+def test_an_entry_recorded_for_another_setup_is_rebuilt(tmp_path):
+    cache = tmp_path / "cache"
+    assert run("f", cache).returncode == 0
+    so = entry(cache)
+    record = json.loads(so.with_suffix(".json").read_text())
+    assert record["machine"] and record["compiler"] and record["casadi"]
+    record["machine"] = "vax"  # e.g. a cache folder shared between machines
+    so.with_suffix(".json").write_text(json.dumps(record))
+    again = run("f", cache)
+    assert again.returncode == 0 and "value-ok" in again.stdout, again.stderr[-2000:]
+    assert "built for another setup (machine 'vax'" in again.stderr
+
+
+# A compiled run (dopri's chained steps) prints its end state.
+RUN = """
+import numpy as np, constrained as C
+from constrained import compiled
+sc = C.load_scene("scenarios/double_pendulum.toml")
+tr = C.simulate(sc.system, 0.3, method="dopri", rtol=1e-9, atol=1e-11, compiled=True, outputs=[])
+assert compiled.last_error is None, compiled.last_error
+print(repr(tr.x[-1].ravel().tolist()))
+"""
+
+
+@needs_cc
+@pytest.mark.parametrize("damage", [damage_truncate, damage_garbage])
+def test_a_run_survives_a_damaged_cache_and_rebuilds_it(tmp_path, damage):
+    cache = tmp_path / "cache"
+    env = dict(os.environ, CONSTRAINED_CACHE=str(cache), PYTHONPATH=str(ROOT))
+    env.pop("CONSTRAINED_COMPILE", None)
+
+    def simulate():
+        return subprocess.run([sys.executable, "-c", RUN], env=env, capture_output=True, text=True,
+                              timeout=300, cwd=ROOT)
+
+    first = simulate()
+    assert first.returncode == 0, first.stderr[-2000:]
+    (so,) = cache.glob("*.so")
+    damage(so, cache)
+    again = simulate()
+    assert again.returncode == 0, f"exit {again.returncode}: {again.stderr[-2000:]}"
+    assert again.stdout == first.stdout  # the same end state, to the last digit
+    assert "rebuilding it" in again.stderr and str(so) in again.stderr
+    assert compiled._verify(so) is None  # the entry is whole again

@@ -242,8 +242,11 @@ def test_non_positive_mass(tmp_path, mass):
 
 
 def test_non_numeric_mass(tmp_path):
+    # a string is a formula of the parameters: an unknown name is refused, naming it
     path = write(tmp_path, BASE.replace("mass = 2.0", 'mass = "heavy"'))
-    expect_error(path, "particles[1].mass", "got the string 'heavy'")
+    expect_error(path, "particles[1].mass", "unknown name 'heavy'")
+    path = write(tmp_path, BASE.replace("mass = 2.0", "mass = true"))
+    expect_error(path, "particles[1].mass", "the boolean true")
 
 
 def test_duplicate_particle_name(tmp_path):

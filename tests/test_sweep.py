@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import constrained as C
 from constrained import sweep as S
 from constrained.cli import main
 from constrained.errors import InputError
@@ -323,8 +324,13 @@ def test_runs_that_change_only_the_start_share_one_model(tmp_path):
     assert r.column("t_final").tolist() == [0.05, 0.1] * 3
     assert len(list((tmp_path / "runs").glob("*.npz"))) == 6
     p = S.sweep(KAPITZA, ["parameters.nu=[100, 150]"], out_dir=tmp_path / "p", scheduler="sequential",
-                progress=False, overrides=["simulate.t_end=0.05"])
-    assert p.computed == 2 and S.CACHE_STATS["assembled"] - before["assembled"] == 3  # parameters rebuild
+                progress=False, overrides=["simulate.t_end=0.05"], summary=["final:nu_seen=2*nu"])
+    assert p.column("nu_seen").tolist() == [200.0, 300.0]  # each run's own value, not the cached one
+    ref = C.load_scene(KAPITZA, ["parameters.nu=150", "simulate.t_end=0.05"]).run(quantities=[]).trajectory
+    assert p.column("y_bob")[1] == pytest.approx(ref.x[-1, 0, 1], abs=1e-12)  # as if rebuilt
+    # the parameters are inputs of the model's Functions: new values reuse the structure
+    assert p.computed == 2 and S.CACHE_STATS["assembled"] - before["assembled"] == 1
+    assert S.CACHE_STATS["reused"] - before["reused"] == 7
 
 
 def test_boundary_function_is_parsed_not_evaluated():
