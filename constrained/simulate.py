@@ -9,7 +9,7 @@ from collections.abc import Iterable
 import casadi as ca
 import numpy as np
 
-from . import diagnostics, interrupt
+from . import diagnostics, hybrid, interrupt
 from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
 from .manifold import built_once
@@ -20,6 +20,7 @@ from .solvers.base import Status
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
 from .trajectory import QUANTITIES, Trajectory
+from .unilateral import has_one_sided
 
 #: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
 INTERRUPTED_QUANTITY_SAMPLES = 5000
@@ -38,6 +39,7 @@ def simulate(
     outputs: Iterable[str] | None = None,
     max_initial_correction: float = 1e-3,
     model: Model | None = None,
+    events=None,
     **options,
 ) -> Trajectory:
     """Simulate ``system`` from ``t_start`` to ``t_end`` and return a Trajectory.
@@ -45,6 +47,11 @@ def simulate(
     ``method`` picks the solver (see ``constrained.solvers.METHODS``); ``outputs`` limits the
     derived quantities computed (default: all). The initial state is projected onto the
     constraints first; the correction is in ``trajectory.info["initial_correction"]``.
+
+    ``events``: an ``Event`` (constrained.events) or a callable ``g(t, x, v)``, or a list of
+    them, located to round-off (solve_ivp's habits). A system with one-sided constraints or
+    events runs in segments between events (constrained.hybrid); ``trajectory.events``
+    records what happened when.
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
@@ -75,6 +82,12 @@ def simulate(
     started = time.perf_counter()
     model = model or assemble(system)
     build_time = time.perf_counter() - started
+    watched = hybrid.user_events(system, events)
+    if watched or has_one_sided(model):
+        return hybrid.simulate_hybrid(
+            model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
+            wanted=wanted, events=watched, max_initial_correction=max_initial_correction,
+            build_time=build_time, options={"dt": dt, **options})
     start = consistent_start(
         model, system.positions, system.velocities, t_start,
         max_correction=max_initial_correction, size=system.size(),

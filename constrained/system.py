@@ -73,6 +73,9 @@ class System:
         self.constraints: list = []
         self.effects: list = []
         self.parameters: dict[str, float] = {}
+        #: User events of a scene's [[events]] (constrained.events.FormulaEvent), watched by
+        #: every run of this system besides the ``events=`` given to simulate.
+        self.events: list = []
         for p in particles:
             self.add_particle(p)
         for key, value in (parameters or {}).items():
@@ -149,7 +152,9 @@ class System:
         particles = [
             Particle(p.name, p.mass, x[i], v[i], p.where) for i, p in enumerate(self.particles)
         ]
-        return System(particles, self.constraints, self.effects, self.parameters, self.name)
+        copy = System(particles, self.constraints, self.effects, self.parameters, self.name)
+        copy.events = list(self.events)
+        return copy
 
     def size(self) -> float:
         """A length scale: the largest of |x_i| and |x_i - x_j| at the start (1 m if all zero)."""

@@ -1,0 +1,225 @@
+"""One-sided constraints: release, free flight, impacts, rest, against closed forms.
+
+Derivations (m the mass, g gravity, R the sphere's or L the string's length):
+
+* bead on a smooth sphere from angle θ0 (from the top) with speed v0: energy gives
+  v² = v0² + 2gR(cos θ0 − cos θ); the normal force N = m(g cos θ − v²/R) vanishes when
+  g R cos θ = v0² + 2gR cos θ0 − 2gR cos θ, i.e. cos θ* = (2/3) cos θ0 + v0²/(3gR).
+  From rest at the top: cos θ* = 2/3. Then free flight: a parabola.
+* ball whirled in a vertical circle from the bottom with speed v0 (angle α from the bottom):
+  v² = v0² − 2gL(1 − cos α), tension T = m v²/L + m g cos α = 0 at
+  cos α* = (2gL − v0²)/(3gL). Then a parabola until |x| = L again; with restitution 0 the
+  string removes the radial velocity: v⁺ = v⁻ − (v⁻·n) n, impulse m|v⁻·n|, energy lost
+  m (v⁻·n)²/2.
+* ball dropped from height h onto a plane with restitution e: first impact at
+  t1 = √(2h/g) with speed u1 = g t1; the k-th rebound speed is e^k u1, so the k-th rebound
+  height is h e^(2k) and the impacts are at t_(k+1) = t_k + 2 e^k u1/g (a geometric series,
+  at rest at t∞ = t1 + 2 e u1 / (g (1 − e))).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from constrained import System
+from constrained.constraints import Distance, Plane, Surface
+from constrained.effects import Gravity
+from constrained.errors import InputError
+from constrained.simulate import simulate
+from constrained.system import Particle
+
+G = 9.81
+TIGHT = {"rtol": 1e-12, "atol": 1e-12}
+
+
+def bead_on_sphere(theta0, v0, R=1.0, **kw):
+    """A bead outside a sphere of radius R in the plane z = 0, at angle θ0 from the top,
+    moving along the sphere with speed v0."""
+    pos = [R * np.sin(theta0), R * np.cos(theta0), 0.0]
+    vel = [v0 * np.cos(theta0), -v0 * np.sin(theta0), 0.0]
+    return System([Particle("p", 1.0, pos, vel)],
+                  [Surface("p", f"x**2 + y**2 + z**2 - {R}**2", unilateral=True, **kw),
+                   Plane("p", [0, 0, 1], 0)],
+                  [Gravity([0, -G, 0])])
+
+
+@pytest.mark.parametrize("theta0, v0, R", [(0.05, 0.0, 1.0), (0.3, 0.5, 1.0), (0.1, 1.2, 2.0)])
+def test_bead_leaves_the_sphere_where_the_normal_force_vanishes(theta0, v0, R):
+    traj = simulate(bead_on_sphere(theta0, v0, R), 2.0, **TIGHT)
+    releases = [e for e in traj.events if e.kind == "release"]
+    assert len(releases) == 1 and len(traj.events) == 1
+    cos_theta = releases[0].x[0, 1] / R
+    expected = 2 / 3 * np.cos(theta0) + v0**2 / (3 * G * R)
+    assert cos_theta == pytest.approx(expected, abs=1e-9)
+    # the release is where the multiplier changed sign: the bead was on the sphere until then
+    k = traj.t <= releases[0].t
+    assert np.all(traj.multipliers[k, 0] >= -1e-9) and np.all(traj.multipliers[~k, 0] == 0)
+    # then free flight: a parabola from the release state
+    t1, x1, v1 = releases[0].t, releases[0].x[0], releases[0].v[0]
+    after = traj.t > t1
+    dt = traj.t[after] - t1
+    parabola = x1 + np.outer(dt, v1) + 0.5 * np.outer(dt**2, [0, -G, 0])
+    assert np.max(np.abs(traj.x[after, 0] - parabola)) < 1e-8
+    # the DOF went from 1 (on the sphere, in the plane) to 2 (in the plane)
+    assert [s["dof"] for s in traj.info["segments"]] == [1, 2]
+
+
+def test_from_rest_at_the_top_the_bead_leaves_at_cos_two_thirds():
+    # exactly at the top it would balance there for ever: a hair off it, it leaves after
+    # θ = θ0 cosh(√(g/R) t) has grown to O(1), about 4 s
+    traj = simulate(bead_on_sphere(1e-5, 0.0), 6.0, **TIGHT)
+    # cos θ* = (2/3) cos θ0 = 2/3 to O(θ0²) = 1e-10
+    assert traj.events[0].kind == "release"
+    assert traj.events[0].x[0, 1] == pytest.approx(2 / 3, abs=1e-9)
+
+
+def whirled_string(v0, L=1.0):
+    return System([Particle("p", 1.0, [0, -L, 0], [v0, 0, 0])],
+                  [Distance("p", point=[0, 0, 0], length=L, unilateral=True, name="string"),
+                   Plane("p", [0, 0, 1], 0)],
+                  [Gravity([0, -G, 0])])
+
+
+@pytest.mark.parametrize("ratio", [3.2, 3.5, 4.4])
+def test_slack_string_then_parabola_then_taut_again(ratio):
+    L, m = 1.0, 1.0
+    v0 = np.sqrt(ratio * G * L)
+    traj = simulate(whirled_string(v0, L), 2.0, **TIGHT)
+    kinds = [e.kind for e in traj.events]
+    assert kinds[:2] == ["release", "impact"]
+    release, jerk = traj.events[:2]
+    assert release.constraint == "string"
+    # slack where the tension vanishes: the angle from the bottom
+    cos_alpha = -release.x[0, 1] / L
+    assert cos_alpha == pytest.approx((2 * G * L - v0**2) / (3 * G * L), abs=1e-9)
+    # the tension was ≥ 0 (λ ≤ 0) while taut
+    held = traj.t <= release.t
+    assert np.all(traj.multipliers[held, 0] <= 1e-9)
+    # the parabola from the release point meets the circle again: the closed-form instant
+    x1, v1 = release.x[0], release.v[0]
+
+    def radius_gap(s):
+        p = x1 + v1 * s + 0.5 * np.array([0, -G, 0]) * s**2
+        return p @ p - L**2
+
+    grid = np.linspace(1e-3, 5.0, 50001)
+    values = np.array([radius_gap(s) for s in grid])
+    first = np.flatnonzero(values >= 0)[0]
+    s_taut = brentq(radius_gap, grid[first - 1], grid[first], xtol=1e-15)
+    assert jerk.t - release.t == pytest.approx(s_taut, abs=1e-9)
+    p = x1 + v1 * s_taut + 0.5 * np.array([0, -G, 0]) * s_taut**2
+    v_minus = v1 + np.array([0, -G, 0]) * s_taut
+    n = p / L
+    radial = v_minus @ n
+    assert radial > 0  # it was flying outward when the string caught it
+    np.testing.assert_allclose(jerk.x[0], p, atol=1e-8)
+    np.testing.assert_allclose(jerk.v[0], v_minus - radial * n, atol=1e-8)
+    assert jerk.impulse == pytest.approx(m * radial, rel=1e-8)
+    assert jerk.energy_lost == pytest.approx(0.5 * m * radial**2, rel=1e-8)
+
+
+@pytest.mark.parametrize("e", [0.5, 0.8])
+def test_bouncing_ball_heights_and_impact_times(e):
+    h, m = 1.0, 2.0
+    ball = System([Particle("b", m, [0.3, h, 0], [0.2, 0, 0])],
+                  [Plane("b", [0, 1, 0], 0, unilateral=True, restitution=e, name="floor")],
+                  [Gravity([0, -G, 0])])
+    t1 = np.sqrt(2 * h / G)
+    u1 = G * t1
+    t_rest = t1 + 2 * e * u1 / (G * (1 - e))
+    traj = simulate(ball, t_rest + 0.5, **TIGHT)
+    impacts = [r for r in traj.events if r.kind == "impact"]
+    expected_t = t1 + np.concatenate([[0.0], np.cumsum(2 * u1 * e ** np.arange(1, 8) / G)])
+    got_t = np.array([r.t for r in impacts[:8]])
+    np.testing.assert_allclose(got_t, expected_t, atol=1e-9)
+    for k, r in enumerate(impacts[:8]):
+        rebound = r.v[0, 1]
+        assert rebound == pytest.approx(e ** (k + 1) * u1, rel=1e-8)
+        assert rebound**2 / (2 * G) == pytest.approx(h * e ** (2 * (k + 1)), rel=1e-8)  # heights
+        approach = e**k * u1
+        assert r.impulse == pytest.approx(m * (1 + e) * approach, rel=1e-8)
+        assert r.energy_lost == pytest.approx(0.5 * m * approach**2 * (1 - e**2), rel=1e-8)
+        assert r.v[0, 0] == pytest.approx(0.2)  # momentum along the floor is kept
+    # the rest rule: it settles (within round-off of the geometric series' sum) and then
+    # lies on the floor carrying its weight
+    assert traj.info["segments"][-1]["held"] == ["floor [b]"]
+    assert traj.info["segments"][-1]["t_start"] == pytest.approx(t_rest, abs=1e-6)
+    assert traj.x[-1, 0, 1] == pytest.approx(0.0, abs=1e-12)
+    assert traj.multipliers[-1, 0] == pytest.approx(m * G, rel=1e-9)
+
+
+def test_particle_in_a_bowl_never_leaves():
+    """Inside a spherical bowl below the rim the normal force m(v²/R + g cos φ) stays
+    positive: no event, and the same motion as with a two-sided constraint."""
+    R, v0 = 1.0, 2.0  # v0² < 2gR: stays below the equator
+
+    def bowl(unilateral):
+        return System([Particle("p", 1.0, [0, -R, 0], [v0, 0, 0.3])],
+                      [Surface("p", "1 - x**2 - y**2 - z**2", unilateral=unilateral)],
+                      [Gravity([0, -G, 0])])
+
+    one_sided = simulate(bowl(True), 3.0, t_eval=np.linspace(0, 3, 61), **TIGHT)
+    two_sided = simulate(bowl(False), 3.0, t_eval=np.linspace(0, 3, 61), **TIGHT)
+    assert one_sided.events == []
+    assert np.all(one_sided.multipliers[:, 0] > 0)
+    np.testing.assert_allclose(one_sided.x, two_sided.x, atol=1e-7)
+    assert np.max(one_sided.constraint_residual) < 1e-12
+
+
+def test_events_survive_save_and_load(tmp_path):
+    traj = simulate(whirled_string(np.sqrt(3.5 * G)), 1.5, **TIGHT)
+    from constrained.trajectory import Trajectory
+
+    back = Trajectory.load(traj.save(tmp_path / "t.npz"))
+    def summary(t):
+        return [(e.t, e.constraint, e.kind) for e in t.events]
+
+    assert summary(back) == summary(traj)
+    np.testing.assert_array_equal(back.events[1].v, traj.events[1].v)
+    assert back.events[1].impulse == traj.events[1].impulse
+
+
+def test_user_events_in_the_habits_of_solve_ivp():
+    """A falling particle crosses y = 0.5 at t = √(2 (h − 0.5)/g): recorded (not terminal)
+    or the run stops there (terminal), and direction filters the crossings."""
+    h = 1.0
+    fall = System([Particle("p", 1.0, [0, h, 0], [0, 0, 0])], [], [Gravity([0, -G, 0])])
+
+    def half(t, x, v):
+        return x[1] - 0.5
+
+    traj = simulate(fall, 1.0, events=half, **TIGHT)
+    assert [e.kind for e in traj.events] == ["half"]
+    assert traj.events[0].t == pytest.approx(np.sqrt(2 * (h - 0.5) / G), abs=1e-12)
+    assert traj.t[-1] == 1.0
+    half.terminal, half.direction = True, 1  # only rising crossings: none while falling
+    assert simulate(fall, 1.0, events=half, **TIGHT).events == []
+    half.direction = -1
+    stopped = simulate(fall, 1.0, events=half, **TIGHT)
+    assert stopped.t[-1] == pytest.approx(np.sqrt(2 * (h - 0.5) / G), abs=1e-12)
+    assert stopped.info["stop"] == "event" and stopped.info["stopped_by_event"] == "half"
+
+
+def test_start_on_the_forbidden_side_is_refused():
+    inside = System([Particle("p", 1.0, [0, 0.5, 0])],
+                    [Surface("p", "x**2 + y**2 + z**2 - 1", unilateral=True)], [Gravity([0, -G, 0])])
+    with pytest.raises(InputError, match="forbidden side"):
+        simulate(inside, 1.0)
+
+
+def test_other_methods_refuse_one_sided_constraints():
+    with pytest.raises(InputError, match="use method = \"projection\""):
+        simulate(bead_on_sphere(0.2, 0.0), 1.0, method="rattle")
+
+
+def test_pin_cannot_be_one_sided_and_restitution_needs_unilateral():
+    from constrained.constraints import Pin
+
+    with pytest.raises(InputError, match="no side"):
+        Pin("p", [0, 0, 0], unilateral=True)
+    with pytest.raises(InputError, match="add unilateral = true"):
+        Plane("p", [0, 1, 0], 0, restitution=0.5)
+    with pytest.raises(InputError, match="energy"):
+        Plane("p", [0, 1, 0], 0, unilateral=True, restitution=1.5)
