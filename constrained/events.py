@@ -155,3 +155,37 @@ def records_from(arrays: dict, meta: list) -> list[EventRecord]:
                         arrays["event_v"][k], float(arrays["event_impulse"][k]),
                         float(arrays["event_energy_lost"][k]), dict(m.get("extra", {})))
             for k, m in enumerate(meta)]
+
+
+#: Events listed one by one in a run's report (the rest are counted).
+REPORT_EVENTS = 20
+
+
+def report_lines(info: dict, records: list[EventRecord]) -> list[str]:
+    """The report's lines on a hybrid run: the held constraints' degrees of freedom over time,
+    the events, the energy lost in impacts and a stop at a user event ([] for other runs)."""
+    lines = []
+    spans = []  # (dof, t_start, t_end), consecutive segments of equal dof merged
+    for s in info.get("segments") or []:
+        if spans and spans[-1][0] == s["dof"]:
+            spans[-1][2] = s["t_end"]
+        else:
+            spans.append([s["dof"], s["t_start"], s["t_end"]])
+    if len(spans) > 1:
+        text = [f"{d} (t = {a:.6g} .. {b:.6g} s)" for d, a, b in spans[:8]]
+        more = f" … ({len(spans) - 8} more changes)" if len(spans) > 8 else ""
+        lines.append("degrees of freedom change as one-sided constraints release and hold: "
+                     + " → ".join(text) + more)
+    if records:
+        lines.append(f"events ({len(records)}):")
+        lines += [f"  {r.describe()}" for r in records[:REPORT_EVENTS]]
+        if len(records) > REPORT_EVENTS:
+            lines.append(f"  … and {len(records) - REPORT_EVENTS} more (trajectory.npz: event_t, "
+                         "event_x, event_v, event_impulse, event_energy_lost)")
+        impacts = [r for r in records if r.kind == "impact"]
+        if impacts:
+            lost = sum(r.energy_lost for r in impacts)
+            lines.append(f"kinetic energy lost in {len(impacts)} impact(s): {lost:.6g} J")
+    if info.get("stopped_by_event"):
+        lines.append(f"the run ended at the event '{info['stopped_by_event']}' (stop = true)")
+    return lines

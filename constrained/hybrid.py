@@ -110,7 +110,8 @@ def run_segment(manifold, x0, v0, t0: float, t_end: float, *, t_eval, events, rt
         hits += [EventHit(e, float(t), y[:n].copy(), y[n:].copy()) for t, y in zip(ts, ys, strict=True)]
     hits.sort(key=lambda h: h.t)
     failure = None if sol.status >= 0 else f"the integrator stopped: {sol.message}"
-    return sol.t, sol.y[:n].T, sol.y[n:].T, hits, failure
+    y = np.asarray(sol.y, float).reshape(2 * n, -1)  # no output time inside the segment: (2n, 0)
+    return np.asarray(sol.t, float), y[:n].T, y[n:].T, hits, failure
 # ---- end of the stand-in ---------------------------------------------------------------------
 
 
@@ -353,6 +354,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
         "segments": [{"t_start": t0, "t_end": t1, "held": [model.constraint_labels[k] for k in rows],
                       "dof": _dof(model, result, i0, rows)} for i0, _, rows, t0, t1 in result.segments],
     })
+    if traj.info["segments"]:  # the report's header: the start's degrees of freedom
+        traj.info["degrees_of_freedom"] = traj.info["segments"][0]["dof"]
     if result.stopped_by:
         traj.info["stopped_by_event"] = result.stopped_by
     if result.failure == "interrupted":

@@ -223,3 +223,61 @@ def test_pin_cannot_be_one_sided_and_restitution_needs_unilateral():
         Plane("p", [0, 1, 0], 0, restitution=0.5)
     with pytest.raises(InputError, match="energy"):
         Plane("p", [0, 1, 0], 0, unilateral=True, restitution=1.5)
+
+
+# --- scenes ------------------------------------------------------------------------------------
+BALL = """
+[[particles]]
+name = "b"
+mass = 1.0
+position = [0, 1, 0]
+[[constraints]]
+name = "floor"
+type = "plane"
+particles = ["b"]
+normal = [0, 1, 0]
+{constraint}
+[[effects]]
+type = "gravity"
+g = [0, -9.81, 0]
+[simulate]
+t_end = 1.0
+rtol = 1e-12
+atol = 1e-12
+{events}
+"""
+
+
+def ball_scene(tmp_path, constraint="unilateral = true", events=""):
+    from constrained.scene import load_scene
+
+    path = tmp_path / "ball.toml"
+    path.write_text(BALL.format(constraint=constraint, events=events))
+    return load_scene(path)
+
+
+def test_scene_keys_unilateral_restitution_and_events(tmp_path):
+    events = '[[events]]\nname = "half"\nexpr = "y_b - 0.5"\ndirection = "falling"\nstop = true'
+    scene = ball_scene(tmp_path, "unilateral = true\nrestitution = 0.5", events)
+    floor = scene.system.constraints[0]
+    assert floor.unilateral and floor.restitution == 0.5
+    traj, _ = scene.run()
+    assert [e.kind for e in traj.events] == ["half"]
+    assert traj.t[-1] == pytest.approx(np.sqrt(2 * 0.5 / G), abs=1e-12)
+
+
+@pytest.mark.parametrize("constraint, events, message", [
+    ("unilateral = 1", "", r"constraints\[0\].unilateral: must be true"),
+    ("unilateral = true\nrestitution = 2.0", "", "restitution.*from 0"),
+    ("restitution = 0.5", "", "add unilateral = true"),
+    ("unilateral = true\nelastic = true", "", "unknown key 'elastic'.*unilateral, restitution"),
+    ("", '[[events]]\nname = "e"\nexpr = "y_c"', "events\\[0\\].expr"),
+    ("", '[[events]]\nname = "e"\nexpr = "y_b"\ndirection = "up"', "rising"),
+    ("", '[[events]]\nname = "release"\nexpr = "y_b"', "taken"),
+    ("", '[[events]]\nexpr = "y_b"', "missing required key 'name'"),
+])
+def test_bad_one_sided_keys_are_refused_with_the_key_named(tmp_path, constraint, events, message):
+    from constrained.scene import SceneError
+
+    with pytest.raises(SceneError, match=message):
+        ball_scene(tmp_path, constraint, events)
