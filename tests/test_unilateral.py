@@ -281,3 +281,22 @@ def test_bad_one_sided_keys_are_refused_with_the_key_named(tmp_path, constraint,
 
     with pytest.raises(SceneError, match=message):
         ball_scene(tmp_path, constraint, events)
+
+
+def test_viewer_lists_the_events_and_jumps_to_them(tmp_path):
+    """The page of a bouncing ball lists its impacts; choosing the last moves the time there."""
+    import test_viewer
+
+    if test_viewer.CHROMIUM is None:
+        pytest.skip("no chromium on this machine (the viewer's browser tests run in CI)")
+    from constrained import viewer
+
+    ball = System([Particle("b", 1.0, [0, 1, 0])],
+                  [Plane("b", [0, 1, 0], 0, unilateral=True, restitution=0.5, name="floor")],
+                  [Gravity([0, -G, 0])])
+    traj = simulate(ball, 1.5, t_eval=np.linspace(0, 1.5, 301))
+    page = viewer.write_viewer(traj, tmp_path / "ball.html", system=ball, title="ball")
+    report = test_viewer.selftest(test_viewer.CHROMIUM, page)
+    assert report["errors"] == [], report
+    assert report["events"]["listed"] == len(traj.events) > 3
+    assert report["events"]["jumped_to"] == pytest.approx(traj.events[-1].t, abs=1e-9)
