@@ -300,3 +300,28 @@ def test_viewer_lists_the_events_and_jumps_to_them(tmp_path):
     assert report["errors"] == [], report
     assert report["events"]["listed"] == len(traj.events) > 3
     assert report["events"]["jumped_to"] == pytest.approx(traj.events[-1].t, abs=1e-9)
+
+
+@pytest.mark.parametrize("L", [0.3, 0.7])
+def test_statics_a_string_beside_a_spring_holds_only_when_taut(L):
+    """A mass on a spring (k, rest length 0) and a string of length L from the same anchor:
+    the spring alone would hang it at d = mg/k. Shorter string (L < mg/k): the string holds
+    at d = L with tension mg − kL. Longer: the string is slack, d = mg/k, multiplier 0."""
+    from constrained.effects import Spring
+    from constrained.statics import equilibrium, format_equilibrium
+
+    m, k = 1.0, 20.0
+    system = System([Particle("p", m, [0.0, -0.4, 0.0])],
+                    [Distance("p", point=[0, 0, 0], length=L, unilateral=True, name="string"),
+                     Plane("p", [0, 0, 1], 0), Plane("p", [1, 0, 0], 0)],
+                    [Gravity([0, -G, 0]), Spring("p", point=[0, 0, 0], k=k)])
+    eq = equilibrium(system)
+    if L < m * G / k:
+        assert eq.x[0, 1] == pytest.approx(-L, abs=1e-12)
+        assert -eq.multipliers[0] == pytest.approx(m * G - k * L, rel=1e-10)  # tension
+        assert eq.slack == []
+    else:
+        assert eq.x[0, 1] == pytest.approx(-m * G / k, abs=1e-12)
+        assert eq.multipliers[0] == 0 and eq.slack == ["string"]
+        assert "slack at the equilibrium" in format_equilibrium(eq)
+    assert eq.stable is True
