@@ -782,8 +782,11 @@ def _check(args) -> int:
 def _projection_preview(model, scene: Scene) -> str:
     """What the start-up projection of ``run`` would do to the initial state."""
     from .start import consistent_state
+    from .unilateral import has_one_sided, start_report
 
     sysm, s = scene.system, scene.settings
+    if has_one_sided(model):  # only the rows touching at the start are held: no projection onto all
+        return start_report(model, sysm.positions, s["t_start"], sysm.size(), s["max_initial_correction"])
     try:
         _, _, corr = consistent_state(
             model,

@@ -298,3 +298,19 @@ def statics_active_set(model: Model, x, t, multipliers_full, held, size: float):
     if violated:
         return "add", min(violated)[1]
     return None
+
+
+def start_report(model: Model, x, t: float, size: float, max_correction: float) -> str:
+    """``constrained check``'s line on the one-sided rows at the start: each touching or open
+    (with its gap), or the refusal a run would give."""
+    x = np.asarray(x, float).ravel()
+    try:
+        check_allowed_side(model, x, t, max_correction * size)
+    except InputError as exc:
+        return f"projection: FAILS, run would refuse this start: {exc}"
+    info = one_sided(model)
+    g = gaps(model, x, t) / scales(model, x, t)
+    touching = "touching (held while its force has the allowed sign)"
+    parts = [f"{model.constraint_labels[k]} " + (touching if g[k] <= 1e-8 * size else f"open (gap {g[k]:.3g} m)")
+             for k in info.rows]
+    return "one-sided constraints at the start: " + "; ".join(parts) + " (the two-sided ones are projected on)"

@@ -325,3 +325,63 @@ def test_statics_a_string_beside_a_spring_holds_only_when_taut(L):
         assert eq.multipliers[0] == 0 and eq.slack == ["string"]
         assert "slack at the equilibrium" in format_equilibrium(eq)
     assert eq.stable is True
+
+
+@pytest.mark.parametrize("e", [0.0, 0.6])
+def test_pendulum_hits_a_tilted_wall_keeping_its_rod(e):
+    """A bob on a rod (two-sided) swings into a wall through the pivot, tilted (normal
+    n ∝ (1, 0.3, 0)). The jump keeps the rod: v⁺ stays tangent, and the wall reverses its
+    normal part with factor e, so v⁺ = −e v⁻ whatever the tilt; energy lost ½ m u² (1 − e²)
+    with u² = 2gL (cos φ − cos θ0) at the wall's angle tan φ = 0.3."""
+    m, L, theta0 = 1.5, 1.0, 1.0
+    wall = Plane("p", [1.0, 0.3, 0.0], 0.0, unilateral=True, restitution=e, name="wall")
+    system = System([Particle("p", m, [L * np.sin(theta0), -L * np.cos(theta0), 0.0])],
+                    [Distance("p", point=[0, 0, 0], length=L, name="rod"), Plane("p", [0, 0, 1], 0), wall],
+                    [Gravity([0, -G, 0])])
+    traj = simulate(system, 1.0, **TIGHT)
+    hit = traj.events[0]
+    assert hit.kind == "impact" and hit.constraint == "wall [p]"
+    phi = np.arctan(0.3)
+    np.testing.assert_allclose(hit.x[0], [L * np.sin(phi), -L * np.cos(phi), 0.0], atol=1e-9)
+    u = np.sqrt(2 * G * L * (np.cos(phi) - np.cos(theta0)))
+    tangent = np.array([np.cos(phi), np.sin(phi), 0.0])
+    np.testing.assert_allclose(hit.v[0], e * u * tangent, atol=1e-8)  # was −u·tangent
+    assert hit.energy_lost == pytest.approx(0.5 * m * u**2 * (1 - e**2), rel=1e-8)
+    assert abs(hit.x[0] @ hit.v[0]) < 1e-9  # the rod still holds: no radial velocity
+
+
+def test_string_between_two_particles_jerks_taut_keeping_momentum():
+    """Two free particles on a slack string of length L fly apart: when it jerks taut (e = 0)
+    the momentum is kept and the relative velocity along the string is removed."""
+    m1, m2, L = 1.0, 3.0, 1.0
+    system = System([Particle("a", m1, [0, 0, 0], [-1.0, 0.4, 0.0]),
+                     Particle("b", m2, [0.5, 0, 0], [0.5, 0.0, 0.2])],
+                    [Distance("a", "b", length=L, unilateral=True)])
+    traj = simulate(system, 2.0, **TIGHT)
+    assert [e.kind for e in traj.events][:1] == ["impact"]
+    jerk = traj.events[0]
+    p0 = m1 * np.array([-1.0, 0.4, 0.0]) + m2 * np.array([0.5, 0.0, 0.2])
+    np.testing.assert_allclose(m1 * jerk.v[0] + m2 * jerk.v[1], p0, atol=1e-10)
+    d = jerk.x[1] - jerk.x[0]
+    assert np.linalg.norm(d) == pytest.approx(L, abs=1e-12)
+    n = d / L
+    assert (jerk.v[1] - jerk.v[0]) @ n == pytest.approx(0.0, abs=1e-10)
+    # closed form of the free flight: the gap closes at |d0 + w t| = L, w the relative velocity
+    d0, w = np.array([0.5, 0, 0]), np.array([1.5, -0.4, 0.2])
+    t_taut = (-(d0 @ w) + np.sqrt((d0 @ w) ** 2 - (w @ w) * (d0 @ d0 - L**2))) / (w @ w)
+    assert jerk.t == pytest.approx(t_taut, abs=1e-10)
+    mu = m1 * m2 / (m1 + m2)
+    assert jerk.energy_lost == pytest.approx(0.5 * mu * (w @ (d0 + w * t_taut) / L) ** 2, rel=1e-8)
+
+
+def test_check_verb_reports_one_sided_rows_at_the_start(tmp_path, capsys):
+    from constrained.cli import main
+
+    scene = tmp_path / "ball.toml"
+    scene.write_text(BALL.format(constraint="unilateral = true", events=""))
+    assert main(["check", str(scene)]) == 0
+    assert "floor [b] open (gap 1 m)" in capsys.readouterr().out
+    below = BALL.format(constraint="unilateral = true", events="").replace("[0, 1, 0]\n[[c", "[0, -1, 0]\n[[c")
+    scene.write_text(below)
+    assert main(["check", str(scene)]) == 2
+    assert "forbidden side" in capsys.readouterr().err
