@@ -310,7 +310,10 @@ def start_report(model: Model, x, t: float, size: float, max_correction: float) 
         return f"projection: FAILS, run would refuse this start: {exc}"
     info = one_sided(model)
     g = gaps(model, x, t) / scales(model, x, t)
-    touching = "touching (held while its force has the allowed sign)"
-    parts = [f"{model.constraint_labels[k]} " + (touching if g[k] <= 1e-8 * size else f"open (gap {g[k]:.3g} m)")
-             for k in info.rows]
-    return "one-sided constraints at the start: " + "; ".join(parts) + " (the two-sided ones are projected on)"
+    parts = []
+    for k in info.rows:
+        state = ("touching (held while its force has the allowed sign)" if g[k] <= 1e-8 * size
+                 else f"open (gap {g[k]:.3g} m)")
+        parts.append(f"{model.constraint_labels[k]} {state}")
+    return ("one-sided constraints at the start: " + "; ".join(parts)
+            + " (the two-sided ones are projected on)")

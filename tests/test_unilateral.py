@@ -381,7 +381,8 @@ def test_check_verb_reports_one_sided_rows_at_the_start(tmp_path, capsys):
     scene.write_text(BALL.format(constraint="unilateral = true", events=""))
     assert main(["check", str(scene)]) == 0
     assert "floor [b] open (gap 1 m)" in capsys.readouterr().out
-    below = BALL.format(constraint="unilateral = true", events="").replace("[0, 1, 0]\n[[c", "[0, -1, 0]\n[[c")
+    below = BALL.format(constraint="unilateral = true", events="")
+    below = below.replace("[0, 1, 0]\n[[c", "[0, -1, 0]\n[[c")
     scene.write_text(below)
     assert main(["check", str(scene)]) == 2
     assert "forbidden side" in capsys.readouterr().err
