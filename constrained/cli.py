@@ -17,7 +17,6 @@ from pathlib import Path
 
 from ._version import __version__
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
-from .events import report_lines
 
 
 class _LazyNumpy:
@@ -572,6 +571,8 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
     if tr.stats:
         stats = ", ".join(f"{k} {_fmt_value(v)}" for k, v in tr.stats.items() if np.isscalar(v))
         lines.append(f"solver: {stats}")
+    from .events import report_lines
+
     lines += report_lines(tr.info, tr.events)
     if tr.energy is not None and len(tr.energy):
         drift = float(np.max(np.abs(tr.energy - tr.energy[0])))

@@ -18,7 +18,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
-import casadi as ca
 import numpy as np
 
 from .errors import InputError
@@ -97,6 +96,8 @@ class FormulaEvent:
 
     def event(self, symbols) -> Event:
         """The Event of this formula for a system's Symbols (parsed into CasADi, never eval)."""
+        import casadi as ca  # here: a Trajectory (which imports this module) stays light to load
+
         g = symbols.parse(self.expr, f"{self.where or 'events'}.expr", velocities=True)
         function = ca.Function(f"event_{self.name}", [symbols.t, symbols.x, symbols.v], [g])
 

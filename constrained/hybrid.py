@@ -32,6 +32,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from . import interrupt
+from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
 from .events import Event, EventRecord, as_events
 from .model import Model
@@ -341,6 +342,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
              "steps": max(len(result.t) - 1, 0), "wall_time_s": wall, "build_time_s": build_time,
              "method": method}
     traj = trajectory_quantities(model, result, wanted, stats)
+    if "action" in wanted and len(traj.t) >= 2:
+        traj.action = action(model, traj).cumulative
     reached = float(traj.t[-1]) if len(traj.t) else t_start
     traj.info.update({
         "initial_correction": {"position": correction},

@@ -140,7 +140,8 @@ class Trajectory:
         have = [k for k in QUANTITIES if getattr(self, k) is not None]
         return (
             f"Trajectory({len(self.t)} samples, t = {self.t[0]:g}..{self.t[-1]:g} s, "
-            f"{self.n_particles} particles, with {', '.join(have) or 'positions only'})"
+            f"{self.n_particles} particles, with {', '.join(have) or 'positions only'}"
+            + (f", {len(self.events)} events" if self.events else "") + ")"
         )
 
 
