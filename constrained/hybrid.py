@@ -33,7 +33,7 @@ from scipy.integrate import solve_ivp
 
 from . import interrupt
 from .action import action
-from .errors import InputError, RunInterrupted, SimulationError
+from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .events import Event, EventRecord, as_events
 from .model import Model
 from .quantities import constraint_forces_along, trajectory_from
@@ -177,7 +177,8 @@ class _Watch:
 
 
 def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8, atol=1e-10,
-        base="DOP853", user_events=(), rest_speed=None, max_events=MAX_EVENTS, size=1.0) -> HybridRun:
+        base="DOP853", user_events=(), rest_speed=None, max_events=MAX_EVENTS, size=1.0,
+        max_correction=np.inf) -> HybridRun:
     """Segments between events from a consistent-enough (x0, v0) at t0 to t_end (module doc)."""
     info = one_sided(model)
     rest = REST_SPEED_PER_ATOL * atol if rest_speed is None else float(rest_speed)
@@ -194,7 +195,9 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     # the start: one-sided rows touching (within `touch`) are candidates, as at a contact
     g = gaps(model, x, t) / scales(model, x, t)
     rows = [k for k in range(model.n_constraints) if k not in info.rows or g[k] <= touch]
-    x, v, _ = ActiveSet(model, rows).project(x, v, t, tol)
+    x_given = x
+    x, v, err = ActiveSet(model, rows).project(x, v, t, tol)
+    _check_start(model, x_given, x, t, rows, err, size, max_correction)
     touching = [k for k in info.rows if k in rows]
     rows = [k for k in rows if k not in touching]
     active, x, v = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True)
@@ -254,6 +257,26 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     n3 = model.n_coordinates
     return HybridRun(np.array(T), np.array(X).reshape(-1, n3), np.array(V).reshape(-1, n3), segments,
                      records, failure, stopped_by, nfev)
+
+
+def _check_start(model: Model, x_given, x, t, rows, err, size, max_correction) -> None:
+    """Refuse a start that the held rows cannot reach, or only by moving a particle more than
+    ``max_correction × size`` (as ``start.consistent_start`` does for two-sided runs)."""
+    moved = float(np.max(np.linalg.norm((x - x_given).reshape(-1, 3), axis=1), initial=0.0))
+    f = np.abs(gaps(model, x_given, t)) / scales(model, x_given, t)
+    worst = max(rows, key=lambda k: f[k]) if rows else None
+    label = model.constraint_labels[worst] if worst is not None else ""
+    if not np.isfinite(err) or err > 1e-8 * size:
+        raise InconsistentStateError(
+            f"the constraints cannot all be satisfied near the initial state: constraint '{label}' "
+            f"is violated by {f[worst]:.3g} m at the start and the projection does not reach it; check "
+            "that the constraints are compatible (lengths, anchors)")
+    if moved > max_correction * size:
+        raise InconsistentStateError(
+            f"the initial positions are too far from the constraints: constraint '{label}' is violated "
+            f"by {f[worst]:.3g} m at t = {t:g}, and the nearest consistent state moves a particle by "
+            f"{moved:.3g} m, more than the allowed {max_correction:g} × system size {size:.3g} m. "
+            "Correct the positions, or raise simulate.max_initial_correction")
 
 
 def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_start=False):
@@ -334,7 +357,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
     started = time.perf_counter()
     with interrupt.watch():
         result = run(model, x0, v0, t_start, t_end, t_eval=t_eval, rtol=rtol, atol=atol, base=base,
-                     user_events=events, rest_speed=rest_speed, max_events=max_events, size=size)
+                     user_events=events, rest_speed=rest_speed, max_events=max_events, size=size,
+                     max_correction=max_initial_correction)
     wall = time.perf_counter() - started
     correction = float(np.max(np.linalg.norm((result.x[0] - x0).reshape(-1, 3), axis=1), initial=0.0)) \
         if len(result.t) else 0.0

@@ -386,3 +386,13 @@ def test_check_verb_reports_one_sided_rows_at_the_start(tmp_path, capsys):
     scene.write_text(below)
     assert main(["check", str(scene)]) == 2
     assert "forbidden side" in capsys.readouterr().err
+
+
+def test_a_start_far_from_the_two_sided_constraints_is_refused():
+    from constrained.errors import InconsistentStateError
+
+    far = System([Particle("p", 1.0, [0.0, -1.5, 0.0])],
+                 [Distance("p", point=[0, 0, 0], length=1.0), Plane("p", [0, 1, 0], -3.0, unilateral=True)],
+                 [Gravity([0, -G, 0])])
+    with pytest.raises(InconsistentStateError, match="too far from the constraints.*distance"):
+        simulate(far, 1.0)
