@@ -84,6 +84,10 @@ class EventHit:
     v: np.ndarray
 
 
+class _Interrupted(Exception):
+    """Ctrl-C inside a segment."""
+
+
 # ---- THE STAND-IN for solvers/driver.integrate: swap this one function when the driver lands ----
 def run_segment(manifold, x0, v0, t0: float, t_end: float, *, t_eval, events, rtol: float, atol: float,
                 base: str = "DOP853"):
@@ -95,6 +99,8 @@ def run_segment(manifold, x0, v0, t0: float, t_end: float, *, t_eval, events, rt
     n = len(x0)
 
     def rhs(t, y):
+        if interrupt.requested():  # Ctrl-C: the segment under way is dropped, the earlier ones kept
+            raise _Interrupted
         a, _ = manifold.accelerations(y[:n], y[n:], t)
         return np.concatenate([y[n:], a])
 
@@ -104,8 +110,12 @@ def run_segment(manifold, x0, v0, t0: float, t_end: float, *, t_eval, events, rt
             return _e.function(t, y[:n], y[n:])
         g.terminal, g.direction = e.terminal, e.direction
         wrapped.append(g)
-    sol = solve_ivp(rhs, (t0, t_end), np.concatenate([x0, v0]), method=base, t_eval=t_eval,
-                    events=wrapped or None, rtol=rtol, atol=atol)
+    try:
+        sol = solve_ivp(rhs, (t0, t_end), np.concatenate([x0, v0]), method=base, t_eval=t_eval,
+                        events=wrapped or None, rtol=rtol, atol=atol)
+    except _Interrupted:
+        empty = np.zeros((0, n))
+        return np.zeros(0), empty, empty, [], "interrupted"
     hits = []
     for e, ts, ys in zip(events, sol.t_events or [], sol.y_events or [], strict=False):
         hits += [EventHit(e, float(t), y[:n].copy(), y[n:].copy()) for t, y in zip(ts, ys, strict=True)]

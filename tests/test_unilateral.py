@@ -396,3 +396,41 @@ def test_a_start_far_from_the_two_sided_constraints_is_refused():
                  [Gravity([0, -G, 0])])
     with pytest.raises(InconsistentStateError, match="too far from the constraints.*distance"):
         simulate(far, 1.0)
+
+
+def test_ctrl_c_stops_a_hybrid_run_keeping_the_segments_done():
+    """Ctrl-C (SIGINT) during the flight after the bead left: the run stops with
+    RunInterrupted and keeps the segment on the sphere and its release."""
+    import os
+    import signal
+
+    from constrained.errors import RunInterrupted
+
+    sent = []
+
+    def press_ctrl_c(t, x, v):
+        if t > 1.0 and not sent:
+            sent.append(t)
+            os.kill(os.getpid(), signal.SIGINT)
+        return 1.0
+
+    with pytest.raises(RunInterrupted) as caught:
+        simulate(bead_on_sphere(0.3, 0.0), 3.0, events=press_ctrl_c, t_eval=np.linspace(0, 3, 301), **TIGHT)
+    kept = caught.value.trajectory
+    assert kept.info["status"] == "interrupted"
+    assert [e.kind for e in kept.events] == ["release"]
+    assert 0 < kept.t[-1] <= 1.0 + 1e-9 < 3.0
+
+
+def test_bead_leaves_a_sphere_in_3d_at_the_same_angle():
+    """Without the plane the speed may have any tangential direction: the normal force depends
+    on |v| only, so cos θ* = (2/3) cos θ0 + v0²/(3gR) still holds."""
+    R, theta0, v0 = 1.5, 0.4, 1.1
+    pos = [R * np.sin(theta0), R * np.cos(theta0), 0.0]
+    vel = [0.3 * v0 * np.cos(theta0), -0.3 * v0 * np.sin(theta0), np.sqrt(1 - 0.09) * v0]
+    system = System([Particle("p", 2.0, pos, vel)],
+                    [Surface("p", f"x**2 + y**2 + z**2 - {R}**2", unilateral=True)], [Gravity([0, -G, 0])])
+    traj = simulate(system, 3.0, **TIGHT)
+    assert [e.kind for e in traj.events] == ["release"]
+    expected = 2 / 3 * np.cos(theta0) + v0**2 / (3 * G * R)
+    assert traj.events[0].x[0, 1] / R == pytest.approx(expected, abs=1e-9)
