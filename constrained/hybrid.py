@@ -254,6 +254,7 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
         if kind == "release":
             record(t, model.constraint_labels[row], "release", x, v)
         closing = [row] if kind == "contact" else []
+        closing += _also_closing(model, x, v, t, active.rows, closing, touch)
         active, x, v = _transition(model, x, v, t, held, closing, rest, tol, record)
         if len(records) > max_events:
             counts = {}
@@ -267,6 +268,16 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     n3 = model.n_coordinates
     return HybridRun(np.array(T), np.array(X).reshape(-1, n3), np.array(V).reshape(-1, n3), segments,
                      records, failure, stopped_by, nfev)
+
+
+def _also_closing(model: Model, x, v, t, held, closing, touch) -> list[int]:
+    """Other free one-sided rows closing at the same instant (a ball into a corner): touching
+    (gap within ``touch``) and approaching."""
+    info = one_sided(model)
+    s = scales(model, x, t)
+    g = gaps(model, x, t) / s
+    c = info.side * constraint_velocities(model, x, v, t)
+    return [k for k in info.rows if k not in held and k not in closing and g[k] <= touch and c[k] < 0]
 
 
 def _check_start(model: Model, x_given, x, t, rows, err, size, max_correction) -> None:

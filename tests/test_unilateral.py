@@ -434,3 +434,17 @@ def test_bead_leaves_a_sphere_in_3d_at_the_same_angle():
     assert [e.kind for e in traj.events] == ["release"]
     expected = 2 / 3 * np.cos(theta0) + v0**2 / (3 * G * R)
     assert traj.events[0].x[0, 1] / R == pytest.approx(expected, abs=1e-9)
+
+
+def test_ball_into_a_corner_meets_both_walls_at_once():
+    """Thrown at 45° into the corner of two walls at x = 1 and y = 1 (no gravity) with e = 1,
+    it reaches both at once: one impact on each, and it comes straight back."""
+    system = System([Particle("b", 1.0, [0.0, 0.0, 0.0], [1.0, 1.0, 0.0])],
+                    [Plane("b", [-1, 0, 0], -1.0, unilateral=True, restitution=1.0, name="wall x"),
+                     Plane("b", [0, -1, 0], -1.0, unilateral=True, restitution=1.0, name="wall y")])
+    traj = simulate(system, 1.5, **TIGHT)
+    assert [e.kind for e in traj.events] == ["impact", "impact"]
+    assert {e.constraint for e in traj.events} == {"wall x [b]", "wall y [b]"}
+    assert traj.events[0].t == pytest.approx(1.0, abs=1e-12) and traj.events[1].t == traj.events[0].t
+    np.testing.assert_allclose(traj.events[-1].v[0], [-1.0, -1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(traj.x[-1, 0], [0.5, 0.5, 0.0], atol=1e-10)
