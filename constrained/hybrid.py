@@ -244,8 +244,13 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
         t = terminal.t
         x, v, _ = active.project(terminal.x, terminal.v, t, tol)
         kind, row = watch.kind(terminal.event)
-        if kind == "user":
+        if kind == "user":  # a stop: its state is the run's last sample (output grid or not)
             stopped_by = terminal.event.name
+            if not T or T[-1] < t:
+                T.append(t)
+                X.append(x)
+                V.append(v)
+                segments[-1] = (*segments[-1][:1], len(T), *segments[-1][2:])
             break
         if interrupt.requested():
             failure = "interrupted"

@@ -197,8 +197,10 @@ def test_user_events_in_the_habits_of_solve_ivp():
     half.terminal, half.direction = True, 1  # only rising crossings: none while falling
     assert simulate(fall, 1.0, events=half, **TIGHT).events == []
     half.direction = -1
-    stopped = simulate(fall, 1.0, events=half, **TIGHT)
-    assert stopped.t[-1] == pytest.approx(np.sqrt(2 * (h - 0.5) / G), abs=1e-12)
+    stopped = simulate(fall, 1.0, events=half, t_eval=np.linspace(0, 1, 11), **TIGHT)
+    assert stopped.t[-1] == pytest.approx(np.sqrt(2 * (h - 0.5) / G), abs=1e-12)  # the stop's state
+    assert stopped.x[-1, 0, 1] == pytest.approx(0.5, abs=1e-12)
+    np.testing.assert_array_equal(stopped.t[:-1], np.linspace(0, 1, 11)[:4])
     assert stopped.info["stop"] == "event" and stopped.info["stopped_by_event"] == "half"
 
 
