@@ -30,6 +30,7 @@ _LAZY = {
     **dict.fromkeys(("CrossCheck", "ReducedModel"), "reduced"),
     "cross_check": "crosscheck",
     "simulate": "simulate",
+    **dict.fromkeys(("Event", "EventHit", "Status"), "solvers.base"),
     **dict.fromkeys(("Equilibrium", "constraint_virtual_work_residual", "equilibrium",
                      "generalized_forces", "virtual_work"), "statics"),
     # the function: constrained.sweep.sweep (the module keeps its name)

@@ -1,110 +1,20 @@
-"""Events: user conditions watched during a run, and the records of what happened when.
+"""Event records: what a Trajectory keeps of each event of a run, and the report's lines.
 
-A user event is a function ``g(t, x, v)`` (x and v flat, 3N) whose zero crossings are
-located to round-off during a run, in the habits of ``scipy.integrate.solve_ivp``:
-``direction`` +1 keeps only rising crossings (g from − to +), −1 only falling ones, 0 both;
-``terminal`` ends the run at the crossing. ``Event`` carries the same fields as the driver's
-event hook; a plain callable with optional ``terminal`` / ``direction`` attributes is
-accepted too (solve_ivp's defaults then: not terminal, both directions). In a scene, an
-``[[events]]`` entry gives a formula in particle coordinates, velocities, t and parameters.
-
-An ``EventRecord`` is what a Trajectory keeps of one event: the time, the constraint (or the
-user event's name), the kind (``release``, ``contact``, ``impact`` or the user event's name),
-the state there, and for impacts the impulse and the kinetic energy lost.
+An ``EventRecord`` holds the time, the constraint (or the user event's name), the kind
+(``release``, ``contact``, ``impact`` or the user event's name), the state there, and for
+impacts the impulse and the kinetic energy lost. The events themselves (``Event``: a
+function g(t, x, v) whose crossings the driver locates to round-off) are solvers.base's; the
+user's come from constrained.user_events.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
-
 #: The kinds of events the one-sided constraints produce (user events are named by the user).
 CONSTRAINT_KINDS = ("release", "contact", "impact")
-
-#: Direction words of a scene's [[events]] entry.
-DIRECTIONS = {"rising": 1, "falling": -1, "both": 0}
-
-
-@dataclass(frozen=True)
-class Event:
-    """A condition g(t, x, v) = 0 to stop at or to record (fields as the driver's Event)."""
-
-    name: str
-    function: Callable[[float, np.ndarray, np.ndarray], float]
-    direction: int = 0
-    terminal: bool = True
-
-    def __post_init__(self):
-        if not isinstance(self.name, str) or not self.name:
-            raise InputError(f"an event needs a name (a non-empty string), got {self.name!r}")
-        if self.name in CONSTRAINT_KINDS:
-            raise InputError(f"the event name {self.name!r} is the name of a constraint event kind "
-                             f"({', '.join(CONSTRAINT_KINDS)}); choose another name")
-        if self.direction not in (-1, 0, 1) or isinstance(self.direction, bool):
-            raise InputError(f"event {self.name!r}: direction must be +1 (rising), -1 (falling) or 0 "
-                             f"(both), got {self.direction!r}")
-        if not callable(self.function):
-            raise InputError(f"event {self.name!r}: function must be callable as g(t, x, v)")
-        if not isinstance(self.terminal, bool):
-            raise InputError(f"event {self.name!r}: terminal must be true or false, got {self.terminal!r}")
-
-
-def as_events(events) -> list[Event]:
-    """``simulate(events=...)``: one Event or callable, or a list of them, as Events. A plain
-    callable takes solve_ivp's defaults (``terminal`` False, ``direction`` 0) unless it
-    carries those attributes; its name is its ``__name__``."""
-    if events is None:
-        return []
-    if isinstance(events, Event) or callable(events):
-        events = [events]
-    if not isinstance(events, Iterable) or isinstance(events, str):
-        raise InputError(f"events must be an Event, a callable g(t, x, v) or a list of them, got {events!r}")
-    out = []
-    for k, e in enumerate(events):
-        if isinstance(e, Event):
-            out.append(e)
-        elif callable(e):
-            terminal = getattr(e, "terminal", False)
-            direction = getattr(e, "direction", 0)
-            # solve_ivp's terminal may be a count; here: stop at the first crossing or never
-            out.append(Event(getattr(e, "__name__", None) or f"event {k}", e,
-                             int(np.sign(direction)), bool(terminal)))
-        else:
-            raise InputError(f"events[{k}] must be an Event or a callable g(t, x, v), got {e!r}")
-    names = [e.name for e in out]
-    twice = sorted({n for n in names if names.count(n) > 1})
-    if twice:
-        raise InputError(f"two events share the name(s) {', '.join(twice)}: give each its own name, "
-                         "the records tell them apart by it")
-    return out
-
-
-@dataclass(frozen=True)
-class FormulaEvent:
-    """A scene's ``[[events]]`` entry: ``expr`` (a formula in particle coordinates, velocities,
-    t and parameters) crossing zero, ``direction`` (+1, −1, 0), ``stop`` (terminal)."""
-
-    name: str
-    expr: str
-    direction: int = 0
-    stop: bool = False
-    where: str | None = None
-
-    def event(self, symbols) -> Event:
-        """The Event of this formula for a system's Symbols (parsed into CasADi, never eval)."""
-        import casadi as ca  # here: a Trajectory (which imports this module) stays light to load
-
-        g = symbols.parse(self.expr, f"{self.where or 'events'}.expr", velocities=True)
-        function = ca.Function(f"event_{self.name}", [symbols.t, symbols.x, symbols.v], [g])
-
-        def value(t, x, v, _f=function):
-            return float(_f(t, x, v))
-
-        return Event(self.name, value, self.direction, self.stop)
 
 
 @dataclass
@@ -187,6 +97,8 @@ def report_lines(info: dict, records: list[EventRecord]) -> list[str]:
         if impacts:
             lost = sum(r.energy_lost for r in impacts)
             lines.append(f"kinetic energy lost in {len(impacts)} impact(s): {lost:.6g} J")
-    if info.get("stopped_by_event"):
-        lines.append(f"the run ended at the event '{info['stopped_by_event']}' (stop = true)")
+    ended = records and info.get("stop") == "terminal event"
+    stopped = info.get("stopped_by_event") or (records[-1].kind if ended else None)
+    if stopped:
+        lines.append(f"the run ended at the event '{stopped}' (stop = true)")
     return lines

@@ -34,9 +34,10 @@ from scipy.integrate import solve_ivp
 from . import interrupt
 from .action import action
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
-from .events import Event, EventRecord, as_events
+from .events import EventRecord
 from .model import Model
 from .quantities import constraint_forces_along, trajectory_from
+from .solvers.base import Event, EventHit, Status
 from .trajectory import Trajectory
 from .unilateral import (
     ActiveSet,
@@ -72,16 +73,6 @@ def refuse_method(method: str, options: dict) -> str:
         raise InputError(f"base integrator '{base}' cannot run one-sided constraints or events; "
                          f"choose from {', '.join(SEGMENT_BASES)}")
     return base
-
-
-@dataclass(frozen=True)
-class EventHit:
-    """Where an event's function crossed zero (fields as the driver's EventHit)."""
-
-    event: Event
-    t: float
-    x: np.ndarray
-    v: np.ndarray
 
 
 class _Interrupted(Exception):
@@ -347,23 +338,6 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
 
 
 # ---- the run as simulate returns it --------------------------------------------------------------
-def user_events(system, events) -> list[Event]:
-    """The scene's [[events]] (``system.events``) and the ``events=`` given to simulate."""
-    out = []
-    formulas = getattr(system, "events", ()) or ()
-    if formulas:
-        from .symbols import Symbols
-
-        symbols = Symbols(system)
-        out = [f.event(symbols) for f in formulas]
-    out += as_events(events)
-    names = [e.name for e in out]
-    twice = sorted({n for n in names if names.count(n) > 1})
-    if twice:
-        raise InputError(f"two events share the name(s) {', '.join(twice)}: give each its own name")
-    return out
-
-
 def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, method: str, rtol: float,
                     atol: float, t_eval, wanted, events, max_initial_correction: float, build_time: float,
                     options: dict) -> Trajectory:
@@ -401,8 +375,9 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
         "active_terms": sorted(model.active_terms),
         "status": ("interrupted" if result.failure == "interrupted" else
                    "stopped" if result.failure else "completed"),
-        "stop": ("event" if result.stopped_by else "interrupted" if result.failure == "interrupted"
-                 else "failed" if result.failure else "completed"),
+        "stop": (Status.EVENT.value if result.stopped_by else
+                 Status.INTERRUPTED.value if result.failure == "interrupted" else
+                 "failed" if result.failure else Status.COMPLETED.value),
         "t_end": float(t_end), "t_end_reached": reached,
         "segments": [{"t_start": t0, "t_end": t1, "held": [model.constraint_labels[k] for k in rows],
                       "dof": _dof(model, result, i0, rows)} for i0, _, rows, t0, t1 in result.segments],

@@ -753,7 +753,8 @@ class _Builder:
 
     def events_section(self, system: System) -> list:
         """[[events]]: name, a formula crossing zero, direction, stop (constrained.events)."""
-        from .events import CONSTRAINT_KINDS, DIRECTIONS, FormulaEvent
+        from .events import CONSTRAINT_KINDS
+        from .user_events import DIRECTIONS, FormulaEvent
 
         s = Symbols(system)
         out, seen = [], {}

@@ -12,15 +12,17 @@ import numpy as np
 from . import diagnostics, hybrid, interrupt
 from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
+from .events import EventRecord
 from .manifold import built_once
 from .model import FastCall, Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
-from .solvers.base import Status
+from .solvers.base import Event, Status
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
 from .trajectory import QUANTITIES, Trajectory
 from .unilateral import has_one_sided
+from .user_events import user_events
 
 #: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
 INTERRUPTED_QUANTITY_SAMPLES = 5000
@@ -39,7 +41,7 @@ def simulate(
     outputs: Iterable[str] | None = None,
     max_initial_correction: float = 1e-3,
     model: Model | None = None,
-    events=None,
+    events: Iterable[Event] = (),
     **options,
 ) -> Trajectory:
     """Simulate ``system`` from ``t_start`` to ``t_end`` and return a Trajectory.
@@ -47,11 +49,11 @@ def simulate(
     ``method`` picks the solver (see ``constrained.solvers.METHODS``); ``outputs`` limits the
     derived quantities computed (default: all). The initial state is projected onto the
     constraints first; the correction is in ``trajectory.info["initial_correction"]``.
-
-    ``events``: an ``Event`` (constrained.events) or a callable ``g(t, x, v)``, or a list of
-    them, located to round-off (solve_ivp's habits). A system with one-sided constraints or
-    events runs in segments between events (constrained.hybrid); ``trajectory.events``
-    records what happened when.
+    ``events`` are ``Event(name, g(t, x, v), direction, terminal)`` (or plain callables, as for
+    solve_ivp; the scene's [[events]] are added): their zero crossings are located to round-off
+    and recorded in ``trajectory.events``; a terminal one ends the run there (``info["stop"]``
+    is then "terminal event"). A system with one-sided constraints runs in segments between
+    releases, contacts and impacts (constrained.hybrid).
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
@@ -82,11 +84,11 @@ def simulate(
     started = time.perf_counter()
     model = model or assemble(system)
     build_time = time.perf_counter() - started
-    watched = hybrid.user_events(system, events)
-    if watched or has_one_sided(model):
+    events = user_events(system, events)
+    if has_one_sided(model):
         return hybrid.simulate_hybrid(
             model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
-            wanted=wanted, events=watched, max_initial_correction=max_initial_correction,
+            wanted=wanted, events=events, max_initial_correction=max_initial_correction,
             build_time=build_time, options={"dt": dt, **options})
     start = consistent_start(
         model, system.positions, system.velocities, t_start,
@@ -101,11 +103,12 @@ def simulate(
         started = time.perf_counter()
         # Ctrl-C becomes a request the solver honours after its current step or chunk
         with interrupt.watch():
-            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval)
+            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval, events=events)
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
         interrupted = solution.status is Status.INTERRUPTED
+        ended_by_event = solution.status is Status.EVENT
         if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
             # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
             # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
@@ -124,12 +127,17 @@ def simulate(
             "rtol": rtol,
             "atol": atol,
             "active_terms": sorted(model.active_terms),
-            "status": "interrupted" if interrupted else ("stopped" if solution.failure else "completed"),
+            "status": "interrupted" if interrupted else ("stopped" if solution.failure and not ended_by_event
+                                                         else "completed"),
             "stop": solution.status.value,  # solvers.base.Status: how the run ended
             "t_end": float(t_end),
             "t_end_reached": reached,
+            "events": [{"t": hit.t, "name": hit.event.name, "x": hit.x, "v": hit.v}
+                       for hit in solution.events],
         }
     )
+    traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
+                               np.reshape(hit.v, (-1, 3))) for hit in solution.events]
     if interrupted:
         note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
                 f"{len(traj.t)} samples)" if skipped else "")
@@ -137,7 +145,8 @@ def simulate(
             traj.info["quantities_skipped"] = skipped
         raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
                              f"what was computed is kept{note}", trajectory=traj)
-    bad = None if solution.failure else _first_nonfinite(model, traj, wanted)
+    failure = None if ended_by_event else solution.failure
+    bad = None if failure else _first_nonfinite(model, traj, wanted)
     if bad is not None:
         what, k = bad
         state = (traj.x[k].ravel(), traj.v[k].ravel(), float(traj.t[k]))
@@ -148,13 +157,13 @@ def simulate(
             f"{diagnostics.nonfinite_cause(model, *state)}",
             trajectory=kept,
         )
-    if solution.failure:
-        cause = ("" if "likely cause" in solution.failure else
+    if failure:
+        cause = ("" if "likely cause" in failure else
                  _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         raise SimulationError(
-            f"the run stopped early: {solution.failure}; the last good state is at {last}{cause}",
+            f"the run stopped early: {failure}; the last good state is at {last}{cause}",
             trajectory=traj,
         )
     return traj

@@ -201,7 +201,7 @@ def test_user_events_in_the_habits_of_solve_ivp():
     assert stopped.t[-1] == pytest.approx(np.sqrt(2 * (h - 0.5) / G), abs=1e-12)  # the stop's state
     assert stopped.x[-1, 0, 1] == pytest.approx(0.5, abs=1e-12)
     np.testing.assert_array_equal(stopped.t[:-1], np.linspace(0, 1, 11)[:4])
-    assert stopped.info["stop"] == "event" and stopped.info["stopped_by_event"] == "half"
+    assert stopped.info["stop"] == "terminal event" and stopped.events[-1].kind == "half"
 
 
 def test_start_on_the_forbidden_side_is_refused():

@@ -1,10 +1,18 @@
-"""The solver contract: every method is a short class with the same ``run`` and counters.
+"""The solver contract: every method is a small stepper class; solvers/driver.py runs them.
 
 A Solver takes one run's Manifold (constrained.manifold: the immutable Model, the row set
-decided at the start, the KKT solve and projections, the run's counters) — never the scene —
-and a consistent start (x0, v0, t0), and returns a Solution: output times and states, plus
-counters in ``stats`` — ``steps``, ``nfev`` (right-hand sides), ``njev`` (constraint
-Jacobians), ``nlu`` (factorizations), ``projections``; methods that know it add ``rejected``.
+decided at the start, the KKT solve and projections, the run's counters) — never the scene.
+It implements
+
+    init(x0, v0, t0, t_end) -> state          a consistent start (also used for restarts)
+    step(state, t_stop) -> Advance            one or more accepted steps towards t_stop
+
+and makes no decisions: the driver (solvers/driver.py, THE time loop) owns output times,
+dense output, events, progress, Ctrl-C, the singular-configuration, stiffness and
+non-finite watches and the step limit, and returns a Solution: output times and states,
+the events met, plus counters in ``stats`` — ``steps``, ``nfev`` (right-hand sides),
+``njev`` (constraint Jacobians), ``nlu`` (factorizations), ``projections``; methods that
+know it add ``rejected``.
 
 Redundant constraint rows: the manifold holds an independent subset (``rows``); methods
 that build their own equations use ``self.rows`` (all rows when none is redundant), and the
@@ -14,6 +22,7 @@ multipliers of a run are always the minimum-norm ones over every row.
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,6 +45,7 @@ class Status(enum.Enum):
     STIFF = "stiff"
     STEP_LIMIT = "step limit"
     SOLVER_FAILED = "solver failed"
+    EVENT = "terminal event"
 
     @property
     def message(self) -> str:
@@ -52,6 +62,7 @@ _MESSAGES = {
     Status.STIFF: "the steps follow an oscillation far faster than the run (stiffness)",
     Status.STEP_LIMIT: "the run took more steps than allowed",
     Status.SOLVER_FAILED: "the integrator (SUNDIALS) stopped with an error",
+    Status.EVENT: "a terminal event was reached",
 }
 
 class Failure(str):
@@ -66,6 +77,70 @@ class Failure(str):
         return obj
 
 
+@dataclass(frozen=True)
+class Event:
+    """A function of the state whose zero crossings the driver locates (solve_ivp's habits).
+
+    ``function(t, x, v) -> g`` with flat x and v; ``direction`` +1 takes only rising
+    crossings (g from − to +), −1 only falling ones, 0 both; a ``terminal`` event ends the
+    run there (its state is the run's last sample).
+    """
+
+    name: str
+    function: Callable[[float, np.ndarray, np.ndarray], float]
+    direction: int = 0
+    terminal: bool = True
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise InputError(f"an event needs a name, got {self.name!r}")
+        if not callable(self.function):
+            raise InputError(f"event '{self.name}': function must be callable g(t, x, v)")
+        if self.direction not in (-1, 0, 1):
+            raise InputError(f"event '{self.name}': direction must be -1, 0 or 1, got {self.direction!r}")
+
+    def crossed(self, g_before: float, g_after: float) -> bool:
+        """Whether g went through zero between two samples in the allowed direction."""
+        rising = g_before < 0 <= g_after
+        falling = g_before > 0 >= g_after
+        return {1: rising, -1: falling, 0: rising or falling}[self.direction]
+
+
+@dataclass(frozen=True)
+class EventHit:
+    """An event located to round-off: the instant ``t`` and the state (x, v) there."""
+
+    event: Event
+    t: float
+    x: np.ndarray
+    v: np.ndarray
+
+
+@dataclass(frozen=True)
+class Advance:
+    """What one ``Solver.step`` call did: its accepted samples (times increasing, the last
+    one the new state) with accelerations ``a`` where the method has them (for the driver's
+    quintic Hermite dense output), an ``interpolant(t) -> (x, v)`` where the method has its
+    own (one step), the step size ``h`` proposed next, and — when the step failed — a status
+    and its sentence (the samples are then the good ones before the failure)."""
+
+    state: object
+    t: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    a: np.ndarray | None = None
+    interpolant: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = None
+    h: float | None = None
+    status: Status = Status.COMPLETED
+    message: str = ""
+
+    @classmethod
+    def empty(cls, state, n: int, status: Status = Status.COMPLETED, message: str = "") -> Advance:
+        """No accepted sample: the call failed before one (status, message), or it only
+        rearranged the stepper's work (COMPLETED: the driver calls again)."""
+        return cls(state, np.zeros(0), np.zeros((0, n)), np.zeros((0, n)), status=status, message=message)
+
+
 @dataclass
 class Solution:
     t: np.ndarray
@@ -73,6 +148,7 @@ class Solution:
     v: np.ndarray  # (T, 3N)
     stats: dict = field(default_factory=dict)
     failure: str | None = None  # why the run stopped early, if it did (a Failure)
+    events: list[EventHit] = field(default_factory=list)  # every event met, in time order
 
     @property
     def status(self) -> Status:
@@ -81,8 +157,17 @@ class Solution:
         return getattr(self.failure, "status", Status.SOLVER_FAILED)
 
 
+#: Options every method takes, honoured by the driver: a step limit (accepted plus rejected
+#: steps; default none) and the threshold of the singular-configuration watch (None or 0
+#: turns it off).
+DRIVER_OPTIONS = ("max_steps", "singular_tol")
+#: The run stops at a singular configuration when the rank-th singular value of the
+#: row-normalized J (rank: at the start) falls below ``singular_tol``.
+SINGULAR_TOL = 1e-4
+
+
 class Solver:
-    """Base class. Subclasses set ``name`` and implement ``run``."""
+    """Base class. Subclasses set ``name`` and implement ``init`` and ``step``."""
 
     name = ""
     adaptive = True
@@ -90,13 +175,23 @@ class Solver:
     #: (SUNDIALS' BDF and Adams) whose error follows the tolerance instead.
     order: int | None = None
     #: The method's own keyword options (besides rtol, atol, dt, compiled, progress): the
-    #: declaration the scene reader and run_options consult.
-    OPTIONS: tuple[str, ...] = ()
+    #: declaration the scene reader and run_options consult (DRIVER_OPTIONS included).
+    OPTIONS: tuple[str, ...] = DRIVER_OPTIONS
     #: The base integrators or tableaus ``base`` may name (methods that take one).
     BASES: tuple[str, ...] = ()
+    #: Whether ``step`` stops exactly at the t_stop it is given: the driver then passes the
+    #: output times as stops (and lands on event instants when refining them); otherwise
+    #: outputs come from the dense output between steps.
+    lands = True
+    #: Whether the driver refines an event instant by restarting the stepper at the sample
+    #: before and landing on candidate instants (else the dense output's root is taken).
+    refines_events = True
+    #: Whether the method is explicit (the driver then samples h·ρ(∂f/∂y) for stiffness).
+    explicit = False
 
     def __init__(self, manifold, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
-                 compiled="auto", progress=None, **options):
+                 compiled="auto", progress=None, max_steps: int | None = None,
+                 singular_tol: float | None = SINGULAR_TOL, **options):
         for key, value in (("rtol", rtol), ("atol", atol)):
             if not (isinstance(value, int | float) and np.isfinite(value) and 0 < value < 1):
                 raise InputError(f"{key} must be a number between 0 and 1, got {value!r}")
@@ -108,6 +203,12 @@ class Solver:
             )
         if compiled not in (True, False, "auto"):
             raise InputError(f"compiled must be true, false or \"auto\", got {compiled!r}")
+        if max_steps is not None and (isinstance(max_steps, bool) or not (isinstance(max_steps, int)
+                                                                           and max_steps > 0)):
+            raise InputError(f"max_steps must be a positive whole number, got {max_steps!r}")
+        if singular_tol is not None and not (isinstance(singular_tol, int | float)
+                                             and 0 <= singular_tol < 1):
+            raise InputError(f"singular_tol must be a number in [0, 1) or None, got {singular_tol!r}")
         if isinstance(manifold, Model):  # a bare Model: every row independent
             manifold = Manifold(manifold)
         #: This run's view of the constraints (row set, KKT solve, counters).
@@ -117,19 +218,52 @@ class Solver:
         self.rows: list[int] = (list(range(manifold.model.n_constraints)) if manifold.rows is None
                                 else list(manifold.rows))
         self.rtol, self.atol, self.dt = float(rtol), float(atol), dt
+        self.max_steps = max_steps
+        self.singular_tol = singular_tol
         #: The compiled-evaluation setting as given (see constrained.compiled).
         self.compiled_setting = compiled
         if progress is not None and not callable(progress):
             raise InputError(f"progress must be a function of the time reached, got {progress!r}")
-        self._progress = progress
+        self.progress = progress
         self.stats = {"steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "projections": 0}
-        self._stiffness: diagnostics.StiffnessWatch | None = None
 
-    def report(self, t: float) -> None:
-        """Tell the ``progress`` callback (if any) that the run has reached time ``t``."""
-        if self._progress is not None:
-            self._progress(float(t))
+    # --- the contract ---------------------------------------------------------------------
+    def prepare(self, t0: float, t_end: float, t_eval) -> None:
+        """Check the run's span and output times before anything is stepped (InputError)."""
 
+    def default_grid(self, t0: float, t_end: float) -> np.ndarray | None:
+        """Output times when the caller gives none: None means every accepted step."""
+        return None
+
+    def init(self, x0: np.ndarray, v0: np.ndarray, t0: float, t_end: float):
+        """The stepper's state at a consistent (x0, v0, t0), for a run (or a restart) to t_end."""
+        raise NotImplementedError
+
+    def step(self, state, t_stop: float) -> Advance:
+        """Advance towards t_stop (never past it) by one or more accepted steps."""
+        raise NotImplementedError
+
+    def output(self, t: float, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """An output sample taken from the dense output: projecting methods project it."""
+        return x, v
+
+    def derivative(self, t: float, y: np.ndarray) -> np.ndarray:
+        """(x', v') of the method's ODE, for the stiffness estimate of explicit methods."""
+        n = self.model.n_coordinates
+        return np.concatenate([y[n:], self.manifold.accelerations(y[:n], y[n:], t)[0]])
+
+    def stiffness_advice(self) -> tuple[str, str]:
+        """(what, advice) for the end-of-run stiffness warning of an explicit method."""
+        return f"method {self.name}", 'use method = "projection" with base = "Radau" or "CVODES_BDF"'
+
+    def diagnose(self, x, v, t) -> str:
+        """The likely cause of a stop, from the last good state (x, v, t)."""
+        return diagnostics.likely_cause(self.model, x, v, t, self.manifold)
+
+    def finish(self) -> None:
+        """Called once after the run (the method's final statistics)."""
+
+    # --- helpers --------------------------------------------------------------------------
     def counted(self) -> dict:
         """The run's statistics: the method's own counts, and the manifold's where larger
         (work done in the KKT solves and projections is counted there)."""
@@ -138,37 +272,10 @@ class Solver:
             stats[key] = max(int(stats.get(key, 0)), value)
         return stats
 
-    def watch_stiffness(self, x0, t0: float, t_end: float) -> None:
-        """Start watching the run for a stiff spring (diagnostics.StiffnessWatch)."""
-        self._stiffness = diagnostics.StiffnessWatch(self.model, x0, t0, t_end, method=self.name)
-
-    def too_stiff(self, t: float, steps: int, x=None) -> str | None:
-        """The ``failure`` that stops a run whose steps follow a stiff spring's oscillation
-        (after a few seconds of wall time, when t_end is far at that pace), else None."""
-        verdict = self._stiffness.check(t, steps, x) if self._stiffness is not None else None
-        if verdict is None:
-            return None
-        return Failure(Status.STIFF,
-            f"the steps follow a fast oscillation at t = {float(t):.6g} s; {verdict}")
-
-    def stiff_hint(self) -> str:
-        """For the end-of-run stiffness warning: the fastest spring and what to do about it."""
-        e = self._stiffness.fastest() if self._stiffness is not None else None
-        if e is None:
-            return ""
-        hint = f"; the fastest spring, '{e.label}' (effect {e.index}), has period {e.period:.3g} s"
-        return hint + (f": {e.constraint_advice()}" if e.rigid_like else "")
-
     @staticmethod
     def stop_requested() -> bool:
-        """Whether Ctrl-C asked the run to stop (see constrained.interrupt): loops ask after
-        every step or chunk, and stop there keeping what they computed."""
+        """Whether Ctrl-C asked the run to stop (see constrained.interrupt)."""
         return interrupt.requested()
-
-    @staticmethod
-    def interrupted_at(t: float) -> str:
-        """The ``failure`` of a run stopped by Ctrl-C after its last state, at time t."""
-        return Failure(Status.INTERRUPTED, f"{Status.INTERRUPTED.value} at t = {float(t):.6g} s")
 
     def require_independent_constraints(self, why: str) -> None:
         """Refuse a run whose constraint rows are dependent (``Manifold.redundant``)."""
@@ -177,6 +284,3 @@ class Solver:
                 f"method '{self.name}' needs independent constraints ({why} for redundant ones); "
                 "remove the implied constraints or use method 'projection'"
             )
-
-    def run(self, x0, v0, t0: float, t_end: float, t_eval=None) -> Solution:
-        raise NotImplementedError

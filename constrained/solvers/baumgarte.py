@@ -17,27 +17,26 @@ import numpy as np
 
 from ..errors import InputError
 from ..manifold import acceleration_graph
-from .base import Solution, Solver
-from .projection import SINGULAR_TOL, Projection
+from .base import DRIVER_OPTIONS, Advance
+from .driver import Stepper
+from .projection import EXPLICIT, Projection
 
 
-class Baumgarte(Solver):
+class Baumgarte(Stepper):
     """The stabilized acceleration (the manifold's ``acceleration_graph(feedback=...)``) stepped
     by projection's SciPy loop, composed with projections turned off."""
 
     name = "baumgarte"
-    OPTIONS = ("base", "alpha", "beta", "singular_tol")
+    OPTIONS = ("base", "alpha", "beta", *DRIVER_OPTIONS)
     BASES = ("DOP853", "RK45", "Radau")
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, alpha: float = 10.0,
-                 beta: float = 10.0, base: str = "DOP853", singular_tol=SINGULAR_TOL, compiled="auto",
-                 progress=None, **options):
+                 beta: float = 10.0, base: str = "DOP853", **options):
         if isinstance(base, str) and base.startswith("CVODES"):
             # the CVODES route integrates projection's equations, not the stabilized ones
             raise InputError(f"method 'baumgarte' steps in SciPy: base must be DOP853, RK45 or "
                              f"Radau, got {base!r} (for CVODES use method 'projection')")
-        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, compiled=compiled, progress=progress,
-                         **options)
+        super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
         for key, value in (("alpha", alpha), ("beta", beta)):
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
                 raise InputError(f"{key} must be a non-negative number (1/s), got {value!r}")
@@ -51,10 +50,12 @@ class Baumgarte(Solver):
                                     feedback=(self.alpha, self.beta))
         self._rhs = ca.Function("baumgarte_rhs", [T, ca.vertcat(X, V)], [ca.vertcat(V, acc)])
         self._loop = Projection(self.manifold, rtol=rtol, atol=atol, dt=dt, base=base,
-                                singular_tol=singular_tol, compiled=compiled, progress=progress,
                                 right_hand_side=self.derivative, project=False)
         self._loop.name = self.name  # its diagnoses speak of this method
+        self._loop.stats = self.stats  # one set of counters
         self.order = self._loop.order
+        self.lands = self._loop.lands
+        self.explicit = base in EXPLICIT
 
     def derivative(self, t, y):
         """(x', v') with the stabilized acceleration."""
@@ -62,5 +63,11 @@ class Baumgarte(Solver):
         self.manifold.counters.nlu += 1
         return self._rhs(t, y).full().ravel()
 
-    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
-        return self._loop.run(x0, v0, t0, t_end, t_eval)
+    def init(self, x0, v0, t0, t_end):
+        return self._loop.init(x0, v0, t0, t_end)
+
+    def step(self, state, t_stop) -> Advance:
+        return self._loop.step(state, t_stop)
+
+    def stiffness_advice(self) -> tuple[str, str]:
+        return f"baumgarte's explicit base {self._loop.base}", 'use base = "Radau"'

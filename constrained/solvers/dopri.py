@@ -33,7 +33,8 @@ from .. import diagnostics
 from ..errors import InputError
 from ..manifold import acceleration_function, per_model_cache, projection_graph, symbolic_acceleration
 from ..model import FastCall
-from .base import Failure, Solution, Solver, Status
+from .base import DRIVER_OPTIONS, Advance, Status
+from .driver import Stepper
 from .tableaus import TABLEAUS
 
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
@@ -63,13 +64,13 @@ def _slot(n: int, name: str) -> int:
 BASES = TABLEAUS
 
 
-class Dopri(Solver):
+class Dopri(Stepper):
     name = "dopri"
-    OPTIONS = ("base", "max_steps")
+    OPTIONS = ("base", *DRIVER_OPTIONS)
+    explicit = True
     BASES = tuple(BASES)
 
-    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853",
-                 max_steps: int = 10_000_000, **options):
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, base: str = "DOP853", **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
         model = self.model
         if base not in BASES:
@@ -77,14 +78,13 @@ class Dopri(Solver):
                              f"(choose from {', '.join(BASES)})")
         #: The tableau's order: the global error falls like h^order.
         self.order = BASES[base].order
-        if not (isinstance(max_steps, int) and max_steps > 0):
-            raise InputError(f"max_steps must be a positive whole number, got {max_steps!r}")
         self.tableau = BASES[base]
-        self.max_steps = max_steps
         self.compiled = compiled_evaluation.enabled(self.compiled_setting) and (
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
         )
         self._chunks = self._functions()  # the one-time cost, outside the run's wall time
+        self._longest = CHUNKS[-1]
+        self._scale = None
 
     # --- the step as a CasADi graph -------------------------------------------------------
     def _state_size(self) -> int:
@@ -179,7 +179,7 @@ class Dopri(Solver):
                 evaluation = "compiled"
         return evaluation, {k: FastCall(f) for k, f in chunks.items()}
 
-    # --- the driver -----------------------------------------------------------------------
+    # --- the stepper -----------------------------------------------------------------------
     def _initial_step(self, x0, v0, a0, t0, t_end) -> float:
         """Hairer's starting step (as SciPy's select_initial_step), from two evaluations."""
         if self.dt is not None:
@@ -200,110 +200,68 @@ class Dopri(Solver):
             h1 = (0.01 / max(d1, d2)) ** (1 / (order + 1))
         return min(100 * h0, h1, t_end - t0)
 
-    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
-        m = self.model
-        n = m.n_coordinates
-        chunks = self._chunks
+    def init(self, x0, v0, t0, t_end):
         a0, _ = self.manifold.accelerations(x0, v0, t0)
         h = self._initial_step(x0, v0, a0, t0, t_end)
-        targets = [t_end] if t_eval is None else [tk for tk in np.asarray(t_eval, float) if tk > t0]
-        every_step = t_eval is None
-        ts, xs, vs = [], [], []
-        if t_eval is None or (len(t_eval) and t_eval[0] <= t0):
-            ts.append(t0)
-            xs.append(np.asarray(x0, float))
-            vs.append(np.asarray(v0, float))
-        scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
-        start = {"t": t0, "h": h, "t_target": t0, "rtol": self.rtol, "atol": self.atol}
-        state = np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS]])
+        if self._scale is None:  # the run's scale, from its start (not a restart's)
+            self._scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
+        start = {"t": t0, "h": h, "t_target": t0, "rtol": self.rtol, "atol": self.atol,
+                 "n_acc": self.stats["steps"], "n_rej": self.stats.get("rejected", 0)}
+        return np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS]])
+
+    def step(self, state, t_stop) -> Advance:
+        """One call of the chained steps (CHUNKS) towards t_stop: its accepted columns."""
+        m = self.model
+        n = m.n_coordinates
         T, H, N_ACC, N_REJ, RES, TARGET = (
             _slot(n, k) for k in ("t", "h", "n_acc", "n_rej", "res", "t_target"))
-        failure = None
-        # stiffness watch: h·ρ sampled every STIFFNESS_EVERY steps once a run is long enough to
-        # be judged (short runs pay nothing)
-        h_rho, rho_max, checked = [], 0.0, diagnostics.STIFFNESS_MIN_STEPS // 2
+        state = state.copy()
+        state[TARGET] = t_stop
+        expected = (t_stop - state[T]) / max(state[H], 1e-300) + 1
+        k = max(c for c in CHUNKS if c <= max(expected, 1) and c <= self._longest)
+        called = time.perf_counter()
+        (out,) = self._chunks[k](state)
+        if k > 1 and time.perf_counter() - called > CHUNK_SECONDS:
+            # Ctrl-C waits for the call: keep calls short on slow (large) models
+            self._longest = max(c for c in CHUNKS if c < k)
+        cols = out.reshape(k, -1)
+        finite = np.all(np.isfinite(cols), axis=1)
+        good = cols[:np.argmin(finite)] if not finite.all() else cols
+        t_prev, taken = state[T], []
+        for i, col in enumerate(good):
+            if col[T] > t_prev:
+                taken.append(i)
+                t_prev = col[T]
+        taken = good[taken]
+        new = good[-1] if len(good) else state
+        self.stats.update(steps=int(new[N_ACC]), rejected=int(new[N_REJ]))
+        samples = dict(t=taken[:, T], x=taken[:, :n], v=taken[:, n:2 * n], a=taken[:, 2 * n:3 * n],
+                       h=float(new[H]))
+        if not finite.all():
+            return Advance(new, **samples, status=Status.NON_FINITE,
+                           message=f"non-finite state after t = {new[T]:.6g} s; "
+                           + diagnostics.nonfinite_cause(m, new[:n], new[n:2 * n], new[T]))
+        if new[RES] > PROJECTION_FAIL * self._scale:
+            return Advance(state, samples["t"][:0], samples["x"][:0], samples["v"][:0],
+                           status=Status.PROJECTION_FAILED,
+                           message=(f"the state could not be kept on the constraints near "
+                                    f"t = {new[T]:.6g} s (residual {new[RES]:.3g} m before the last "
+                                    "Newton step): reduce rtol"))
+        if new[T] < t_stop and new[H] < 1e-14 * max(1.0, abs(new[T])):
+            return Advance(new, **samples, status=Status.STEP_SIZE_COLLAPSED,
+                           message=(f"the step size collapsed at t = {new[T]:.6g} s (h = {new[H]:.3g} s); "
+                                    + self.diagnose(new[:n], new[n:2 * n], new[T])))
+        return Advance(new, **samples)
 
-        def derivative(t, y):
-            return np.concatenate([y[n:], self.manifold.accelerations(y[:n], y[n:], t)[0]])
+    def stiffness_advice(self) -> tuple[str, str]:
+        return (f"dopri's explicit {self.tableau.name}",
+                'use method = "projection" with base = "Radau" or base = "CVODES_BDF"')
 
-        self.watch_stiffness(x0, t0, t_end)
-        longest = CHUNKS[-1]
-        try:
-            for target in targets:
-                state[TARGET] = target
-                while state[T] < target:
-                    if self.stop_requested():
-                        failure = self.interrupted_at(state[T])
-                        break
-                    failure = self.too_stiff(state[T], int(state[N_ACC]), state[:n])
-                    if failure:
-                        break
-                    expected = (target - state[T]) / max(state[H], 1e-300) + 1
-                    k = max(c for c in CHUNKS if c <= max(expected, 1) and c <= longest)
-                    before = state
-                    called = time.perf_counter()
-                    (out,) = chunks[k](state)
-                    if k > 1 and time.perf_counter() - called > CHUNK_SECONDS:
-                        # Ctrl-C waits for the call: keep calls short on slow (large) models
-                        longest = max(c for c in CHUNKS if c < k)
-                    cols = out.reshape(k, -1)
-                    state = cols[-1]
-                    if not np.all(np.isfinite(state)):
-                        ok = np.all(np.isfinite(cols), axis=1)
-                        last = cols[np.argmin(ok) - 1] if not ok[0] else before
-                        state = last
-                        failure = Failure(Status.NON_FINITE, (f"non-finite state after t = {last[T]:.6g} s; "
-                                   + diagnostics.nonfinite_cause(m, last[:n], last[n:2 * n], last[T])))
-                        break
-                    if state[RES] > PROJECTION_FAIL * scale:
-                        failure = Failure(Status.PROJECTION_FAILED,
-                            (f"the state could not be kept on the constraints near "
-                                   f"t = {state[T]:.6g} s (residual {state[RES]:.3g} m before the last "
-                                   "Newton step): reduce rtol"))
-                        break
-                    if every_step:
-                        t_prev = before[T]
-                        for col in cols:
-                            if col[T] > t_prev:
-                                ts.append(col[T])
-                                xs.append(col[:n])
-                                vs.append(col[n:2 * n])
-                                t_prev = col[T]
-                    if state[T] < target and state[H] < 1e-14 * max(1.0, abs(state[T])):
-                        failure = Failure(Status.STEP_SIZE_COLLAPSED,
-                            (f"the step size collapsed at t = {state[T]:.6g} s "
-                                   f"(h = {state[H]:.3g} s); "
-                                   + diagnostics.likely_cause(m, state[:n], state[n:2 * n], state[T],
-                                                            self.manifold)))
-                        break
-                    if state[N_ACC] + state[N_REJ] > self.max_steps:
-                        failure = Failure(Status.STEP_LIMIT,
-                            f"more than max_steps = {self.max_steps} steps before t = {target:.6g} s")
-                        break
-                    if state[N_ACC] - checked >= diagnostics.STIFFNESS_EVERY:
-                        checked = state[N_ACC]
-                        rho = diagnostics.spectral_radius(derivative, state[T], state[:2 * n])
-                        rho_max = max(rho_max, rho)
-                        h_rho.append(state[H] * rho)
-                    self.report(state[T])
-                if failure:
-                    break
-                if not every_step:
-                    ts.append(state[T])
-                    xs.append(state[:n])
-                    vs.append(state[n:2 * n])
-        except KeyboardInterrupt:
-            failure = self.interrupted_at(ts[-1] if ts else t0)
-        accepted, rejected = int(state[N_ACC]), int(state[N_REJ])
+    def finish(self) -> None:
+        accepted, rejected = self.stats["steps"], self.stats.get("rejected", 0)
         evals = self.tableau.stages  # per attempt: s − 1 stages plus the projected last one
         self.stats.update({
-            "steps": accepted, "rejected": rejected, "nfev": 2 + evals * (accepted + rejected),
-            "njev": 2 * (accepted + rejected), "nlu": (evals + 2) * (accepted + rejected),
-            "projections": accepted, "tableau": self.tableau.name,
+            "nfev": 2 + evals * (accepted + rejected), "njev": 2 * (accepted + rejected),
+            "nlu": (evals + 2) * (accepted + rejected), "projections": accepted,
+            "tableau": self.tableau.name,
         })
-        diagnostics.stiffness_verdict(
-            self.stats, h_rho, rho_max, what=f"dopri's explicit {self.tableau.name}", stacklevel=4,
-            advice='use method = "projection" with base = "Radau" or base = "CVODES_BDF"'
-            + self.stiff_hint())
-        return Solution(np.array(ts), np.array(xs).reshape(-1, n), np.array(vs).reshape(-1, n),
-                        self.counted(), failure)

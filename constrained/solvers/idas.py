@@ -18,31 +18,56 @@ drift. The algebraic variables are left out of the error test, as index-2 proble
 
 from __future__ import annotations
 
-from collections import deque
+import time
 
 import casadi as ca
 import numpy as np
 
 from .. import interrupt, residual
 from ..errors import InputError
-from .base import Failure, Solution, Solver, Status
+from .base import DRIVER_OPTIONS, Advance, Status
+from .driver import Stepper
 
-#: Output times integrated per IDAS call by pantelides: every restart builds an integrator and
-#: takes tiny first steps again (2.4x slower at 10 than in one call), while Ctrl-C reaches inside
-#: a call anyway (``interrupt.external``); 100 keeps a long run stoppable between calls too.
-SEGMENT_OUTPUTS = 100
+#: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
+#: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
+#: at 100), doubling while calls take under a quarter of CALL_SECONDS and halving above it, so
+#: progress, the watches and the step limit are honoured between calls, each call stays short
+#: for Ctrl-C, and a failing call is retried in halves (a failure loses one output interval).
+FIRST_CALL_OUTPUTS = 8
+CALL_SECONDS = 0.25
 #: Steps one IDAS call may take; a call that needs more is split into SPLIT parts.
 STEPS_PER_CALL = 20_000
 SPLIT = 10
 #: Factors on the first step tried when a restarted call fails at once (see ``run``).
 RESTART_STEPS = (1e-2, 1e2, 1e-4)
-#: IDAS failures that a stiff spring explains.
-STIFF_FAILURES = ("TOO_MUCH_WORK", "CONV_FAIL", "ERR_FAIL", "TOO_CLOSE")
 
 
-class _IdasBase(Solver):
+class CallSize:
+    """How many output times the next SUNDIALS call covers (see FIRST_CALL_OUTPUTS)."""
+
+    def __init__(self, fixed: int | None = None):
+        self.fixed, self.size = fixed, fixed or FIRST_CALL_OUTPUTS
+
+    def took(self, seconds: float) -> None:
+        if self.fixed:
+            return
+        if seconds < CALL_SECONDS / 4:
+            self.size *= 2
+        elif seconds > CALL_SECONDS:
+            self.size = max(1, self.size // 2)
+
+    def retry_smaller(self, covered: int, seconds: float) -> bool:
+        """After a failed call over ``covered`` times that took ``seconds``: whether to retry
+        it in halves (not when failing took long: a stiff run would pay that again)."""
+        if covered <= 1 or seconds > 4 * CALL_SECONDS:
+            return False
+        self.size = max(1, covered // 2)
+        return True
+
+
+class _IdasBase(Stepper):
     adaptive = True
-    OPTIONS = ("max_step",)
+    OPTIONS = ("max_step", *DRIVER_OPTIONS)
     project_outputs = False
     #: First step as a fraction of the run when no dt is given (None: IDAS chooses).
     first_step_fraction: float | None = None
@@ -62,124 +87,102 @@ class _IdasBase(Solver):
     def algebraic_guess(self, x, v, t):
         raise NotImplementedError
 
-    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
+    def prepare(self, t0, t_end, t_eval) -> None:
+        self._grid = np.asarray(t_eval, float) if t_eval is not None else self.default_grid(t0, t_end)
+
+    def default_grid(self, t0, t_end):
+        return np.linspace(t0, t_end, 201)
+
+    def init(self, x0, v0, t0, t_end):
+        m = self.model
+        if not hasattr(self, "row_scales"):  # the run's scales and DAE, from its start
+            # constraint rows divided by their scale at the start (constrained.residual), so IDAS
+            # sees the same equations and multipliers (in N) whatever scale a formula is written in
+            self.row_scales = residual.row_scales(m, x0, t0)
+            self._dae, _ = self.dae()
+            opts = {"abstol": self.atol, "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL,
+                    "calc_ic": True, "print_stats": False}
+            self._step0 = self.dt or (self.first_step_fraction * (t_end - t0) if self.first_step_fraction
+                                      else None)
+            if self._step0:
+                opts["step0"] = self._step0
+            if self.max_step:
+                opts["max_step_size"] = self.max_step
+            opts.update(self.extra_options())
+            self._opts = opts
+            self._scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
+            # projection tolerances in metres (constrained.residual): |f| ≤ tol × smallest row scale
+            self._tol_f = 1e-14 * residual.smallest_scale(m, x0, t0)
+            self._retries, self._pace, self._t0 = list(RESTART_STEPS), 0.0, t0
+        times = tuple(float(tk) for tk in self._grid if t0 < tk < t_end) + (float(t_end),)
+        # one IDAS call per output time (idas, projecting there) or per group of them (ggl,
+        # CallSize): Ctrl-C is honoured between calls, and inside one it loses only that call's
+        # part. A call that runs out of steps (STEPS_PER_CALL) is split at intermediate times
+        self._calls = CallSize(1 if self.project_outputs else None)
+        return (float(t0), np.concatenate([x0, v0]), self.algebraic_guess(x0, v0, t0), times)
+
+    def step(self, state, t_stop) -> Advance:
+        """One IDAS call over the next group of times (landing on each)."""
         m = self.model
         n3 = m.n_coordinates
-        # constraint rows divided by their scale at the start (constrained.residual), so IDAS
-        # sees the same equations and multipliers (in N) whatever scale a formula is written in
-        self.row_scales = residual.row_scales(m, x0, t0)
-        dae, nz = self.dae()
-        grid = np.asarray(t_eval, float) if t_eval is not None else np.linspace(t0, t_end, 201)
-        grid = grid[grid > t0]
-        opts = {"abstol": self.atol, "reltol": self.rtol, "max_num_steps": 1_000_000,
-                "calc_ic": True, "print_stats": False}
-        step0 = self.dt or (self.first_step_fraction * (t_end - t0) if self.first_step_fraction else None)
-        if step0:
-            opts["step0"] = step0
-        if self.max_step:
-            opts["max_step_size"] = self.max_step
-        opts.update(self.extra_options())
-        ts, xs, vs = [], [], []
-        if t_eval is None or (len(t_eval) and t_eval[0] == t0):
-            ts.append(t0)
-            xs.append(x0)
-            vs.append(v0)
-        state = np.concatenate([x0, v0])
-        z = self.algebraic_guess(x0, v0, t0)
-        failure = None
-        t_prev = t0
-        # one IDAS call per output time (idas, projecting there) or per group of them (ggl):
-        # Ctrl-C is honoured between calls, and inside one it loses only that call's part.
-        # A call that runs out of steps (STEPS_PER_CALL) is split at intermediate times (not
-        # outputs), so wall time is watched between calls and a stiff spring is named.
-        # ggl's index-2 corrector restarts badly at tight tolerances (a tiny first step, a
-        # 1/h² Newton matrix): one call for the whole grid, split only by the pace watch below
-        per_call = 1 if self.project_outputs else max(len(grid), 1)
-        queue = deque([(tk, True) for tk in grid[k:k + per_call]] for k in range(0, len(grid), per_call))
-        opts["max_num_steps"] = STEPS_PER_CALL
-        self.watch_stiffness(x0, t0, t_end)
-        scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
-        # projection tolerances in metres (constrained.residual): |f| ≤ tol × smallest row scale
-        tol_f = 1e-14 * residual.smallest_scale(m, x0, t0)
-        retries, pace = list(RESTART_STEPS), 0.0
-        while queue:
-            seg = queue.popleft()
+        t_prev, y, z, times = state
+        seg, rest = times[:self._calls.size], times[self._calls.size:]
+        pieces = int(np.ceil(self._pace * (seg[-1] - t_prev) / (STEPS_PER_CALL // 2)))
+        if pieces > 1 and len(seg) > 1:  # at the pace so far: fewer times in this call
+            self._calls.size = max(1, len(seg) // pieces)
+            return Advance.empty(state, n3)
+        if pieces > 1:  # one output interval too long for a call: split it at inner times
+            inner = tuple(float(tk) for tk in np.linspace(t_prev, seg[0], pieces + 1)[1:-1])
+            if inner:
+                return Advance.empty((t_prev, y, z, inner + times), n3)
+        opts = self._opts
+        a_prev, _ = self.manifold.accelerations(y[:n3], y[n3:], t_prev)
+        opts["init_xdot"] = np.concatenate([y[n3:], a_prev]).tolist()
+        integ = ca.integrator("dae", "idas", self._dae, t_prev, list(seg), opts)
+        called = time.perf_counter()
+        try:
+            with interrupt.external():
+                res = integ(x0=y, z0=z)
+        except RuntimeError as exc:
             if self.stop_requested():
-                failure = self.interrupted_at(t_prev)
-                break
-            failure = self.too_stiff(t_prev, self.stats["steps"], state[:n3])
-            if failure:
-                break
-            times = [tk for tk, _ in seg]
-            pieces = int(np.ceil(pace * (times[-1] - t_prev) / (STEPS_PER_CALL // 2)))
-            if pieces > 1:  # at the pace so far this call would run out of steps: split it first
-                inner = [(tk, False) for tk in np.linspace(t_prev, times[0], pieces + 1)[1:-1]]
-                if inner:
-                    queue.extendleft(reversed([[item] for item in inner] + [seg]))
-                    continue
-            a_prev, _ = self.manifold.accelerations(state[:n3], state[n3:], t_prev)
-            opts["init_xdot"] = np.concatenate([state[n3:], a_prev]).tolist()
-            integ = ca.integrator("dae", "idas", dae, t_prev, times, opts)
-            try:
-                with interrupt.external():
-                    res = integ(x0=state, z0=z)
-            except KeyboardInterrupt:
-                failure = self.interrupted_at(t_prev)
-                break
-            except RuntimeError as exc:
-                if self.stop_requested():
-                    failure = self.interrupted_at(t_prev)
-                    break
-                reason = str(exc).splitlines()[-1][:200]
-                span = times[0] - t_prev
-                if step0 and t_prev > t0 and "CONV_FAIL" in reason and retries:
-                    # ggl's index-2 corrector can fail on a restart's first step: the next
-                    # first step in RESTART_STEPS usually passes
-                    opts["step0"] = step0 * retries.pop(0)
-                    queue.appendleft(seg)
-                    continue
-                if "TOO_MUCH_WORK" in reason and span > 1e-9 * max(abs(t_end - t0), 1e-300):
-                    inner = [(tk, False) for tk in np.linspace(t_prev, times[0], SPLIT + 1)[1:-1]]
-                    queue.extendleft(reversed([[item] for item in inner] + [seg]))
-                    continue
-                failure = Failure(Status.SOLVER_FAILED, f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
-                element = self._stiffness.fastest(state[:n3], t_prev) if self._stiffness else None
-                if element is not None and any(k in reason for k in STIFF_FAILURES):
-                    failure += "; " + self._stiffness.describe(element, t_prev, self.stats["steps"])
-                break
-            if step0:
-                opts["step0"], retries = step0, list(RESTART_STEPS)
-            stats = integ.stats()
-            pace = int(stats.get("nsteps", 0)) / max(times[-1] - t_prev, 1e-300)  # steps per second
-            for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
-                              ("rejected", "netfails")):
-                self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
-            X = res["xf"].full()
-            for k, (tk, output) in enumerate(seg):
-                x, v = X[:n3, k], X[n3:, k]
-                if self.project_outputs:
-                    x = self.manifold.project_positions(x, tk, tol=tol_f * max(scale, np.max(np.abs(x)))).x
-                    v = self.manifold.project_velocities(x, v, tk)
-                    self.manifold.counters.projections += 1
-                if output:
-                    ts.append(tk)
-                    xs.append(x)
-                    vs.append(v)
-            t_prev = times[-1]
-            self.report(t_prev)
-            if not self.project_outputs and queue:
-                # the next call restarts IDAS, whose index-2 corrector (ggl) needs a start on
-                # both constraint levels to round-off: the restart point is projected
-                x = self.manifold.project_positions(x, t_prev, tol=tol_f * max(scale, np.max(np.abs(x)))).x
-                v = self.manifold.project_velocities(x, v, t_prev)
-            state = np.concatenate([x, v])
-            z = self.algebraic_guess(x, v, t_prev)
-        if failure and t_eval is None and t_prev > (ts[-1] if ts else -np.inf):
-            ts.append(t_prev)  # the state reached between two outputs is kept
-            xs.append(state[:n3])
-            vs.append(state[n3:])
-        return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                        self.counted(), failure)
+                raise KeyboardInterrupt from None
+            reason = str(exc).splitlines()[-1][:200]
+            if self._step0 and t_prev > self._t0 and "CONV_FAIL" in reason and self._retries:
+                # ggl's index-2 corrector can fail on a restart's first step: the next
+                # first step in RESTART_STEPS usually passes
+                opts["step0"] = self._step0 * self._retries.pop(0)
+                return Advance.empty(state, n3)
+            if self._calls.retry_smaller(len(seg), time.perf_counter() - called):
+                return Advance.empty(state, n3)
+            if "TOO_MUCH_WORK" in reason and seg[0] - t_prev > 1e-9 * max(abs(seg[-1]), 1e-300):
+                inner = tuple(float(tk) for tk in np.linspace(t_prev, seg[0], SPLIT + 1)[1:-1])
+                return Advance.empty((t_prev, y, z, inner + times), n3)
+            return Advance.empty(state, n3, Status.SOLVER_FAILED,
+                                 f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
+        self._calls.took(time.perf_counter() - called)
+        if self._step0:
+            opts["step0"], self._retries = self._step0, list(RESTART_STEPS)
+        stats = integ.stats()
+        self._pace = int(stats.get("nsteps", 0)) / max(seg[-1] - t_prev, 1e-300)  # steps per second
+        for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
+                          ("rejected", "netfails")):
+            self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
+        X = res["xf"].full()
+        xs, vs = [], []
+        for k, tk in enumerate(seg):
+            x, v = X[:n3, k], X[n3:, k]
+            if self.project_outputs or (k == len(seg) - 1 and rest):
+                # idas projects its outputs; ggl's next call restarts IDAS, whose index-2
+                # corrector needs a start on both constraint levels to round-off
+                tol = self._tol_f * max(self._scale, np.max(np.abs(x)))
+                x = self.manifold.project_positions(x, tk, tol=tol).x
+                v = self.manifold.project_velocities(x, v, tk)
+                self.manifold.counters.projections += 1
+            xs.append(x)
+            vs.append(v)
+        t_new = seg[-1]
+        new = (t_new, np.concatenate([xs[-1], vs[-1]]), self.algebraic_guess(xs[-1], vs[-1], t_new), rest)
+        return Advance(new, np.array(seg), np.array(xs), np.array(vs))
 
     def extra_options(self) -> dict:
         return {}
@@ -187,7 +190,7 @@ class _IdasBase(Solver):
 
 class Idas(_IdasBase):
     name = "idas"
-    OPTIONS = ("max_step", "project_outputs")
+    OPTIONS = ("max_step", "project_outputs", *DRIVER_OPTIONS)
     project_outputs = True
 
     def __init__(self, manifold, *, project_outputs: bool = True, **kwargs):

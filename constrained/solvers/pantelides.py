@@ -16,18 +16,21 @@ whichever succeeds. The invariants are not re-imposed: the drift is what IDAS le
 from __future__ import annotations
 
 import itertools
+import time
 
 import casadi as ca
 import numpy as np
 
 from .. import interrupt
 from ..errors import InputError
-from .base import Failure, Solution, Solver, Status
-from .idas import SEGMENT_OUTPUTS
+from .base import DRIVER_OPTIONS, Advance, Status
+from .driver import Stepper
+from .idas import CallSize
 
 
-class Pantelides(Solver):
+class Pantelides(Stepper):
     name = "pantelides"
+    OPTIONS = DRIVER_OPTIONS
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
@@ -57,51 +60,53 @@ class Pantelides(Solver):
         raise InputError(f"CasADi's structural index reduction failed for this system ({last}); "
                          "use method 'projection' or 'idas'")
 
-    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
-        m = self.model
-        n3, C = m.n_coordinates, len(self.rows)
+    def prepare(self, t0, t_end, t_eval) -> None:
+        self._grid = np.asarray(t_eval, float) if t_eval is not None else self.default_grid(t0, t_end)
+        self.stats.update(rejected=0, index=self.index)
+
+    def default_grid(self, t0, t_end):
+        return np.linspace(t0, t_end, 201)
+
+    def init(self, x0, v0, t0, t_end):
+        """Consistent values of the reduced DAE (CasADi's ``dae_init_gen``) at our start."""
+        n3, C = self.model.n_coordinates, len(self.rows)
         a0, lam0 = self.manifold.accelerations(x0, v0, t0)
         lam0 = lam0[self.rows]
-        force = ca.DM([-1.0] * (2 * n3))
-        init_gen = ca.dae_init_gen(self.dae, self.reduced, "ipopt",
-                                   {"x_impl": force, "dx_impl": force, "z": ca.DM([-1.0] * C)},
-                                   {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False})
+        if not hasattr(self, "_init_gen"):
+            force = ca.DM([-1.0] * (2 * n3))
+            self._init_gen = ca.dae_init_gen(
+                self.dae, self.reduced, "ipopt", {"x_impl": force, "dx_impl": force, "z": ca.DM([-1.0] * C)},
+                {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False})
         args = {"x_impl": np.concatenate([x0, v0]), "dx_impl": np.concatenate([v0, a0]), "z": lam0}
-        if "t" in init_gen.name_in():
+        if "t" in self._init_gen.name_in():
             args["t"] = t0
-        start = init_gen(**args)
-        grid = np.asarray(t_eval, float) if t_eval is not None else np.linspace(t0, t_end, 201)
-        out_grid = grid[grid > t0]
-        ts, xs, vs = ([t0], [x0], [v0]) if grid[0] <= t0 else ([], [], [])
-        failure = None
-        # one IDAS call per group of output times: Ctrl-C is honoured between the calls
-        state, z, t_prev = start["x0"], start["z0"], t0
-        self.stats.update(steps=0, nfev=0, nlu=0, rejected=0, index=self.index)
-        for k in range(0, len(out_grid), SEGMENT_OUTPUTS):
+        start = self._init_gen(**args)
+        times = tuple(float(tk) for tk in self._grid if t0 < tk < t_end) + (float(t_end),)
+        # one IDAS call per group of output times (idas.CallSize): the driver acts between calls
+        self._calls = CallSize()
+        return (float(t0), start["x0"], start["z0"], times)
+
+    def step(self, state, t_stop) -> Advance:
+        n3 = self.model.n_coordinates
+        t_prev, y, z, times = state
+        seg, rest = list(times[:self._calls.size]), times[self._calls.size:]
+        integ = ca.integrator("pantelides", "idas", self.semi_explicit, t_prev, seg, {
+            "abstol": self.atol, "reltol": self.rtol, "max_num_steps": 10_000_000})
+        called = time.perf_counter()
+        try:
+            with interrupt.external():
+                sol = integ(x0=y, z0=z)
+        except RuntimeError as exc:
             if self.stop_requested():
-                failure = self.interrupted_at(t_prev)
-                break
-            seg = list(out_grid[k:k + SEGMENT_OUTPUTS])
-            integ = ca.integrator("pantelides", "idas", self.semi_explicit, t_prev, seg, {
-                "abstol": self.atol, "reltol": self.rtol, "max_num_steps": 10_000_000})
-            try:
-                with interrupt.external():
-                    sol = integ(x0=state, z0=z)
-            except (RuntimeError, KeyboardInterrupt) as exc:
-                failure = (self.interrupted_at(t_prev) if self.stop_requested() or
-                           isinstance(exc, KeyboardInterrupt) else
-                           Failure(Status.SOLVER_FAILED, f"IDAS stopped after t = {t_prev:.6g} s "
-                                                         f"({str(exc).splitlines()[-1][:200]})"))
-                break
-            stats = integ.stats()
-            for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
-                              ("rejected", "netfails")):
-                self.stats[key] += int(stats.get(skey, 0))
-            X = np.asarray(self.to_original(xf=sol["xf"], zf=sol["zf"])["x_impl"])
-            ts += seg
-            xs += list(X[:n3].T)
-            vs += list(X[n3:].T)
-            state, z, t_prev = sol["xf"][:, -1], sol["zf"][:, -1], seg[-1]
-            self.report(t_prev)
-        return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                        self.counted(), failure)
+                raise KeyboardInterrupt from None
+            reason = str(exc).splitlines()[-1][:200]
+            return Advance.empty(state, n3, Status.SOLVER_FAILED,
+                                 f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
+        self._calls.took(time.perf_counter() - called)
+        stats = integ.stats()
+        for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
+                          ("rejected", "netfails")):
+            self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
+        X = np.asarray(self.to_original(xf=sol["xf"], zf=sol["zf"])["x_impl"])
+        new = (seg[-1], sol["xf"][:, -1], sol["zf"][:, -1], rest)
+        return Advance(new, np.array(seg), X[:n3].T, X[n3:].T)

@@ -30,7 +30,8 @@ from .. import compiled as compiled_evaluation
 from .. import diagnostics, residual
 from ..errors import InputError
 from ..manifold import schur_solve_graph, velocity_correction_graph
-from .base import Failure, Solution, Solver, Status
+from .base import DRIVER_OPTIONS, Advance, Status
+from .driver import Stepper
 
 #: Under compiled="auto", RATTLE's folded steps are compiled for models up to this size.
 AUTO_COMPILE_COORDINATES = 90
@@ -41,11 +42,12 @@ DEFAULT_SAMPLES = 2000
 CHUNK_WORK = 6 << 14
 
 
-class Rattle(Solver):
+class Rattle(Stepper):
     name = "rattle"
     adaptive = False
     order = 2
-    OPTIONS = ("newton_tol", "newton_iterations")
+    OPTIONS = ("newton_tol", "newton_iterations", *DRIVER_OPTIONS)
+    refines_events = False  # its step is fixed: events are located on the dense output
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
                  newton_iterations: int = 4, **options):
@@ -113,83 +115,70 @@ class Rattle(Solver):
             self._chunks[k] = chunk
         return chunk
 
-    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
-        m = self.model
-        n3, C = m.n_coordinates, len(self.rows)
-        n_steps = max(1, math.ceil((t_end - t0) / self.dt - 1e-9))
-        self.scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
-        h = (t_end - t0) / n_steps  # the step is shortened slightly to land on t_end
-        if t_eval is None:
-            every = max(1, n_steps // DEFAULT_SAMPLES)
-            sample_steps = list(range(0, n_steps + 1, every))
-            if sample_steps[-1] != n_steps:
-                sample_steps.append(n_steps)
-        else:
-            k = (np.asarray(t_eval) - t0) / h
-            sample_steps = np.rint(k).astype(int).tolist()
+    def prepare(self, t0, t_end, t_eval) -> None:
+        """The fixed step: dt shortened slightly to land on t_end; t_eval must lie on its grid."""
+        self._t0 = t0
+        self._n_steps = max(1, math.ceil((t_end - t0) / self.dt - 1e-9))
+        self.h = (t_end - t0) / self._n_steps
+        if t_eval is not None:
+            k = (np.asarray(t_eval) - t0) / self.h
             if np.max(np.abs(k - np.rint(k)), initial=0.0) > 1e-6:
                 raise InputError(
-                    f"method 'rattle' outputs at multiples of its step ({h:.6g} s); "
+                    f"method 'rattle' outputs at multiples of its step ({self.h:.6g} s); "
                     "give t_eval on that grid or omit it"
                 )
-        self.row_scales = residual.row_scales(m, x0, t0) if C else np.zeros(0)
-        step = self._step(h)
-        lam0 = self.manifold.accelerations(x0, v0, t0)[1][self.rows] if C else np.zeros(0)
-        state = np.concatenate([x0, v0, [t0], lam0, [0.0]])
-        ts, xs, vs = [], [], []
-        done = 0
-        failure = None
-        gaps = np.diff([0, *sample_steps])
+        grid = np.asarray(t_eval, float) if t_eval is not None else self.default_grid(t0, t_end)
+        gaps = np.diff(np.rint((grid - t0) / self.h).astype(int))
         # the regular gap between samples is one chunk, compiled once; other gaps are split
         # into powers of two (at most a few distinct folds)
-        regular = int(np.bincount(gaps[gaps > 0]).argmax()) if np.any(gaps > 0) else 1
-        # a chunk is one call into CasADi, where Ctrl-C waits for its end: chunks of about
-        # CHUNK_WORK coordinate-steps keep each call near 0.1 s at most (checked in between)
-        regular = min(regular, 1 << 14, 1 << max(3, int(math.log2(max(CHUNK_WORK // n3, 1)))))
-        self.watch_stiffness(x0, t0, t_end)
-        for target in sample_steps:
-            while done < target:
-                if self.stop_requested():
-                    failure = self.interrupted_at(state[2 * n3])
-                    break
-                failure = self.too_stiff(state[2 * n3], done, state[:n3])
-                if failure:
-                    break
-                left = target - done
-                k = regular if left >= regular else 1 << (left.bit_length() - 1)
-                chunk = self._chunk(step, k, compile_it=self.compiled and k == regular and k >= 8)
-                try:
-                    new = chunk(state).full().ravel()
-                except KeyboardInterrupt:
-                    failure = self.interrupted_at(state[2 * n3])
-                    break
-                if not np.all(np.isfinite(new)):
-                    failure = Failure(Status.NON_FINITE,
-                        (f"non-finite state between t = {state[2 * n3]:.6g} s and "
-                               f"{t0 + (done + k) * h:.6g} s; "
-                               + diagnostics.nonfinite_cause(m, state[:n3], state[n3:2 * n3], state[2 * n3])))
-                    break
-                if new[-1] > self.newton_tol * self.scale:
-                    failure = Failure(Status.PROJECTION_FAILED, (
-                        f"Newton for the position multipliers did not converge between t = "
-                        f"{state[2 * n3]:.6g} s and {new[2 * n3]:.6g} s (|f| = {new[-1]:.3g} m after "
-                        f"{self.newton_iterations} iterations): reduce dt"
-                    ))
-                    break
-                state = new
-                done += k
-                self.report(state[2 * n3])
-            if failure:
-                # the state reached (the last good one) between two samples is kept
-                if t_eval is None and done > (sample_steps[len(ts) - 1] if ts else -1):
-                    ts.append(t0 + done * h)
-                    xs.append(state[:n3])
-                    vs.append(state[n3:2 * n3])
-                break
-            ts.append(t0 + done * h)
-            xs.append(state[:n3])
-            vs.append(state[n3:2 * n3])
-        self.stats.update({"steps": done, "nfev": 2 * done, "dt": h,
+        self._gap = int(np.bincount(gaps[gaps > 0]).argmax()) if np.any(gaps > 0) else 1
+
+    def default_grid(self, t0, t_end):
+        every = max(1, self._n_steps // DEFAULT_SAMPLES)
+        steps = list(range(0, self._n_steps + 1, every))
+        if steps[-1] != self._n_steps:
+            steps.append(self._n_steps)
+        return t0 + self.h * np.array(steps, float)
+
+    def init(self, x0, v0, t0, t_end):
+        m = self.model
+        n3, C = m.n_coordinates, len(self.rows)
+        if not hasattr(self, "row_scales"):  # the run's scales, from its start
+            self.scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
+            self.row_scales = residual.row_scales(m, x0, t0) if C else np.zeros(0)
+            self._step_function = self._step(self.h)
+            # one call into CasADi (Ctrl-C waits for its end) covers about CHUNK_WORK
+            # coordinate-steps: each call is near 0.1 s at most
+            self._regular = min(self._gap, 1 << 14, 1 << max(3, int(math.log2(max(CHUNK_WORK // n3, 1)))))
+        lam0 = self.manifold.accelerations(x0, v0, t0)[1][self.rows] if C else np.zeros(0)
+        return (round((t0 - self._t0) / self.h), np.concatenate([x0, v0, [t0], lam0, [0.0]]))
+
+    def step(self, state, t_stop) -> Advance:
+        """One chained call of up to ``_regular`` steps (powers of two for the rest) to t_stop."""
+        m = self.model
+        n3 = m.n_coordinates
+        done, y = state
+        left = max(1, round((t_stop - self._t0) / self.h) - done)
+        k = self._regular if left >= self._regular else 1 << (left.bit_length() - 1)
+        compile_it = self.compiled and k == self._regular and k >= 8
+        chunk = self._chunk(self._step_function, k, compile_it=compile_it)
+        new = chunk(y).full().ravel()
+        t_new = self._t0 + (done + k) * self.h
+        if abs(t_new - t_stop) <= 1e-9 * self.h:
+            t_new = t_stop
+        if not np.all(np.isfinite(new)):
+            cause = diagnostics.nonfinite_cause(m, y[:n3], y[n3:2 * n3], y[2 * n3])
+            return Advance.empty(state, n3, Status.NON_FINITE,
+                                 f"non-finite state between t = {y[2 * n3]:.6g} s and {t_new:.6g} s; {cause}")
+        if new[-1] > self.newton_tol * self.scale:
+            return Advance.empty(state, n3, Status.PROJECTION_FAILED, (
+                               f"Newton for the position multipliers did not converge between t = "
+                               f"{y[2 * n3]:.6g} s and {t_new:.6g} s (|f| = {new[-1]:.3g} m after "
+                               f"{self.newton_iterations} iterations): reduce dt"))
+        self.stats["steps"] = done + k
+        return Advance((done + k, new), np.array([t_new]), new[None, :n3], new[None, n3:2 * n3], h=self.h)
+
+    def finish(self) -> None:
+        done = self.stats["steps"]
+        self.stats.update({"nfev": 2 * done, "dt": self.h,
                            "evaluation": "compiled" if self.compiled else "virtual machine"})
-        return Solution(np.array(ts), np.array(xs).reshape(-1, n3), np.array(vs).reshape(-1, n3),
-                        self.counted(), failure)

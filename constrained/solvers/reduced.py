@@ -10,15 +10,18 @@ to x and v, so it is a Trajectory like any other method's.
 from __future__ import annotations
 
 import numpy as np
+from scipy.integrate import DOP853
 
 from ..errors import InputError
-from .base import Solution, Solver
+from .base import DRIVER_OPTIONS, Advance, Status
+from .driver import Stepper
 
 
-class Reduced(Solver):
+class Reduced(Stepper):
     name = "reduced"
     order = 8  # SciPy's DOP853 on Lagrange's equations
-    OPTIONS = ("reduced_model",)
+    OPTIONS = ("reduced_model", *DRIVER_OPTIONS)
+    lands = False  # outputs from the dense output, mapped to x and v
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, reduced_model=None, **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
@@ -53,12 +56,31 @@ class Reduced(Solver):
         qd = np.linalg.lstsq(Jq, v0 - dxdt, rcond=None)[0]
         return q, qd
 
-    def run(self, x0, v0, t0, t_end, t_eval=None) -> Solution:
+    def init(self, x0, v0, t0, t_end):
         q0, qd0 = self.coordinates_of(np.asarray(x0, float), np.asarray(v0, float), t0)
-        traj = self.reduced_model.solve(t_end, t_start=t0, initial=q0, rates=qd0, rtol=self.rtol,
-                                        atol=self.atol, t_eval=t_eval, outputs=(), progress=self.report)
-        n = len(traj.t)
-        self.stats.update({"nfev": traj.stats.get("nfev", 0), "steps": traj.stats.get("nfev", 0) // 12})
-        stopped = self.stop_requested() and (n == 0 or traj.t[-1] < t_end)
-        return Solution(traj.t, traj.x.reshape(n, -1), traj.v.reshape(n, -1), self.counted(),
-                        self.interrupted_at(traj.t[-1] if n else t0) if stopped else None)
+        ode = self.reduced_model._ode
+
+        def fun(t, y):
+            self.stats["nfev"] += 1
+            return np.asarray(ode(y, t)).ravel()
+
+        return DOP853(fun, t0, np.concatenate([q0, qd0]), t_end, rtol=self.rtol, atol=self.atol)
+
+    def _cartesian(self, y, t):
+        rm = self.reduced_model
+        q, qd = y[:rm.n], y[rm.n:]
+        return (np.asarray(rm.position(q, t)).ravel(), np.asarray(rm.velocity(q, qd, t)).ravel())
+
+    def step(self, integ, t_stop) -> Advance:
+        n = self.model.n_coordinates
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            message = integ.step()
+        if integ.status == "failed":
+            return Advance(integ, np.zeros(0), np.zeros((0, n)), np.zeros((0, n)),
+                           status=Status.STEP_SIZE_COLLAPSED,
+                           message=f"the step size collapsed at t = {integ.t:.6g} s ({message})")
+        self.stats["steps"] += 1
+        dense = integ.dense_output()
+        x, v = self._cartesian(integ.y, integ.t)
+        return Advance(integ, np.array([integ.t]), x[None], v[None],
+                       interpolant=lambda t: self._cartesian(dense(t), t), h=integ.step_size)

@@ -1,0 +1,208 @@
+"""THE time loop: every method is a stepper (solvers/base.py) run by ``integrate``.
+
+In the style of diffrax's ``diffeqsolve``: the stepper advances and reports (samples, an
+error already controlled, a status) and makes no decisions; this loop decides
+
+- where outputs are taken: at every accepted step (no ``t_eval`` and no default grid of the
+  method), at output times the stepper lands on (``Solver.lands``), or from the dense output
+  between steps (the stepper's own interpolant, else the Hermite interpolant of the samples,
+  solvers/dense.py), each passed through ``Solver.output`` (projecting methods project it);
+- events (solvers/events.py): g(t, x, v) at every accepted sample, crossings located to
+  round-off; a terminal one ends the run with its state as the last sample;
+- when the run stops: Ctrl-C (between calls, each kept short by the stepper), non-finite
+  states, the singular-configuration watch at every size and the limit-position check of a
+  failed step (solvers/watches.py), the stiffness watch, the step limit;
+- progress reporting and the run's statistics (returned in the Solution).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import diagnostics
+from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
+from .dense import hermite
+from .events import locate
+from .watches import SingularWatch, past_a_limit
+
+#: Failures of a step that a limit position passed during it may explain.
+STEP_FAILURES = (Status.PROJECTION_FAILED, Status.STEP_SIZE_COLLAPSED, Status.SOLVER_FAILED)
+
+
+class Stepper(Solver):
+    """A Solver run by the driver: ``run`` is ``integrate(self, ...)``."""
+
+    def run(self, x0, v0, t0: float, t_end: float, t_eval=None, events=()) -> Solution:
+        return integrate(self, x0, v0, t0, t_end, t_eval=t_eval, events=events)
+
+
+class _Run:
+    """One run's bookkeeping: outputs kept, the last accepted sample, events, watches."""
+
+    def __init__(self, stepper: Solver, x0, v0, t0: float, t_end: float, t_eval, events):
+        self.stepper, self.t_end = stepper, t_end
+        self.from_caller = t_eval is not None
+        grid = np.asarray(t_eval, float) if t_eval is not None else stepper.default_grid(t0, t_end)
+        self.every_step = grid is None
+        self.ts, self.xs, self.vs = [], [], []
+        if self.every_step or grid[0] <= t0:
+            self.keep(t0, x0, v0)
+        self.pending = [] if self.every_step else [float(tk) for tk in grid if tk > t0]
+        self.last, self.last_a = (t0, x0, v0), None
+        self.events = tuple(events)
+        self.g_last = [e.function(t0, x0, v0) for e in self.events]
+        self.hits: list[EventHit] = []
+        self.singular = SingularWatch(stepper.manifold, stepper.rows, stepper.singular_tol)
+        self.stiffness = diagnostics.StiffnessWatch(stepper.model, x0, t0, t_end, method=stepper.name)
+        self.h_rho, self.rho_max = [], 0.0
+        self.sampled = diagnostics.STIFFNESS_MIN_STEPS // 2
+
+    def keep(self, t: float, x, v) -> None:
+        self.ts.append(t)
+        self.xs.append(x)
+        self.vs.append(v)
+
+    def keep_reached(self) -> None:
+        """On a stop between two outputs of the method's own grid, keep the state reached."""
+        if not self.from_caller and not self.every_step and (not self.ts or self.last[0] > self.ts[-1]):
+            self.keep(*self.last)
+
+    def t_stop(self) -> float:
+        return self.pending[0] if self.stepper.lands and self.pending else self.t_end
+
+    def checked(self, adv: Advance, t_stop: float) -> tuple[int, Failure | None]:
+        """How many of the advance's samples are good, and the failure it reports, if any."""
+        k = len(adv.t)
+        finite = np.isfinite(adv.x).all(axis=-1) & np.isfinite(adv.v).all(axis=-1)
+        if k and not finite.all():
+            k = int(np.argmin(finite))
+            t = float(adv.t[k - 1]) if k else self.last[0]
+            return k, Failure(Status.NON_FINITE, f"non-finite state after t = {t:.6g} s; "
+                              + diagnostics.nonfinite_cause(self.stepper.model, *self.last[1:], self.last[0]))
+        if adv.status is Status.COMPLETED:
+            return k, None
+        failure = Failure(adv.status, adv.message)
+        if adv.status in STEP_FAILURES:
+            reached = (float(adv.t[-1]), adv.x[-1], adv.v[-1]) if k else self.last
+            limit = past_a_limit(self.stepper, reached, reached[0] + adv.h if adv.h else t_stop)
+            if limit:
+                failure = Failure(Status.SINGULAR_CONFIGURATION, f"{limit} ({adv.message})")
+        return k, failure
+
+    def take(self, adv: Advance, k: int) -> EventHit | None:
+        """Record the first k samples of an advance (outputs, events); a terminal hit stops it."""
+        stepper = self.stepper
+        for i in range(k):
+            sample = (float(adv.t[i]), adv.x[i], adv.v[i])
+            a = adv.a[i] if adv.a is not None else None
+            dense = None
+            if self.events or (not stepper.lands and self.pending):
+                dense = (adv.interpolant if adv.interpolant is not None and k == 1 else
+                         hermite(*self.last, self.last_a, *sample, a))
+            hit = self.crossings(sample, dense) if self.events else None
+            if not stepper.lands:
+                while self.pending and self.pending[0] <= (hit.t if hit else sample[0]):
+                    tk = self.pending.pop(0)
+                    self.keep(tk, *stepper.output(tk, *dense(tk)))
+            if hit is not None:
+                self.keep(hit.t, hit.x, hit.v)
+                self.last = (hit.t, hit.x, hit.v)
+                return hit
+            if self.every_step or (stepper.lands and self.pending and sample[0] >= self.pending[0]):
+                if self.pending:
+                    self.pending.pop(0)
+                self.keep(*sample)
+            self.last, self.last_a = sample, a
+        return None
+
+    def crossings(self, sample, dense) -> EventHit | None:
+        """Events crossed since the last sample, located and listed; the first terminal one."""
+        g_now = [e.function(*sample) for e in self.events]
+        crossed = [j for j, e in enumerate(self.events) if e.crossed(self.g_last[j], g_now[j])]
+        self.g_last = g_now
+        found = sorted((locate(self.stepper, self.events[j], self.last, sample, dense) for j in crossed),
+                       key=lambda h: h.t)
+        for hit in found:
+            self.hits.append(hit)
+            if hit.event.terminal:
+                return hit
+        return None
+
+    def sample_stiffness(self, steps: int, h: float | None) -> None:
+        """h·ρ(∂f/∂y) every STIFFNESS_EVERY accepted steps of an explicit method."""
+        if not (self.stepper.explicit and h and steps - self.sampled >= diagnostics.STIFFNESS_EVERY):
+            return
+        self.sampled = steps
+        y = np.concatenate([self.last[1], self.last[2]])
+        rho = diagnostics.spectral_radius(self.stepper.derivative, self.last[0], y)
+        self.rho_max = max(self.rho_max, rho)
+        self.h_rho.append(h * rho)
+
+    def stiffness_verdict(self, stats: dict, failure) -> None:
+        """The end-of-run StiffnessWarning of an explicit method (diagnostics.stiffness_verdict)."""
+        if not self.stepper.explicit or getattr(failure, "status", None) is Status.STIFF:
+            return
+        what, advice = self.stepper.stiffness_advice()
+        e = self.stiffness.fastest()
+        if e is not None:
+            advice += (f"; the fastest spring, '{e.label}' (effect {e.index}), has period {e.period:.3g} s"
+                       + (f": {e.constraint_advice()}" if e.rigid_like else ""))
+        diagnostics.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
+
+
+def _interrupted(t: float) -> Failure:
+    return Failure(Status.INTERRUPTED, f"{Status.INTERRUPTED.value} at t = {t:.6g} s")
+
+
+def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
+              events: tuple[Event, ...] = ()) -> Solution:
+    """Run ``stepper`` from the consistent (x0, v0, t0) to t_end (see the module's docstring)."""
+    x0, v0 = np.asarray(x0, float), np.asarray(v0, float)
+    stepper.prepare(t0, t_end, t_eval)
+    run = _Run(stepper, x0, v0, t0, t_end, t_eval, events)
+    state = stepper.init(x0, v0, t0, t_end)
+    failure = None
+    steps = 0
+    try:
+        while run.last[0] < t_end:
+            if stepper.stop_requested():
+                failure = _interrupted(run.last[0])
+                run.keep_reached()
+                break
+            verdict = run.stiffness.check(run.last[0], steps, run.last[1])
+            if verdict:
+                failure = Failure(Status.STIFF, f"the steps follow a fast oscillation at "
+                                                f"t = {run.last[0]:.6g} s; {verdict}")
+                break
+            t_stop = run.t_stop()
+            adv = stepper.step(state, t_stop)
+            state = adv.state
+            k, failure = run.checked(adv, t_stop)
+            hit = run.take(adv, k)
+            steps = int(stepper.stats.get("steps", 0))
+            if hit is not None:
+                failure = Failure(Status.EVENT, f"the terminal event '{hit.event.name}' at t = {hit.t:.6g} s")
+                break
+            if failure is None and k:
+                reason = run.singular.check(run.last[1], run.last[0])
+                failure = Failure(Status.SINGULAR_CONFIGURATION, reason) if reason else None
+            if failure is None and stepper.max_steps and \
+                    steps + int(stepper.stats.get("rejected", 0)) > stepper.max_steps:
+                failure = Failure(Status.STEP_LIMIT, f"more than max_steps = {stepper.max_steps} steps "
+                                                     f"before t = {t_end:.6g} s")
+            if failure is not None:
+                run.keep_reached()
+                break
+            run.sample_stiffness(steps, adv.h)
+            if stepper.progress is not None and k:
+                stepper.progress(float(run.last[0]))
+    except KeyboardInterrupt:  # Ctrl-C inside a call into C, or from a progress callback
+        failure = _interrupted(run.last[0])
+        run.keep_reached()
+    stepper.finish()
+    stats = stepper.counted()
+    run.stiffness_verdict(stats, failure)
+    stats["events"] = len(run.hits)
+    n = x0.size
+    return Solution(np.array(run.ts), np.array(run.xs).reshape(-1, n), np.array(run.vs).reshape(-1, n),
+                    stats, failure, run.hits)

@@ -1,0 +1,116 @@
+"""What the driver watches a run for besides its steps: the constraints losing rank (a
+singular configuration, at every model size) and a failed step explained by a limit
+position passed (constraints that no position satisfies together beyond it)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .. import diagnostics
+from ..manifold import Manifold
+from .base import Solver
+
+#: Up to this many coordinates the singular watch takes the dense SVD of the row-normalized J.
+DENSE_WATCH_MAX = 300
+#: The singular watch may take this fraction of a run's wall time at most (it is skipped
+#: until this much time has passed since its last, measured, cost).
+WATCH_SHARE = 0.1
+#: Up to this many coordinates a failed step is checked for a limit position passed
+#: (diagnostics.incompatible_constraints: a dense least-squares solve).
+LIMIT_CHECK_MAX = 3000
+
+
+class SingularWatch:
+    """The rank-th singular value σ of the row-normalized J along the run (rank: the
+    independent rows at the start); it falls to 0 at a singular configuration.
+
+    Dense SVD for small models; beyond DENSE_WATCH_MAX coordinates the smallest eigenvalue
+    σ² of S = Ĵ Ĵᵀ (the independent rows) by inverse iteration on its sparse LU — O(N) on a
+    chain. Checks are throttled so they cost at most WATCH_SHARE of the run's wall time.
+    """
+
+    def __init__(self, manifold: Manifold, rows: list[int], tol: float | None):
+        m = manifold.model
+        self.model, self.rows, self.tol = m, rows, tol
+        self.on = bool(tol) and bool(rows)
+        self.dense = m.n_coordinates <= DENSE_WATCH_MAX
+        self.next_check = 0.0
+        self._vector = None
+
+    def singularity(self, x, t: float) -> diagnostics.Singularity:
+        """σ and the rows of the near-dependency (the left singular vector's weights)."""
+        if self.dense:
+            return diagnostics.singularity(self.model, x, t, rank=len(self.rows))
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as spla
+
+        J = self.model.jacobian(x, t)[1]
+        rows, cols = J.sparsity().get_triplet()
+        J = sp.csr_matrix((np.asarray(J.nonzeros()).ravel(), (rows, cols)), shape=J.shape)[self.rows]
+        norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=1)).ravel())
+        u = np.zeros(len(self.rows))
+        if np.any(norms == 0):
+            u[int(np.argmin(norms))] = 1.0
+            return self._described(0.0, u)
+        Jn = sp.diags(1.0 / norms) @ J
+        S = (Jn @ Jn.T).tocsc()
+        try:
+            lu = spla.splu(S)
+        except RuntimeError:  # exactly singular: no direction to name
+            return self._described(0.0, u)
+        y = (self._vector if self._vector is not None else
+             np.random.default_rng(0).standard_normal(S.shape[0]))
+        lam = np.inf
+        for _ in range(20):  # inverse iteration: y → S⁻¹ y converges to σ_min²'s eigenvector
+            y = y / np.linalg.norm(y)
+            z = lu.solve(y)
+            estimate = 1.0 / float(np.dot(y, z)) if np.dot(y, z) > 0 else 0.0
+            converged = abs(estimate - lam) <= 1e-3 * abs(estimate)
+            lam, y = estimate, z
+            if converged:
+                break
+        self._vector = y / np.linalg.norm(y)
+        return self._described(float(np.sqrt(max(lam, 0.0))), self._vector)
+
+    def _described(self, sigma: float, u: np.ndarray, ignore: float = 0.05) -> diagnostics.Singularity:
+        w = u**2
+        order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+        rows = [self.rows[k] for k in order]
+        labels = self.model.constraint_labels
+        return diagnostics.Singularity(sigma, rows, [labels[k] for k in rows], [float(w[k]) for k in order])
+
+    def check(self, x, t: float) -> str | None:
+        """The stop sentence when σ < tol at (x, t), else None (throttled)."""
+        if not self.on:
+            return None
+        now = time.perf_counter()
+        if now < self.next_check:
+            return None
+        sigma = (diagnostics.rank_sigma(self.model, x, t, len(self.rows)) if self.dense
+                 else self.singularity(x, t).sigma)
+        self.next_check = now + (time.perf_counter() - now) / WATCH_SHARE
+        if sigma >= self.tol:
+            return None
+        found = self.singularity(x, t)
+        return f"singular configuration reached at t = {t:.6g} s; likely cause: {found.describe()}"
+
+
+def past_a_limit(stepper: Solver, last, t_next: float) -> str | None:
+    """When a failed step was heading for t_next: the sentence naming the constraints that no
+    position satisfies together there (a limit position passed between the last good state
+    and t_next, where their rows became dependent), else None."""
+    m = stepper.model
+    if not m.n_constraints or not m.rheonomic or m.n_coordinates > LIMIT_CHECK_MAX or not t_next > last[0]:
+        return None
+    try:
+        found = diagnostics.incompatible_constraints(m, last[1], t_next)
+    except Exception:  # a diagnosis must never hide the stop itself
+        return None
+    if found.compatible:
+        return None
+    names = ", ".join(f"'{name}'" for name in found.labels)
+    return (f"singular configuration between t = {last[0]:.6g} s and {t_next:.6g} s: beyond it no "
+            f"position satisfies the constraints {names} together (a limit position, where their rows "
+            "become dependent); likely cause: the drive carries the mechanism past that limit")

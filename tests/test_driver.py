@@ -1,0 +1,157 @@
+"""The one time loop (constrained/solvers/driver.py): what every method gets from it —
+output times, dense output, events located to round-off, the singular-configuration watch
+at every size, the step limit and Ctrl-C — checked against closed forms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import double_pendulum, planar_pendulum
+from scipy.special import ellipk
+
+import constrained as C
+from constrained.solvers.dense import hermite
+
+HARD = Path(__file__).resolve().parent.parent / "scenarios" / "hard"
+G, L = 9.81, 1.0
+#: The methods run by the driver on a Cartesian model, with settings for an accurate run.
+ACCURATE = {
+    "projection": dict(rtol=1e-12, atol=1e-12),
+    "dopri": dict(rtol=1e-12, atol=1e-12, compiled=False),
+    "baumgarte": dict(rtol=1e-12, atol=1e-12),
+    "rattle": dict(dt=1e-4, compiled=False),
+    "idas": dict(rtol=1e-10, atol=1e-10),
+    "ggl": dict(rtol=1e-10, atol=1e-10),
+    "pantelides": dict(rtol=1e-10, atol=1e-10),
+}
+#: How close each method's own solution is to the exact one at those settings (seconds or m).
+ACCURACY = {"projection": 1e-9, "dopri": 1e-9, "baumgarte": 1e-8, "rattle": 1e-6, "idas": 1e-6,
+            "ggl": 1e-6, "pantelides": 1e-6}
+
+
+def quarter_period(theta0: float) -> float:
+    """Time from rest at θ0 to the bottom: √(L/g) K(sin²(θ0/2)) (complete elliptic integral)."""
+    return np.sqrt(L / G) * ellipk(np.sin(theta0 / 2) ** 2)
+
+
+def test_quintic_hermite_is_exact_for_quintics(rng):
+    c = rng.standard_normal((6, 3))
+    t0, t1 = 0.3, 0.7
+
+    def x(t):
+        return sum(c[k] * t**k for k in range(6))
+
+    def v(t):
+        return sum(k * c[k] * t ** (k - 1) for k in range(1, 6))
+
+    def a(t):
+        return sum(k * (k - 1) * c[k] * t ** (k - 2) for k in range(2, 6))
+
+    dense = hermite(t0, x(t0), v(t0), a(t0), t1, x(t1), v(t1), a(t1))
+    for t in np.linspace(t0, t1, 7):
+        xt, vt = dense(t)
+        np.testing.assert_allclose(xt, x(t), atol=1e-13)
+        np.testing.assert_allclose(vt, v(t), atol=1e-12)
+    cubic = hermite(t0, x(t0), v(t0), None, t1, x(t1), v(t1), None)
+    for t in (t0, t1):  # the cubic matches the ends' positions and velocities
+        np.testing.assert_allclose(cubic(t)[0], x(t), atol=1e-13)
+        np.testing.assert_allclose(cubic(t)[1], v(t), atol=1e-12)
+
+
+@pytest.mark.parametrize("method", sorted(ACCURATE))
+def test_every_method_locates_the_bottom_of_the_swing(method):
+    """A pendulum from rest at θ0 = 90° reaches the bottom after √(L/g) K(1/2)."""
+    bottom = C.Event("bottom", lambda t, x, v: x[0], direction=-1)
+    tr = C.simulate(planar_pendulum(np.pi / 2), 2.0, method=method, events=[bottom],
+                    **ACCURATE[method])
+    exact = quarter_period(np.pi / 2)
+    assert tr.info["stop"] == "terminal event" and tr.info["status"] == "completed"
+    (hit,) = tr.info["events"]
+    assert hit["name"] == "bottom"
+    assert abs(hit["t"] - exact) < ACCURACY[method]
+    assert tr.t[-1] == hit["t"] and abs(tr.x[-1, 0, 0]) < ACCURACY[method]
+    # at the bottom all the potential energy is kinetic: v = √(2 g L)
+    assert abs(np.linalg.norm(tr.v[-1, 0]) - np.sqrt(2 * G * L)) < 1e3 * ACCURACY[method]
+
+
+@pytest.mark.parametrize("method", ["projection", "dopri", "rattle", "idas"])
+def test_non_terminal_events_are_listed_with_their_direction(method):
+    """Over three periods the bob passes the bottom six times, three of them moving left."""
+    theta0 = 1.0
+    period = 4 * quarter_period(theta0)
+    both = C.Event("crossing", lambda t, x, v: x[0], terminal=False)
+    left = C.Event("leftwards", lambda t, x, v: x[0], direction=-1, terminal=False)
+    tr = C.simulate(planar_pendulum(theta0), 3 * period - 0.01, method=method, events=[both, left],
+                    **ACCURATE[method])
+    assert tr.info["stop"] == "completed"
+    times = {name: [h["t"] for h in tr.info["events"] if h["name"] == name]
+             for name in ("crossing", "leftwards")}
+    expected = period / 4 + period / 2 * np.arange(6)
+    np.testing.assert_allclose(times["crossing"], expected, atol=ACCURACY[method])
+    np.testing.assert_allclose(times["leftwards"], expected[::2], atol=ACCURACY[method])
+
+
+@pytest.mark.parametrize("method", sorted(ACCURATE))
+def test_every_method_returns_the_requested_output_times(method):
+    t_eval = np.linspace(0.0, 1.0, 11)
+    reference = C.simulate(double_pendulum(), 1.0, method="dopri", rtol=1e-13, atol=1e-13, t_eval=t_eval,
+                           compiled=False)
+    tr = C.simulate(double_pendulum(), 1.0, method=method, t_eval=t_eval, **ACCURATE[method])
+    np.testing.assert_array_equal(tr.t, t_eval)
+    np.testing.assert_allclose(tr.x, reference.x, atol=1e3 * ACCURACY[method])
+
+
+SINGULAR_METHODS = {"projection": {}, "dopri": dict(compiled=False), "baumgarte": {},
+                    "rattle": dict(dt=1e-3, compiled=False), "idas": {}, "ggl": {}}
+
+
+@pytest.mark.parametrize("method", sorted(SINGULAR_METHODS))
+def test_every_method_stops_at_the_fourbar_limit_naming_the_constraints(method):
+    """The crank of a non-Grashof four-bar is driven past its limit (scenarios/hard): coupler
+    and rocker become collinear near t = 1.16 s; every method stops there with their names."""
+    sc = C.load_scene(HARD / "fourbar_limit.toml")
+    with pytest.raises(C.SimulationError) as err:
+        C.simulate(sc.system, 3.0, method=method, **SINGULAR_METHODS[method])
+    msg = str(err.value)
+    assert "singular configuration" in msg and "'coupler BC'" in msg and "'rocker DC'" in msg
+    partial = err.value.trajectory
+    assert 1.0 < partial.t[-1] < 1.3 and np.all(np.isfinite(partial.x))
+
+
+def test_the_singular_watch_covers_large_models():
+    """The same four-bar beside 120 free particles (over 300 coordinates: the watch's sparse
+    inverse iteration instead of the dense SVD) stops at the same place, naming the same rows."""
+    sc = C.load_scene(HARD / "fourbar_limit.toml")
+    system = sc.system
+    for k in range(120):
+        system.add_particle(f"spectator{k}", 1.0, [float(k), 5.0, 0.0])
+    assert C.assemble(system).n_coordinates > 300
+    with pytest.raises(C.SimulationError) as err:
+        C.simulate(system, 3.0, method="dopri", compiled=False)
+    msg = str(err.value)
+    assert "singular configuration" in msg and "'coupler BC'" in msg and "'rocker DC'" in msg
+    assert 1.0 < err.value.trajectory.t[-1] < 1.3
+
+
+@pytest.mark.parametrize("method", sorted(ACCURATE))
+def test_every_method_keeps_to_the_step_limit(method):
+    with pytest.raises(C.SimulationError, match="max_steps = 3") as err:
+        C.simulate(double_pendulum(), 2.0, method=method, max_steps=3, **ACCURATE[method])
+    kept = err.value.trajectory
+    assert kept.t[-1] < 2.0 and np.all(np.isfinite(kept.x))
+
+
+@pytest.mark.parametrize("method", sorted(ACCURATE))
+def test_every_method_stops_on_an_interrupt_keeping_what_it_computed(method):
+    def stop(t):
+        if t > 0.5:
+            raise KeyboardInterrupt
+
+    t_eval = np.linspace(0, 2, 41)
+    with pytest.raises(C.RunInterrupted) as err:
+        C.simulate(double_pendulum(), 2.0, method=method, t_eval=t_eval, progress=stop, **ACCURATE[method])
+    kept = err.value.trajectory
+    assert 0.5 <= kept.t[-1] < 2.0 and np.all(np.isin(kept.t, t_eval))
+    assert kept.info["stop"] == "interrupted"
