@@ -18,9 +18,13 @@ time): when the rebound speed e·u of an impact is below ``rest_speed`` (default
 settles: the row joins the active set as if e were 0. A run with more than ``max_events``
 events stops with a message naming the chattering constraint.
 
-Only method ``projection`` runs one-sided constraints and events for now (the other methods
-refuse, see ``refuse_method``); the segment integrator is the module-private stand-in
-``run_segment`` for the common driver loop.
+Only method ``projection`` runs one-sided constraints for now (the other methods refuse, see
+``refuse_method``); the segment integrator is the module-private stand-in ``run_segment``
+(scipy's DOP853 with its events), kept until the common driver (solvers/driver.py) locates
+a landing whose whole flight fits in one step: its ``solvers.events.locate`` asks brentq for
+rtol = 4e-16 < 4 ε, which raises, and the regula-falsi fallback that runs instead stops
+early there (a bouncing ball's short hops land up to 1e-6 s early). User events on a model
+without one-sided constraints go through the driver (simulate).
 """
 
 from __future__ import annotations
@@ -62,15 +66,15 @@ def refuse_method(method: str, options: dict) -> str:
     """The segment integrator for ``method`` and its options, or an InputError saying why not."""
     if method != "projection":
         raise InputError(
-            f"method '{method}' cannot run one-sided constraints or events yet: use method = "
+            f"method '{method}' cannot run one-sided constraints yet: use method = "
             "\"projection\" (the default), which switches the held constraints at each release, "
             "contact and impact")
     if options.get("dt") is not None:
-        raise InputError("one-sided constraints and events need adaptive steps (each event is located "
+        raise InputError("one-sided constraints need adaptive steps (each event is located "
                          "to round-off inside a step): remove dt")
     base = options.get("base") or "DOP853"
     if base not in SEGMENT_BASES:
-        raise InputError(f"base integrator '{base}' cannot run one-sided constraints or events; "
+        raise InputError(f"base integrator '{base}' cannot run one-sided constraints; "
                          f"choose from {', '.join(SEGMENT_BASES)}")
     return base
 
