@@ -574,17 +574,21 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
     if tr.stats:
         stats = ", ".join(f"{k} {_fmt_value(v)}" for k, v in tr.stats.items() if np.isscalar(v))
         lines.append(f"solver: {stats}")
+    from .events import report_lines
+
+    lines += report_lines(tr.info, tr.events)
     if tr.energy is not None and len(tr.energy):
         drift = float(np.max(np.abs(tr.energy - tr.energy[0])))
         conserving = not set(tr.info.get("active_terms", ())) & {
             "rheonomic", "dissipation", "applied_force", "time_dependent_forces"}
+        conserving = conserving and not any(r.energy_lost > 0 for r in tr.events)
         if conserving:
             text = f"energy drift: max |E - E0| = {drift:.3g} J"
             if tr.energy[0] != 0:
                 text += f" (relative {drift / abs(float(tr.energy[0])):.3g})"
         else:  # damping, driving or applied forces change E: that is physics, not drift
             text = (f"energy change: E(end) - E0 = {float(tr.energy[-1] - tr.energy[0]):.6g} J "
-                    "(not conserved in this scene: damping, driving or applied forces)")
+                    "(not conserved in this scene: damping, driving, applied forces or impacts)")
         lines.append(text)
     if tr.constraint_residual is not None and len(tr.constraint_residual):
         lines.append(f"max constraint residual: {float(np.max(tr.constraint_residual)):.3g} m")
@@ -793,8 +797,11 @@ def _check(args) -> int:
 def _projection_preview(model, scene: Scene) -> str:
     """What the start-up projection of ``run`` would do to the initial state."""
     from .start import consistent_state
+    from .unilateral import has_one_sided, start_report
 
     sysm, s = scene.system, scene.settings
+    if has_one_sided(model):  # only the rows touching at the start are held: no projection onto all
+        return start_report(model, sysm.positions, s["t_start"], sysm.size(), s["max_initial_correction"])
     try:
         _, _, corr = consistent_state(
             model,

@@ -53,12 +53,46 @@ class Labelled:
 
 
 class Constraint(Labelled):
-    """Base class: ``rows(s)`` returns [(CasADi scalar f_k(x, t), label_k), ...]."""
+    """Base class: ``rows(s)`` returns [(CasADi scalar f_k(x, t), label_k), ...].
+
+    One-sided (``unilateral = True``): the constraint holds only one way, and each of its rows
+    is switched on and off on its own (constrained.unilateral). ``side`` is the sign that turns
+    a row into its gap, g = side · f ≥ 0: −1 for a distance (a string: |d| ≤ length), +1 for
+    planes, surfaces and custom formulas (the particle stays where f ≥ 0). ``restitution`` is
+    the coefficient e of the impact law when the gap closes (0: the motion along the
+    constraint's normal stops; 1: an elastic bounce).
+    """
 
     kind = "constraint"
+    side = 1
+    unilateral = False
+    restitution = 0.0
+    #: Why a type cannot be one-sided (None: it can).
+    two_sided_only: str | None = None
 
     def rows(self, s) -> list[tuple]:
         raise NotImplementedError
+
+    def _one_sided(self, unilateral, restitution) -> None:
+        """Validate and keep the one-sided settings (every subclass's __init__ calls this)."""
+        where = self._where()
+        if not isinstance(unilateral, bool):
+            raise InputError(f"unilateral must be true or false, got {unilateral!r}",
+                             where=f"{where}.unilateral")
+        if unilateral and self.two_sided_only:
+            raise InputError(f"a {self.two_sided_only}; remove 'unilateral' from it",
+                             where=f"{where}.unilateral")
+        if (isinstance(restitution, bool) or not isinstance(restitution, int | float)
+                or not 0 <= restitution <= 1):
+            raise InputError(
+                f"restitution must be a number from 0 (the motion into the constraint stops) to 1 "
+                f"(an elastic bounce), got {restitution!r}: e > 1 would create energy at every impact",
+                where=f"{where}.restitution")
+        if restitution and not unilateral:
+            raise InputError("restitution applies to a one-sided constraint, which can close with an "
+                             "impact; add unilateral = true, or remove restitution",
+                             where=f"{where}.restitution")
+        self.unilateral, self.restitution = unilateral, float(restitution)
 
 
 class Distance(Constraint):
@@ -67,9 +101,13 @@ class Distance(Constraint):
     The multiplier is the force along the outward direction: tension = −λ.
     """
 
-    def __init__(self, a: str, b: str | None = None, *, point=None, length, name=None, where=None):
+    side = -1
+
+    def __init__(self, a: str, b: str | None = None, *, point=None, length, name=None, where=None,
+                 unilateral: bool = False, restitution: float = 0.0):
         self.a, self.b, self.point, self.length = a, b, point, length
         self.name, self.where = name, where
+        self._one_sided(unilateral, restitution)
         if (b is None) == (point is None):
             raise InputError("give exactly one of 'b' (a particle) or 'point'", where=self._where())
         if isinstance(length, int | float) and not isinstance(length, bool) and length <= 0:
@@ -98,8 +136,14 @@ class Distance(Constraint):
 class Pin(Constraint):
     """x_a − point(t) = 0: a fixed position, or a prescribed path when entries depend on t."""
 
-    def __init__(self, a: str, point, *, name=None, where=None):
+    two_sided_only = ("pin holds a particle at a point and has no side to leave by (a one-sided "
+                      "distance to the point of length 0 is not defined either); use a one-sided "
+                      "plane or surface through the point")
+
+    def __init__(self, a: str, point, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
         self.a, self.point, self.name, self.where = a, point, name, where
+        self._one_sided(unilateral, restitution)
 
     @property
     def label(self) -> str:
@@ -114,9 +158,11 @@ class Pin(Constraint):
 class Plane(Constraint):
     """n(t)·x_i − offset(t) = 0 for each listed particle, scaled by 1/|n| (metres)."""
 
-    def __init__(self, particles, normal, offset=0.0, *, name=None, where=None):
+    def __init__(self, particles, normal, offset=0.0, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
         self.particles = _as_list(particles, where or "plane", "'particles'")
         self.normal, self.offset, self.name, self.where = normal, offset, name, where
+        self._one_sided(unilateral, restitution)
         if (
             isinstance(normal, Sequence)
             and not isinstance(normal, str)
@@ -141,9 +187,11 @@ class Plane(Constraint):
 class Surface(Constraint):
     """g(x, y, z, t) = 0 for each listed particle; ``expr`` is a formula in x, y, z, t."""
 
-    def __init__(self, particles, expr: str, *, name=None, where=None):
+    def __init__(self, particles, expr: str, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
         self.particles = _as_list(particles, where or "surface", "'particles'")
         self.expr, self.name, self.where = expr, name, where
+        self._one_sided(unilateral, restitution)
 
     @property
     def label(self) -> str:
@@ -160,13 +208,18 @@ class Surface(Constraint):
 class Curve(Constraint):
     """A curve as the intersection of two surfaces g1 = g2 = 0, for each listed particle."""
 
-    def __init__(self, particles, exprs: Sequence[str], *, name=None, where=None):
+    two_sided_only = ("curve is the intersection of two surfaces and has no one side to leave by; "
+                      "give the two surfaces as separate one-sided 'surface' constraints")
+
+    def __init__(self, particles, exprs: Sequence[str], *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
         self.particles = _as_list(particles, where or "curve", "'particles'")
         if isinstance(exprs, str) or len(exprs) != 2:
             raise InputError(
                 "a curve needs 'expr' as a list of two surface formulas", where=where or "curve"
             )
         self.exprs, self.name, self.where = list(exprs), name, where
+        self._one_sided(unilateral, restitution)
 
     @property
     def label(self) -> str:
@@ -185,8 +238,10 @@ class Curve(Constraint):
 class Custom(Constraint):
     """Any formula in particle coordinates x_NAME, y_NAME, z_NAME and t, equal to zero."""
 
-    def __init__(self, expr: str, *, name=None, where=None):
+    def __init__(self, expr: str, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
         self.expr, self.name, self.where = expr, name, where
+        self._one_sided(unilateral, restitution)
 
     @property
     def label(self) -> str:

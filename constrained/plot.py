@@ -74,9 +74,30 @@ def _need(traj: Trajectory, name: str, what: str) -> np.ndarray:
     return np.asarray(value, dtype=float)
 
 
-def _time_axis(ax) -> None:
+#: Events marked in one figure at most (a settling ball has many; the first ones tell).
+MAX_MARKED_EVENTS = 60
+#: Line colours of the event kinds (user events: grey).
+EVENT_COLOURS = {"release": "tab:red", "contact": "tab:green", "impact": "tab:purple"}
+
+
+def _time_axis(ax, traj: Trajectory | None = None) -> None:
+    """The time axis; the instants of the run's events (``traj.events``) as thin dashed lines,
+    coloured by kind, with the kinds in a small legend."""
     ax.set_xlabel("t [s]")
     ax.grid(True, alpha=0.3)
+    events = list(getattr(traj, "events", None) or [])[:MAX_MARKED_EVENTS]
+    if not events:
+        return
+    kinds = {}
+    for e in events:
+        colour = EVENT_COLOURS.get(e.kind, "0.45")
+        ax.axvline(e.t, color=colour, lw=0.8, ls="--", alpha=0.7, zorder=0)
+        kinds.setdefault(e.kind, colour)
+    from matplotlib.legend import Legend
+
+    # an artist of its own: the figure's own legend, made later, does not replace it
+    ax.add_artist(Legend(ax, [Line2D([], [], color=c, lw=0.8, ls="--") for c in kinds.values()], list(kinds),
+                         fontsize="x-small", loc="lower left", title="events", title_fontsize="x-small"))
 
 
 # --------------------------------------------------------------------------------- planarity
@@ -145,6 +166,9 @@ def trajectory_figure(traj: Trajectory) -> Figure:
             ax.plot(*q[0, i], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
             ax.plot(*q[-1, i], "s", color=_colour(i), ms=6)
             handles.append(line)
+        for e in traj.events[:MAX_MARKED_EVENTS]:
+            at = (np.asarray(e.x, float) - shift) @ basis.T
+            ax.plot(at[:, 0], at[:, 1], "x", color=EVENT_COLOURS.get(e.kind, "0.45"), ms=7, mew=1.6)
         ax.set_xlabel(f"{a} [m]")
         ax.set_ylabel(f"{b} [m]")
         ax.set_aspect("equal", adjustable="datalim")
@@ -166,6 +190,9 @@ def trajectory_figure(traj: Trajectory) -> Figure:
             ax.plot(*p[0][:, None], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
             ax.plot(*p[-1][:, None], "s", color=_colour(i), ms=6)
             handles.append(line)
+        for e in traj.events[:MAX_MARKED_EVENTS]:
+            at = np.asarray(e.x, float)
+            ax.plot(at[:, 0], at[:, 1], at[:, 2], "x", color=EVENT_COLOURS.get(e.kind, "0.45"), ms=7, mew=1.6)
         ax.set_xlabel("x [m]", labelpad=10)
         ax.set_ylabel("y [m]", labelpad=10)
         ax.set_zlabel("z [m]", labelpad=12)
@@ -184,15 +211,20 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         Line2D([], [], marker="o", color="0.3", mfc="white", mew=1.8, linestyle="none"),
         Line2D([], [], marker="s", color="0.3", linestyle="none"),
     ]
+    words = ["start", "end"]
+    if traj.events:
+        markers.append(Line2D([], [], marker="x", color="0.3", mew=1.6, linestyle="none"))
+        kinds = dict.fromkeys(e.kind for e in traj.events[:MAX_MARKED_EVENTS])
+        words.append(f"events ({', '.join(kinds)})")
     _legend(ax, handles, names, loc="upper left")
-    _legend_markers(ax, markers)
+    _legend_markers(ax, markers, words)
     return fig
 
 
-def _legend_markers(ax, markers) -> None:
-    """A second legend for the start/end markers, kept beside the particle legend."""
+def _legend_markers(ax, markers, words=("start", "end")) -> None:
+    """A second legend for the start/end (and event) markers, kept beside the particle legend."""
     first = ax.get_legend()
-    ax.legend(markers, ["start", "end"], fontsize="small", loc="lower right")
+    ax.legend(markers, list(words), fontsize="small", loc="lower right")
     if first is not None:
         ax.add_artist(first)
 
@@ -213,7 +245,10 @@ NOT_CONSERVING = {
 def driving_terms(traj: Trajectory) -> list[str]:
     """What keeps the energy of this run from being conserved (empty for a free scene)."""
     active = set(traj.info.get("active_terms", ()) if traj.info else ())
-    return [words for term, words in NOT_CONSERVING.items() if term in active]
+    words = [words for term, words in NOT_CONSERVING.items() if term in active]
+    if any(e.energy_lost > 0 for e in getattr(traj, "events", ())):
+        words.append("impacts")
+    return words
 
 
 def energy_figure(traj: Trajectory) -> Figure:
@@ -228,7 +263,7 @@ def energy_figure(traj: Trajectory) -> Figure:
     ax = fig.add_subplot()
     ax.plot(t, drift, color="C0", lw=1.5)
     ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
-    _time_axis(ax)
+    _time_axis(ax, traj)
     ax.set_ylabel("E(t) − E(0) [J]")
     finite = drift[np.isfinite(drift)]
     worst = float(np.max(np.abs(finite))) if len(finite) else float("nan")
@@ -280,7 +315,7 @@ def residual_figure(traj: Trajectory) -> Figure:
         floor = _floor_positive([value])
         zeros = int(np.count_nonzero(value == 0))
         ax.semilogy(t, np.maximum(value, floor), color=colour, lw=1.2)
-        _time_axis(ax)
+        _time_axis(ax, traj)
         ax.set_ylabel(ylabel)
         finite = value[np.isfinite(value)]
         if not len(finite):
@@ -306,7 +341,7 @@ def constraint_forces_figure(traj: Trajectory) -> Figure:
     handles = [
         ax.plot(t, magnitude[:, i], color=_colour(i), lw=1.3)[0] for i in range(len(names))
     ]
-    _time_axis(ax)
+    _time_axis(ax, traj)
     ax.set_ylabel("|F$_{con}$| [N]")
     ax.set_ylim(bottom=0.0)
     ax.set_title("Constraint force on each particle", fontsize="medium")
@@ -324,7 +359,7 @@ def multipliers_figure(traj: Trajectory) -> Figure:
     ax = fig.add_subplot()
     handles = [ax.plot(t, lam[:, k], color=_colour(k), lw=1.3)[0] for k in range(lam.shape[1])]
     ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
-    _time_axis(ax)
+    _time_axis(ax, traj)
     ax.set_ylabel("λ [N] (for constraints f in m)")
     rows = f"{lam.shape[1]} constraint row{'s' if lam.shape[1] != 1 else ''}"
     ax.set_title(f"Lagrange multipliers ({rows})", fontsize="medium")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import functools
 import math
 import re
 import tomllib
@@ -62,6 +63,7 @@ TOP_LEVEL_TABLES = (
     "outputs",
     "reduced",
     "expect",
+    "events",
 )
 
 SIMULATE_DEFAULTS: dict[str, Any] = {
@@ -137,6 +139,10 @@ EFFECT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "force": (("particle", "expr"), ()),
     "electromagnetic": (("charges",), ("phi", "A")),
 }
+#: Optional keys every constraint type takes: one-sided (see docs/scene-format.md).
+ONE_SIDED_KEYS = ("unilateral", "restitution")
+#: Keys of one [[events]] entry: (required, optional).
+EVENT_KEYS = (("name", "expr"), ("direction", "stop"))
 # Names a parameter or a reduced coordinate may not take (they mean something in formulas).
 RESERVED_NAMES = RESERVED_NAMES
 
@@ -668,6 +674,7 @@ class _Builder:
         except InputError as exc:
             self.fail(exc.where, exc.reason)
         self.check_formulas(system)
+        system.events = self.events_section(system)
         settings = self.simulate()
         if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
             self.regular_start(system, settings["t_start"])
@@ -761,6 +768,38 @@ class _Builder:
                                 if "axis" in vec else None,
                                 "translation": vec.get("translation"),
                                 "tol": tolerance(entry["tol"], _join(k, "tol"))})
+        return out
+
+    def events_section(self, system: System) -> list:
+        """[[events]]: name, a formula crossing zero, direction, stop (constrained.events)."""
+        from .events import CONSTRAINT_KINDS
+        from .user_events import DIRECTIONS, FormulaEvent
+
+        s = Symbols(system)
+        out, seen = [], {}
+        for i, item in enumerate(self.array_of_tables("events")):
+            key = _join("events", i)
+            self.keys(item, key, EVENT_KEYS[0] + EVENT_KEYS[1], EVENT_KEYS[0], what="an event")
+            name = self.string(item["name"], f"{key}.name", "an event name")
+            if name in seen or name in CONSTRAINT_KINDS:
+                taken = f"also events[{seen[name]}]" if name in seen else "a constraint event kind"
+                self.fail(f"{key}.name", f"the event name '{name}' is taken ({taken}); give each event "
+                          "its own name")
+            seen[name] = i
+            expr = self.string(item["expr"], f"{key}.expr", "a formula string (zero at the event)")
+            try:
+                s.parse(expr, f"{key}.expr", velocities=True)
+            except InputError as exc:
+                self.fail(exc.where or f"{key}.expr", exc.reason)
+            direction = item.get("direction", "both")
+            if direction not in DIRECTIONS and direction not in (-1, 0, 1) or isinstance(direction, bool):
+                self.fail(f"{key}.direction", f"must be \"rising\" (the formula crossing zero upward), "
+                          f"\"falling\" or \"both\", got {_describe(direction)}")
+            stop = item.get("stop", False)
+            if not isinstance(stop, bool):
+                self.fail(f"{key}.stop", "must be true (the run ends at the event) or false, "
+                          f"got {_describe(stop)}")
+            out.append(FormulaEvent(name, str(expr), DIRECTIONS.get(direction, direction), stop, where=key))
         return out
 
     def scene_section(self) -> tuple[str, str]:
@@ -880,6 +919,8 @@ class _Builder:
         if typ not in schema:
             self.fail(f"{key}.type", f"the {kind} type '{typ}' cannot be used from scene files yet")
         required, optional = schema[typ]
+        if kind == "constraint":
+            optional = (*optional, *ONE_SIDED_KEYS)
         self.keys(item, key, ("type", "name", *required, *optional), required, what=f"a {typ} {kind}")
         name = self.string(item["name"], f"{key}.name", "a name") if "name" in item else None
         args = {k: self.value(typ, k, v, f"{key}.{k}") for k, v in item.items() if k not in ("type", "name")}
@@ -891,6 +932,12 @@ class _Builder:
             self.fail(exc.where or key, exc.reason)
 
     def value(self, typ: str, k: str, v, key: str):
+        if k == "unilateral":
+            if not isinstance(v, bool):
+                self.fail(key, f"must be true (a one-sided constraint) or false, got {_describe(v)}")
+            return v
+        if k == "restitution":
+            return self.number(v, key, "a coefficient of restitution from 0 to 1")
         if k in ("a", "b", "particle"):
             return self.particle(v, key)
         if k == "particles":
@@ -928,6 +975,9 @@ class _Builder:
     @staticmethod
     def construct(cls, typ: str, args: dict, *, name, where):
         a = dict(args)
+        sides = {k: a.pop(k) for k in ONE_SIDED_KEYS if k in a}
+        if sides:  # one-sided keys go to every constraint type
+            return _Builder.construct(functools.partial(cls, **sides), typ, a, name=name, where=where)
         if typ == "curve":
             return cls(a.pop("particles"), exprs=a.pop("expr"), name=name, where=where)
         if typ == "pin":
@@ -1325,7 +1375,8 @@ def _by_construction(c, symbols: Symbols, tr, method: str | None) -> str:
         expr = ca.SX(symbols.parse(c["lhs"], c["key"], velocities=True))
     except InputError:
         return ""
-    rows = [e for con in symbols.system.constraints for e, _ in con.rows(symbols)]
+    # one-sided constraints are not held throughout: a function of them is evidence
+    rows = [e for con in symbols.system.constraints if not con.unilateral for e, _ in con.rows(symbols)]
     if not rows or ca.depends_on(expr, symbols.v) or ca.depends_on(expr, symbols.t) or expr.is_constant():
         return ""
     f = ca.vertcat(*rows)

@@ -9,9 +9,10 @@ from collections.abc import Iterable
 import casadi as ca
 import numpy as np
 
-from . import diagnostics, interrupt
+from . import diagnostics, hybrid, interrupt
 from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
+from .events import EventRecord
 from .manifold import built_once
 from .model import FastCall, Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
@@ -20,6 +21,8 @@ from .solvers.base import Event, Status
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
 from .trajectory import QUANTITIES, Trajectory
+from .unilateral import has_one_sided
+from .user_events import user_events
 
 #: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
 INTERRUPTED_QUANTITY_SAMPLES = 5000
@@ -50,9 +53,11 @@ def simulate(
     ``parameters`` (name -> value) replaces some of the system's parameters for this run:
     the ``model`` (passed in, or assembled once) is reused for them without rebuilding, and
     the initial state is the system's for those values (``Model.with_parameters``).
-    ``events`` are ``Event(name, g(t, x, v), direction, terminal)``: their zero crossings are
-    located to round-off and listed in ``trajectory.info["events"]``; a terminal one ends the
-    run there (``info["stop"]`` is then "terminal event").
+    ``events`` are ``Event(name, g(t, x, v), direction, terminal)`` (or plain callables, as for
+    solve_ivp; the scene's [[events]] are added): their zero crossings are located to round-off
+    and recorded in ``trajectory.events``; a terminal one ends the run there (``info["stop"]``
+    is then "terminal event"). A system with one-sided constraints runs in segments between
+    releases, contacts and impacts (constrained.hybrid).
     """
     if method not in METHODS:
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
@@ -84,6 +89,12 @@ def simulate(
     model = (model or assemble(system)).with_parameters(parameters)
     system = system.with_parameters(parameters)  # its initial state for these values
     build_time = time.perf_counter() - started
+    events = user_events(system, events)
+    if has_one_sided(model):
+        return hybrid.simulate_hybrid(
+            model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
+            wanted=wanted, events=events, max_initial_correction=max_initial_correction,
+            build_time=build_time, options={"dt": dt, **options})
     start = consistent_start(
         model, system.positions, system.velocities, t_start,
         max_correction=max_initial_correction, size=system.size(),
@@ -130,6 +141,8 @@ def simulate(
                        for hit in solution.events],
         }
     )
+    traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
+                               np.reshape(hit.v, (-1, 3))) for hit in solution.events]
     if interrupted:
         note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
                 f"{len(traj.t)} samples)" if skipped else "")

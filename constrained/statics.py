@@ -29,6 +29,7 @@ from . import residual
 from .errors import InputError
 from .manifold import Manifold, schur_solve, tangent_basis
 from .model import Model, assemble
+from .unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
 
 #: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
 #: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
@@ -90,6 +91,9 @@ class Equilibrium:
     frequencies_squared: np.ndarray | None = None
     method: str = "newton"
     max_constraint_residual: float = 0.0
+    #: One-sided constraint rows that do not hold at this equilibrium (their force would have
+    #: the forbidden sign there; multiplier 0).
+    slack: list[str] = field(default_factory=list)
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -133,6 +137,7 @@ class Equilibrium:
             "virtual_work_residual": self.virtual_work_residual,
             "constraint_virtual_work_residual": self.constraint_virtual_work_residual,
             "max_constraint_residual": self.max_constraint_residual,
+            "slack": list(self.slack),
         }
 
     def __repr__(self) -> str:
@@ -374,7 +379,40 @@ def equilibrium(
     if Newton fails). Multipliers are the minimum-norm solution of Jᵀλ = −F (redundant
     constraints share the load). Raises InputError naming the largest residual when no
     equilibrium is found.
+
+    One-sided constraints (constrained.unilateral) hold only where their force has the
+    allowed sign: starting from the rows touching at the guess, a row pulling (pushing) the
+    wrong way is dropped and a slack row that the equilibrium would violate is added, until
+    both hold; ``slack`` names the one-sided rows that do not hold (multiplier 0).
     """
+    model = model or (assemble(system) if system.n_particles else None)
+    if model is None or not has_one_sided(model):
+        return _equilibrium(system, x_guess, t, method=method, max_iter=max_iter,
+                            stability_rtol=stability_rtol, model=model)
+    info = one_sided(model)
+    x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
+    g = gaps(model, x0, t) / scales(model, x0, t)
+    held = {k for k in info.rows if g[k] <= 1e-8 * system.size()}
+    for _ in range(2 * len(info.rows) + 1):
+        sub, rows = held_system(system, model, held)
+        eq = _equilibrium(sub, x_guess, t, method=method, max_iter=max_iter, stability_rtol=stability_rtol,
+                          model=None)
+        lam = np.zeros(model.n_constraints)
+        lam[rows] = eq.multipliers
+        step = statics_active_set(model, eq.x.ravel(), t, lam, held, system.size())
+        if step is None:
+            break
+        held = held - {step[1]} if step[0] == "drop" else held | {step[1]}
+    else:
+        raise InputError("no consistent set of holding one-sided constraints found (the active set "
+                         "cycles); give a starting configuration nearer the equilibrium (x_guess)")
+    eq.multipliers, eq.constraint_labels = lam, list(model.constraint_labels)
+    eq.slack = [model.constraint_labels[k] for k in info.rows if k not in held]
+    return eq
+
+
+def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model) -> Equilibrium:
+    """``equilibrium`` with every constraint two-sided."""
     if system.n_particles == 0:
         raise InputError("the system has no particles")
     if method not in ("auto", "newton", "ipopt"):
@@ -515,6 +553,9 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
         out.append("multipliers λ (force on particle i is (Jᵀλ)_i):")
         for label, v in zip(eq.constraint_labels, eq.multipliers, strict=True):
             out.append(f"  {v: .6g}  {label}")
+    if eq.slack:
+        out.append("one-sided constraints slack at the equilibrium (not touching there, or their force "
+                   "would have the forbidden sign; multiplier 0): " + ", ".join(eq.slack))
     if eq.anchor_reactions:
         out.append("support reactions (force the support exerts; the load on it is the negative) [N]:")
         for label, f in eq.anchor_reactions:

@@ -151,6 +151,9 @@ class System:
         self.parameters: dict[str, float] = {}
         self.definitions: dict[str, object] = {}
         self._values: dict[str, float] | None = None
+        #: User events of a scene's [[events]] (constrained.events.FormulaEvent), watched by
+        #: every run of this system besides the ``events=`` given to simulate.
+        self.events: list = []
         for key, value in (parameters or {}).items():
             self.set_parameter(key, value)
         for key, formula in (definitions or {}).items():
@@ -287,8 +290,10 @@ class System:
             Particle(p.name, p.formulas.get("mass", p.mass), x[i], v[i], p.where)
             for i, p in enumerate(self.particles)
         ]
-        return System(particles, self.constraints, self.effects, self.parameters, self.name,
+        copy = System(particles, self.constraints, self.effects, self.parameters, self.name,
                       self.definitions)
+        copy.events = list(self.events)
+        return copy
 
     def size(self) -> float:
         """A length scale: the largest of |x_i| and |x_i - x_j| at the start (1 m if all zero)."""

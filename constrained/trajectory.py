@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .events import records_from, records_to_arrays
 
 #: Arrays a Trajectory may carry besides t, x, v (in the order files list them).
 QUANTITIES = (
@@ -46,6 +47,9 @@ class Trajectory:
     constraint_labels: list[str] = field(default_factory=list)
     stats: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    #: What happened when (constrained.events.EventRecord): releases, contacts and impacts of
+    #: one-sided constraints, and user events; saved as the ``event_*`` arrays.
+    events: list = field(default_factory=list)
 
     @property
     def n_particles(self) -> int:
@@ -64,9 +68,10 @@ class Trajectory:
         """The first ``n`` samples (a copy of the arrays' views, same names and info)."""
         cut = {k: (None if getattr(self, k) is None else getattr(self, k)[:n])
                for k in ("t", "x", "v", *QUANTITIES)}
+        last = float(self.t[n - 1]) if 0 < n <= len(self.t) else -np.inf
         return Trajectory(**cut, particle_names=list(self.particle_names),
                           constraint_labels=list(self.constraint_labels), stats=dict(self.stats),
-                          info=dict(self.info))
+                          info=dict(self.info), events=[e for e in self.events if e.t <= last])
 
     def arrays(self, quantities=None) -> dict[str, np.ndarray]:
         """``t, x, v`` and the requested quantities that were computed, by contract name."""
@@ -87,7 +92,10 @@ class Trajectory:
             "stats": _jsonable(self.stats),
             "info": _jsonable(self.info),
         }
-        arrays["meta"] = np.array(json.dumps(meta))
+        if self.events:
+            event_arrays, meta["events"] = records_to_arrays(self.events, self.n_particles)
+            arrays.update(event_arrays)
+        arrays["meta"] = np.array(json.dumps(_jsonable(meta)))
         atomic_write(path, lambda f: np.savez(f, **arrays))
         return path
 
@@ -125,13 +133,15 @@ class Trajectory:
             constraint_labels=meta.get("constraint_labels", []),
             stats=meta.get("stats", {}),
             info=meta.get("info", {}),
+            events=records_from(arrays, meta.get("events", [])),
         )
 
     def __repr__(self) -> str:
         have = [k for k in QUANTITIES if getattr(self, k) is not None]
         return (
             f"Trajectory({len(self.t)} samples, t = {self.t[0]:g}..{self.t[-1]:g} s, "
-            f"{self.n_particles} particles, with {', '.join(have) or 'positions only'})"
+            f"{self.n_particles} particles, with {', '.join(have) or 'positions only'}"
+            + (f", {len(self.events)} events" if self.events else "") + ")"
         )
 
 

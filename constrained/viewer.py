@@ -46,6 +46,8 @@ MAX_POINT_FRAMES = 400_000
 MIN_FRAMES = 100
 #: Most points of one time series (a min/max envelope: half as many buckets).
 MAX_SERIES_POINTS = 2000
+#: Events listed (and marked) on the page at most.
+MAX_EVENTS = 200
 #: Most numbers of all multiplier series together.
 MAX_SERIES_VALUES = 400_000
 #: Most points of a surface or curve cloud, and most key times of a moving one.
@@ -409,6 +411,11 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
         labels = list(traj.constraint_labels or [])
         labels = labels if len(labels) == c else [f"multiplier {k}" for k in range(c)]
         data["series"]["multipliers"] = {"t": _f32(tt), "y": _f32(yy.T), "count": c, "labels": labels}
+    events = list(getattr(traj, "events", None) or [])
+    if events:  # the list under the picture and the marks in the panels (the first ones tell)
+        data["events"] = [{"t": float(e.t), "kind": e.kind, "text": e.describe()}
+                          for e in events[:MAX_EVENTS]]
+        data["events_total"] = len(events)
     if system is not None:
         geo = _Geometry(system, names, times, xf)
         for c in system.constraints:
