@@ -18,13 +18,11 @@ time): when the rebound speed e·u of an impact is below ``rest_speed`` (default
 settles: the row joins the active set as if e were 0. A run with more than ``max_events``
 events stops with a message naming the chattering constraint.
 
-Only method ``projection`` runs one-sided constraints for now (the other methods refuse, see
-``refuse_method``); the segment integrator is the module-private stand-in ``run_segment``
-(scipy's DOP853 with its events), kept until the common driver (solvers/driver.py) locates
-a landing whose whole flight fits in one step: its ``solvers.events.locate`` asks brentq for
-rtol = 4e-16 < 4 ε, which raises, and the regula-falsi fallback that runs instead stops
-early there (a bouncing ball's short hops land up to 1e-6 s early). User events on a model
-without one-sided constraints go through the driver (simulate).
+Each segment is a run of the common driver (solvers/driver.py, ``run_segment``) with the
+method asked for (``projection``, ``dopri`` or ``baumgarte``; the others refuse, see
+``refuse_method``) on the model holding the segment's rows (``constrained.held``): the
+driver locates the releases, contacts and user events to round-off. User events on a model
+without one-sided constraints go through the driver directly (simulate).
 """
 
 from __future__ import annotations
@@ -33,15 +31,17 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from . import interrupt
 from .action import action
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .events import EventRecord
+from .held import held
+from .manifold import Manifold
 from .model import Model
 from .quantities import constraint_forces_along, trajectory_from
-from .solvers.base import Event, EventHit, Status
+from .solvers import METHODS
+from .solvers.base import Event, Status
 from .trajectory import Trajectory
 from .unilateral import (
     ActiveSet,
@@ -58,67 +58,52 @@ from .unilateral import (
 REST_SPEED_PER_ATOL = 1e3
 #: Events a run may have before it is stopped as chattering.
 MAX_EVENTS = 10_000
-#: Integrators a hybrid segment can use (scipy.integrate.solve_ivp methods with dense output).
-SEGMENT_BASES = ("DOP853", "RK45", "Radau")
 
 
-def refuse_method(method: str, options: dict) -> str:
-    """The segment integrator for ``method`` and its options, or an InputError saying why not."""
-    if method != "projection":
+#: Methods a hybrid run can use: adaptive, with events located to round-off in a segment
+#: that may hold no constraint at all (the SUNDIALS methods need constraints, rattle has no
+#: adaptive step to land an event).
+SEGMENT_METHODS = ("projection", "dopri", "baumgarte")
+
+
+def refuse_method(method: str, options: dict) -> None:
+    """An InputError when ``method`` (with ``options``) cannot run one-sided constraints."""
+    if method not in SEGMENT_METHODS:
         raise InputError(
-            f"method '{method}' cannot run one-sided constraints yet: use method = "
-            "\"projection\" (the default), which switches the held constraints at each release, "
+            f"method '{method}' cannot run one-sided constraints: use {', '.join(SEGMENT_METHODS)} "
+            "(projection is the default), which switch the held constraints at each release, "
             "contact and impact")
     if options.get("dt") is not None:
         raise InputError("one-sided constraints need adaptive steps (each event is located "
                          "to round-off inside a step): remove dt")
-    base = options.get("base") or "DOP853"
-    if base not in SEGMENT_BASES:
+    base = options.get("base")
+    if method == "projection" and base is not None and base.startswith("CVODES"):
         raise InputError(f"base integrator '{base}' cannot run one-sided constraints; "
-                         f"choose from {', '.join(SEGMENT_BASES)}")
-    return base
+                         "choose from DOP853, RK45, Radau")
 
 
-class _Interrupted(Exception):
-    """Ctrl-C inside a segment."""
+def run_segment(model: Model, rows, x0, v0, t0: float, t_end: float, *, t_eval, events, method: str,
+                options: dict):
+    """One segment through the common driver: ``method`` on the model holding ``rows``
+    (constrained.held), from (x0, v0, t0) to t_end or a terminal event.
 
-
-# ---- THE STAND-IN for solvers/driver.integrate: swap this one function when the driver lands ----
-def run_segment(manifold, x0, v0, t0: float, t_end: float, *, t_eval, events, rtol: float, atol: float,
-                base: str = "DOP853"):
-    """Integrate ``manifold.accelerations`` from (x0, v0, t0) until t_end or a terminal event.
-
-    Returns (t, x, v, hits, failure): samples at ``t_eval`` (or at the steps, t0 and the end
-    included, when None), every event hit in time order (scipy locates each root on the
-    dense output by brentq to 4 ε) and a failure text or None."""
-    n = len(x0)
-
-    def rhs(t, y):
-        if interrupt.requested():  # Ctrl-C: the segment under way is dropped, the earlier ones kept
-            raise _Interrupted
-        a, _ = manifold.accelerations(y[:n], y[n:], t)
-        return np.concatenate([y[n:], a])
-
-    wrapped = []
-    for e in events:
-        def g(t, y, _e=e):
-            return _e.function(t, y[:n], y[n:])
-        g.terminal, g.direction = e.terminal, e.direction
-        wrapped.append(g)
-    try:
-        sol = solve_ivp(rhs, (t0, t_end), np.concatenate([x0, v0]), method=base, t_eval=t_eval,
-                        events=wrapped or None, rtol=rtol, atol=atol)
-    except _Interrupted:
-        empty = np.zeros((0, n))
-        return np.zeros(0), empty, empty, [], "interrupted"
-    hits = []
-    for e, ts, ys in zip(events, sol.t_events or [], sol.y_events or [], strict=False):
-        hits += [EventHit(e, float(t), y[:n].copy(), y[n:].copy()) for t, y in zip(ts, ys, strict=True)]
-    hits.sort(key=lambda h: h.t)
-    failure = None if sol.status >= 0 else f"the integrator stopped: {sol.message}"
-    y = np.asarray(sol.y, float).reshape(2 * n, -1)  # no output time inside the segment: (2n, 0)
-    return np.asarray(sol.t, float), y[:n].T, y[n:].T, hits, failure
-# ---- end of the stand-in ---------------------------------------------------------------------
+    Returns (t, x, v, hits, failure, stats): samples at ``t_eval`` (or at the steps, t0 and
+    the end included, when None), every event hit in time order, a failure text or None
+    ("interrupted" after Ctrl-C)."""
+    sub = held(model, rows)
+    stepper = METHODS[method](Manifold.at(sub, x0, t0), **options)
+    sol = stepper.run(x0, v0, t0, t_end, t_eval=t_eval, events=events)
+    t, x, v = sol.t, sol.x, sol.v
+    terminal = next((h for h in sol.events if h.event.terminal), None)
+    if terminal is not None and t_eval is not None and len(t) and t[-1] == terminal.t \
+            and not np.any(np.asarray(t_eval) == terminal.t):
+        t, x, v = t[:-1], x[:-1], v[:-1]  # the driver's last sample: an event, not an output
+    failure = None
+    if sol.status is Status.INTERRUPTED:
+        failure = "interrupted"
+    elif sol.status not in (Status.COMPLETED, Status.EVENT):
+        failure = str(sol.failure)
+    return t, x, v, sol.events, failure, sol.stats
 
 
 @dataclass
@@ -182,7 +167,7 @@ class _Watch:
 
 
 def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8, atol=1e-10,
-        base="DOP853", user_events=(), rest_speed=None, max_events=MAX_EVENTS, size=1.0,
+        method="projection", options=None, user_events=(), rest_speed=None, max_events=MAX_EVENTS, size=1.0,
         max_correction=np.inf) -> HybridRun:
     """Segments between events from a consistent-enough (x0, v0) at t0 to t_end (module doc)."""
     info = one_sided(model)
@@ -217,9 +202,10 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
         else:
             first = not T
             seg_eval = grid[(grid >= t) & (grid <= t_end)] if first else grid[(grid > t) & (grid <= t_end)]
-        ts, xs, vs, hits, failure = run_segment(active, x, v, t, t_end, t_eval=seg_eval, events=watch.events,
-                                                rtol=rtol, atol=atol, base=base)
-        nfev += active.nfev
+        ts, xs, vs, hits, failure, seg_stats = run_segment(
+            model, active.rows, x, v, t, t_end, t_eval=seg_eval, events=watch.events, method=method,
+            options={"rtol": rtol, "atol": atol, **(options or {})})
+        nfev += int(seg_stats.get("nfev", 0))
         if grid is None and T:  # the segment's first sample is the state after the last event
             ts, xs, vs = ts[1:], xs[1:], vs[1:]
         start = len(T)
@@ -349,10 +335,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
     options = dict(options)
     rest_speed = options.pop("rest_speed", None)
     max_events = options.pop("max_events", MAX_EVENTS)
-    base = refuse_method(method, options)
-    unknown = set(options) - {"base", "dt", "compiled", "progress", "singular_tol"}
-    if unknown:
-        raise InputError(f"method '{method}' does not take the option(s) {', '.join(sorted(unknown))}")
+    refuse_method(method, options)
+    options = {k: value for k, value in options.items() if k != "dt"}
     if rest_speed is not None and not (isinstance(rest_speed, int | float) and rest_speed >= 0):
         raise InputError(f"rest_speed must be a speed >= 0 in m/s, got {rest_speed!r}")
     size = system.size()
@@ -360,7 +344,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
     check_allowed_side(model, x0, t_start, max_initial_correction * size)
     started = time.perf_counter()
     with interrupt.watch():
-        result = run(model, x0, v0, t_start, t_end, t_eval=t_eval, rtol=rtol, atol=atol, base=base,
+        result = run(model, x0, v0, t_start, t_end, t_eval=t_eval, rtol=rtol, atol=atol, method=method,
+                     options=options,
                      user_events=events, rest_speed=rest_speed, max_events=max_events, size=size,
                      max_correction=max_initial_correction)
     wall = time.perf_counter() - started

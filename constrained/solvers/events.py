@@ -2,7 +2,8 @@
 dense output. Methods whose dense output is their own solution between steps (SciPy's
 interpolants) take its root (brentq, to round-off); the others refine it on their own
 solution: one step of the method from the accepted sample before to each candidate instant
-(a smooth function of the instant), Illinois' regula falsi on those values."""
+(a smooth function of the instant), secant steps from the dense root on those values,
+kept inside the bracket (bisection where a secant step would leave it)."""
 
 from __future__ import annotations
 
@@ -36,35 +37,37 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
         x1, v1 = stepper.output(t1, *dense(t1))
         return EventHit(event, float(t1), x1, v1)
     origin = before
-    best = (tb, xb, vb) if abs(gb) <= abs(ga) else (ta, xa, va)
-    side = 0
+    after_positive = gb > 0  # the side the crossing goes to (g before may be ~0: a gap just opened)
+    best = None
+    previous = None
     for _ in range(EVENT_REFINEMENTS):
-        t1 = min(max(t1, ta), tb)
-        if not ta < t1 < tb:
-            break
         try:
             # always one step from the accepted sample before: g is then a smooth function
-            # of t1 whose root the regula falsi finds to round-off
+            # of t1, whose root the secant steps find to round-off from the dense root
             x1, v1 = _land(stepper, *origin, t1)
         except RuntimeError:  # the method cannot land there: the dense output's root stands
             x1, v1 = stepper.output(t1, *dense(t1))
             return EventHit(event, float(t1), x1, v1)
         g1 = g(t1, x1, v1)
-        best = (t1, x1, v1)
-        if g1 == 0 or tb - ta <= 4e-16 * max(1.0, abs(t1)):
+        if best is None or abs(g1) < abs(best[3]):
+            best = (t1, x1, v1, g1)
+        if g1 == 0:
             break
-        if (g1 > 0) == (ga > 0):
-            ta, xa, va, ga = t1, x1, v1, g1
-            gb = gb / 2 if side == -1 else gb  # Illinois: halve the stale end
-            side = -1
+        if (g1 > 0) == after_positive:  # keep the crossing bracketed
+            tb = t1
         else:
-            tb, xb, vb, gb = t1, x1, v1, g1
-            ga = ga / 2 if side == 1 else ga
-            side = 1
-        t_new = ta - ga * (tb - ta) / (gb - ga)
-        if abs(t_new - t1) <= 2e-16 * max(1.0, abs(t1)):
+            ta = t1
+        if previous is None or previous[1] == g1:
+            # a second point close by for the first secant
+            t_new = t1 - max(1e-9 * (tb - ta), 8 * np.finfo(float).eps * max(1.0, abs(t1)))
+            t_new = t_new if ta < t_new < tb else t1 + (t1 - t_new)
+        else:
+            t_new = t1 - g1 * (t1 - previous[0]) / (g1 - previous[1])
+        if not ta < t_new < tb:
+            t_new = 0.5 * (ta + tb)
+        if abs(t_new - t1) <= 4 * np.finfo(float).eps * max(1.0, abs(t1)):
             break
-        t1 = t_new
+        previous, t1 = (t1, g1), t_new
     return EventHit(event, float(best[0]), np.asarray(best[1]), np.asarray(best[2]))
 
 
