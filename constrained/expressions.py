@@ -13,6 +13,7 @@ MAX_MAGNITUDE in size.
 from __future__ import annotations
 
 import ast
+import functools
 import math
 from collections.abc import Mapping
 
@@ -157,11 +158,16 @@ def _chains(node: ast.AST) -> bool:
 
 def free_names(text: str) -> set[str]:
     """The bare names a formula string mentions (without checking them)."""
+    return set(_free_names(text))
+
+
+@functools.lru_cache(maxsize=4096)
+def _free_names(text: str) -> frozenset[str]:
     try:
         tree = ast.parse(text.strip(), mode="eval")
     except (SyntaxError, RecursionError, MemoryError, ValueError):
-        return set()
-    return {node.id for node in ast.walk(tree) if isinstance(node, ast.Name)}
+        return frozenset()
+    return frozenset(node.id for node in ast.walk(tree) if isinstance(node, ast.Name))
 
 
 class _Walker:

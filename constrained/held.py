@@ -28,10 +28,11 @@ class HeldRows(Model):
         self.constraint_owner = model.constraint_owner[list(self.rows)]
         self.n_constraints = len(self.rows)
 
-    def _selected(self, name: str, outputs: dict[int, str]) -> ca.Function:
-        """The model's Function ``name`` with the row-indexed outputs (index -> 'rows' for a
-        column vector, 'matrix' for J) restricted to the held rows."""
-        f = getattr(self.full, name)
+    def _selected(self, name: str, outputs: dict[int, str], *, parametric: bool = False) -> ca.Function:
+        """The model's Function ``name`` (with p as its last input when ``parametric``) with the
+        row-indexed outputs (index -> 'rows' for a column vector, 'matrix' for J) restricted
+        to the held rows."""
+        f = self.full.parametric(name) if parametric else getattr(self.full, name)
         inputs = [ca.SX.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
         out = f.call(inputs)
         rows = list(self.rows)
@@ -39,11 +40,20 @@ class HeldRows(Model):
             out[i] = out[i][rows, :] if rows else ca.SX(0, out[i].shape[1])
         return ca.Function(name, inputs, out, f.name_in(), f.name_out())
 
-    constraint = functools.cached_property(lambda self: self._selected("constraint", {0: "rows"}))
-    jacobian = functools.cached_property(lambda self: self._selected("jacobian", {0: "rows", 1: "matrix"}))
-    velocity_terms = functools.cached_property(
-        lambda self: self._selected("velocity_terms", {0: "matrix", 1: "rows"}))
-    dynamics = functools.cached_property(lambda self: self._selected("dynamics", {1: "matrix", 2: "rows"}))
+    constraint = functools.cached_property(lambda self: self._restricted("constraint"))
+    jacobian = functools.cached_property(lambda self: self._restricted("jacobian"))
+    velocity_terms = functools.cached_property(lambda self: self._restricted("velocity_terms"))
+    dynamics = functools.cached_property(lambda self: self._restricted("dynamics"))
+
+    def _restricted(self, name: str) -> ca.Function:
+        return self._selected(name, _ROW_OUTPUTS[name])
+
+    def parametric(self, name: str) -> ca.Function:
+        outputs = _ROW_OUTPUTS.get(name)
+        if outputs is None:
+            return self.full.parametric(name)
+        return built_once(self.full.structure, ("held parametric", name, self.rows),
+                          lambda: self._selected(name, outputs, parametric=True))
 
     def with_parameters(self, parameters=None) -> Model:
         if not parameters:
@@ -51,7 +61,10 @@ class HeldRows(Model):
         return held(self.full.with_parameters(parameters), self.rows)
 
 
-_FUNCTIONS = ("constraint", "jacobian", "velocity_terms", "dynamics")
+#: The outputs of each Function that are indexed by constraint row.
+_ROW_OUTPUTS = {"constraint": {0: "rows"}, "jacobian": {0: "rows", 1: "matrix"},
+                "velocity_terms": {0: "matrix", 1: "rows"}, "dynamics": {1: "matrix", 2: "rows"}}
+_FUNCTIONS = tuple(_ROW_OUTPUTS)
 
 
 def held(model: Model, rows) -> Model:

@@ -223,13 +223,29 @@ def tangent_basis(J: np.ndarray, n: int | None = None, policy: RankPolicy = RANK
 SPARSE_FROM = 100
 
 
-def dense_jacobian(model: Model) -> FastCall:
-    """``(x, t) -> J`` dense (column-major, flat) through a FunctionBuffer, once per model."""
-    def build():
-        X, T = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("t")
-        return FastCall(ca.Function("dense_jacobian", [X, T], [ca.densify(model.jacobian(X, T)[1])]))
+def dense_jacobian(model: Model):
+    """``(x, t) -> [J]`` dense (column-major, flat) through a FunctionBuffer, with the model's
+    parameter values; the Function (p an input) is built once per structure."""
+    def build(view, X, T, P):
+        return ca.Function("dense_jacobian", [X, T, P], [ca.densify(view.jacobian(X, T)[1])])
 
-    return built_once(model, "dense_jacobian", build)
+    return structural_call(model, "dense_jacobian", build, "x", "t")
+
+
+def structural_call(model: Model, key, build, *inputs: str):
+    """A fast call ``(*inputs) -> [outputs]`` of the Function ``build(view, *symbols, P)``
+    (SX symbols for ``inputs``, each "x"/"v" of 3N, "t" a scalar; ``view`` the model's
+    ``ParametricView`` with P), built once per structure and called with the model's p."""
+    cache, prefix = structure_cache(model)
+    full_key = (*prefix, "structural", key)
+    fast = cache.get(full_key)
+    if fast is None:
+        n3 = model.n_coordinates
+        symbols = [ca.SX.sym(name, n3 if name in ("x", "v") else 1) for name in inputs]
+        P = ca.SX.sym("p", len(model.parameter_values))
+        fast = cache[full_key] = FastCall(build(ParametricView(model, P), *symbols, P))
+    p = model.parameter_values
+    return lambda *args: fast(*args, p)
 
 
 def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
@@ -249,6 +265,11 @@ def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tupl
 
 
 # --- the CasADi graph forms ------------------------------------------------------------------
+def _casadi(values):
+    """Numbers as a DM; a CasADi expression (masses that are formulas of p) as it is."""
+    return values if isinstance(values, ca.SX | ca.MX) else ca.DM(values)
+
+
 def _select(expr, rows):
     return expr if rows is None else expr[list(rows), :]
 
@@ -264,7 +285,7 @@ def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None =
     solves (SX, "symbolicqr": the factorization written out) and the sparse LDLᵀ (no pivoting,
     so invariant to a symmetric diagonal scaling) are not scaled: there it would only add
     operations to every step of a compiled loop."""
-    minv = ca.DM(inverse_masses)
+    minv = _casadi(inverse_masses)
     if linsol in (None, "symbolicqr", "ldl"):  # no absolute pivot threshold: unscaled
         A = ca.mtimes(ca.mtimes(J_left, ca.diag(minv)), J_right.T)
         return ca.solve(A, rhs) if linsol is None else ca.solve(A, rhs, linsol)
@@ -286,7 +307,7 @@ def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl",
     a = M⁻¹ (F + Jᵀ λ), over ``rows`` (all by default; λ holds those rows only).
 
     ``feedback = (α, β)`` imposes Baumgarte's J a + γ + 2α (J v + f_t) + β² f = 0 instead."""
-    minv = ca.DM(model.inverse_masses)
+    minv = _casadi(model.inverse_masses)
     F, J, gamma = model.dynamics(X, V, T)
     if not model.n_constraints:
         return minv * F, (ca.SX if isinstance(X, ca.SX) else ca.MX)(0, 1)
@@ -304,7 +325,7 @@ def position_step_graph(model: Model, X, T, *, rows=None, linsol: str = "qr"):
     f is over all rows (the residual), the step over ``rows``."""
     f, J = model.jacobian(X, T)
     fs, Js = _select(f, rows), _select(J, rows)
-    minv = ca.DM(model.inverse_masses)
+    minv = _casadi(model.inverse_masses)
     return f, minv * ca.mtimes(Js.T, schur_solve_graph(Js, Js, model.inverse_masses, fs, linsol))
 
 
@@ -312,7 +333,7 @@ def velocity_correction_graph(model: Model, X, V, T, *, rows=None, linsol: str =
     """dv with v ← v − dv the mass-weighted nearest velocity satisfying J v + f_t = 0."""
     J, f_t = model.velocity_terms(X, T)
     J, f_t = _select(J, rows), _select(f_t, rows)
-    minv = ca.DM(model.inverse_masses)
+    minv = _casadi(model.inverse_masses)
     c = ca.mtimes(J, V) + f_t
     return minv * ca.mtimes(J.T, schur_solve_graph(J, J, model.inverse_masses, c, linsol))
 
@@ -337,7 +358,7 @@ def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     """Two Newton steps onto f = 0, the second sharing its factorization with the velocity
     projection: (x, v, residual before the last step, in metres: max_i |f_i| / s_i with the row
     scales of ``row_scales_expr``). The step loops (dopri) use it."""
-    minv = ca.DM(model.inverse_masses)
+    minv = _casadi(model.inverse_masses)
     _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
     x = x - dx
     f, J = model.jacobian(x, t)
@@ -363,27 +384,30 @@ class _FastPaths:
 
 def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
     """The acceleration, Newton step and velocity correction as one CasADi call each (sparse
-    LDLᵀ of the SPD A for the acceleration, sparse QR for the projections), per model and
-    row set, optionally compiled; cached beside the model, which is not changed."""
-    key = ("fast", rows, bool(compiled))
+    LDLᵀ of the SPD A for the acceleration, sparse QR for the projections), with the
+    parameters p as their last input: built once per structure and row set (every parameter
+    value shares them, ``structure_cache``), optionally compiled."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "fast", rows, bool(compiled))
     with _lock:
-        per_model = _built.setdefault(model, {})
-        cached = per_model.get(key)
+        cached = cache.get(key)
     if cached is not None:
         return cached
     n3 = model.n_coordinates
     X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+    P = ca.MX.sym("p", len(model.parameter_values))
+    view = ParametricView(model, P)
     d = ca.densify
     if model.n_constraints:
-        a, lam = acceleration_graph(model, X, V, T, rows=rows, linsol="ldl")
-        f, dx = position_step_graph(model, X, T, rows=rows)
-        dv = velocity_correction_graph(model, X, V, T, rows=rows)
+        a, lam = acceleration_graph(view, X, V, T, rows=rows, linsol="ldl")
+        f, dx = position_step_graph(view, X, T, rows=rows)
+        dv = velocity_correction_graph(view, X, V, T, rows=rows)
     else:
-        a, lam = acceleration_graph(model, X, V, T)
+        a, lam = acceleration_graph(view, X, V, T)
         f, dx, dv = ca.MX(0, 1), ca.MX.zeros(n3), ca.MX.zeros(n3)
-    funcs = [ca.Function("acceleration", [X, V, T], [d(a), d(lam)]),
-             ca.Function("newton_step", [X, T], [d(f), d(dx)]),
-             ca.Function("velocity_correction", [X, V, T], [d(dv)])]
+    funcs = [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
+             ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
+             ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
     evaluation = "virtual machine"
     if compiled:
         from . import compiled as compiled_evaluation
@@ -393,7 +417,7 @@ def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
             funcs, evaluation = machine, "compiled"
     paths = _FastPaths(*(FastCall(f) for f in funcs), evaluation)
     with _lock:
-        _built.setdefault(model, {})[key] = paths
+        cache[key] = paths
     return paths
 
 
@@ -413,19 +437,76 @@ def built_once(model: Model, key, build):
     return cache[key]
 
 
-def acceleration_function(model: Model, rows=None, *, symbolic: bool = False) -> ca.Function:
+def acceleration_function(model: Model, rows=None, *, symbolic: bool = False,
+                          parametric: bool = False) -> ca.Function:
     """``(x, v, t) -> (a, λ_rows)`` as one Function, built once per model and row set: step
     loops call it as a node of their graphs. MX with a sparse LDLᵀ inside, or (``symbolic``)
     one SX expression with the KKT solve written out: fastest for a few constraint rows, where
-    a step loop can expand it into one SX graph; its size grows with the cube of the rows."""
+    a step loop can expand it into one SX graph; its size grows with the cube of the rows.
+    ``parametric``: ``(x, v, t, p) -> (a, λ_rows)``, built once per structure
+    (``structure_cache``)."""
     def build():
         n3 = model.n_coordinates
         kind = ca.SX if symbolic else ca.MX
         X, V, T = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
-        graph = acceleration_graph(model, X, V, T, rows=rows, linsol=None if symbolic else "ldl")
-        return ca.Function("acceleration_sx" if symbolic else "acceleration", [X, V, T], list(graph))
+        name = "acceleration_sx" if symbolic else "acceleration"
+        linsol = None if symbolic else "ldl"
+        if not parametric:
+            graph = acceleration_graph(model, X, V, T, rows=rows, linsol=linsol)
+            return ca.Function(name, [X, V, T], list(graph))
+        P = kind.sym("p", len(model.parameter_values))
+        graph = acceleration_graph(ParametricView(model, P), X, V, T, rows=rows, linsol=linsol)
+        return ca.Function(name, [X, V, T, P], list(graph))
 
+    if parametric:
+        cache, prefix = structure_cache(model)
+        key = (*prefix, "acceleration", rows, symbolic)
+        if key not in cache:
+            cache[key] = build()
+        return cache[key]
     return built_once(model, ("acceleration", rows, symbolic), build)
+
+
+class ParametricView:
+    """``model`` with its parameters a CasADi symbol ``P``: the attributes the graph builders
+    read (``dynamics(x, v, t)``, ``jacobian``, ``velocity_terms``, ``constraint``, sizes,
+    masses), calling the parametric Functions with P. A step loop built on it takes p as an
+    input and serves every Model of the structure (``structure_cache``)."""
+
+    def __init__(self, model: Model, P):
+        self.P = P
+        self._model = model
+        for name in ("n_coordinates", "n_constraints", "n_particles", "masses", "inverse_masses",
+                     "rheonomic", "constraint_labels", "parameter_values"):
+            setattr(self, name, getattr(model, name))
+        if model.masses_follow_parameters:  # masses as formulas of P in the graphs
+            self.masses = model.parametric("masses")(P)
+            self.inverse_masses = 1 / self.masses
+
+    def _call(self, name: str, *args):
+        return self._model.parametric(name)(*args, self.P)
+
+    def constraint(self, X, T):
+        return self._call("constraint", X, T)
+
+    def jacobian(self, X, T):
+        return self._call("jacobian", X, T)
+
+    def velocity_terms(self, X, T):
+        return self._call("velocity_terms", X, T)
+
+    def dynamics(self, X, V, T):
+        return self._call("dynamics", X, V, T)
+
+    def energy(self, X, V, T):
+        return self._call("energy", X, V, T)
+
+
+def structure_cache(model: Model) -> tuple[dict, tuple]:
+    """(cache, key prefix) for what is built with the parameters as inputs (``ParametricView``):
+    kept beside the model's structure, so every Model of the structure (other parameter
+    values, masses included) shares it; the row set held (constrained.held) is in the key."""
+    return per_model_cache(model.structure), (getattr(model, "rows", None),)
 
 
 def symbolic_acceleration(model: Model, rows=None) -> ca.Function:
@@ -459,6 +540,7 @@ class Manifold:
         self.policy = policy
         self.counters = Counters()
         self._fast = _fast_paths(model, rows, compiled)
+        self._p = model.parameter_values
 
     @classmethod
     def at(cls, model: Model, x, t: float, *, policy: RankPolicy = RANK, compiled: bool = False) -> Manifold:
@@ -484,7 +566,7 @@ class Manifold:
         self.counters.nfev += 1
         if not self.redundant:
             a, lam = _fast_or_nan(self._fast.acceleration, (m.n_coordinates, len(m.constraint_labels)),
-                                  x, v, t)
+                                  x, v, t, self._p)
             self.counters.nlu += 1
             if np.all(np.isfinite(a)) and np.all(np.isfinite(lam)):
                 return a, lam
@@ -505,7 +587,7 @@ class Manifold:
         best = err = np.inf
         for it in range(max_iter + 1):
             self.counters.njev += 1
-            f, dx = _fast_or_nan(self._fast.newton_step, (m.n_constraints, m.n_coordinates), x, t)
+            f, dx = _fast_or_nan(self._fast.newton_step, (m.n_constraints, m.n_coordinates), x, t, self._p)
             err = float(np.max(np.abs(f)))
             if not np.isfinite(err):  # the fast path failed, or f itself is not finite
                 f = np.asarray(m.constraint(x, t), float).ravel()
@@ -533,7 +615,7 @@ class Manifold:
             return np.array(v, dtype=float)
         self.counters.njev += 1
         self.counters.nlu += 1
-        (dv,) = _fast_or_nan(self._fast.velocity_correction, (m.n_coordinates,), x, v, t)
+        (dv,) = _fast_or_nan(self._fast.velocity_correction, (m.n_coordinates,), x, v, t, self._p)
         if np.all(np.isfinite(dv)):
             return v - dv
         J, f_t = (np.asarray(o, float) for o in m.velocity_terms(x, t))

@@ -170,6 +170,7 @@ class Structure:
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
         function("kinetic", [v], ["v"], [T], ["T"])
+        function("masses", [], [], [ca.SX(m3)], ["m"])  # (3N,): formulas of p, or numbers
         Structure.builds += 1
 
     def function(self, name: str) -> ca.Function:
@@ -283,6 +284,17 @@ class Model:
 
     def _bound(self, name: str) -> ca.Function:
         return self.structure.bind(name, self.parameter_values)
+
+    def parametric(self, name: str) -> ca.Function:
+        """The Function ``name`` with the parameter vector p as its last input (the
+        structure's: shared by every Model of this structure, whatever the values)."""
+        return self.structure.function(name)
+
+    @functools.cached_property
+    def masses_follow_parameters(self) -> bool:
+        """Whether a particle's mass is a formula of the parameters (then the masses, numbers
+        in the step graphs, belong to these values, not to the structure)."""
+        return any("mass" in p.formulas for p in self.system.particles)
 
     constraint = functools.cached_property(lambda self: self._bound("constraint"))
     jacobian = functools.cached_property(lambda self: self._bound("jacobian"))

@@ -15,6 +15,7 @@ depends on itself (a cycle is refused, naming it). Each is read in two ways:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 
@@ -56,6 +57,15 @@ def order(definitions: Mapping[str, object], where: str = "definitions") -> list
 
     Raises InputError naming the cycle (``a -> b -> a``) when a definition depends on itself.
     """
+    try:
+        return list(_order(tuple(definitions.items()), where))
+    except TypeError:  # an unhashable formula: order it without the memo
+        return _order.__wrapped__(tuple(definitions.items()), where)
+
+
+@functools.lru_cache(maxsize=256)
+def _order(items: tuple, where: str) -> tuple[str, ...]:
+    definitions = dict(items)
     uses = {name: (expressions.free_names(text) & set(definitions)) if isinstance(text, str) else set()
             for name, text in definitions.items()}
     done: list[str] = []
@@ -78,7 +88,7 @@ def order(definitions: Mapping[str, object], where: str = "definitions") -> list
 
     for name in definitions:
         visit(name, [])
-    return done
+    return tuple(done)
 
 
 def values(parameters: Mapping[str, float], definitions: Mapping[str, object],
@@ -90,8 +100,33 @@ def values(parameters: Mapping[str, float], definitions: Mapping[str, object],
     return out
 
 
+@functools.lru_cache(maxsize=4096)
+def _numeric(formula: str, used: tuple[str, ...]) -> ca.Function | None:
+    """The formula as a Function of the names it uses (parsed once; a new set of values is
+    then one call, not a parse), or None when it does not parse (``evaluate`` then raises
+    with the place named)."""
+    symbols = [ca.SX.sym(name) for name in used]
+    try:
+        expr = expressions.parse(formula, dict(zip(used, symbols, strict=True)), where="")
+    except (ExpressionError, InputError):
+        return None
+    if not isinstance(expr, ca.SX):
+        expr = ca.SX(expr)
+    if expr.numel() != 1:
+        return None
+    return ca.Function("formula", [ca.vertcat(*symbols) if symbols else ca.SX(0, 1)], [expr])
+
+
 def evaluate(formula, names: Mapping[str, float], where: str) -> float:
     """A number, or a formula in the given names (parameters, definitions), as a float."""
+    function = None
+    if isinstance(formula, str):
+        used = tuple(sorted(n for n in expressions.free_names(formula) if n in names))
+        function = _numeric(formula, used)
+    if function is not None:
+        value = float(function([float(names[n]) for n in used]))
+        if math.isfinite(value):
+            return value
     value = expressions.parse(formula, names, where=where)
     try:
         value = float(value)

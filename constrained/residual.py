@@ -20,23 +20,30 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .manifold import built_once, row_scales_expr
+from .manifold import ParametricView, row_scales_expr, structure_cache
 from .model import FastCall
 
 _CACHE_KEY = "residual_in_metres"
 
 
 def functions(model) -> dict[str, ca.Function]:
-    """``scales(x, t) -> s`` (C,; a FunctionBuffer call), ``position(x, t) -> max_i |f_i|/s_i`` (m) and
-    ``velocity(x, v, t) -> max_i |J_i v + f_t,i|/s_i`` (m/s), built once per model."""
-    return built_once(model, _CACHE_KEY, lambda: _build(model))
+    """``scales(x, t, p) -> s`` (C,; a FunctionBuffer call), ``position(x, t, p) -> max_i
+    |f_i|/s_i`` (m) and ``velocity(x, v, t, p) -> max_i |J_i v + f_t,i|/s_i`` (m/s), with the
+    parameters p as their last input: built once per structure (``structure_cache``)."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, _CACHE_KEY)
+    if key not in cache:
+        cache[key] = _build(model)
+    return cache[key]
 
 
 def _build(model) -> dict:
     n3 = model.n_coordinates
     x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
-    f, J = model.jacobian(x, t)
-    _, f_t = model.velocity_terms(x, t)
+    p = ca.SX.sym("p", len(model.parameter_values))
+    view = ParametricView(model, p)
+    f, J = view.jacobian(x, t)
+    _, f_t = view.velocity_terms(x, t)
     s = row_scales_expr(J, model.n_particles)
     if model.n_constraints:
         position = ca.mmax(ca.fabs(f) / s)
@@ -44,17 +51,22 @@ def _build(model) -> dict:
     else:
         position = velocity = ca.SX(0)
     return {
-        "scales": FastCall(ca.Function("row_scales", [x, t], [ca.densify(s)])),
-        "position": ca.Function("residual_m", [x, t], [position]),
-        "velocity": ca.Function("velocity_residual_m", [x, v, t], [velocity]),
+        "scales": FastCall(ca.Function("row_scales", [x, t, p], [ca.densify(s)])),
+        "position": ca.Function("residual_m", [x, t, p], [position]),
+        "velocity": ca.Function("velocity_residual_m", [x, v, t, p], [velocity]),
     }
+
+
+def _parameters(model, n: int) -> np.ndarray:
+    """The model's parameter values, one row per sample (for ``Model.evaluate``)."""
+    return np.tile(model.parameter_values, (n, 1))
 
 
 def row_scales(model, x, t: float = 0.0) -> np.ndarray:
     """s_i (see the module) at (x, t), shape (C,)."""
     if model.n_constraints == 0:
         return np.zeros(0)
-    return functions(model)["scales"](np.asarray(x, float).ravel(), t)[0]
+    return functions(model)["scales"](np.asarray(x, float).ravel(), t, model.parameter_values)[0]
 
 
 def smallest_scale(model, x, t: float = 0.0) -> float:
@@ -67,7 +79,8 @@ def position_residual(model, x, t: float = 0.0) -> float:
     """max_i |f_i(x, t)| / s_i in metres at one state."""
     if model.n_constraints == 0:
         return 0.0
-    return float(np.asarray(functions(model)["position"](np.asarray(x, float).ravel(), t)).ravel()[0])
+    value = functions(model)["position"](np.asarray(x, float).ravel(), t, model.parameter_values)
+    return float(np.asarray(value).ravel()[0])
 
 
 def position_residual_along(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -75,7 +88,8 @@ def position_residual_along(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
     n = len(t)
     if model.n_constraints == 0 or n == 0:
         return np.zeros(n)
-    return np.asarray(model.evaluate(functions(model)["position"], X, t)[0], float).ravel()
+    position = functions(model)["position"]
+    return np.asarray(model.evaluate(position, X, t, _parameters(model, n))[0], float).ravel()
 
 
 def velocity_residual_along(model, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -83,4 +97,5 @@ def velocity_residual_along(model, X: np.ndarray, V: np.ndarray, t: np.ndarray) 
     n = len(t)
     if model.n_constraints == 0 or n == 0:
         return np.zeros(n)
-    return np.asarray(model.evaluate(functions(model)["velocity"], X, V, t)[0], float).ravel()
+    velocity = functions(model)["velocity"]
+    return np.asarray(model.evaluate(velocity, X, V, t, _parameters(model, n))[0], float).ravel()

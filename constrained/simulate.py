@@ -13,8 +13,8 @@ from . import diagnostics, hybrid, interrupt
 from .action import action
 from .errors import InputError, RunInterrupted, SimulationError
 from .events import EventRecord
-from .manifold import built_once
-from .model import FastCall, Model, assemble
+from .manifold import structural_call
+from .model import Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
 from .solvers import METHODS
 from .solvers.base import Event, Status
@@ -191,15 +191,14 @@ def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: fl
         return ""
 
 
-def _forces_and_energy(model: Model) -> FastCall:
-    """``(x, v, t) -> (F, E)`` through a FunctionBuffer (a few µs a call), once per model."""
-    def build():
-        x, v = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("v", model.n_coordinates)
-        t = ca.SX.sym("t")
-        F = ca.densify(model.dynamics(x, v, t)[0])
-        return FastCall(ca.Function("forces_and_energy", [x, v, t], [F, model.energy(x, v, t)]))
+def _forces_and_energy(model: Model):
+    """``(x, v, t) -> (F, E)`` through a FunctionBuffer (a few µs a call); the Function takes
+    the parameters as an input and is built once per structure."""
+    def build(view, x, v, t, p):
+        return ca.Function("forces_and_energy", [x, v, t, p],
+                           [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
 
-    return built_once(model, "forces_and_energy", build)
+    return structural_call(model, "forces_and_energy", build, "x", "v", "t")
 
 
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:

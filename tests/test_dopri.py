@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import DP_REF_T2, double_pendulum
@@ -9,7 +11,8 @@ from test_solvers import driven_pendulum
 
 import constrained as C
 from constrained import compiled
-from constrained.manifold import per_model_cache
+from constrained.manifold import structure_cache
+from constrained.model import Structure
 
 
 @pytest.fixture(autouse=True)
@@ -76,10 +79,37 @@ def test_compiled_dopri_matches_the_virtual_machine():
     assert np.max(np.abs(mc.x - vm.x)) <= 1e-12 and np.max(np.abs(mc.v - vm.v)) <= 1e-12
     again = C.simulate(double_pendulum(), 2.0, method="dopri", base="DOPRI5", rtol=1e-7, atol=1e-9,
                        t_eval=t, compiled=True, model=model)
-    # built once per model and setting: the tolerances are inputs of the compiled loop
-    loops = sorted(key for key in per_model_cache(model) if key[0] == "dopri")
-    assert loops == [("dopri", "DOPRI5", False, None), ("dopri", "DOPRI5", True, None)]
+    # built once per structure and setting: the tolerances are inputs of the compiled loop
+    cache, prefix = structure_cache(model)
+    loops = sorted(key for key in cache if key[len(prefix):len(prefix) + 2] == ("dopri", "DOPRI5"))
+    assert loops == [(*prefix, "dopri", "DOPRI5", False, None), (*prefix, "dopri", "DOPRI5", True, None)]
     assert again.stats["steps"] < mc.stats["steps"]
+
+
+PARAMETRIC = Path(__file__).resolve().parent.parent / "scenarios" / "double_pendulum_parametric.toml"
+
+
+@pytest.mark.parametrize("compiled_loop", [False, pytest.param(True, marks=pytest.mark.skipif(
+    compiled.compiler() is None, reason="no C compiler on this machine"))])
+def test_new_parameter_values_reuse_the_step_loop_and_match_a_rebuild(compiled_loop):
+    """Masses, lengths, g and the start angles are parameters: new values run the same
+    (compiled) step loop — nothing is built again — and end where a model assembled anew
+    for those values ends."""
+    scene = C.load_scene(PARAMETRIC)
+    model = C.assemble(scene.system)
+    kw = dict(method="dopri", rtol=1e-10, atol=1e-10, outputs=[], compiled=compiled_loop)
+    C.simulate(scene.system, 1.0, model=model, **kw)
+    cache, _ = structure_cache(model)
+    built = set(cache)
+    builds = Structure.builds
+    for values in ({"m1": 1.7, "l2": 0.8}, {"g": 3.7, "th1": 1.1, "m2": 0.4}):
+        tr = C.simulate(scene.system, 1.0, model=model, parameters=values, **kw)
+        fresh = C.assemble(scene.system.with_parameters(values), reuse=False)
+        ref = C.simulate(scene.system.with_parameters(values), 1.0, model=fresh,
+                         **{**kw, "compiled": False})
+        np.testing.assert_allclose(tr.x[-1], ref.x[-1], rtol=0, atol=1e-12)
+        assert tr.stats["evaluation"] == ("compiled" if compiled_loop else "virtual machine")
+    assert set(cache) == built and Structure.builds == builds + 2  # (the two fresh references)
 
 
 def test_dopri_refuses_bad_settings_and_takes_redundant_constraints():

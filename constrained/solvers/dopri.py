@@ -31,7 +31,7 @@ import numpy as np
 from .. import compiled as compiled_evaluation
 from .. import diagnostics
 from ..errors import InputError
-from ..manifold import acceleration_function, per_model_cache, projection_graph, symbolic_acceleration
+from ..manifold import ParametricView, acceleration_function, projection_graph, structure_cache
 from ..model import FastCall
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
@@ -90,18 +90,26 @@ class Dopri(Stepper):
 
     # --- the step as a CasADi graph -------------------------------------------------------
     def _state_size(self) -> int:
-        return 3 * self.model.n_coordinates + len(SCALARS)
+        return 3 * self.model.n_coordinates + len(SCALARS) + len(self.model.parameter_values)
 
     def _step_function(self) -> ca.Function:
-        """One attempted step on the state [x, v, a, *SCALARS]."""
-        m, tab = self.model, self.tableau
-        n = m.n_coordinates
+        """One attempted step on the state [x, v, a, *SCALARS, *p]: the parameters are part of
+        the state (carried along unchanged), so one step loop serves every parameter value."""
+        tab = self.tableau
+        n = self.model.n_coordinates
         S = ca.MX.sym("state", self._state_size())
         x, v, a = S[:n], S[n:2 * n], S[2 * n:3 * n]
-        t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol = ca.vertsplit(S[3 * n:], 1)
+        scalars = S[3 * n:3 * n + len(SCALARS)]
+        P = S[3 * n + len(SCALARS):]
+        t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol = ca.vertsplit(scalars, 1)
+        m = ParametricView(self.model, P)
         rows = self.manifold.rows
         symbolic = len(self.rows) <= SYMBOLIC_MAX_CONSTRAINTS
-        accel = symbolic_acceleration(m, rows) if symbolic else acceleration_function(m, rows)
+        with_p = acceleration_function(self.model, rows, symbolic=symbolic, parametric=True)
+
+        def accel(X, V, T):
+            return with_p(X, V, T, P)
+
         linsol = "symbolicqr" if symbolic else "ldl"
         done = t >= t_target  # (then the attempt is skipped: see the end)
         remaining = t_target - t
@@ -149,8 +157,8 @@ class Dopri(Stepper):
         # after a step clipped to an output time, keep the proposal that step had
         h_accept = ca.if_else(clipped, ca.fmax(h, hh * grow), hh * grow)
         accepted = ca.vertcat(x1, v1, a1, t1, h_accept, 0, n_acc + 1, n_rej, ca.fmax(res, residual),
-                              t_target, rtol, atol)
-        refused = ca.vertcat(x, v, a, t, hh * shrink, 1, n_acc, n_rej + 1, res, t_target, rtol, atol)
+                              t_target, rtol, atol, P)
+        refused = ca.vertcat(x, v, a, t, hh * shrink, 1, n_acc, n_rej + 1, res, t_target, rtol, atol, P)
         name = f"dopri_{tab.name.lower()}"
         attempt = ca.Function(f"{name}_attempt", [S], [ca.if_else(accept, accepted, refused)])
         if symbolic:
@@ -162,8 +170,8 @@ class Dopri(Stepper):
 
     def _functions(self) -> dict[int, FastCall]:
         """The chained-step Functions, built (and compiled) once per model and kept there."""
-        key = (self.name, self.tableau.name, self.compiled, self.manifold.rows)
-        cache = per_model_cache(self.model)
+        cache, prefix = structure_cache(self.model)  # shared by every parameter value
+        key = (*prefix, self.name, self.tableau.name, self.compiled, self.manifold.rows)
         cached = cache.get(key)
         if cached is None:
             cached = cache[key] = self._build_functions()
@@ -209,7 +217,7 @@ class Dopri(Stepper):
             self._scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
         start = {"t": t0, "h": h, "t_target": t0, "rtol": self.rtol, "atol": self.atol,
                  "n_acc": self.stats["steps"], "n_rej": self.stats.get("rejected", 0)}
-        return np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS]])
+        return np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS], self.model.parameter_values])
 
     def step(self, state, t_stop) -> Advance:
         """One call of the chained steps (CHUNKS) towards t_stop: its accepted columns."""
