@@ -9,12 +9,15 @@ optional ``[reduced]`` coordinates and the raw ``[expect]`` table. Every problem
 
 from __future__ import annotations
 
+import collections
 import copy
 import dataclasses
 import difflib
 import functools
+import hashlib
 import math
 import re
+import threading
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -288,13 +291,41 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
     raw, set_paths = _apply_overrides(raw, list(overrides or []), file)
+    key = (str(path.resolve()), hashlib.sha256(data).hexdigest(), tuple(overrides or ()))
+    with _LOADED_LOCK:
+        loaded = _LOADED.get(key)
+    if loaded is not None:
+        return _copied(loaded)
     try:
-        return build_scene(raw, path=path)
+        scene = build_scene(raw, path=path)
     except SceneError as exc:
         origin = _override_origin(exc.key, set_paths)
         if origin is None:
             raise
         raise SceneError(f"{exc.reason} (value given by --set {origin})", file=file, key=exc.key) from None
+    with _LOADED_LOCK:
+        _LOADED[key] = scene
+        while len(_LOADED) > SCENES_KEPT:
+            _LOADED.popitem(last=False)
+    return _copied(scene)
+
+
+#: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
+#: again (a sweep, a fresh call) skips the validation and formula checks (about 1 ms). Each
+#: caller gets its own copies of the mutable parts.
+SCENES_KEPT = 32
+_LOADED: collections.OrderedDict = collections.OrderedDict()
+_LOADED_LOCK = threading.Lock()
+
+
+def _copied(scene: Scene) -> Scene:
+    """A Scene sharing nothing mutable with ``scene``."""
+    return dataclasses.replace(
+        scene, system=scene.system.copy(), settings=copy.deepcopy(scene.settings),
+        outputs=copy.deepcopy(scene.outputs), reduced=copy.deepcopy(scene.reduced),
+        raw=copy.deepcopy(scene.raw), expect=copy.deepcopy(scene.expect),
+        expectations=None if scene.expectations is None else list(scene.expectations),
+        units=None if scene.units is None else dict(scene.units))
 
 
 def build_scene(raw: Mapping, path: str | Path | None = None) -> Scene:

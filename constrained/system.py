@@ -222,6 +222,17 @@ class System:
                 if p.formulas:
                     p.resolve(values)
 
+    def copy(self) -> System:
+        """A copy sharing nothing that changes: particles, lists and tables copied
+        (constraints and effects are descriptions, shared)."""
+        new = copy.copy(self)
+        new.parameters, new.definitions = dict(self.parameters), dict(self.definitions)
+        new.constraints, new.effects = list(self.constraints), list(self.effects)
+        new.events = list(getattr(self, "events", []))
+        new.particles = [p.copy() for p in self.particles]
+        new._values = None if self._values is None else dict(self._values)
+        return new
+
     def with_parameters(self, parameters: Mapping[str, float] | None = None) -> System:
         """A copy with these parameters' values changed (names must be parameters of the
         system); particles' formulas (masses, initial positions, velocities) are evaluated

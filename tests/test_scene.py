@@ -451,3 +451,25 @@ expr = "1/r"
     path.write_text(text.replace('["a", "a"]', '["a", "b"]').replace("1/r", "1/q"))
     with pytest.raises(SceneError, match=r"effects\[0\].expr"):
         load_scene(path)
+
+
+def test_a_scene_read_again_is_checked_by_content_and_shares_nothing(tmp_path):
+    """load_scene keeps validated scenes by file content: an edited file is read anew, and a
+    caller changing its scene does not change the next caller's."""
+    from conftest import pendulum_toml
+
+    path = tmp_path / "p.toml"
+    path.write_text(pendulum_toml(1.0))
+    first = load_scene(path)
+    first.system.particles[0].mass = 7.0
+    first.system.add_particle("extra", 1.0, [0.0, 0.0, 5.0])
+    first.settings["t_end"] = 99.0
+    second = load_scene(path)
+    assert second.system.particles[0].mass == 1.0 and second.system.n_particles == 1
+    assert second.settings["t_end"] == 1.0
+    path.write_text(pendulum_toml(2.5).replace("mass = 1.0", "mass = 3.0"))
+    third = load_scene(path)
+    assert third.settings["t_end"] == 2.5 and third.system.particles[0].mass == 3.0
+    path.write_text(pendulum_toml(1.0).replace("length = 1.0", "length = -1.0"))
+    with pytest.raises(InputError, match="length"):
+        load_scene(path)
