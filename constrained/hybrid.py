@@ -71,7 +71,7 @@ def refuse_method(method: str, options: dict) -> None:
     if method not in SEGMENT_METHODS:
         raise InputError(
             f"method '{method}' cannot run one-sided constraints: use {', '.join(SEGMENT_METHODS)} "
-            "(projection is the default), which switch the held constraints at each release, "
+            "(dopri is the default), which switch the held constraints at each release, "
             "contact and impact")
     if options.get("dt") is not None:
         raise InputError("one-sided constraints need adaptive steps (each event is located "

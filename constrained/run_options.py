@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .solvers import METHODS
+from .solvers import DEFAULT_METHOD, METHODS
 
 
 def method_options(method: str) -> tuple[str, ...]:
@@ -77,7 +77,7 @@ def from_settings(settings: Mapping[str, Any], *, outputs: Iterable[str] | None 
     """
     s = {**settings, **{k: v for k, v in overrides.items() if k in settings or k == "t_eval"}}
     extra = {k: v for k, v in overrides.items() if k not in settings and k != "t_eval"}
-    method = s.get("method", "projection")
+    method = s.get("method", DEFAULT_METHOD)
     if method not in METHODS:
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})",
                          where="simulate.method")

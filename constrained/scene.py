@@ -28,6 +28,7 @@ import numpy as np
 
 from . import expressions
 from .constraints import CONSTRAINT_TYPES
+from .defaults import DEFAULT_METHOD
 from .effects import EFFECT_TYPES
 from .errors import InputError
 from .parameters import RESERVED_NAMES
@@ -72,7 +73,7 @@ TOP_LEVEL_TABLES = (
 SIMULATE_DEFAULTS: dict[str, Any] = {
     "t_end": None,
     "t_start": 0.0,
-    "method": "projection",
+    "method": DEFAULT_METHOD,
     "rtol": 1e-8,
     "atol": 1e-10,
     "dt": None,
@@ -1161,10 +1162,13 @@ class _Builder:
             return
         bases = cls.BASES
         if bases and base not in bases:
+            others = [m for m, c in METHODS.items() if base in c.BASES]
+            hint = (f"; '{base}' is a base of method {', '.join(others)}: add method = "
+                    f"\"{others[0]}\"" if others else _suggest(base, bases))
             self.fail(
                 "simulate.base",
                 f"unknown base integrator '{base}' for method '{method}' "
-                f"(known: {', '.join(bases)}){_suggest(base, bases)}",
+                f"(known: {', '.join(bases)}){hint}",
             )
 
     def outputs(self) -> dict:

@@ -16,7 +16,7 @@ from .events import EventRecord
 from .manifold import structural_call
 from .model import Model, assemble
 from .quantities import OUTPUT_NAMES, trajectory_from
-from .solvers import METHODS
+from .solvers import DEFAULT_METHOD, METHODS
 from .solvers.base import Event, Status
 from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
 from .threads import one_blas_thread
@@ -32,7 +32,7 @@ def simulate(
     system,
     t_end: float,
     *,
-    method: str = "projection",
+    method: str = DEFAULT_METHOD,
     rtol: float = 1e-8,
     atol: float = 1e-10,
     dt: float | None = None,

@@ -76,7 +76,8 @@ def test_bad_compiled_setting_is_refused():
 @needs_cc
 def test_cvodes_base_runs_on_a_compiled_model():
     t = np.linspace(0, 0.3, 4)
-    vm = C.simulate(chain(12), 0.3, base="CVODES", rtol=1e-9, atol=1e-11, t_eval=t, compiled=False)
-    mc = C.simulate(chain(12), 0.3, base="CVODES", rtol=1e-9, atol=1e-11, t_eval=t, compiled=True)
+    kw = dict(method="projection", base="CVODES", rtol=1e-9, atol=1e-11, t_eval=t)
+    vm = C.simulate(chain(12), 0.3, compiled=False, **kw)
+    mc = C.simulate(chain(12), 0.3, compiled=True, **kw)
     assert mc.stats["evaluation"] == "compiled"
     np.testing.assert_allclose(mc.x, vm.x, atol=1e-12, rtol=0)

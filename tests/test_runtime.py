@@ -53,7 +53,7 @@ def _interrupt_after_start(args: list[str], cwd: Path, *, start_timeout=90.0):
 METHOD_SETTINGS = {
     "projection": [], "baumgarte": [], "dopri": [], "rattle": ["simulate.dt=1e-4"],
     "idas": [], "ggl": [], "pantelides": [], "reduced": [],
-    "projection-cvodes": ['simulate.base="CVODES"'],
+    "projection-cvodes": ['simulate.base="CVODES"'],  # (method: projection, from the key)
 }
 
 

@@ -1,5 +1,6 @@
 """Interchangeable solvers behind ``simulate(..., method=...)``; see base.Solver for the contract."""
 
+from ..defaults import DEFAULT_METHOD
 from .base import Solution, Solver
 from .baumgarte import Baumgarte
 from .dopri import Dopri
@@ -13,5 +14,5 @@ METHODS: dict[str, type[Solver]] = {
     cls.name: cls for cls in (Projection, Baumgarte, Dopri, Rattle, Idas, GGL, Pantelides, Reduced)
 }
 
-__all__ = ["GGL", "METHODS", "Baumgarte", "Dopri", "Idas", "Pantelides", "Projection", "Rattle", "Reduced",
-           "Solution", "Solver"]
+__all__ = ["DEFAULT_METHOD", "GGL", "METHODS", "Baumgarte", "Dopri", "Idas", "Pantelides", "Projection",
+           "Rattle", "Reduced", "Solution", "Solver"]

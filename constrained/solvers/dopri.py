@@ -74,8 +74,10 @@ class Dopri(Stepper):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
         model = self.model
         if base not in BASES:
+            elsewhere = ("; it is a base of method 'projection': pass method=\"projection\""
+                         if base in ("RK45", "Radau", "CVODES", "CVODES_BDF") else "")
             raise InputError(f"unknown base tableau {base!r} for method 'dopri' "
-                             f"(choose from {', '.join(BASES)})")
+                             f"(choose from {', '.join(BASES)}){elsewhere}")
         #: The tableau's order: the global error falls like h^order.
         self.order = BASES[base].order
         self.tableau = BASES[base]
