@@ -30,6 +30,7 @@ _LAZY = {
     **dict.fromkeys(("CrossCheck", "ReducedModel"), "reduced"),
     "cross_check": "crosscheck",
     "simulate": "simulate",
+    **dict.fromkeys(("Ensemble", "simulate_many"), "ensemble"),
     **dict.fromkeys(("Event", "EventHit", "Status"), "solvers.base"),
     **dict.fromkeys(("Equilibrium", "constraint_virtual_work_residual", "equilibrium",
                      "generalized_forces", "virtual_work"), "statics"),

@@ -291,12 +291,25 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
-    raw, set_paths = _apply_overrides(raw, list(overrides or []), file)
-    key = (str(path.resolve()), hashlib.sha256(data).hexdigest(), tuple(overrides or ()))
+    overrides = list(overrides or [])
+    digest = (str(path.resolve()), hashlib.sha256(data).hexdigest())
     with _LOADED_LOCK:
-        loaded = _LOADED.get(key)
+        loaded = _LOADED.get((*digest, tuple(overrides)))
+        plain = _LOADED.get((*digest, ()))
     if loaded is not None:
         return _copied(loaded)
+    if plain is None and overrides and all(_sets_a_parameter(text) for text in overrides):
+        try:  # read (and keep) the file's own scene: the overrides are values on it
+            load_scene(path)
+        except SceneError:
+            pass  # (the file's own values may be the invalid ones): read it with the overrides
+        with _LOADED_LOCK:
+            plain = _LOADED.get((*digest, ()))
+    values = _parameter_values(overrides, plain, file)
+    if values is not None:  # only new parameter values for a scene read before
+        return _with_parameter_values(_copied(plain), values, file)
+    raw, set_paths = _apply_overrides(raw, overrides, file)
+    key = (*digest, tuple(overrides))
     try:
         scene = build_scene(raw, path=path)
     except SceneError as exc:
@@ -317,6 +330,42 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
 SCENES_KEPT = 32
 _LOADED: collections.OrderedDict = collections.OrderedDict()
 _LOADED_LOCK = threading.Lock()
+
+
+def _sets_a_parameter(text) -> bool:
+    return isinstance(text, str) and text.strip().startswith("parameters.") and "=" in text
+
+
+def _parameter_values(overrides: list[str], scene: Scene | None, file: str) -> dict | None:
+    """``{name: value}`` when every override sets a number of the scene's [parameters]
+    (``parameters.NAME=VALUE``), else None (the scene is then read and validated anew)."""
+    if scene is None or not overrides:
+        return None
+    values = {}
+    for text in overrides:
+        tokens, value = parse_override(text, file=file)
+        number = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+        if len(tokens) != 2 or tokens[0] != "parameters" or tokens[1] not in scene.system.parameters \
+                or not number:
+            return None
+        values[tokens[1]] = float(value)
+    return values
+
+
+def _with_parameter_values(scene: Scene, values: dict, file: str) -> Scene:
+    """``scene`` for new parameter values, checked as reading them from the file would: the
+    formulas evaluated again (masses positive) and the start regular."""
+    try:
+        scene = scene.with_parameters(values)
+    except InputError as exc:
+        raise SceneError(exc.reason, file=file, key=f"parameters ({', '.join(values)})") from None
+    if "reduced" not in scene.raw:
+        try:
+            check_regular_start(scene)
+        except SceneError as exc:
+            raise SceneError(f"{exc.reason} (with the values given by --set)", file=file,
+                             key=exc.key) from None
+    return scene
 
 
 def _copied(scene: Scene) -> Scene:

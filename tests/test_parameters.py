@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,8 @@ import constrained as C
 from constrained.errors import InputError
 from constrained.model import Structure, assemble
 from constrained.scene import SceneError, build_scene
+
+PARAMETRIC_SCENE = Path(__file__).resolve().parent.parent / "scenarios" / "double_pendulum_parametric.toml"
 
 DOUBLE_PENDULUM = """
 [scene]
@@ -436,3 +439,21 @@ def test_simulate_starts_from_the_given_system_for_the_new_values():
     moved = system.with_state(np.array([[0.0, -1.0, 0.0], [0.0, -1.8, 0.0]]))  # hanging, at rest
     run = C.simulate(moved, 0.5, model=model, parameters={"g": 1.0}, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(run.x[-1], [[0.0, -1.0, 0.0], [0.0, -1.8, 0.0]], atol=1e-9)
+
+
+def test_parameter_overrides_of_a_scene_read_before_match_reading_it_anew(tmp_path):
+    """load_scene with only ``parameters.NAME=VALUE`` overrides takes the scene read before
+    and sets the values (no second validation): the same system as reading the file with
+    those numbers, and the same refusals (a start made irregular by the values)."""
+    path = tmp_path / "dp.toml"
+    path.write_text(PARAMETRIC_SCENE.read_text())
+    quick = C.load_scene(path, ["parameters.m1=1.7", "parameters.l2=0.6"])
+    text = PARAMETRIC_SCENE.read_text().replace("m1 = 1.0", "m1 = 1.7").replace("l2 = 1.0", "l2 = 0.6")
+    fresh_path = tmp_path / "dp_numbers.toml"
+    fresh_path.write_text(text)
+    fresh = C.load_scene(fresh_path)
+    np.testing.assert_array_equal(quick.system.positions, fresh.system.positions)
+    np.testing.assert_array_equal(quick.system.masses, fresh.system.masses)
+    assert quick.system.parameters == fresh.system.parameters
+    with pytest.raises(SceneError, match="mass"):
+        C.load_scene(path, ["parameters.m1=-1"])
