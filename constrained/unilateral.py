@@ -36,7 +36,8 @@ import numpy as np
 
 from . import residual
 from .errors import InputError
-from .manifold import acceleration_function, built_once, schur_solve
+from .held import held
+from .manifold import Manifold, built_once, schur_solve
 from .model import FastCall, Model
 
 
@@ -72,20 +73,6 @@ def has_one_sided(model: Model) -> bool:
 
 
 # --- evaluation on a row subset ------------------------------------------------------------------
-def _acceleration_call(model: Model, rows: tuple[int, ...]) -> FastCall:
-    """``(x, v, t) -> (a, λ_rows)`` through a FunctionBuffer, per model and row set."""
-    def build():
-        n3 = model.n_coordinates
-        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        if rows:
-            a, lam = acceleration_function(model, rows)(X, V, T)
-        else:  # nothing held: free motion
-            a, lam = ca.DM(model.inverse_masses) * model.dynamics(X, V, T)[0], ca.MX.zeros(0)
-        return FastCall(ca.Function("active_acceleration", [X, V, T], [ca.densify(a), ca.densify(lam)]))
-
-    return built_once(model, ("unilateral_acceleration", rows), build)
-
-
 def _constraint_call(model: Model) -> FastCall:
     def build():
         X, T = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("t")
@@ -96,28 +83,22 @@ def _constraint_call(model: Model) -> FastCall:
 
 class ActiveSet:
     """The rows held during one segment of a run (every two-sided row and the active one-sided
-    ones): accelerations and multipliers, the gaps and the projections on that row set.
-    ``accelerations(x, v, t)`` has the signature of ``Manifold.accelerations`` (λ over the
-    active rows only), so a segment integrates it the same way."""
+    ones): the manifold of the model holding them (``held``, ``Manifold``: the one KKT solve
+    and projection), with its multipliers spread over every model row."""
 
     def __init__(self, model: Model, rows):
         self.model = model
         self.rows = tuple(sorted(int(k) for k in rows))
         self._index = np.array(self.rows, dtype=int)
-        self._call = _acceleration_call(model, self.rows)
-        self.nfev = 0
+        self.manifold = Manifold(held(model, self.rows))
+
+    @property
+    def nfev(self) -> int:
+        return self.manifold.counters.nfev
 
     def accelerations(self, x, v, t) -> tuple[np.ndarray, np.ndarray]:
-        self.nfev += 1
-        a, lam = self._call(x, v, t)
-        if np.all(np.isfinite(a)) and np.all(np.isfinite(lam)):
-            return a, lam
-        # dependent active rows (the sparse LDLᵀ met a zero pivot): the minimum-norm solve
-        m = self.model
-        F, J, gamma = (np.asarray(o, float) for o in m.dynamics(x, v, t))
-        J, gamma, F = J[self._index], gamma.ravel()[self._index], F.ravel()
-        lam = schur_solve(J, m.inverse_masses, -gamma - J @ (m.inverse_masses * F))
-        return m.inverse_masses * (F + J.T @ lam), lam
+        """(a, λ over the held rows), the minimum-norm multipliers where they are dependent."""
+        return self.manifold.accelerations(x, v, t)
 
     def multipliers(self, x, v, t) -> np.ndarray:
         """λ over every model row: the active rows' multipliers, 0 on the others."""
@@ -126,24 +107,13 @@ class ActiveSet:
         return out
 
     def project(self, x, v, t, tol: float, max_iter: int = 20) -> tuple[np.ndarray, np.ndarray, float]:
-        """The mass-weighted nearest (x, v) on the active rows (Newton, then one velocity
-        solve); returns (x, v, max |f_active| left)."""
-        m, rows = self.model, self._index
+        """The mass-weighted nearest (x, v) on the active rows (the manifold's Newton, then its
+        velocity solve); returns (x, v, max |f_active| left)."""
         x, v = np.array(x, float), np.array(v, float)
-        if rows.size == 0:
+        if not self.rows:
             return x, v, 0.0
-        err = np.inf
-        for _ in range(max_iter):
-            f, J = (np.asarray(o, float) for o in m.jacobian(x, t))
-            f, J = f.ravel()[rows], J[rows]
-            err = float(np.max(np.abs(f)))
-            if err <= tol or not np.isfinite(err):
-                break
-            x = x - m.inverse_masses * (J.T @ schur_solve(J, m.inverse_masses, f))
-        J, f_t = (np.asarray(o, float) for o in m.velocity_terms(x, t))
-        J, f_t = J[rows], f_t.ravel()[rows]
-        v = v - m.inverse_masses * (J.T @ schur_solve(J, m.inverse_masses, J @ v + f_t))
-        return x, v, err
+        position = self.manifold.project_positions(x, t, tol=tol, max_iter=max_iter)
+        return position.x, self.manifold.project_velocities(position.x, v, t), float(position.residual)
 
 
 def gaps(model: Model, x, t) -> np.ndarray:
