@@ -75,7 +75,7 @@ def test_ctrl_c_stops_every_method_promptly_and_keeps_the_partial_run(tmp_path, 
         t = data["t"]
         meta = json.loads(str(data["meta"]))
     assert meta["info"]["status"] == "interrupted"
-    assert 0 < meta["info"]["t_end_reached"] < 1e4
+    assert 0 < meta["info"]["t_end_reached"] < meta["info"]["t_end"]
     assert meta["info"]["t_end_reached"] == pytest.approx(t[-1])
     assert len(t) >= 1 and np.all(np.diff(t) > 0)
 

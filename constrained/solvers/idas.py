@@ -30,11 +30,11 @@ from .driver import Stepper
 
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
-#: at 100), growing 4x while calls take under 1/16 of CALL_SECONDS (2x under 1/4) and halving
-#: above it, so
-#: progress, the watches and the step limit are honoured between calls, each call stays short
-#: for Ctrl-C, and a failing call is retried in halves (a failure loses one output interval).
-FIRST_CALL_OUTPUTS = 50
+#: at 100; a default grid of 201 is one call), growing 4x while calls take under 1/16 of
+#: CALL_SECONDS (2x under 1/4) and halving above it, so that progress, the watches and the
+#: step limit are honoured between calls of a long run; Ctrl-C reaches inside a call
+#: (``interrupt.external``); a failing call is retried in halves (it loses one interval).
+FIRST_CALL_OUTPUTS = 200
 CALL_SECONDS = 0.25
 #: Steps one IDAS call may take; a call that needs more is split into SPLIT parts.
 STEPS_PER_CALL = 20_000
@@ -46,8 +46,8 @@ RESTART_STEPS = (1e-2, 1e2, 1e-4)
 class CallSize:
     """How many output times the next SUNDIALS call covers (see FIRST_CALL_OUTPUTS)."""
 
-    def __init__(self, fixed: int | None = None):
-        self.fixed, self.size = fixed, fixed or FIRST_CALL_OUTPUTS
+    def __init__(self, fixed: int | None = None, first: int = FIRST_CALL_OUTPUTS):
+        self.fixed, self.size = fixed, fixed or first
 
     def took(self, seconds: float) -> None:
         if self.fixed:

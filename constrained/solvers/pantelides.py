@@ -27,6 +27,9 @@ from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 from .idas import CallSize
 
+#: Output times of pantelides' first IDAS call (see idas.CallSize).
+PANTELIDES_FIRST_CALL_OUTPUTS = 50
+
 
 class Pantelides(Stepper):
     name = "pantelides"
@@ -83,7 +86,9 @@ class Pantelides(Stepper):
         start = self._init_gen(**args)
         times = tuple(float(tk) for tk in self._grid if t0 < tk < t_end) + (float(t_end),)
         # one IDAS call per group of output times (idas.CallSize): the driver acts between calls
-        self._calls = CallSize()
+        # its calls cannot be split by a step budget (IDAS on CasADi's reduced DAE runs to the
+        # end of a call, Ctrl-C waits for it): fewer outputs a call than idas and ggl
+        self._calls = CallSize(first=PANTELIDES_FIRST_CALL_OUTPUTS)
         return (float(t0), start["x0"], start["z0"], times)
 
     def step(self, state, t_stop) -> Advance:

@@ -16,7 +16,7 @@ from .base import Solver
 DENSE_WATCH_MAX = 300
 #: The singular watch may take this fraction of a run's wall time at most (it is skipped
 #: until this much time has passed since its last, measured, cost).
-WATCH_SHARE = 0.05
+WATCH_SHARE = 0.02
 #: The cost a first check is taken to have (a small model's SVD and Jacobian).
 FIRST_CHECK_S = 1e-4
 #: Up to this many coordinates a failed step is checked for a limit position passed
