@@ -168,7 +168,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                   rtol: float = 1e-8, atol: float = 1e-10, model: Model | None = None,
                   compiled="auto", base: str = "DOP853", max_steps: int | None = None,
                   max_initial_correction: float = 1e-3, block: int = BLOCK, threads: int = 1,
-                  progress: Callable[[float], None] | None = None) -> Ensemble:
+                  progress: Callable[[float], None] | bool | None = None) -> Ensemble:
     """Simulate ``system`` for every row of the ``parameters`` table in one batched run.
 
     ``parameters``: ``{name: [values, ...]}`` (or a list of ``{name: value}``) over the
@@ -178,7 +178,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     ``t_end``, with its own step sizes; outputs at ``t_eval`` (default: t_end only).
     ``block`` columns go to one call, shared out over ``threads`` threads (CasADi's
     thread map; on the 2-core machine of docs/performance.md it gained nothing, so 1).
-    ``progress(fraction)`` is told how far the slowest running variant is.
+    ``progress(fraction)`` is told how far the slowest running variant is (``True``: a tqdm
+    bar on stderr).
     """
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
@@ -229,6 +230,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         V = np.full((n_var, targets.size, n3), np.nan)
         running = np.array([s == "completed" for s in status])
         scale = np.maximum(1.0, np.max(np.abs(xs), axis=1))
+        report, bar = _progress(progress, n_var)
         with interrupt.watch():
             for j, target in enumerate(targets):
                 S[scal["t_target"]] = np.where(running, target, S[scal["t"]])
@@ -252,10 +254,12 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         (out,) = chunk(padded.ravel(order="F"))
                         new = out.reshape(width, -1).T[:, :cols.size]
                         _judge(new, S, cols, status, running, scal, scale, max_steps)
-                    if progress is not None:
-                        progress(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
-                                 if running.any() else 1.0)
+                    if report is not None:
+                        report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
+                               if running.any() else 1.0)
                 X[running, j], V[running, j] = S[:n3, running].T, S[n3:2 * n3, running].T
+    if bar is not None:
+        bar.close()
     wall = time.perf_counter() - started
     shape = (n_var, targets.size, model.n_particles, 3)
     return Ensemble(names, table, targets, X.reshape(shape), V.reshape(shape), tuple(status),
@@ -263,6 +267,26 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
                      "evaluation": evaluation, "block": width, "method": "dopri",
                      "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol})
+
+
+def _progress(progress, n_var: int):
+    """(report(fraction) or None, the tqdm bar to close or None): ``progress=True`` draws a
+    bar over the slowest running variant's simulated time (on stderr)."""
+    if progress is True:
+        from tqdm import tqdm
+
+        bar = tqdm(total=1000, desc=f"{n_var} variants", unit="‰", leave=False)
+
+        def report(fraction: float) -> None:
+            bar.update(max(0, int(1000 * fraction) - bar.n))
+
+        return report, bar
+    if progress is None or progress is False:
+        return None, None
+    if not callable(progress):
+        raise InputError(f"progress must be True (a bar) or a function of the fraction done, "
+                         f"got {progress!r}")
+    return progress, None
 
 
 def _initial_steps(x, v, a, P, t0: float, t_end: float, dopri: Dopri, accel) -> np.ndarray:

@@ -61,3 +61,13 @@ def test_bad_tables_are_refused_with_their_names(double):
         C.simulate_many(system, 1.0, {"m1": [1.0, 2.0], "l2": [1.0]}, model=model)
     with pytest.raises(C.InputError, match="not a finite number"):
         C.simulate_many(system, 1.0, {"m1": [1.0, float("nan")]}, model=model)
+
+
+def test_progress_is_reported_up_to_the_end(double):
+    system, model = double
+    seen = []
+    C.simulate_many(system, 1.0, {"m1": [1.0, 1.5, 2.0]}, model=model, compiled=False, progress=seen.append)
+    assert seen and seen[-1] == 1.0 and all(0.0 <= f <= 1.0 for f in seen)
+    assert seen == sorted(seen)  # the slowest variant only moves forward
+    with pytest.raises(C.InputError, match="progress must be True"):
+        C.simulate_many(system, 1.0, {"m1": [1.0]}, model=model, compiled=False, progress="yes")
