@@ -139,13 +139,25 @@ class _IdasBase(Stepper):
             if inner:
                 return Advance.empty((t_prev, y, z, inner + times), n3)
         opts = self._opts
-        a_prev, _ = self.manifold.accelerations(y[:n3], y[n3:], t_prev)
-        opts["init_xdot"] = np.concatenate([y[n3:], a_prev]).tolist()
-        integ = ca.integrator("dae", "idas", self._dae, t_prev, list(seg), opts)
         called = time.perf_counter()
         try:
-            with interrupt.external():
-                res = integ(x0=y, z0=z)
+            res, integ = None, None
+            if len(seg) == 1 and self._reusable():
+                # one output: the integrator built once on τ ∈ [0, 1], t = t_prev + Δ τ; where it
+                # fails (its initial-condition solve has no derivative guess) a call of its own
+                try:
+                    integ = self._scaled_integrator()
+                    with interrupt.external():
+                        res = integ(x0=y, z0=z, p=[t_prev, seg[0] - t_prev])
+                except RuntimeError:
+                    if self.stop_requested():
+                        raise
+            if res is None:
+                a_prev, _ = self.manifold.accelerations(y[:n3], y[n3:], t_prev)
+                opts["init_xdot"] = np.concatenate([y[n3:], a_prev]).tolist()
+                integ = ca.integrator("dae", "idas", self._dae, t_prev, list(seg), opts)
+                with interrupt.external():
+                    res = integ(x0=y, z0=z)
         except RuntimeError as exc:
             if self.stop_requested():
                 raise KeyboardInterrupt from None
@@ -193,6 +205,26 @@ class _IdasBase(Stepper):
 
     def extra_options(self) -> dict:
         return {}
+
+    def _reusable(self) -> bool:
+        """Whether one-output calls can share an integrator built once: no first step or
+        largest step given in seconds (they would change with each call's span in τ)."""
+        return not self._step0 and not self.max_step
+
+    def _scaled_integrator(self):
+        """IDAS on the DAE in τ ∈ [0, 1] with t = p₀ + p₁ τ (d/dτ = p₁ d/dt), built once per
+        run: building an IDAS integrator costs about as much as a call integrates."""
+        if getattr(self, "_scaled", None) is None:
+            dae = self._dae
+            t = dae["t"]
+            P, tau = ca.SX.sym("p", 2), ca.SX.sym("tau")
+            moved = P[0] + P[1] * tau
+            ode = P[1] * ca.substitute(dae["ode"], t, moved)
+            alg = ca.substitute(dae["alg"], t, moved)
+            opts = {k: value for k, value in self._opts.items() if k != "init_xdot"}
+            scaled = {"x": dae["x"], "z": dae["z"], "p": P, "t": tau, "ode": ode, "alg": alg}
+            self._scaled = ca.integrator("dae_scaled", "idas", scaled, 0.0, [1.0], opts)
+        return self._scaled
 
 
 class Idas(_IdasBase):
