@@ -232,6 +232,14 @@ def dense_jacobian(model: Model):
     return structural_call(model, "dense_jacobian", build, "x", "t")
 
 
+def constraint_values(model: Model):
+    """``(x, t) -> [f]`` (dense, a FunctionBuffer call), the Function built once per structure."""
+    def build(view, X, T, P):
+        return ca.Function("constraint_dense", [X, T, P], [ca.densify(view.constraint(X, T))])
+
+    return structural_call(model, "constraint", build, "x", "t")
+
+
 def structural_call(model: Model, key, build, *inputs: str):
     """A fast call ``(*inputs) -> [outputs]`` of the Function ``build(view, *symbols, P)``
     (SX symbols for ``inputs``, each "x"/"v" of 3N, "t" a scalar; ``view`` the model's

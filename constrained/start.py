@@ -13,7 +13,7 @@ import numpy as np
 
 from . import residual
 from .errors import InconsistentStateError
-from .manifold import RANK, Manifold, RankPolicy, redundant_rows
+from .manifold import RANK, Manifold, RankPolicy, constraint_values, redundant_rows
 from .model import Model
 
 
@@ -42,7 +42,7 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     manifold = Manifold(model, rows=redundant_rows(model, x0, t0, policy), policy=policy, compiled=compiled)
     size = size or max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
     labels = model.constraint_labels
-    f0 = np.asarray(model.constraint(x0, t0)).ravel()
+    f0 = constraint_values(model)(x0, t0)[0] if model.n_constraints else np.zeros(0)
     if model.n_constraints and not np.all(np.isfinite(f0)):
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")

@@ -31,14 +31,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 
 from . import residual
 from .errors import InputError
 from .held import held
-from .manifold import Manifold, built_once, schur_solve
-from .model import FastCall, Model
+from .manifold import Manifold, built_once, constraint_values, schur_solve
+from .model import Model
 
 
 @dataclass(frozen=True)
@@ -73,14 +72,6 @@ def has_one_sided(model: Model) -> bool:
 
 
 # --- evaluation on a row subset ------------------------------------------------------------------
-def _constraint_call(model: Model) -> FastCall:
-    def build():
-        X, T = ca.SX.sym("x", model.n_coordinates), ca.SX.sym("t")
-        return FastCall(ca.Function("constraint_dense", [X, T], [ca.densify(model.constraint(X, T))]))
-
-    return built_once(model, "unilateral_constraint", build)
-
-
 class ActiveSet:
     """The rows held during one segment of a run (every two-sided row and the active one-sided
     ones): the manifold of the model holding them (``held``, ``Manifold``: the one KKT solve
@@ -118,7 +109,7 @@ class ActiveSet:
 
 def gaps(model: Model, x, t) -> np.ndarray:
     """g = side · f over every row (only the one-sided rows' values mean a gap)."""
-    return one_sided(model).side * _constraint_call(model)(x, t)[0]
+    return one_sided(model).side * constraint_values(model)(x, t)[0]
 
 
 def constraint_velocities(model: Model, x, v, t) -> np.ndarray:
