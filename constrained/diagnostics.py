@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .manifold import RANK, Manifold, schur_matrix
+from .manifold import RANK, Manifold, dense_jacobian, schur_matrix
 
 #: Smallest singular value of the row-normalized Jacobian below which a configuration counts as
 #: singular: the rank policy's (constrained.manifold.RANK).
@@ -98,7 +98,8 @@ class Singularity:
 
 
 def _normalized_jacobian(model, x, t) -> np.ndarray:
-    return _row_normalized(np.asarray(model.jacobian(np.asarray(x, float).ravel(), t)[1]))
+    J = dense_jacobian(model)(np.asarray(x, float).ravel(), t)[0]  # (a FunctionBuffer call)
+    return _row_normalized(J.reshape(model.n_coordinates, model.n_constraints).T)
 
 
 def numerical_rank(model, x, t: float = 0.0) -> int:

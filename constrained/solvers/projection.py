@@ -76,9 +76,7 @@ class Projection(Stepper):
         """(x', v') = (v, a(x, v, t)) with a from the KKT system."""
         if self._right_hand_side is not None:
             return self._right_hand_side(t, y)
-        n = self.model.n_coordinates
-        a, _ = self.manifold.accelerations(y[:n], y[n:], t)
-        return np.concatenate([y[n:], a])
+        return super().derivative(t, y)
 
     def stiffness_advice(self) -> tuple[str, str]:
         return f"the explicit base {self.base}", 'use base = "Radau" or base = "CVODES_BDF"'

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from .. import diagnostics
-from ..manifold import Manifold, dense_jacobian
+from ..manifold import Manifold
 from .base import Solver
 
 #: Up to this many coordinates the singular watch takes the dense SVD of the row-normalized J.
@@ -78,16 +78,6 @@ class SingularWatch:
         self._vector = y / np.linalg.norm(y)
         return self._described(float(np.sqrt(max(lam, 0.0))), self._vector)
 
-    def _dense_sigma(self, x, t: float) -> float:
-        """The rank-th singular value of the row-normalized J (a FunctionBuffer call and a
-        small SVD: tens of µs)."""
-        m = self.model
-        J = dense_jacobian(m)(x, t)[0].reshape(m.n_coordinates, m.n_constraints).T
-        norms = np.linalg.norm(J, axis=1)
-        sv = np.linalg.svd(J / np.where(norms > 0, norms, 1.0)[:, None], compute_uv=False)
-        rank = len(self.rows)
-        return float(sv[rank - 1]) if rank <= sv.size else 0.0
-
     def _described(self, sigma: float, u: np.ndarray, ignore: float = 0.05) -> diagnostics.Singularity:
         w = u**2
         order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
@@ -102,7 +92,8 @@ class SingularWatch:
         now = time.perf_counter()
         if now < self.next_check:
             return None
-        sigma = self._dense_sigma(x, t) if self.dense else self.singularity(x, t).sigma
+        sigma = (diagnostics.rank_sigma(self.model, x, t, len(self.rows)) if self.dense
+                 else self.singularity(x, t).sigma)
         self.next_check = now + (time.perf_counter() - now) / WATCH_SHARE
         if sigma >= self.tol:
             return None
