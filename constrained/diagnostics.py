@@ -365,7 +365,10 @@ def stiff_springs(model, x, t: float = 0.0) -> list[StiffElement]:
 
     from .effects import Spring
 
-    s, system = model.symbols, model.system
+    system = model.system
+    if not any(isinstance(effect, Spring) for effect in system.effects):
+        return []
+    s = model.symbols
     x = np.asarray(x, float).reshape(-1, 3)
     found = []
     for index, effect in enumerate(system.effects):

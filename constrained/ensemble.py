@@ -26,8 +26,9 @@ import numpy as np
 from . import compiled as compiled_evaluation
 from . import expressions, interrupt
 from .errors import InputError
+from .fast_call import FastCall
 from .manifold import ParametricView, acceleration_function, projection_graph, structure_cache
-from .model import FastCall, Model, assemble
+from .model import Model, assemble
 from .parameters import symbolic
 from .solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from .threads import one_blas_thread

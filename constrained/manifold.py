@@ -40,7 +40,8 @@ import casadi as ca
 import numpy as np
 import scipy.linalg as sla
 
-from .model import FastCall, Model
+from .fast_call import FastCall
+from .model import Model
 
 
 @dataclass(frozen=True)

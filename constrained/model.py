@@ -21,45 +21,6 @@ import numpy as np
 from .errors import InputError
 from .symbols import Symbols
 
-
-class FastCall:
-    """Call a CasADi Function through its FunctionBuffer: preallocated NumPy arrays in and
-    out, no DM conversion (≈ 0.2 µs of call overhead instead of ≈ 30 µs plus ``.full()``).
-
-    Inputs and outputs must be dense (the fast paths densify theirs). Returns copies, so
-    the results outlive the next call. The buffers are per thread.
-    """
-
-    def __init__(self, function: ca.Function):
-        self.function = function
-        self._local = threading.local()
-
-    def _state(self):
-        state = getattr(self._local, "state", None)
-        if state is None:
-            f = self.function
-            buf, evaluate = f.buffer()
-            args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
-            res = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-            for i, a in enumerate(args):
-                buf.set_arg(i, memoryview(a))
-            for i, r in enumerate(res):
-                buf.set_res(i, memoryview(r))
-            state = self._local.state = (buf, evaluate, args, res)
-        return state
-
-    def __call__(self, *inputs) -> list[np.ndarray]:
-        buf, evaluate, args, res = self._state()
-        for a, value in zip(args, inputs, strict=True):
-            a[:] = value
-        evaluate()
-        if buf.ret():  # an evaluation error: let the ordinary call raise it
-            out = self.function(*inputs)
-            out = out if isinstance(out, tuple) else (out,)
-            return [np.asarray(o, float).ravel() for o in out]
-        return [r.copy() for r in res]
-
-
 #: Functions bound to parameter values that a Structure keeps (the most recent), so that
 #: Models with equal values share them.
 BOUND_FUNCTIONS_KEPT = 64

@@ -23,6 +23,7 @@ import casadi as ca
 
 from . import expressions
 from .errors import ExpressionError, InputError
+from .fast_call import FastCall
 
 #: Names a parameter or a definition may not take (they mean something in formulas).
 RESERVED_NAMES = frozenset(
@@ -101,7 +102,7 @@ def values(parameters: Mapping[str, float], definitions: Mapping[str, object],
 
 
 @functools.lru_cache(maxsize=4096)
-def _numeric(formula: str, used: tuple[str, ...]) -> ca.Function | None:
+def _numeric(formula: str, used: tuple[str, ...]) -> FastCall | None:
     """The formula as a Function of the names it uses (parsed once; a new set of values is
     then one call, not a parse), or None when it does not parse (``evaluate`` then raises
     with the place named)."""
@@ -114,7 +115,7 @@ def _numeric(formula: str, used: tuple[str, ...]) -> ca.Function | None:
         expr = ca.SX(expr)
     if expr.numel() != 1:
         return None
-    return ca.Function("formula", [ca.vertcat(*symbols) if symbols else ca.SX(0, 1)], [expr])
+    return FastCall(ca.Function("formula", [ca.vertcat(*symbols) if symbols else ca.SX(0, 1)], [expr]))
 
 
 def evaluate(formula, names: Mapping[str, float], where: str) -> float:
@@ -124,7 +125,7 @@ def evaluate(formula, names: Mapping[str, float], where: str) -> float:
         used = tuple(sorted(n for n in expressions.free_names(formula) if n in names))
         function = _numeric(formula, used)
     if function is not None:
-        value = float(function([float(names[n]) for n in used]))
+        value = float(function([float(names[n]) for n in used])[0][0])
         if math.isfinite(value):
             return value
     value = expressions.parse(formula, names, where=where)

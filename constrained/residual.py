@@ -20,8 +20,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from .fast_call import FastCall
 from .manifold import ParametricView, row_scales_expr, structure_cache
-from .model import FastCall
 
 _CACHE_KEY = "residual_in_metres"
 

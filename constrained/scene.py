@@ -285,12 +285,6 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
         data = path.read_bytes()
     except OSError as exc:
         raise SceneError(f"cannot read the file ({exc.strerror or exc})", file=file) from None
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"not valid TOML: {exc}", file=file) from None
     overrides = list(overrides or [])
     digest = (str(path.resolve()), hashlib.sha256(data).hexdigest())
     with _LOADED_LOCK:
@@ -307,7 +301,13 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
             plain = _LOADED.get((*digest, ()))
     values = _parameter_values(overrides, plain, file)
     if values is not None:  # only new parameter values for a scene read before
-        return _with_parameter_values(_copied(plain), values, file)
+        return _with_parameter_values(plain, values, file)
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"not valid TOML: {exc}", file=file) from None
     raw, set_paths = _apply_overrides(raw, overrides, file)
     key = (*digest, tuple(overrides))
     try:
@@ -353,10 +353,10 @@ def _parameter_values(overrides: list[str], scene: Scene | None, file: str) -> d
 
 
 def _with_parameter_values(scene: Scene, values: dict, file: str) -> Scene:
-    """``scene`` for new parameter values, checked as reading them from the file would: the
-    formulas evaluated again (masses positive) and the start regular."""
+    """A copy of the kept ``scene`` for new parameter values, checked as reading them from the
+    file would: the formulas evaluated again (masses positive) and the start regular."""
     try:
-        scene = scene.with_parameters(values)
+        scene = _copied(scene, scene.system.with_parameters(values), {"parameters": values})
     except InputError as exc:
         raise SceneError(exc.reason, file=file, key=f"parameters ({', '.join(values)})") from None
     if "reduced" not in scene.raw:
@@ -368,14 +368,31 @@ def _with_parameter_values(scene: Scene, values: dict, file: str) -> Scene:
     return scene
 
 
-def _copied(scene: Scene) -> Scene:
-    """A Scene sharing nothing mutable with ``scene``."""
+def _copied(scene: Scene, system=None, raw_update: dict | None = None) -> Scene:
+    """A Scene sharing nothing mutable with ``scene``; with ``system`` (a new System) instead
+    of a copy of its own and ``raw_update`` ({table: {key: value}}) applied to its contents."""
+    raw = _data_copy(scene.raw)
+    for table, entries in (raw_update or {}).items():
+        raw.setdefault(table, {}).update(entries)
     return dataclasses.replace(
-        scene, system=scene.system.copy(), settings=copy.deepcopy(scene.settings),
-        outputs=copy.deepcopy(scene.outputs), reduced=copy.deepcopy(scene.reduced),
-        raw=copy.deepcopy(scene.raw), expect=copy.deepcopy(scene.expect),
+        scene, system=scene.system.copy() if system is None else system,
+        settings=_data_copy(scene.settings),
+        outputs=_data_copy(scene.outputs), reduced=_data_copy(scene.reduced),
+        raw=raw, expect=_data_copy(scene.expect),
         expectations=None if scene.expectations is None else list(scene.expectations),
         units=None if scene.units is None else dict(scene.units))
+
+
+def _data_copy(value):
+    """A deep copy of TOML-like data (dicts, lists, scalars), several times faster than
+    ``copy.deepcopy``; anything else is deep-copied the usual way."""
+    if isinstance(value, dict):
+        return {k: _data_copy(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_data_copy(v) for v in value]
+    if value is None or isinstance(value, str | int | float | bool | tuple):
+        return value if not isinstance(value, tuple) else copy.deepcopy(value)
+    return copy.deepcopy(value)
 
 
 def build_scene(raw: Mapping, path: str | Path | None = None) -> Scene:
@@ -437,7 +454,14 @@ _KEY_RE = re.compile(rf"{_SEG}(?:\.{_SEG})*")
 _TOKEN_RE = re.compile(r"([A-Za-z0-9_\-]+)|\[(\d+)\]")
 
 
+#: A decimal number as TOML writes one (no leading zeros, digits on both sides of the point).
+_NUMBER_RE = re.compile(r"[+-]?(?:0|[1-9][0-9]*)(?:(\.[0-9]+)?([eE][+-]?[0-9]+)?)")
+
+
 def _parse_value(text: str):
+    number = _NUMBER_RE.fullmatch(text)
+    if number:  # the common case, read as TOML would without its parser
+        return float(text) if number.group(1) or number.group(2) else int(text)
     try:
         return tomllib.loads(f"value = {text}")["value"]
     except tomllib.TOMLDecodeError:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import constrained as C
+from constrained.fast_call import FastCall
 from constrained.manifold import (
     Manifold,
     ProjectionStatus,
@@ -15,7 +16,6 @@ from constrained.manifold import (
     schur_solve,
     symbolic_acceleration,
 )
-from constrained.model import FastCall
 
 
 def chain(n: int, bend: float = 0.5) -> C.System:

@@ -31,8 +31,8 @@ import numpy as np
 from .. import compiled as compiled_evaluation
 from .. import diagnostics
 from ..errors import InputError
+from ..fast_call import FastCall
 from ..manifold import ParametricView, acceleration_function, projection_graph, structure_cache
-from ..model import FastCall
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 from .tableaus import TABLEAUS

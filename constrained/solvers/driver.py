@@ -17,6 +17,8 @@ error already controlled, a status) and makes no decisions; this loop decides
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 from .. import diagnostics
@@ -100,9 +102,13 @@ class _Run:
                 self.ts.append(t)
                 self.xs.append(adv.x[:k])
                 self.vs.append(adv.v[:k])
-            while self.pending and self.pending[0] <= t[-1]:  # the output times landed on
-                i = int(np.searchsorted(t, self.pending.pop(0)))
-                self.keep(t[i], adv.x[i], adv.v[i])
+            due = bisect.bisect_right(self.pending, t[-1])  # the output times landed on
+            if due:
+                i = np.searchsorted(t, self.pending[:due])
+                del self.pending[:due]
+                self.ts.append(t[i])
+                self.xs.append(adv.x[i])
+                self.vs.append(adv.v[i])
             self.last = (float(t[-1]), adv.x[k - 1], adv.v[k - 1])
             self.last_a = adv.a[k - 1] if adv.a is not None else None
             return None

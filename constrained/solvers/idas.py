@@ -18,13 +18,16 @@ drift. The algebraic variables are left out of the error test, as index-2 proble
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import OrderedDict
 
 import casadi as ca
 import numpy as np
 
 from .. import interrupt, residual
 from ..errors import InputError
+from ..manifold import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 
@@ -41,6 +44,15 @@ STEPS_PER_CALL = 20_000
 SPLIT = 10
 #: Factors on the first step tried when a restarted call fails at once (see ``run``).
 RESTART_STEPS = (1e-2, 1e2, 1e-4)
+#: IDAS integrators kept per structure, method and row set (one per output grid and options).
+INTEGRATORS_KEPT = 8
+_lock = threading.Lock()
+
+
+def _inverse_masses(m):
+    """M⁻¹ of a model view: numbers, or formulas of its parameters (ParametricView)."""
+    inverse = m.inverse_masses
+    return inverse if isinstance(inverse, ca.SX) else ca.DM(inverse)
 
 
 class CallSize:
@@ -84,7 +96,9 @@ class _IdasBase(Stepper):
             raise InputError(f"method '{self.name}' is for constrained systems; this one has none")
         self.max_step = max_step
 
-    def dae(self):
+    def dae(self, m, w, t) -> dict:
+        """The DAE {x, z, ode, alg} in real time ``t`` (an expression) of the model view ``m``
+        (its parameters symbols), the held rows multiplied by the weights ``w``."""
         raise NotImplementedError
 
     def algebraic_guess(self, x, v, t):
@@ -98,21 +112,13 @@ class _IdasBase(Stepper):
 
     def init(self, x0, v0, t0, t_end, first_step=None):
         m = self.model
-        if not hasattr(self, "row_scales"):  # the run's scales and DAE, from its start
+        if not hasattr(self, "row_scales"):  # the run's scales, from its start
             # constraint rows divided by their scale at the start (constrained.residual), so IDAS
             # sees the same equations and multipliers (in N) whatever scale a formula is written in
             self.row_scales = residual.row_scales(m, x0, t0)
-            self._dae, _ = self.dae()
-            opts = {"abstol": self.atol, "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL,
-                    "calc_ic": True, "print_stats": False}
+            self._weights = 1.0 / self.row_scales[self.rows]
             self._step0 = self.dt or (self.first_step_fraction * (t_end - t0) if self.first_step_fraction
                                       else None)
-            if self._step0:
-                opts["step0"] = self._step0
-            if self.max_step:
-                opts["max_step_size"] = self.max_step
-            opts.update(self.extra_options())
-            self._opts = opts
             self._scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
             # projection tolerances in metres (constrained.residual): |f| ≤ tol × smallest row scale
             self._tol_f = 1e-14 * residual.smallest_scale(m, x0, t0)
@@ -138,26 +144,25 @@ class _IdasBase(Stepper):
             inner = tuple(float(tk) for tk in np.linspace(t_prev, seg[0], pieces + 1)[1:-1])
             if inner:
                 return Advance.empty((t_prev, y, z, inner + times), n3)
-        opts = self._opts
+        span = seg[-1] - t_prev
+        grid = tuple((np.asarray(seg) - t_prev) / span)
+        p = np.concatenate([[t_prev, span], self._weights, m.parameter_values])
         called = time.perf_counter()
         try:
-            res, integ = None, None
-            if len(seg) == 1 and self._reusable():
-                # one output: the integrator built once on τ ∈ [0, 1], t = t_prev + Δ τ; where it
-                # fails (its initial-condition solve has no derivative guess) a call of its own
-                try:
-                    integ = self._scaled_integrator()
+            res = None
+            if not self.needs_derivatives:
+                try:  # the integrator built once for these options (see _integrator)
+                    integ = self._integrator(grid, span)
                     with interrupt.external():
-                        res = integ(x0=y, z0=z, p=[t_prev, seg[0] - t_prev])
+                        res = integ(x0=y, z0=z, p=p)
                 except RuntimeError:
                     if self.stop_requested():
                         raise
-            if res is None:
+            if res is None:  # a call of its own, given the derivatives at its start
                 a_prev, _ = self.manifold.accelerations(y[:n3], y[n3:], t_prev)
-                opts["init_xdot"] = np.concatenate([y[n3:], a_prev]).tolist()
-                integ = ca.integrator("dae", "idas", self._dae, t_prev, list(seg), opts)
+                integ = self._integrator(grid, span, init_xdot=span * np.concatenate([y[n3:], a_prev]))
                 with interrupt.external():
-                    res = integ(x0=y, z0=z)
+                    res = integ(x0=y, z0=z, p=p)
         except RuntimeError as exc:
             if self.stop_requested():
                 raise KeyboardInterrupt from None
@@ -165,7 +170,7 @@ class _IdasBase(Stepper):
             if self._step0 and t_prev > self._t0 and "CONV_FAIL" in reason and self._retries:
                 # ggl's index-2 corrector can fail on a restart's first step: the next
                 # first step in RESTART_STEPS usually passes
-                opts["step0"] = self._step0 * self._retries.pop(0)
+                self._step0_next = self._step0 * self._retries.pop(0)
                 return Advance.empty(state, n3)
             if self._calls.retry_smaller(len(seg), time.perf_counter() - called):
                 return Advance.empty(state, n3)
@@ -178,11 +183,11 @@ class _IdasBase(Stepper):
         stats = integ.stats()
         if self._step0:
             # the next call restarts at order 1: a tenth of the last step taken (RESTART_STEPS
-            # retries other first steps should the corrector fail there)
-            last = float(stats.get("hlast", 0.0))
-            opts["step0"] = 0.1 * last if np.isfinite(last) and last > 0 else self._step0
+            # retries other first steps should the corrector fail there); IDAS steps in τ
+            last = float(stats.get("hlast", 0.0)) * span
+            self._step0_next = 0.1 * last if np.isfinite(last) and last > 0 else self._step0
             self._retries = list(RESTART_STEPS)
-        self._pace = int(stats.get("nsteps", 0)) / max(seg[-1] - t_prev, 1e-300)  # steps per second
+        self._pace = int(stats.get("nsteps", 0)) / max(span, 1e-300)  # steps per second
         for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
                           ("rejected", "netfails")):
             self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
@@ -206,25 +211,56 @@ class _IdasBase(Stepper):
     def extra_options(self) -> dict:
         return {}
 
-    def _reusable(self) -> bool:
-        """Whether one-output calls can share an integrator built once: no first step or
-        largest step given in seconds (they would change with each call's span in τ)."""
-        return not self._step0 and not self.max_step
+    #: Whether every call needs the derivatives at its start (``init_xdot``: IDAS computes no
+    #: consistent initial condition), so that no integrator is shared between calls; else a
+    #: shared one is tried first and a call of its own, given them, where its solve fails.
+    needs_derivatives = False
+    _step0_next: float | None = None
 
-    def _scaled_integrator(self):
-        """IDAS on the DAE in τ ∈ [0, 1] with t = p₀ + p₁ τ (d/dτ = p₁ d/dt), built once per
-        run: building an IDAS integrator costs about as much as a call integrates."""
-        if getattr(self, "_scaled", None) is None:
-            dae = self._dae
-            t = dae["t"]
-            P, tau = ca.SX.sym("p", 2), ca.SX.sym("tau")
-            moved = P[0] + P[1] * tau
-            ode = P[1] * ca.substitute(dae["ode"], t, moved)
-            alg = ca.substitute(dae["alg"], t, moved)
-            opts = {k: value for k, value in self._opts.items() if k != "init_xdot"}
-            scaled = {"x": dae["x"], "z": dae["z"], "p": P, "t": tau, "ode": ode, "alg": alg}
-            self._scaled = ca.integrator("dae_scaled", "idas", scaled, 0.0, [1.0], opts)
-        return self._scaled
+    def _integrator(self, grid: tuple, span: float, init_xdot=None):
+        """IDAS over τ ∈ [0, 1] with output times ``grid`` in τ, on the DAE in τ (``_scaled_dae``):
+        built once per structure, method, row set, grid and options and kept with the
+        structure's cache (building an integrator costs about as much as a call integrates);
+        a call with ``init_xdot`` (dy/dτ at its start) is built for that call alone."""
+        opts = {"abstol": self.atol, "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL,
+                "calc_ic": True, "print_stats": False, **self.extra_options()}
+        step0 = self._step0_next if self._step0_next is not None else self._step0
+        if step0:
+            opts["step0"] = step0 / span
+        if self.max_step:
+            opts["max_step_size"] = self.max_step / span
+        if init_xdot is not None or self._step0_next is not None:  # this call's own
+            if init_xdot is not None:
+                opts["init_xdot"] = np.asarray(init_xdot, float).tolist()
+            return ca.integrator(f"{self.name}_call", "idas", self._scaled_dae(), 0.0, list(grid), opts)
+        cache, prefix = structure_cache(self.model)
+        kept = cache.setdefault((*prefix, self.name, "integrators", tuple(self.rows)), OrderedDict())
+        key = (grid, tuple(sorted(opts.items())))
+        integ = kept.get(key)
+        if integ is None:
+            integ = ca.integrator(self.name, "idas", self._scaled_dae(), 0.0, list(grid), opts)
+            with _lock:
+                kept[key] = integ
+                while len(kept) > INTEGRATORS_KEPT:
+                    kept.popitem(last=False)
+        return integ
+
+    def _scaled_dae(self) -> dict:
+        """The method's DAE (``dae``) in τ ∈ [0, 1], t = t_a + Δ τ (d/dτ = Δ d/dt), with the
+        parameters p = [t_a, Δ, w, model parameters]: w the rows' weights (1 / their scale at
+        the start), so one DAE serves every run, start and parameter value of the structure."""
+        cache, prefix = structure_cache(self.model)
+        key = (*prefix, self.name, "scaled dae", tuple(self.rows))
+        if key not in cache:
+            m = self.model
+            P = ca.SX.sym("p", len(m.parameter_values))
+            W = ca.SX.sym("w", len(self._weights))
+            span = ca.SX.sym("span", 2)
+            tau = ca.SX.sym("tau")
+            dae = self.dae(ParametricView(m, P), W, span[0] + span[1] * tau)
+            cache[key] = {"x": dae["x"], "z": dae["z"], "p": ca.vertcat(span, W, P), "t": tau,
+                          "ode": span[1] * dae["ode"], "alg": dae["alg"]}
+        return cache[key]
 
 
 class Idas(_IdasBase):
@@ -236,19 +272,14 @@ class Idas(_IdasBase):
         super().__init__(manifold, **kwargs)
         self.project_outputs = bool(project_outputs)
 
-    def dae(self):
-        m = self.model
+    def dae(self, m, w, t) -> dict:
         n3, C = m.n_coordinates, len(self.rows)
-        x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
+        x, v = ca.SX.sym("x", n3), ca.SX.sym("v", n3)
         lam = ca.SX.sym("lam", C)
-        minv = ca.DM(m.inverse_masses)
         F, J, gamma = m.dynamics(x, v, t)
-        w = ca.DM(1.0 / self.row_scales[self.rows])
-        J, gamma = ca.mtimes(ca.diag(w), J[self.rows, :]), w * gamma[self.rows]  # rows in metres
-        a = minv * (F + ca.mtimes(J.T, lam))
-        dae = {"x": ca.vertcat(x, v), "z": lam, "t": t, "ode": ca.vertcat(v, a),
-               "alg": ca.mtimes(J, a) + gamma}
-        return dae, C
+        J, gamma = w * J[self.rows, :], w * gamma[self.rows]  # rows in metres
+        a = _inverse_masses(m) * (F + ca.mtimes(J.T, lam))
+        return {"x": ca.vertcat(x, v), "z": lam, "ode": ca.vertcat(v, a), "alg": ca.mtimes(J, a) + gamma}
 
     def algebraic_guess(self, x, v, t):
         return (self.manifold.accelerations(x, v, t)[1] * self.row_scales)[self.rows]
@@ -261,25 +292,24 @@ class GGL(_IdasBase):
     #: (atol < 1e-10 failed on the double pendulum). A first step of 1e-5 of the run avoids it.
     first_step_fraction = 1e-5
 
-    def dae(self):
-        m = self.model
+    def dae(self, m, w, t) -> dict:
         n3, C = m.n_coordinates, len(self.rows)
-        x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
+        x, v = ca.SX.sym("x", n3), ca.SX.sym("v", n3)
         lam, mu = ca.SX.sym("lam", C), ca.SX.sym("mu", C)
-        minv = ca.DM(m.inverse_masses)
+        minv = _inverse_masses(m)
         F, J, _ = m.dynamics(x, v, t)
         _, f_t = m.velocity_terms(x, t)
         f = m.constraint(x, t)
-        w = ca.DM(1.0 / self.row_scales[self.rows])  # rows in metres (see run)
-        J, f_t, f = ca.mtimes(ca.diag(w), J[self.rows, :]), w * f_t[self.rows], w * f[self.rows]
-        dae = {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu), "t": t,
-               "ode": ca.vertcat(v + minv * ca.mtimes(J.T, mu), minv * (F + ca.mtimes(J.T, lam))),
-               "alg": ca.vertcat(f, ca.mtimes(J, v) + f_t)}
-        return dae, 2 * C
+        J, f_t, f = w * J[self.rows, :], w * f_t[self.rows], w * f[self.rows]  # rows in metres
+        return {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu),
+                "ode": ca.vertcat(v + minv * ca.mtimes(J.T, mu), minv * (F + ca.mtimes(J.T, lam))),
+                "alg": ca.vertcat(f, ca.mtimes(J, v) + f_t)}
 
     def algebraic_guess(self, x, v, t):
         return np.concatenate([(self.manifold.accelerations(x, v, t)[1] * self.row_scales)[self.rows],
                                np.zeros(len(self.rows))])
+
+    needs_derivatives = True  # IDAS's initial-condition solve is for index-1 DAEs
 
     def extra_options(self) -> dict:
         return {"suppress_algebraic": True, "calc_ic": False}

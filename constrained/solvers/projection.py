@@ -15,6 +15,7 @@ from scipy.integrate import DOP853, RK45, Radau
 from .. import compiled as compiled_evaluation
 from .. import interrupt, residual
 from ..errors import InputError
+from ..fast_call import FastCall
 from ..manifold import Manifold, acceleration_graph, per_model_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
@@ -226,18 +227,19 @@ class Projection(Stepper):
             options["newton_scheme"] = "gmres"
         integ = ca.integrator("segment", "cvodes", {"x": y, "p": p, "t": tau, "ode": ode}, 0.0, 1.0,
                               options)
-        cache["projection_cvodes"] = (settings, integ)
-        return integ
+        cache["projection_cvodes"] = (settings, (integ, FastCall(integ), integ.name_in()))
+        return cache["projection_cvodes"][1]
 
     def _cvodes_step(self, state, t_b) -> Advance:
         """One CVODES call (Adams, or BDF with Newton for base CVODES_BDF; no Python per
         evaluation) from the last output time to the next, projected there onto both manifolds."""
         n = self.model.n_coordinates
         t_a, y = state
-        integ = self._integrator
+        integ, call, names = self._integrator
+        inputs = {"x0": y, "p": (t_a, t_b - t_a)}
         try:
             with interrupt.external():
-                out = integ(x0=y, p=[t_a, t_b - t_a])
+                yb = call(*(inputs.get(name, ()) for name in names))[0]
         except KeyboardInterrupt:
             raise
         except RuntimeError as exc:
@@ -245,10 +247,9 @@ class Projection(Stepper):
                 raise KeyboardInterrupt from None
             why = f"CVODES stopped after t = {t_a:.6g} s ({str(exc).splitlines()[-1][:200]}); "
             return self._stopped(state, Status.SOLVER_FAILED, why, t_a, y)
-        stats = integ.stats()
+        stats = call.stats()
         self.stats["steps"] += int(stats.get("nsteps", 0))
         self.stats["nfev"] += int(stats.get("nfevals", 0))
-        yb = out["xf"].full().ravel()
         try:
             x, v = self.project(yb[:n], yb[n:], t_b)
         except _ProjectionFailed as exc:

@@ -29,8 +29,8 @@ import numpy as np
 from .. import compiled as compiled_evaluation
 from .. import diagnostics, residual
 from ..errors import InputError
+from ..fast_call import FastCall
 from ..manifold import schur_solve_graph, velocity_correction_graph
-from ..model import FastCall
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 
