@@ -658,7 +658,8 @@ def _statics(args) -> int:
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
-    from .statics import equilibrium, format_equilibrium, save_equilibrium_figure, write_equilibrium_json
+    from .statics import equilibrium
+    from .statics_report import format_equilibrium, save_equilibrium_figure, write_equilibrium_json
 
     outs = OutputSet(out_dir, ["equilibrium.json", "statics.png"]).open()
     try:

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import interrupt
-from .action import action
+from .action_integral import action
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .events import EventRecord
 from .held import held

@@ -9,8 +9,6 @@ pyplot and its global state are never touched, so this works headless and in thr
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -20,128 +18,23 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
 
+from .animation import save_animation
 from .errors import InputError
+from .figure_style import (
+    AXES,
+    EVENT_COLOURS,
+    MAX_MARKED_EVENTS,
+    colour,
+    constraint_labels,
+    fmt_vec,
+    legend,
+    motion_plane,
+    need,
+    new_figure,
+    particle_names,
+    time_axis,
+)
 from .trajectory import Trajectory, atomic_write
-
-#: Legends list at most this many entries, then "…".
-MAX_LEGEND = 12
-#: Relative tolerance of the planarity test (distance to the plane / size of the motion).
-PLANAR_RTOL = 1e-9
-_AXES = "xyz"
-
-
-def _figure(size=(7.0, 4.5)) -> Figure:
-    fig = Figure(figsize=size, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _names(traj: Trajectory) -> list[str]:
-    n = traj.x.shape[1]
-    names = list(traj.particle_names or [])
-    return names if len(names) == n else [f"particle {i}" for i in range(n)]
-
-
-def _labels(traj: Trajectory, count: int) -> list[str]:
-    labels = list(traj.constraint_labels or [])
-    return labels if len(labels) == count else [f"constraint {k}" for k in range(count)]
-
-
-def _colour(i: int) -> str:
-    return f"C{i % 10}"
-
-
-def _legend(ax, handles: list, labels: list[str], **kwargs) -> None:
-    """Legend with at most MAX_LEGEND entries; the rest is summed up as "… (k more)"."""
-    if not handles:
-        return
-    if len(handles) > MAX_LEGEND:
-        more = len(handles) - MAX_LEGEND
-        handles = [*handles[:MAX_LEGEND], Line2D([], [], linestyle="none")]
-        labels = [*labels[:MAX_LEGEND], f"… ({more} more)"]
-    if len(handles) > 4:  # many entries would hide the curves: put the legend outside
-        kwargs = {**kwargs, "loc": "upper left", "bbox_to_anchor": (1.01, 1.0)}
-    ax.legend(handles, labels, fontsize="small", **kwargs)
-
-
-def _need(traj: Trajectory, name: str, what: str) -> np.ndarray:
-    value = getattr(traj, name)
-    if value is None:
-        raise InputError(
-            f"this trajectory has no {what}: run the simulation with '{name}' among the "
-            f"requested quantities to plot it"
-        )
-    return np.asarray(value, dtype=float)
-
-
-#: Events marked in one figure at most (a settling ball has many; the first ones tell).
-MAX_MARKED_EVENTS = 60
-#: Line colours of the event kinds (user events: grey).
-EVENT_COLOURS = {"release": "tab:red", "contact": "tab:green", "impact": "tab:purple"}
-
-
-def _time_axis(ax, traj: Trajectory | None = None) -> None:
-    """The time axis; the instants of the run's events (``traj.events``) as thin dashed lines,
-    coloured by kind, with the kinds in a small legend."""
-    ax.set_xlabel("t [s]")
-    ax.grid(True, alpha=0.3)
-    events = list(getattr(traj, "events", None) or [])[:MAX_MARKED_EVENTS]
-    if not events:
-        return
-    kinds = {}
-    for e in events:
-        colour = EVENT_COLOURS.get(e.kind, "0.45")
-        ax.axvline(e.t, color=colour, lw=0.8, ls="--", alpha=0.7, zorder=0)
-        kinds.setdefault(e.kind, colour)
-    from matplotlib.legend import Legend
-
-    # an artist of its own: the figure's own legend, made later, does not replace it
-    ax.add_artist(Legend(ax, [Line2D([], [], color=c, lw=0.8, ls="--") for c in kinds.values()], list(kinds),
-                         fontsize="x-small", loc="lower left", title="events", title_fontsize="x-small"))
-
-
-# --------------------------------------------------------------------------------- planarity
-
-
-def motion_plane(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str, str]] | None:
-    """The plane holding every position of ``x`` (shape (..., 3)), or None if there is none.
-
-    Returns ``(origin, basis, labels)``: plane coordinates are ``(p - origin) @ basis.T``
-    (``basis`` is 2×3, orthonormal rows). When the plane is a coordinate plane (e.g.
-    z = const) the basis is the two other unit axes and labels are their names ("x", "y");
-    otherwise the basis is the two principal directions and labels are ("u", "v").
-    "In the plane" means within ``PLANAR_RTOL`` times the size of the motion.
-    """
-    p = np.asarray(x, dtype=float).reshape(-1, 3)
-    p = p[np.all(np.isfinite(p), axis=1)]
-    if len(p) == 0:
-        return None
-    origin = p.mean(axis=0)
-    c = p - origin
-    size = float(np.max(np.ptp(p, axis=0)))
-    tol = PLANAR_RTOL * size
-    spread = np.ptp(p, axis=0)
-    flat = [k for k in range(3) if spread[k] <= tol]
-    if flat:
-        k = flat[-1]  # prefer z = const, then y = const, then x = const
-        keep = [j for j in range(3) if j != k]
-        return origin, np.eye(3)[keep], (_AXES[keep[0]], _AXES[keep[1]])
-    _, _, vt = np.linalg.svd(c, full_matrices=False)
-    normal = vt[2]
-    if np.max(np.abs(c @ normal)) > tol:
-        return None
-    basis = vt[:2].copy()
-    for row in basis:  # deterministic orientation: largest component positive
-        if row[np.argmax(np.abs(row))] < 0:
-            row *= -1
-    if np.dot(np.cross(basis[0], basis[1]), normal) < 0:
-        normal = -normal
-    return origin, basis, ("u", "v")
-
-
-def _fmt_vec(v: np.ndarray) -> str:
-    v = np.where(np.abs(v) < 5e-4, 0.0, v)
-    return "(" + ", ".join(f"{c:.3g}" for c in v) + ")"
 
 
 def trajectory_figure(traj: Trajectory) -> Figure:
@@ -150,9 +43,9 @@ def trajectory_figure(traj: Trajectory) -> Figure:
     Each path starts at a circle and ends at a square; the legend names the particles.
     """
     x = np.asarray(traj.x, dtype=float)
-    names = _names(traj)
+    names = particle_names(traj)
     plane = motion_plane(x)
-    fig = _figure((7.0, 6.0))
+    fig = new_figure((7.0, 6.0))
     handles = []
     if plane is not None:
         origin, basis, (a, b) = plane
@@ -162,9 +55,9 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         shift = np.zeros(3) if coordinate_plane else origin
         q = (x - shift) @ basis.T  # (T, N, 2)
         for i in range(len(names)):
-            (line,) = ax.plot(q[:, i, 0], q[:, i, 1], color=_colour(i), lw=1.5)
-            ax.plot(*q[0, i], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
-            ax.plot(*q[-1, i], "s", color=_colour(i), ms=6)
+            (line,) = ax.plot(q[:, i, 0], q[:, i, 1], color=colour(i), lw=1.5)
+            ax.plot(*q[0, i], "o", color=colour(i), ms=7, mfc="white", mew=1.8)
+            ax.plot(*q[-1, i], "s", color=colour(i), ms=6)
             handles.append(line)
         for e in traj.events[:MAX_MARKED_EVENTS]:
             at = (np.asarray(e.x, float) - shift) @ basis.T
@@ -174,21 +67,21 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, alpha=0.3)
         if coordinate_plane:
-            k = next(c for c in _AXES if c not in (a, b))
-            where = f"planar motion in {a}–{b} plane ({k} = {origin[_AXES.index(k)]:.4g} m)"
+            k = next(c for c in AXES if c not in (a, b))
+            where = f"planar motion in {a}–{b} plane ({k} = {origin[AXES.index(k)]:.4g} m)"
         else:
             where = (
-                f"planar motion; u = {_fmt_vec(basis[0])}, v = {_fmt_vec(basis[1])}, "
-                f"origin {_fmt_vec(origin)} m"
+                f"planar motion; u = {fmt_vec(basis[0])}, v = {fmt_vec(basis[1])}, "
+                f"origin {fmt_vec(origin)} m"
             )
         ax.set_title(f"Particle paths\n{where}", fontsize="medium")
     else:
         ax = fig.add_subplot(projection="3d")
         for i in range(len(names)):
             p = x[:, i]
-            (line,) = ax.plot(p[:, 0], p[:, 1], p[:, 2], color=_colour(i), lw=1.5)
-            ax.plot(*p[0][:, None], "o", color=_colour(i), ms=7, mfc="white", mew=1.8)
-            ax.plot(*p[-1][:, None], "s", color=_colour(i), ms=6)
+            (line,) = ax.plot(p[:, 0], p[:, 1], p[:, 2], color=colour(i), lw=1.5)
+            ax.plot(*p[0][:, None], "o", color=colour(i), ms=7, mfc="white", mew=1.8)
+            ax.plot(*p[-1][:, None], "s", color=colour(i), ms=6)
             handles.append(line)
         for e in traj.events[:MAX_MARKED_EVENTS]:
             at = np.asarray(e.x, float)
@@ -216,7 +109,7 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         markers.append(Line2D([], [], marker="x", color="0.3", mew=1.6, linestyle="none"))
         kinds = dict.fromkeys(e.kind for e in traj.events[:MAX_MARKED_EVENTS])
         words.append(f"events ({', '.join(kinds)})")
-    _legend(ax, handles, names, loc="upper left")
+    legend(ax, handles, names, loc="upper left")
     _legend_markers(ax, markers, words)
     return fig
 
@@ -255,15 +148,15 @@ def energy_figure(traj: Trajectory) -> Figure:
     """E(t) − E(0) in joules; E(0) is given in the title. Called "drift" only where E is
     conserved: a driven or damped scene's title says what changes E (the energy is not a
     check of the integration there)."""
-    energy = _need(traj, "energy", "energy")
+    energy = need(traj, "energy", "energy")
     t = np.asarray(traj.t, dtype=float)
     e0 = energy[0]
     drift = energy - e0
-    fig = _figure()
+    fig = new_figure()
     ax = fig.add_subplot()
     ax.plot(t, drift, color="C0", lw=1.5)
     ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
-    _time_axis(ax, traj)
+    time_axis(ax, traj)
     ax.set_ylabel("E(t) − E(0) [J]")
     finite = drift[np.isfinite(drift)]
     worst = float(np.max(np.abs(finite))) if len(finite) else float("nan")
@@ -308,14 +201,14 @@ def residual_figure(traj: Trajectory) -> Figure:
             "C4",
         ),
     }
-    fig = _figure((7.0, 3.0 * len(panels) + 0.5))
+    fig = new_figure((7.0, 3.0 * len(panels) + 0.5))
     axes = fig.subplots(len(panels), 1, squeeze=False)[:, 0]
     for ax, (name, value) in zip(axes, panels, strict=True):
         title, ylabel, colour = text[name]
         floor = _floor_positive([value])
         zeros = int(np.count_nonzero(value == 0))
         ax.semilogy(t, np.maximum(value, floor), color=colour, lw=1.2)
-        _time_axis(ax, traj)
+        time_axis(ax, traj)
         ax.set_ylabel(ylabel)
         finite = value[np.isfinite(value)]
         if not len(finite):
@@ -332,38 +225,38 @@ def residual_figure(traj: Trajectory) -> Figure:
 
 def constraint_forces_figure(traj: Trajectory) -> Figure:
     """Magnitude of the total constraint force on each particle, |F_con,i|(t) in newtons."""
-    forces = _need(traj, "constraint_forces", "constraint forces")
+    forces = need(traj, "constraint_forces", "constraint forces")
     t = np.asarray(traj.t, dtype=float)
     magnitude = np.linalg.norm(forces, axis=2)
-    names = _names(traj)
-    fig = _figure()
+    names = particle_names(traj)
+    fig = new_figure()
     ax = fig.add_subplot()
     handles = [
-        ax.plot(t, magnitude[:, i], color=_colour(i), lw=1.3)[0] for i in range(len(names))
+        ax.plot(t, magnitude[:, i], color=colour(i), lw=1.3)[0] for i in range(len(names))
     ]
-    _time_axis(ax, traj)
+    time_axis(ax, traj)
     ax.set_ylabel("|F$_{con}$| [N]")
     ax.set_ylim(bottom=0.0)
     ax.set_title("Constraint force on each particle", fontsize="medium")
-    _legend(ax, handles, names, loc="best")
+    legend(ax, handles, names, loc="best")
     return fig
 
 
 def multipliers_figure(traj: Trajectory) -> Figure:
     """Each Lagrange multiplier λ_k(t); the legend names the constraint rows."""
-    lam = _need(traj, "multipliers", "multipliers")
+    lam = need(traj, "multipliers", "multipliers")
     lam = lam.reshape(len(lam), -1)
     t = np.asarray(traj.t, dtype=float)
-    labels = _labels(traj, lam.shape[1])
-    fig = _figure()
+    labels = constraint_labels(traj, lam.shape[1])
+    fig = new_figure()
     ax = fig.add_subplot()
-    handles = [ax.plot(t, lam[:, k], color=_colour(k), lw=1.3)[0] for k in range(lam.shape[1])]
+    handles = [ax.plot(t, lam[:, k], color=colour(k), lw=1.3)[0] for k in range(lam.shape[1])]
     ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
-    _time_axis(ax, traj)
+    time_axis(ax, traj)
     ax.set_ylabel("λ [N] (for constraints f in m)")
     rows = f"{lam.shape[1]} constraint row{'s' if lam.shape[1] != 1 else ''}"
     ax.set_title(f"Lagrange multipliers ({rows})", fontsize="medium")
-    _legend(ax, handles, labels, loc="best")
+    legend(ax, handles, labels, loc="best")
     return fig
 
 
@@ -389,7 +282,7 @@ def principal_coordinate(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, floa
 def phase_figure(traj: Trajectory) -> Figure:
     """Phase portrait (s, ds/dt) of a one-degree-of-freedom scene along the principal coordinate."""
     s, ds, share = principal_coordinate(traj)
-    fig = _figure((6.0, 5.5))
+    fig = new_figure((6.0, 5.5))
     ax = fig.add_subplot()
     ax.plot(s, ds, color="C0", lw=1.2)
     ax.plot(s[0], ds[0], "o", color="C0", ms=7, mfc="white", mew=1.8, label="start")
@@ -408,257 +301,6 @@ def phase_figure(traj: Trajectory) -> Figure:
     )
     ax.legend(fontsize="small", loc="best")
     return fig
-
-
-# ------------------------------------------------------------------------------- animation
-
-#: Most frames an animation gets (the trajectory is resampled uniformly in time).
-MAX_FRAMES = 120
-
-
-def _links(system, traj: Trajectory) -> tuple[list[tuple[int, int]], list[tuple[int, np.ndarray, float | None]]]:  # noqa: E501
-    """Rods to draw: (i, j) particle pairs and (i, point, length) rods to fixed pivots, from
-    ``system`` when given, else from the sketch the run stored in ``traj.info``."""
-    if system is not None:
-        from .system import sketch
-
-        found = sketch(system)
-    else:
-        found = (traj.info or {}).get("sketch") or {"rods": [], "anchors": []}
-    n = traj.x.shape[1]
-    pairs = [(int(i), int(j)) for i, j in found["rods"] if i < n and j < n]
-    anchors = [(int(i), np.asarray(p, dtype=float), length) for i, p, length in found["anchors"] if i < n]
-    return pairs, anchors
-
-
-def _resample(t: np.ndarray, data: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Linear interpolation of (T, ...) samples at ``times``."""
-    flat = data.reshape(len(t), -1)
-    out = np.stack([np.interp(times, t, flat[:, k]) for k in range(flat.shape[1])], axis=1)
-    return out.reshape((len(times), *data.shape[1:]))
-
-
-#: Animation size: inches and dots per inch of a frame (640 × 600 px).
-ANIMATION_SIZE, ANIMATION_DPI = (6.4, 6.0), 100
-
-
-def _animation_parts(traj: Trajectory, system, forces: bool, max_frames: int):
-    """``(fig, draw, n_frames)``: the figure with its static parts, and ``draw(k)`` which sets
-    frame k and returns the artists that change."""
-    t = np.asarray(traj.t, dtype=float)
-    names = _names(traj)
-    n_frames = int(max(2, min(max_frames, len(t))))
-    times = np.linspace(t[0], t[-1], n_frames)
-    x_all = np.asarray(traj.x, dtype=float)
-    x = _resample(t, x_all, times)
-    f = None
-    if forces and traj.constraint_forces is not None:
-        f = _resample(t, np.asarray(traj.constraint_forces, dtype=float), times)
-    pairs, anchors = _links(system, traj)
-    plane = motion_plane(x_all)
-    # a fixed layout: the constrained-layout engine would re-run on every frame
-    fig = Figure(figsize=ANIMATION_SIZE)
-    FigureCanvasAgg(fig)
-    if plane is not None:
-        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.93)
-        origin, basis, (a, b) = plane
-        shift = np.zeros(3) if a != "u" else origin
-        project = lambda p: (np.asarray(p) - shift) @ basis.T  # noqa: E731
-        ax = fig.add_subplot()
-        ax.set_xlabel(f"{a} [m]")
-        ax.set_ylabel(f"{b} [m]")
-        ax.set_aspect("equal", adjustable="box")
-        dim = 2
-    else:
-        fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.95)
-        project = np.asarray
-        ax = fig.add_subplot(projection="3d")
-        ax.set_xlabel("x [m]", labelpad=8)
-        ax.set_ylabel("y [m]", labelpad=8)
-        ax.set_zlabel("z [m]", labelpad=8)
-        dim = 3
-    q = project(x)  # (F, N, dim)
-    path = project(x_all)
-    pts = path.reshape(-1, dim)
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
-    anchor_q = [project(p) for _, p, _ in anchors]
-    if anchor_q:
-        pts = np.vstack([pts, *anchor_q])
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    size = float(max(np.max(hi - lo), 1e-9))
-    pad = 0.12 * size
-    scale = 0.0
-    if f is not None:
-        fq = f @ basis.T if dim == 2 else f  # forces are directions: no shift
-        biggest = float(np.max(np.linalg.norm(fq, axis=-1))) if fq.size else 0.0
-        scale = 0.25 * size / biggest if biggest > 0 else 0.0
-    limits = [(lo[k] - pad, hi[k] + pad) for k in range(dim)]
-    ax.set_xlim(*limits[0])
-    ax.set_ylim(*limits[1])
-    if dim == 3:
-        ax.set_zlim(*limits[2])
-        ax.set_box_aspect([max(h - l_, 0.05 * size) for l_, h in limits], zoom=0.85)
-    else:
-        ax.grid(True, alpha=0.3)
-    # the whole path, faint: the curve or surface the constraints hold each particle to shows up
-    for i in range(len(names)):
-        ax.plot(*[path[:, i, k] for k in range(dim)], color=_colour(i), lw=0.6, alpha=0.25)
-    if dim == 2:  # a rod to a fixed pivot: the circle it holds its particle on, dashed
-        from matplotlib.patches import Circle
-
-        for (_, point, length), pq in zip(anchors, anchor_q, strict=True):
-            in_plane = plane is not None and abs(np.dot(point - plane[0], np.cross(*plane[1]))) < 1e-9 * size
-            if length and in_plane:
-                ax.add_patch(Circle(tuple(pq), length, fill=False, ls="--", lw=0.8, color="0.6"))
-    else:  # in 3-D the sphere a rod to a fixed pivot holds its particle on, as a faint wireframe
-        u, w = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
-        for _, point, length in anchors:
-            if not length:
-                continue
-            sphere = [point[0] + length * np.cos(u) * np.sin(w), point[1] + length * np.sin(u) * np.sin(w),
-                      point[2] + length * np.cos(w)]
-            inside = np.all([(c >= lo_ - 1e-9) & (c <= hi_ + 1e-9)
-                             for c, (lo_, hi_) in zip(sphere, limits, strict=True)], axis=0)
-            ax.plot_wireframe(*[np.where(inside, c, np.nan) for c in sphere], color="0.7", lw=0.4, alpha=0.6)
-    trail_len = max(1, n_frames // 4)
-    trails, dots = [], []
-    for i in range(len(names)):
-        (trail,) = ax.plot(*([[]] * dim), color=_colour(i), lw=1.2, alpha=0.7)
-        (dot,) = ax.plot(*([[]] * dim), "o", color=_colour(i), ms=9, label=names[i])
-        trails.append(trail)
-        dots.append(dot)
-    rods = [ax.plot(*([[]] * dim), color="0.25", lw=2.0)[0] for _ in pairs + anchors]
-    for p in anchor_q:
-        ax.plot(*[[c] for c in p], "k^", ms=8)
-    arrows = []
-    title = ax.set_title("", fontsize="medium")
-    handles = list(dots)
-    labels = list(names)
-    if scale:
-        handles.append(Line2D([], [], color="C3", lw=2))
-        labels.append(f"constraint force (arrow 1 m = {1 / scale:.3g} N)")
-    if dim == 2:  # below the axes: inside, it would cover the pivot or the path
-        ax.legend(handles[:MAX_LEGEND], labels[:MAX_LEGEND], fontsize="small", loc="upper center",
-                  bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(handles)), frameon=False)
-    else:
-        _legend(ax, handles, labels, loc="upper right")
-
-    def set_line(line, pts_):
-        pts_ = np.asarray(pts_).reshape(-1, dim)
-        if dim == 2:
-            line.set_data(pts_[:, 0], pts_[:, 1])
-        else:
-            line.set_data_3d(pts_[:, 0], pts_[:, 1], pts_[:, 2])
-
-    def draw(k: int):
-        for a_ in arrows:
-            a_.remove()
-        arrows.clear()
-        for i in range(len(names)):
-            set_line(trails[i], q[max(0, k - trail_len) : k + 1, i])
-            set_line(dots[i], q[k, i])
-        for rod, (i, j) in zip(rods, pairs, strict=False):
-            set_line(rod, np.stack([q[k, i], q[k, j]]))
-        for rod, (i, _, _), p in zip(rods[len(pairs):], anchors, anchor_q, strict=True):
-            set_line(rod, np.stack([p, q[k, i]]))
-        if scale:
-            vec = (f[k] @ basis.T if dim == 2 else f[k]) * scale
-            if dim == 2:
-                arrows.append(ax.quiver(q[k, :, 0], q[k, :, 1], vec[:, 0], vec[:, 1], color="C3",
-                                        angles="xy", scale_units="xy", scale=1, width=0.005))
-            else:
-                arrows.append(ax.quiver(q[k, :, 0], q[k, :, 1], q[k, :, 2], vec[:, 0], vec[:, 1],
-                                        vec[:, 2], color="C3"))
-        title.set_text(f"t = {times[k]:.3f} s")
-        return [*trails, *rods, *dots, *arrows, title]
-
-    return fig, draw, n_frames
-
-
-def animation_figure(traj: Trajectory, *, system=None, forces: bool = True, max_frames: int = MAX_FRAMES):
-    """``(fig, FuncAnimation)``: particles, their trails and faint full paths, rods and the
-    circles rods to fixed pivots hold their particles on (from ``system``, or from the sketch a
-    run stores in the trajectory), and constraint-force arrows (when ``forces`` and the
-    trajectory has them), in 2D for planar motion, else 3D. Frames are uniform in time, at most
-    ``max_frames``."""
-    from matplotlib.animation import FuncAnimation
-
-    fig, draw, n_frames = _animation_parts(traj, system, forces, max_frames)
-    anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
-    return fig, anim
-
-
-def _gif(fig, draw, n_frames: int, path: Path, fps: int, progress=None) -> None:
-    """Write the frames as a GIF: the static parts are drawn once, each frame only redraws the
-    artists that move (several times faster than a full redraw per frame)."""
-    from PIL import Image
-
-    canvas = fig.canvas
-    for artist in draw(0):
-        artist.set_animated(True)
-    canvas.draw()
-    background = canvas.copy_from_bbox(fig.bbox)
-    frames = []
-    for k in range(n_frames):
-        canvas.restore_region(background)
-        for artist in draw(k):
-            artist.set_animated(True)
-            if hasattr(artist, "do_3d_projection"):
-                artist.do_3d_projection()
-            fig.draw_artist(artist)
-        rgba = np.asarray(canvas.buffer_rgba())
-        frames.append(Image.fromarray(rgba[..., :3].copy()).quantize(colors=128, dither=Image.Dither.NONE))
-        if progress is not None:
-            progress(k, n_frames)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
-                       duration=int(round(1000 / fps)), loop=0)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, fps: int = 15,
-                   dpi: int = ANIMATION_DPI, max_frames: int = MAX_FRAMES, progress=None) -> list[Path]:
-    """Write ``path`` (GIF) and, when ffmpeg is on PATH, the same as ``.mp4``.
-
-    ``progress(fraction)`` is called after each frame written (fractions add up to 1)."""
-    from matplotlib.animation import FFMpegWriter
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig, draw, n_frames = _animation_parts(traj, system, forces, max_frames)
-    fig.set_dpi(dpi)
-    video = shutil.which("ffmpeg") is not None
-    targets = 2 if video else 1
-    callback = None
-    if progress is not None:
-        callback = lambda _i, n: progress(1.0 / (n * targets))  # noqa: E731
-    _gif(fig, draw, n_frames, path, fps, callback)
-    written = [path]
-    if video:
-        from matplotlib.animation import FuncAnimation
-
-        for artist in fig.findobj():
-            if hasattr(artist, "set_animated"):
-                artist.set_animated(False)
-        anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
-        target = path.with_suffix(".mp4")
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=target.suffix, dir=target.parent)
-        os.close(fd)
-        try:
-            anim.save(tmp, writer=FFMpegWriter(fps=fps), dpi=dpi, progress_callback=callback)
-            os.replace(tmp, target)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        written.append(target)
-    return written
 
 
 def action_figure(traj: Trajectory) -> Figure:

@@ -420,7 +420,7 @@ class ReducedModel:
         stats = {"nfev": int(sol.nfev), "wall_time_s": wall, "method": "reduced DOP853"}
         traj = trajectory_from(self.model, ts, X, V, wanted, stats)
         if "action" in wanted and len(ts) >= 2:
-            from .action import action
+            from .action_integral import action
 
             traj.action = action(self.model, traj).cumulative
         traj.info.update({

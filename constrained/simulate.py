@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 
 from . import diagnostics, hybrid, interrupt
-from .action import action
+from .action_integral import action
 from .errors import InputError, RunInterrupted, SimulationError
 from .events import EventRecord
 from .manifold import structural_call

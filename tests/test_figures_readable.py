@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import plot
+from constrained import animation, plot
 from constrained.trajectory import Trajectory
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -125,12 +125,13 @@ def test_animation_is_large_and_draws_rods_without_the_scene(tmp_path):
     result.trajectory.save(tmp_path / "trajectory.npz")
     saved = Trajectory.load(tmp_path / "trajectory.npz")  # no System: the stored sketch
     assert saved.info["sketch"]["rods"] == [[0, 1]] and len(saved.info["sketch"]["anchors"]) == 1
-    pairs, anchors = plot._links(None, saved)
+    pairs, anchors = animation.links(None, saved)
     assert pairs == [(0, 1)] and anchors[0][0] == 0
-    fig, draw, frames = plot._animation_parts(saved, None, True, 5)
+    fig, draw, frames = animation.animation_parts(saved, None, True, 5)
     rods = [a for a in draw(2) if getattr(a, "get_color", lambda: None)() == "0.25"]
     assert len(rods) == 2  # p1–p2 and pivot–p1
-    (gif,) = [p for p in plot.save_animation(saved, tmp_path / "a.gif", max_frames=6) if p.suffix == ".gif"]
+    written = animation.save_animation(saved, tmp_path / "a.gif", max_frames=6)
+    (gif,) = [p for p in written if p.suffix == ".gif"]
     image = Image.open(gif)
     assert min(image.size) >= 560 and image.n_frames == 6
 
@@ -171,10 +172,10 @@ def test_animation_draws_the_sphere_or_circle_a_rod_to_a_pivot_allows():
     def run(name):
         return C.load_scene(SCENARIOS / name).run(["simulate.t_end=0.5", "expect={}"]).trajectory
 
-    fig, _, _ = plot._animation_parts(run("spherical_pendulum.toml"), None, False, 4)
+    fig, _, _ = animation.animation_parts(run("spherical_pendulum.toml"), None, False, 4)
     ax = fig.axes[0]
     assert ax.name == "3d"
     assert any(isinstance(c, Line3DCollection) for c in ax.collections)  # the wireframe sphere
-    fig, _, _ = plot._animation_parts(run("simple_pendulum.toml"), None, False, 4)
+    fig, _, _ = animation.animation_parts(run("simple_pendulum.toml"), None, False, 4)
     ax = fig.axes[0]
     assert ax.name != "3d" and [p for p in ax.patches if isinstance(p, Circle)]  # the circle, planar

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from mpl_toolkits.mplot3d import Axes3D
 
+from constrained.figure_style import motion_plane
 from constrained.plot import (
     FIGURES,
     energy_figure,
-    motion_plane,
     phase_figure,
     principal_coordinate,
     residual_figure,
@@ -225,7 +225,8 @@ def _short(traj: Trajectory, n: int = 40) -> Trajectory:
 @pytest.mark.filterwarnings("ignore:Animation was deleted")
 @pytest.mark.parametrize("make", [pendulum, helix], ids=["planar", "3d"])
 def test_animation_is_a_gif_with_labelled_axes(tmp_path, make):
-    from constrained.plot import KINDS, animation_figure
+    from constrained.animation import animation_figure
+    from constrained.plot import KINDS
 
     assert "animation" in KINDS
     traj = _short(make())

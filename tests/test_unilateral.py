@@ -316,7 +316,8 @@ def test_statics_a_string_beside_a_spring_holds_only_when_taut(L):
     the spring alone would hang it at d = mg/k. Shorter string (L < mg/k): the string holds
     at d = L with tension mg − kL. Longer: the string is slack, d = mg/k, multiplier 0."""
     from constrained.effects import Spring
-    from constrained.statics import equilibrium, format_equilibrium
+    from constrained.statics import equilibrium
+    from constrained.statics_report import format_equilibrium
 
     m, k = 1.0, 20.0
     system = System([Particle("p", m, [0.0, -0.4, 0.0])],
