@@ -31,12 +31,14 @@ from .manifold import ParametricView, acceleration_function, projection_graph, s
 from .model import Model, assemble
 from .parameters import symbolic
 from .solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
-from .threads import one_blas_thread
+from .threads import available_cores, one_blas_thread
 
 #: Steps (attempts) one call advances every column by.
 CHUNK = 64
 #: Columns per mapped call.
 BLOCK = 256
+#: Columns per thread at least when ``threads`` is chosen automatically.
+MIN_THREAD_COLUMNS = 32
 #: Newton sweeps of the mapped start projection.
 START_SWEEPS = 3
 
@@ -144,6 +146,60 @@ def _projector(model: Model, rows) -> ca.Function:
     return cache[key]
 
 
+def _start_block(model: Model, system, dopri: Dopri, width: int) -> FastCall:
+    """``(p, t0) -> (x0, x, v, a)`` mapped over ``width`` columns: the start's formulas of p,
+    START_SWEEPS projections onto the constraints and the accelerations there; compiled when
+    dopri is (once per structure, row set and width)."""
+    cache, prefix = structure_cache(model)
+    rows = dopri.manifold.rows
+    key = (*prefix, "ensemble start block", rows, dopri.compiled, width)
+    if key not in cache:
+        P, T = ca.MX.sym("p", len(model.parameter_values)), ca.MX.sym("t")
+        x0, v0 = _start_function(model, system)(P)
+        x, v, _ = _projector(model, rows)(x0, v0, T, P)
+        a, _ = acceleration_function(model, rows, parametric=True)(x, v, T, P)
+        start = ca.Function("ensemble_start", [P, T], [x0, x, v, a]).map(width)
+        if dopri.compiled:
+            start = compiled_evaluation.compile_function(start)
+        cache[key] = FastCall(start)
+    return cache[key]
+
+
+def _mapped_acceleration(dopri: Dopri, width: int) -> FastCall:
+    """``(x, v, t, p) -> a`` mapped over ``width`` columns (compiled when dopri is)."""
+    cache, prefix = structure_cache(dopri.model)
+    rows = dopri.manifold.rows
+    key = (*prefix, "ensemble acceleration", rows, dopri.compiled, width)
+    if key not in cache:
+        n3 = dopri.model.n_coordinates
+        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+        P = ca.MX.sym("p", len(dopri.model.parameter_values))
+        a, _ = acceleration_function(dopri.model, rows, parametric=True)(X, V, T, P)
+        accel = ca.Function("ensemble_acceleration", [X, V, T, P], [a]).map(width)
+        if dopri.compiled:
+            accel = compiled_evaluation.compile_function(accel)
+        cache[key] = FastCall(accel)
+    return cache[key]
+
+
+def _blockwise(call: FastCall, width: int, *columns: np.ndarray) -> list[np.ndarray]:
+    """``call`` (mapped over ``width`` columns) on (rows, N) arrays, block by block, the last
+    block padded with its last column: each output as an (N, rows) array."""
+    n = columns[0].shape[1]
+    outputs = None
+    for start in range(0, n, width):
+        stop = min(start + width, n)
+        block = [c[:, start:stop] for c in columns]
+        if stop - start < width:
+            block = [np.hstack([b, np.repeat(b[:, -1:], width - (stop - start), axis=1)]) for b in block]
+        results = call(*(b.ravel(order="F") for b in block))
+        if outputs is None:
+            outputs = [np.empty((n, r.size // width)) for r in results]
+        for out, r in zip(outputs, results, strict=True):
+            out[start:stop] = r.reshape(width, -1)[:stop - start]
+    return outputs
+
+
 def _mapped_chunk(dopri: Dopri, block: int, threads: int) -> tuple[FastCall, str]:
     """dopri's step folded CHUNK times (compiled when dopri is, once per structure, tableau
     and row set) and mapped over ``block`` columns on ``threads`` threads."""
@@ -168,7 +224,7 @@ def _mapped_chunk(dopri: Dopri, block: int, threads: int) -> tuple[FastCall, str
 def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: float = 0.0,
                   rtol: float = 1e-8, atol: float = 1e-10, model: Model | None = None,
                   compiled="auto", base: str = "DOP853", max_steps: int | None = None,
-                  max_initial_correction: float = 1e-3, block: int = BLOCK, threads: int = 1,
+                  max_initial_correction: float = 1e-3, block: int = BLOCK, threads: int | None = None,
                   progress: Callable[[float], None] | bool | None = None) -> Ensemble:
     """Simulate ``system`` for every row of the ``parameters`` table in one batched run.
 
@@ -178,7 +234,9 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     (``base``, ``rtol``, ``atol``, ``compiled`` as for ``simulate(method="dopri")``) to
     ``t_end``, with its own step sizes; outputs at ``t_eval`` (default: t_end only).
     ``block`` columns go to one call, shared out over ``threads`` threads (CasADi's
-    thread map; on the 2-core machine of docs/performance.md it gained nothing, so 1).
+    thread map; default: the cores this process may use, one thread per MIN_THREAD_COLUMNS
+    columns at most — 1.8× on the 2-core machine of docs/performance.md; pass 1 where the
+    cores are busy already, e.g. in one Dask worker per core).
     ``progress(fraction)`` is told how far the slowest running variant is (``True``: a tqdm
     bar on stderr).
     """
@@ -189,8 +247,9 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         raise InputError(f"t_end ({t_end:g} s) must be later than t_start ({t_start:g} s)")
     if not (isinstance(block, int) and block > 0):
         raise InputError(f"block must be a positive whole number of variants, got {block!r}")
-    if not (isinstance(threads, int) and threads > 0):
-        raise InputError(f"threads must be a positive whole number, got {threads!r}")
+    if threads is not None and not (isinstance(threads, int) and not isinstance(threads, bool)
+                                    and threads > 0):
+        raise InputError(f"threads must be a positive whole number (or None: the cores), got {threads!r}")
     started = time.perf_counter()
     model = model or assemble(system)
     names, table = _table(model, parameters)
@@ -205,19 +264,19 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     dopri = Dopri(model, rtol=rtol, atol=atol, base=base, compiled=compiled, max_steps=max_steps)
     n3 = model.n_coordinates
     with one_blas_thread():
-        # the starts: formulas of p, projected onto the constraints (one mapped call each)
-        x0, v0 = (np.asarray(o, float).T for o in _start_function(model, system).map(n_var)(P.T))
-        xs, vs, res = _projector(model, dopri.manifold.rows).map(n_var)(x0.T, v0.T, t_start, P.T)
-        xs, vs = np.asarray(xs, float).T, np.asarray(vs, float).T
+        # the starts: formulas of p, projected onto the constraints, their accelerations
+        width = min(block, n_var)
+        starts = _start_block(model, system, dopri, width)
+        x0, xs, vs, a0 = _blockwise(starts, width, P.T, np.full((1, n_var), float(t_start)))
         size = max(float(system.size()), 1.0)
         moved = np.max(np.abs(xs - x0), axis=1)
         status = ["completed"] * n_var
         for k in np.flatnonzero(~np.isfinite(moved) | (moved > max_initial_correction * size)
                                 | ~np.all(np.isfinite(vs), axis=1)):
             status[k] = "inconsistent start"
-        accel = acceleration_function(model, dopri.manifold.rows, parametric=True).map(n_var)
-        a0 = np.asarray(accel(xs.T, vs.T, t_start, P.T)[0], float).T
-        h = _initial_steps(xs, vs, a0, P, t_start, t_end, dopri, accel)
+        accel = _mapped_acceleration(dopri, width)
+        h = _initial_steps(xs, vs, a0, P, t_start, t_end, dopri,
+                           lambda x, v, t, p: _blockwise(accel, width, x, v, t, p))
         S = np.empty((dopri._state_size(), n_var))
         S[:n3], S[n3:2 * n3], S[2 * n3:3 * n3] = xs.T, vs.T, a0.T
         scal = {name: 3 * n3 + i for i, name in enumerate(SCALARS)}
@@ -225,8 +284,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         S[scal["rejected"]] = S[scal["n_acc"]] = S[scal["n_rej"]] = S[scal["res"]] = 0.0
         S[scal["rtol"]], S[scal["atol"]] = rtol, atol
         S[3 * n3 + len(SCALARS):] = P.T
-        chunk, evaluation = _mapped_chunk(dopri, min(block, n_var), threads)
-        width = min(block, n_var)
+        threads = threads or max(1, min(available_cores(), width // MIN_THREAD_COLUMNS))
+        chunk, evaluation = _mapped_chunk(dopri, width, threads)
         X = np.full((n_var, targets.size, n3), np.nan)
         V = np.full((n_var, targets.size, n3), np.nan)
         running = np.array([s == "completed" for s in status])
@@ -266,7 +325,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     return Ensemble(names, table, targets, X.reshape(shape), V.reshape(shape), tuple(status),
                     S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int),
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
-                     "evaluation": evaluation, "block": width, "method": "dopri",
+                     "evaluation": evaluation, "block": width, "threads": threads, "method": "dopri",
                      "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol})
 
 
@@ -306,7 +365,7 @@ def _hairer(x, v, a, P, t0: float, t_end: float, dopri: Dopri, accel) -> np.ndar
     h0 = np.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / np.maximum(d1, 1e-300))
     h0 = np.minimum(h0, t_end - t0)
     x1, v1 = x + h0[:, None] * v, v + h0[:, None] * a
-    a1 = np.asarray(accel(x1.T, v1.T, (t0 + h0)[None, :], P.T)[0], float).T  # each at its own t0 + h0
+    a1 = accel(x1.T, v1.T, (t0 + h0)[None, :], P.T)[0]  # each at its own t0 + h0
     d2 = np.linalg.norm((np.hstack([v1, a1]) - f0) / sc, axis=1) / h0
     order = dopri.tableau.order
     big = np.maximum(d1, d2)

@@ -10,6 +10,7 @@ block; the caller's setting is restored after.
 from __future__ import annotations
 
 import functools
+import os
 
 from threadpoolctl import ThreadpoolController
 
@@ -23,3 +24,11 @@ def _controller() -> ThreadpoolController:
 def one_blas_thread():
     """A context manager: BLAS on one thread inside it."""
     return _controller().limit(limits=1, user_api="blas")
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS tells, else all)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1

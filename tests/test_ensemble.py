@@ -42,6 +42,19 @@ def test_every_variant_ends_where_its_own_run_ends(double):
         assert abs(np.linalg.norm(ens.x[k, -1, 1] - ens.x[k, -1, 0]) - table["l2"][k]) < 1e-12
 
 
+def test_threads_share_out_the_columns_without_changing_a_number(double):
+    """Each column is advanced on its own, so two threads give the one-thread numbers exactly."""
+    system, model = double
+    rng = np.random.default_rng(3)
+    table = {"m1": rng.uniform(0.5, 2, 20), "th1": rng.uniform(1.0, 2.5, 20)}
+    one, two = (C.simulate_many(system, 1.0, table, rtol=1e-9, atol=1e-11, model=model, compiled=False,
+                                block=16, threads=threads) for threads in (1, 2))
+    assert one.stats["threads"] == 1 and two.stats["threads"] == 2
+    assert np.array_equal(one.x, two.x) and np.array_equal(one.steps, two.steps)
+    # and the rods still hold: |p1| = l1 = 1
+    assert np.max(np.abs(np.linalg.norm(two.x[:, -1, 0], axis=-1) - 1.0)) < 1e-12
+
+
 def test_a_start_far_off_the_constraints_is_refused_per_variant():
     """Numbers for positions, a parameter for the rod: a length the start misses by more
     than max_initial_correction (1e-3 of the size) is refused; a small miss is projected."""
