@@ -9,7 +9,8 @@ run in a fresh process with an empty compile cache:
   code generated and compiled (``compile``, timed around ``compiled._build``: code generation
   plus the C compiler), the consistent start;
 - ``C source``: the size of the generated C file;
-- ``run``: the compiled loop simulating 1 s at rtol 1e-6 (atol 1e-8), fastest of ``--repeats``.
+- ``run``: the compiled loop simulating 1 s at rtol 1e-6 (atol 1e-8), fastest of ``--repeats``,
+  the two builds run alternately in the same process (each on its own Structure).
 
 ``mapped`` is the build of constrained.mapped (repeated rows and terms as one kernel each,
 applied with CasADi ``map``; the default from ``mapped.MAPPED_FROM`` coordinates), ``unrolled``
@@ -39,12 +40,12 @@ sys.path.insert(0, {root!r})
 sys.path.insert(0, {root!r} + "/benchmarks")
 os.environ["CONSTRAINED_CACHE"] = {cache!r}
 import casadi as ca
+import numpy as np
 import constrained as C
 from constrained import compiled, mapped
 from peers import chain
 
-n, pairs, build_kind, repeats = {n}, {pairs}, {build!r}, {repeats}
-mapped.MAPPED_FROM = 0 if build_kind == "mapped" else 10 ** 9
+n, pairs, builds, repeats = {n}, {pairs}, {builds!r}, {repeats}
 
 
 def system():
@@ -71,27 +72,33 @@ def timed(functions, *args, **kwargs):
 
 
 compiled._build = timed
-start = time.perf_counter()
-model = C.assemble(system())
-assemble = time.perf_counter() - start
-start = time.perf_counter()
-C.simulate(system(), 1e-3, model=model, method="dopri", compiled=True, outputs=set())
-first = time.perf_counter() - start
-runs = []
-for _ in range(repeats):
-    tr = C.simulate(system(), 1.0, model=model, method="dopri", rtol=1e-6, atol=1e-8,
-                    t_eval=[0.0, 1.0], outputs=set(), compiled=True)
-    runs.append(tr.stats["wall_time_s"])
-print(json.dumps(dict(n=n, pairs=pairs, build=build_kind, assemble=assemble, first=first,
-                      compile=seen["compile"], source_kb=seen["source"] / 1024, run=min(runs),
-                      steps=tr.stats["steps"], evaluation=tr.stats["evaluation"],
-                      end=tr.x[-1].ravel().tolist())))
+rows, models = {{}}, {{}}
+for build in builds:  # each its own Structure, so each its own step loop
+    mapped.MAPPED_FROM = 0 if build == "mapped" else 10 ** 9
+    seen.update(compile=0.0, source=0)
+    start = time.perf_counter()
+    models[build] = C.assemble(system(), reuse=False)
+    assemble = time.perf_counter() - start
+    start = time.perf_counter()
+    C.simulate(system(), 1e-3, model=models[build], method="dopri", compiled=True, outputs=set())
+    rows[build] = dict(n=n, pairs=pairs, build=build, assemble=assemble, first=time.perf_counter() - start,
+                       compile=seen["compile"], source_kb=seen["source"] / 1024, runs=[])
+for _ in range(repeats):  # alternately, so that the machine's load hits both alike
+    for build in builds:
+        tr = C.simulate(system(), 1.0, model=models[build], method="dopri", rtol=1e-6, atol=1e-8,
+                        t_eval=[0.0, 1.0], outputs=set(), compiled=True)
+        rows[build]["runs"].append(tr.stats["wall_time_s"])
+        rows[build].update(steps=tr.stats["steps"], evaluation=tr.stats["evaluation"],
+                           end=tr.x[-1].ravel().tolist())
+for row in rows.values():
+    row["run"] = min(row["runs"])
+print(json.dumps(list(rows.values())))
 """
 
 
-def measure(n: int, pairs: bool, build: str, repeats: int) -> dict:
+def measure(n: int, pairs: bool, builds: tuple, repeats: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as cache:
-        code = CHILD.format(root=str(ROOT), cache=cache, n=n, pairs=pairs, build=build, repeats=repeats)
+        code = CHILD.format(root=str(ROOT), cache=cache, n=n, pairs=pairs, builds=builds, repeats=repeats)
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=7200)
     if out.returncode != 0:
         raise RuntimeError(out.stderr[-2000:])
@@ -100,7 +107,7 @@ def measure(n: int, pairs: bool, build: str, repeats: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, nargs="+", default=[16, 64, 256, 1000])
+    parser.add_argument("--n", type=int, nargs="*", default=[16, 64, 256, 1000])
     parser.add_argument("--pairs", type=int, nargs="*", default=[16, 32, 64])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--unrolled-up-to", type=int, default=256)
@@ -113,19 +120,14 @@ def main() -> None:
     rows = []
     cases = [(n, False) for n in args.n] + [(n, True) for n in args.pairs]
     for n, pairs in cases:
-        mapped_row = None
-        for build in ("mapped", "unrolled"):
-            if build == "unrolled" and n > args.unrolled_up_to:
-                continue
-            row = measure(n, pairs, build, args.repeats)
+        builds = ("mapped", "unrolled") if n <= args.unrolled_up_to else ("mapped",)
+        measured = measure(n, pairs, builds, args.repeats)
+        for row in measured:
             rows.append(row)
-            if build == "mapped":
-                mapped_row = row
-                diff = "—"
-            else:
-                diff = f"{max(abs(a - b) for a, b in zip(row['end'], mapped_row['end'], strict=True)):.1e}"
+            diff = "—" if row["build"] == "mapped" else \
+                f"{max(abs(a - b) for a, b in zip(row['end'], measured[0]['end'], strict=True)):.1e}"
             model = "chain + all pairs" if pairs else "chain"
-            line = (f"| {model} | {n} | {build} | {row['assemble']:.3f} | {row['first']:.2f} | "
+            line = (f"| {model} | {n} | {row['build']} | {row['assemble']:.3f} | {row['first']:.2f} | "
                     f"{row['compile']:.2f} | {row['source_kb']:.0f} | {row['run'] * 1e3:.2f} | "
                     f"{row['steps']} | {diff} |")
             lines.append(line)
@@ -133,9 +135,11 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     header = (f"`python benchmarks/compile_time.py {' '.join(sys.argv[1:])}` on {platform.machine()}, "
-              f"{time.strftime('%Y-%m-%d')}; each row a fresh process with an empty compile cache.\n\n")
+              f"{time.strftime('%Y-%m-%d')}; each N a fresh process with an empty compile cache. The machine "
+              "(2 cores) was shared with other jobs: compile times vary by up to 2x between runs.\n\n")
     (out / "compile_time.md").write_text(header + "\n".join(lines) + "\n")
-    (out / "compile_time.json").write_text(json.dumps(rows, indent=1))
+    kept = [{k: v for k, v in row.items() if k != "end"} for row in rows]
+    (out / "compile_time.json").write_text(json.dumps(kept, indent=1))
 
 
 if __name__ == "__main__":
