@@ -1,8 +1,9 @@
 """Compile time of dopri's compiled step loop against the size of the model, mapped and not.
 
 For each N, the planar N-link chain (benchmarks/peers.py ``chain``: unit masses and links, a
-plane, gravity) and, with ``--pairs``, the same chain with an all-pairs potential V = Σ −k/r_ij
-run in a fresh process with an empty compile cache:
+plane, gravity), with ``--pairs`` the same chain with an all-pairs potential V = Σ −k/r_ij,
+and with ``--varied`` a chain whose every length and mass is a different number (the numbers
+become data of one kernel), each run in a fresh process with an empty compile cache:
 
 - ``assemble``: the Structure (parsing, differentiation);
 - ``first call``: the first ``simulate`` (1 ms of motion): the step loop's CasADi graph, its C
@@ -17,7 +18,7 @@ applied with CasADi ``map``; the default from ``mapped.MAPPED_FROM`` coordinates
 the Structure's one SX graph (the default below), each forced here at every N (the unrolled
 one up to ``--unrolled-up-to`` links).
 
-    python benchmarks/compile_time.py [--n 16 64 256 1000] [--pairs 16 32 64] [--repeats 5]
+    python benchmarks/compile_time.py [--n 16 64 256 1000] [--pairs 16 32 64] [--varied 256] [--repeats 5]
         [--unrolled-up-to 256] [--out docs/performance/compile_time]
 """
 
@@ -45,12 +46,22 @@ import constrained as C
 from constrained import compiled, mapped
 from peers import chain
 
-n, pairs, builds, repeats = {n}, {pairs}, {builds!r}, {repeats}
+n, kind, builds, repeats = {n}, {kind!r}, {builds!r}, {repeats}
 
 
 def system():
+    if kind == "varied":  # every link's length and every mass a different number
+        s = C.System(name=f"varied {{n}}-link chain")
+        reach = np.cumsum(1.0 + 0.001 * np.arange(n))
+        for i in range(n):
+            s.add_particle(f"p{{i}}", 1.0 + 0.01 * i, [reach[i] * np.sin(0.5), -reach[i] * np.cos(0.5), 0.0])
+        s.add(C.Distance("p0", point=[0, 0, 0], length=1.0))
+        for i in range(1, n):
+            s.add(C.Distance(f"p{{i - 1}}", f"p{{i}}", length=1.0 + 0.001 * i))
+        s.add(C.Plane([f"p{{i}}" for i in range(n)], [0, 0, 1]), C.Gravity([0, -9.81, 0]))
+        return s
     s = chain(n)
-    if pairs:
+    if kind == "pairs":
         s.add(C.Pairwise("-0.05/r"))
     return s
 
@@ -81,7 +92,7 @@ for build in builds:  # each its own Structure, so each its own step loop
     assemble = time.perf_counter() - start
     start = time.perf_counter()
     C.simulate(system(), 1e-3, model=models[build], method="dopri", compiled=True, outputs=set())
-    rows[build] = dict(n=n, pairs=pairs, build=build, assemble=assemble, first=time.perf_counter() - start,
+    rows[build] = dict(n=n, kind=kind, build=build, assemble=assemble, first=time.perf_counter() - start,
                        compile=seen["compile"], source_kb=seen["source"] / 1024, runs=[])
 for _ in range(repeats):  # alternately, so that the machine's load hits both alike
     for build in builds:
@@ -96,9 +107,12 @@ print(json.dumps(list(rows.values())))
 """
 
 
-def measure(n: int, pairs: bool, builds: tuple, repeats: int) -> list[dict]:
+MODELS = {"chain": "chain", "pairs": "chain + all pairs", "varied": "chain, lengths and masses varied"}
+
+
+def measure(n: int, kind: str, builds: tuple, repeats: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as cache:
-        code = CHILD.format(root=str(ROOT), cache=cache, n=n, pairs=pairs, builds=builds, repeats=repeats)
+        code = CHILD.format(root=str(ROOT), cache=cache, n=n, kind=kind, builds=builds, repeats=repeats)
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=7200)
     if out.returncode != 0:
         raise RuntimeError(out.stderr[-2000:])
@@ -109,6 +123,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, nargs="*", default=[16, 64, 256, 1000])
     parser.add_argument("--pairs", type=int, nargs="*", default=[16, 32, 64])
+    parser.add_argument("--varied", type=int, nargs="*", default=[256])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--unrolled-up-to", type=int, default=256)
     parser.add_argument("--out", default=str(ROOT / "docs" / "performance" / "compile_time"))
@@ -118,15 +133,16 @@ def main() -> None:
              "|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     rows = []
-    cases = [(n, False) for n in args.n] + [(n, True) for n in args.pairs]
-    for n, pairs in cases:
+    cases = ([(n, "chain") for n in args.n] + [(n, "pairs") for n in args.pairs]
+             + [(n, "varied") for n in args.varied])
+    for n, kind in cases:
         builds = ("mapped", "unrolled") if n <= args.unrolled_up_to else ("mapped",)
-        measured = measure(n, pairs, builds, args.repeats)
+        measured = measure(n, kind, builds, args.repeats)
         for row in measured:
             rows.append(row)
             diff = "—" if row["build"] == "mapped" else \
                 f"{max(abs(a - b) for a, b in zip(row['end'], measured[0]['end'], strict=True)):.1e}"
-            model = "chain + all pairs" if pairs else "chain"
+            model = MODELS[kind]
             line = (f"| {model} | {n} | {row['build']} | {row['assemble']:.3f} | {row['first']:.2f} | "
                     f"{row['compile']:.2f} | {row['source_kb']:.0f} | {row['run'] * 1e3:.2f} | "
                     f"{row['steps']} | {diff} |")

@@ -7,12 +7,14 @@ writes every instance out in one SX graph, so its generated C code — and the C
 time, which grows faster than the length of a function — grows with N. Here every row f_k
 of the constraints and every summand V_k of V = Σ_k V_k is cut out of the Structure's
 expressions (``Structure.expressions``) with the coordinates it depends on, I_k (ascending),
-as a local function φ_k(x_l, t, p) of x_l = x[I_k]. Instances whose local functions are the
-same (the same operations and constants: equal serializations, and the same split of x_l
-into particles) form a group g; a group of MIN_GROUP instances or more becomes one SX kernel
-evaluated by ``map`` on the columns X_g = [x[I_1], …, x[I_n]] (a gather: index data):
+as a local function of x_l = x[I_k], and its numbers are lifted out (``lifted``: the k-th
+constant becomes c_k), giving φ_k(x_l, c, t, p). Instances whose lifted functions are the
+same (the same operations: equal serializations, and the same split of x_l into particles)
+form a group g, whatever their numbers (rods of different lengths, particles of different
+masses); a group of MIN_GROUP instances or more becomes one SX kernel evaluated by ``map`` on
+the columns X_g = [x[I_1], …, x[I_n]] (a gather: index data) and C_g = [c_1, …, c_n] (data):
 
-    f[r_k] = φ_g(x_l, t, p),      J[r_k, I_k] = ∂φ_g/∂x_l,      f_t[r_k] = ∂φ_g/∂t,
+    f[r_k] = φ_g(x_l, c_k, t, p),   J[r_k, I_k] = ∂φ_g/∂x_l,      f_t[r_k] = ∂φ_g/∂t,
     γ[r_k] = ∂c/∂x_l · v_l + ∂c/∂t  with  c = J_l v_l + f_t,
     s[r_k] = max over the row's particles q of |∂φ_g/∂x_q|    (the row scale, as manifold's),
     F = F_rest − S · vec([∇V_g(X_g)]_g)    (S: the 0/1 matrix scattering local gradients).
@@ -54,13 +56,16 @@ _OUTPUTS = {"constraint": (("f",), False), "jacobian": (("f", "J"), False),
 
 @dataclass
 class _Group:
-    """Instances of one local function: ``local`` (SX in ``xl``, t, p), ``index`` (d, n) the
-    coordinates of each instance, ``place`` (n,) each instance's row (constraints), ``parts``
-    the particle of each local coordinate (0, 1, … in order of appearance)."""
+    """Instances of one local function: ``local`` (SX in ``xl``, ``c``, t, p), ``index`` (d, n)
+    the coordinates of each instance, ``constants`` (k, n) the numbers of each instance (the
+    values of ``c``), ``place`` (n,) each instance's row (constraints), ``parts`` the particle
+    of each local coordinate (0, 1, … in order of appearance)."""
 
     local: ca.SX
     xl: ca.SX
+    c: ca.SX
     index: np.ndarray
+    constants: np.ndarray
     place: np.ndarray
     parts: tuple
 
@@ -81,13 +86,48 @@ def summands(term) -> list:
     return out
 
 
+def lifted(function: ca.Function, c: ca.SX) -> tuple[ca.SX, list[float]] | None:
+    """The scalar output of the SX ``function`` with its k-th numeric constant replaced by
+    ``c[k]`` (the same operations otherwise), and the constants' values; None when ``c`` is
+    too short or an operation cannot be rebuilt (a call)."""
+    inputs = [function.sx_in(i) for i in range(function.n_in())]
+    work: dict[int, ca.SX] = {}
+    values: list[float] = []
+    out = None
+    for k in range(function.n_instructions()):
+        op, args = function.instruction_id(k), function.instruction_input(k)
+        res = function.instruction_output(k)
+        if op == ca.OP_INPUT:
+            work[res[0]] = inputs[args[0]][args[1]]
+        elif op == ca.OP_OUTPUT:
+            out = work[args[0]]
+        elif op == ca.OP_CONST:
+            if len(values) == c.numel():
+                return None
+            work[res[0]] = c[len(values)]
+            values.append(function.instruction_constant(k))
+        elif len(args) == 1 and op != ca.OP_CALL:
+            work[res[0]] = ca.SX.unary(op, work[args[0]])
+        elif len(args) == 2 and op != ca.OP_CALL:
+            work[res[0]] = ca.SX.binary(op, work[args[0]], work[args[1]])
+        else:
+            return None
+    return (out if out is not None else ca.SX(0)), values
+
+
+#: Numbers lifted out of one row or term at most (more: the instance keeps its numbers).
+MAX_CONSTANTS = 16
+
+
 def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[int]]:
-    """Groups (MIN_GROUP instances or more) of the scalar ``exprs`` by local function, and the
-    indices of the others (the rest). ``symbols``: d -> the local symbol x_l of size d."""
+    """Groups (MIN_GROUP instances or more) of the scalar ``exprs`` by local function, their
+    numbers lifted out as per-instance data, and the indices of the others (the rest).
+    ``symbols``: (name, size) -> the local symbol of that size."""
     if not exprs:
         return [], []
     pattern = ca.jacobian_sparsity(ca.vertcat(*exprs), x).T
     colind, row = pattern.colind(), pattern.row()
+    c = ca.SX.sym("c", MAX_CONSTANTS)
     found: dict[tuple, list] = {}
     rest = []
     for k, e in enumerate(exprs):
@@ -95,23 +135,30 @@ def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[in
         if not index or e.numel() != 1:
             rest.append(k)
             continue
-        xl = symbols.setdefault(len(index), ca.SX.sym("xl", len(index)))
-        local = ca.substitute(e, x[index], xl)
-        first: dict[int, int] = {}
-        parts = tuple(first.setdefault(i // 3, len(first)) for i in index)
+        xl = symbols.setdefault(("xl", len(index)), ca.SX.sym("xl", len(index)))
         try:
-            key = (parts, ca.Function("kernel", [xl, t, p], [local]).serialize())
+            local = ca.Function("kernel", [xl, t, p], [ca.substitute(e, x[index], xl)])
         except RuntimeError:  # it depends on more than x_l, t and p (velocities)
             rest.append(k)
             continue
-        found.setdefault(key, [local, xl, parts, []])[3].append((k, index))
+        lift = lifted(local, c)
+        if lift is None:
+            expr, numbers, cs = local.sx_out(0), [], ca.SX(0, 1)
+        else:
+            cs = symbols.setdefault(("c", len(lift[1])), ca.SX.sym("c", len(lift[1])))
+            expr, numbers = ca.substitute(lift[0], c[:len(lift[1])], cs), lift[1]
+        first: dict[int, int] = {}
+        parts = tuple(first.setdefault(i // 3, len(first)) for i in index)
+        key = (parts, ca.Function("kernel", [xl, cs, t, p], [expr]).serialize())
+        found.setdefault(key, [expr, xl, cs, parts, []])[4].append((k, index, numbers))
     groups = []
-    for local, xl, parts, members in found.values():
+    for expr, xl, cs, parts, members in found.values():
         if len(members) < MIN_GROUP:
-            rest += [k for k, _ in members]
+            rest += [k for k, _, _ in members]
             continue
-        index = np.array([i for _, i in members], dtype=np.int64).T  # (d, n)
-        groups.append(_Group(local, xl, index, np.array([k for k, _ in members]), parts))
+        index = np.array([i for _, i, _ in members], dtype=np.int64).T  # (d, n)
+        constants = np.array([v for _, _, v in members], dtype=float).reshape(len(members), -1).T
+        groups.append(_Group(expr, xl, cs, index, constants, np.array([k for k, _, _ in members]), parts))
     return groups, sorted(rest)
 
 
@@ -181,15 +228,16 @@ class MappedBuild:
         vl = ca.SX.sym("vl", xl.numel())
         terms = _row_terms(g.local, xl, vl, e.t, lambda i: g.parts[i])
         out = [ca.densify(terms[k].T if k == "J" else terms[k]) for k in outputs]
-        inputs = [xl, vl, e.t, e.p] if with_v else [xl, e.t, e.p]
+        inputs = [xl, vl, g.c, e.t, e.p] if with_v else [xl, g.c, e.t, e.p]
         kernel = ca.Function(f"{name}_kernel", inputs, out)
         shared = [len(inputs) - 2, len(inputs) - 1]  # t and p: the same for every instance
         return kernel.map(f"{name}_map", "serial", g.index.shape[1], shared, [])
 
     def _potential_kernel(self, g: _Group, name: str) -> ca.Function:
         e = self.e
-        kernel = ca.Function(f"{name}_kernel", [g.xl, e.t, e.p], [ca.densify(ca.gradient(g.local, g.xl))])
-        return kernel.map(f"{name}_map", "serial", g.index.shape[1], [1, 2], [])
+        gradient = ca.densify(ca.gradient(g.local, g.xl))
+        kernel = ca.Function(f"{name}_kernel", [g.xl, g.c, e.t, e.p], [gradient])
+        return kernel.map(f"{name}_map", "serial", g.index.shape[1], [2, 3], [])
 
     # --- the assembled MX Functions --------------------------------------------------------
     def function(self, name: str) -> ca.Function:
@@ -207,7 +255,8 @@ class MappedBuild:
         rest = rest if isinstance(rest, list | tuple) else [rest]
         pieces = {k: [rest[i]] for i, k in enumerate(outputs)}
         for j, g in enumerate(self.rows):
-            gather = [_gather(X, g.index), *([_gather(V, g.index)] if with_v else []), T, P]
+            velocities = [_gather(V, g.index)] if with_v else []
+            gather = [_gather(X, g.index), *velocities, ca.DM(g.constants), T, P]
             out = self._kernel(g, outputs, with_v, f"{name}_{j}")(*gather)
             for k, o in zip(outputs, out if isinstance(out, list | tuple) else [out], strict=True):
                 pieces[k].append(ca.vec(o))
@@ -219,8 +268,8 @@ class MappedBuild:
         if name == "velocity_terms" and not self.structure.rheonomic:
             outs[1] = ca.MX(self.n_rows, 1)  # structurally zero, as the Structure's
         if dynamics:
-            gradients = [ca.vec(self._potential_kernel(g, f"potential_{j}")(_gather(X, g.index), T, P))
-                         for j, g in enumerate(self.terms)]
+            gradients = [ca.vec(self._potential_kernel(g, f"potential_{j}")(
+                _gather(X, g.index), ca.DM(g.constants), T, P)) for j, g in enumerate(self.terms)]
             F = rest[-1]
             if gradients:
                 F = F - ca.mtimes(self._scatter(), ca.vertcat(*gradients))

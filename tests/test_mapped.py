@@ -25,19 +25,21 @@ def private_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
 
 
-def chain(n: int, *, pairs: bool = False, parametric: bool = False) -> C.System:
+def chain(n: int, *, pairs: bool = False, parametric: bool = False, varied: bool = False) -> C.System:
     """A planar chain hanging from the origin; ``pairs``: a weak attraction between every pair
-    of particles; ``parametric``: mass, length, g and a moving plane (rheonomic) as parameters."""
+    of particles; ``parametric``: mass, length, g and a moving plane (rheonomic) as parameters;
+    ``varied``: every link's length and every particle's mass a different number."""
     s = C.System(name=f"chain of {n}",
                  parameters={"m": 1.3, "l": 0.9, "g": 9.81, "w": 2.0} if parametric else None)
-    length, mass = ("l", "m") if parametric else (1.0, 1.0)
+    lengths = [1.0 + 0.05 * i if varied else 1.0 for i in range(n)]
+    reach = np.cumsum(lengths)
     for i in range(n):
         at = ([f"{i + 1}*l*sin(0.5)", f"-{i + 1}*l*cos(0.5)", 0.0] if parametric
-              else [(i + 1) * np.sin(0.5), -(i + 1) * np.cos(0.5), 0.0])
-        s.add_particle(f"p{i}", mass, at)
-    s.add(C.Distance("p0", point=[0, 0, 0], length=length))
+              else [reach[i] * np.sin(0.5), -reach[i] * np.cos(0.5), 0.0])
+        s.add_particle(f"p{i}", "m" if parametric else 1.0 + 0.1 * i * varied, at)
+    s.add(C.Distance("p0", point=[0, 0, 0], length="l" if parametric else lengths[0]))
     for i in range(1, n):
-        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=length))
+        s.add(C.Distance(f"p{i - 1}", f"p{i}", length="l" if parametric else lengths[i]))
     offset = "0.01*sin(w*t)" if parametric else 0.0
     s.add(C.Plane([f"p{i}" for i in range(n)], [0, 0, 1], offset),
           C.Gravity(["0", "-g", "0"] if parametric else [0, -9.81, 0]))
@@ -50,7 +52,8 @@ def _dense(value) -> np.ndarray:
     return np.array(ca.densify(ca.DM(value)))
 
 
-CASES = [dict(), dict(pairs=True), dict(parametric=True), dict(pairs=True, parametric=True)]
+CASES = [dict(), dict(pairs=True), dict(parametric=True), dict(pairs=True, parametric=True),
+         dict(varied=True)]
 
 
 @pytest.mark.parametrize("options", CASES, ids=lambda o: "-".join(o) or "plain")
@@ -87,6 +90,24 @@ def test_each_kind_is_held_once_whatever_n():
         assert small.function(name).n_instructions() == large.function(name).n_instructions(), name
 
 
+def test_numbers_are_lifted_into_data_so_differing_numbers_share_a_kernel():
+    """Rods of different lengths and particles of different masses are one kind each; their
+    numbers are columns of data beside the index columns."""
+    build = mapped.MappedBuild(Structure(chain(12, varied=True)))
+    rods, planes = build.rows
+    assert rods.index.shape[1] == 11 and planes.index.shape[1] == 12
+    np.testing.assert_array_equal(np.sort(rods.constants.ravel()), 1.0 + 0.05 * np.arange(1, 12))
+    (gravity,) = build.terms
+    assert gravity.index.shape[1] == 12 and list(build.rest_place) == [0]
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f", [x], [2.5 * ca.sin(x[0]) - x[1] / 7.0])
+    c = ca.SX.sym("c", 4)
+    expr, values = mapped.lifted(f, c)
+    assert values == [2.5, 7.0]
+    assert float(ca.Function("g", [x, c], [expr])([0.3, 2.0], [2.5, 7.0, 0, 0])) == float(f([0.3, 2.0]))
+    assert mapped.lifted(f, c[:1]) is None  # more numbers than room: kept as they are
+
+
 def test_summands_unfold_sums_differences_and_negations():
     a, b, c = ca.SX.sym("a"), ca.SX.sym("b"), ca.SX.sym("c")
     terms = mapped.summands(-(a * b - (c + ca.sin(a))) + 2)
@@ -95,7 +116,7 @@ def test_summands_unfold_sums_differences_and_negations():
     assert sum(values) == pytest.approx(-(0.3 * 0.7 - (1.1 + np.sin(0.3))) + 2, abs=1e-15)
 
 
-@pytest.mark.parametrize("options", CASES[1:3], ids=["pairs", "parametric"])
+@pytest.mark.parametrize("options", CASES[1:3] + CASES[4:], ids=["pairs", "parametric", "varied"])
 def test_mapped_accelerations_and_multipliers_equal_the_unmapped(options):
     system = chain(12, **options)
     model = assemble(system, reuse=False)
@@ -108,7 +129,7 @@ def test_mapped_accelerations_and_multipliers_equal_the_unmapped(options):
 
 
 @needs_cc
-@pytest.mark.parametrize("options", CASES[1:3], ids=["pairs", "parametric"])
+@pytest.mark.parametrize("options", CASES[1:3] + CASES[4:], ids=["pairs", "parametric", "varied"])
 def test_a_compiled_mapped_step_loop_runs_the_unmapped_trajectory(options, monkeypatch):
     monkeypatch.setattr(mapped, "MAPPED_FROM", 0)  # map this small chain
     system = chain(12, **options)
