@@ -15,7 +15,7 @@ masses); a group of MIN_GROUP instances or more becomes one SX kernel evaluated 
 the columns X_g = [x[I_1], …, x[I_n]] (a gather: index data) and C_g = [c_1, …, c_n] (data):
 
     f[r_k] = φ_g(x_l, c_k, t, p),   J[r_k, I_k] = ∂φ_g/∂x_l,      f_t[r_k] = ∂φ_g/∂t,
-    γ[r_k] = ∂c/∂x_l · v_l + ∂c/∂t  with  c = J_l v_l + f_t,
+    γ[r_k] = ∂w/∂x_l · v_l + ∂w/∂t  with  w = J_l v_l + f_t,
     s[r_k] = max over the row's particles q of |∂φ_g/∂x_q|    (the row scale, as manifold's),
     F = F_rest − S · vec([∇V_g(X_g)]_g)    (S: the 0/1 matrix scattering local gradients).
 
