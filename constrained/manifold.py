@@ -392,7 +392,7 @@ def row_scales_expr(J, n_particles: int):
 def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     """Two Newton steps onto f = 0, the second sharing its factorization with the velocity
     projection: (x, v, residual before the last step, in metres: max_i |f_i| / s_i with the row
-    scales of ``row_scales_expr``). The step loops (dopri) use it."""
+    scales of ``row_scales_expr``, or the view's ``row_scales``). The step loops (dopri) use it."""
     minv = _casadi(model.inverse_masses)
     _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
     x = x - dx
@@ -400,8 +400,8 @@ def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     _, f_t = model.velocity_terms(x, t)
     fs, Js, f_ts = _select(f, rows), _select(J, rows), _select(f_t, rows)
     sol = schur_solve_graph(Js, Js, model.inverse_masses, ca.horzcat(fs, ca.mtimes(Js, v) + f_ts), linsol)
-    return (x - minv * ca.mtimes(Js.T, sol[:, 0]), v - minv * ca.mtimes(Js.T, sol[:, 1]),
-            ca.mmax(ca.fabs(f) / row_scales_expr(J, model.n_particles)))
+    s = model.row_scales(x, t) if hasattr(model, "row_scales") else row_scales_expr(J, model.n_particles)
+    return x - minv * ca.mtimes(Js.T, sol[:, 0]), v - minv * ca.mtimes(Js.T, sol[:, 1]), ca.mmax(abs(f) / s)
 
 
 # --- the per-model functions, built once and shared by every run --------------------------------

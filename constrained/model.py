@@ -14,6 +14,7 @@ import hashlib
 import json
 import threading
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -77,35 +78,12 @@ class Structure:
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
         for effect in system.effects:
             slots[effect.slot].append(effect.term(s))
-        F = ca.SX.zeros(n3)
-        V = U = ca.SX(0)
-        dU_dv = ca.SX.zeros(n3)
-        if slots["potential"]:
-            active.add("potential")
-            V = sum(slots["potential"], ca.SX(0))
-            F -= ca.gradient(V, x)
-        if slots["generalized_potential"]:
-            active.add("generalized_potential")
-            U = sum(slots["generalized_potential"], ca.SX(0))
-            dU_dv = ca.gradient(U, v)
-            if ca.depends_on(dU_dv, v):
-                raise InputError(
-                    "a generalized potential must be linear in the velocities "
-                    "(U = U0(x, t) + v·W(x, t)); this one is not"
-                )
-            # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
-            F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
-        if slots["dissipation"]:
-            active.add("dissipation")
-            R = sum(slots["dissipation"], ca.SX(0))
-            F -= ca.gradient(R, v)
-        if slots["applied_force"]:
-            active.add("applied_force")
-            for term in slots["applied_force"]:
-                F += term
-        if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
-            active.add("time_dependent_forces")
+        F, V, U, dU_dv, forcing = forces(slots, x, v, t)
+        active |= forcing
         self.active_terms = frozenset(active)
+        #: The expressions the Functions are made of: the constraint rows (in order) and the
+        #: effects' terms by slot (constrained.mapped cuts them into repeated kernels).
+        self.expressions = Expressions(x, v, t, p, rows, slots)
 
         if any(isinstance(m, ca.SX) for m in s.masses):  # a mass given by a formula of p
             m3 = ca.vertcat(*[ca.SX(m) for m in s.masses for _ in range(3)])
@@ -175,6 +153,57 @@ class Structure:
                 while len(self._bound) > BOUND_FUNCTIONS_KEPT:
                     self._bound.popitem(last=False)
         return bound
+
+
+@dataclass(frozen=True)
+class Expressions:
+    """A Structure's symbols and the SX expressions it is built from: ``rows`` (f's rows, in
+    order) and ``slots`` (slot name -> the effects' terms, constrained.effects)."""
+
+    x: ca.SX
+    v: ca.SX
+    t: ca.SX
+    p: ca.SX
+    rows: list
+    slots: dict
+
+
+def forces(slots: dict, x, v, t) -> tuple:
+    """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
+
+        F = −∂V/∂x − ∂U/∂x + d/dt ∂U/∂v − ∂R/∂v + Σ applied,   V = Σ potentials, U = Σ
+        generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
+        dissipations."""
+    active = set()
+    F = ca.SX.zeros(x.numel())
+    V = U = ca.SX(0)
+    dU_dv = ca.SX.zeros(x.numel())
+    if slots["potential"]:
+        active.add("potential")
+        V = sum(slots["potential"], ca.SX(0))
+        F -= ca.gradient(V, x)
+    if slots["generalized_potential"]:
+        active.add("generalized_potential")
+        U = sum(slots["generalized_potential"], ca.SX(0))
+        dU_dv = ca.gradient(U, v)
+        if ca.depends_on(dU_dv, v):
+            raise InputError(
+                "a generalized potential must be linear in the velocities "
+                "(U = U0(x, t) + v·W(x, t)); this one is not"
+            )
+        # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
+        F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
+    if slots["dissipation"]:
+        active.add("dissipation")
+        R = sum(slots["dissipation"], ca.SX(0))
+        F -= ca.gradient(R, v)
+    if slots["applied_force"]:
+        active.add("applied_force")
+        for term in slots["applied_force"]:
+            F += term
+    if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
+        active.add("time_dependent_forces")
+    return F, V, U, dU_dv, active
 
 
 class Model:

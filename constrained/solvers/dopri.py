@@ -15,6 +15,10 @@ right after a rejection). Steps are clipped to land exactly on each output time;
 attempt at the output time is skipped (a short-circuit branch, nearly free), so ``mapaccum``
 can chain a fixed number of attempts per call and Python only picks how many.
 
+Compiled, from ``mapped.MAPPED_FROM`` coordinates the loop is built on the mapped Functions
+(constrained.mapped: each kind of repeated row or term one kernel applied with CasADi ``map``),
+so the generated C code, and the compiler's time, does not grow with the model.
+
 ``base`` picks the tableau (solvers/tableaus/): "DOP853" (8th order, error estimator of
 orders 5 and 3, 12 evaluations per step; the default), "DOPRI5" (5th order with a 4th-order
 estimate, 6 per step) — the same pairs as SciPy's DOP853 and RK45, whose coefficients are
@@ -29,7 +33,7 @@ import casadi as ca
 import numpy as np
 
 from .. import compiled as compiled_evaluation
-from .. import diagnostics
+from .. import diagnostics, mapped
 from ..errors import InputError
 from ..fast_call import FastCall
 from ..manifold import ParametricView, acceleration_function, projection_graph, structure_cache
@@ -104,10 +108,15 @@ class Dopri(Stepper):
         scalars = S[3 * n:3 * n + len(SCALARS)]
         P = S[3 * n + len(SCALARS):]
         t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol = ca.vertsplit(scalars, 1)
-        m = ParametricView(self.model, P)
         rows = self.manifold.rows
         symbolic = len(self.rows) <= SYMBOLIC_MAX_CONSTRAINTS
-        with_p = acceleration_function(self.model, rows, symbolic=symbolic, parametric=True)
+        # compiled and large: repeated rows and terms as mapped kernels (constrained.mapped),
+        # so the generated code, and the compile time, does not grow with the model
+        if self.compiled and not symbolic and mapped.applies(self.model):
+            m, with_p = mapped.MappedView(self.model, P), mapped.acceleration_function(self.model, rows)
+        else:
+            m = ParametricView(self.model, P)
+            with_p = acceleration_function(self.model, rows, symbolic=symbolic, parametric=True)
 
         def accel(X, V, T):
             return with_p(X, V, T, P)
