@@ -241,6 +241,8 @@ def _add_sweep(verbs) -> None:
                     "process or a local cluster, chosen by the estimated work")
     sw.add_argument("--per-run", action="store_true",
                     help="run every variant on its own (no batching)")
+    sw.add_argument("--chunk-size", type=int, metavar="N",
+                    help="variants per batched chunk: one simulate_many call, one file (default 500)")
     sw.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster")
     sw.add_argument("--summary", action="append", default=[], metavar="[RED:]NAME=FORMULA",
                     help="a summary column: a formula in t, x_P, vx_P, ..., parameters, at t_end or "
@@ -944,7 +946,8 @@ def _sweep(args) -> int:
     result = sweep(args.scene, args.vary, design_file=args.design, samples=args.samples, seed=args.seed,
                    scheduler=args.scheduler, out_dir=args.out, overrides=args.overrides, summary=args.summary,
                    save_trajectories=args.trajectories, progress=not args.quiet, limit=args.limit,
-                   workers=args.workers, plot=args.plot, boundary=args.boundary, batch=not args.per_run)
+                   workers=args.workers, plot=args.plot, boundary=args.boundary, batch=not args.per_run,
+                   chunk_size=args.chunk_size)
     for warning in result.warnings:
         _say(f"{PROG}: warning: {warning}", always=True)
     if result.failed:

@@ -47,7 +47,7 @@ from .sweep_design import (
     run_id,
     toml_value,
 )
-from .sweep_execute import DASK_INSTALL_HINT, Chunk, Where, execute, plan
+from .sweep_execute import DASK_INSTALL_HINT, RUN_CHUNK, Chunk, Where, execute, plan
 from .sweep_plot import axis_label, boundary_function, cell_edges, save_sweep_figure
 from .sweep_run import _MODEL_CACHE, CACHE_STATS, MODEL_CACHE_SIZE, _settings_kwargs, run_task, structure_key
 from .sweep_store import (
@@ -164,6 +164,7 @@ def sweep(
     boundary: str | None = None,
     figure: bool = True,
     batch: bool = True,
+    chunk_size: int | None = None,
 ) -> SweepResult:
     """Run the scene at every point of the design given by ``vary`` (``KEY=SPEC`` strings)
     and/or the rows of ``design_file`` (CSV or Parquet, one column per scene key).
@@ -177,7 +178,8 @@ def sweep(
     ``limit``: compute at most this many missing runs, then stop (the rest stay missing).
     ``plot``: the column the figure shows (default: the first summary, else energy_drift);
     ``boundary``: a formula in the varied keys' last names and the parameters whose zero
-    contour is drawn on a 2-D map. ``batch=False`` runs every variant on the per-run path.
+    contour is drawn on a 2-D map. ``batch=False`` runs every variant on the per-run path;
+    ``chunk_size``: variants per batched chunk (default ``sweep_execute.BATCH_CHUNK``).
     Bad input raises InputError (SceneError for the scene).
     """
     started = time.perf_counter()
@@ -191,6 +193,9 @@ def sweep(
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     overrides = list(overrides)
+    if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int)
+                                   or chunk_size < 1):
+        raise InputError(f"--chunk-size must be a whole number >= 1, got {chunk_size!r}")
     if not vary and design_file is None:
         raise InputError("give at least one --vary KEY=SPEC, or --design FILE")
     specs = [parse_vary(v) for v in vary]
@@ -239,7 +244,8 @@ def sweep(
     keys = [s.key for s in specs]
     work = plan({"scene_text": scene_text, "file": file, "base_overrides": overrides, "summaries": summaries,
                  "save_trajectory": bool(save_trajectories)}, points, ids, todo,
-                blocker=lambda shared: _blocker(base_raw, file, shared, save_trajectories, batch))
+                blocker=lambda shared: _blocker(base_raw, file, shared, save_trajectories, batch),
+                batch_chunk=chunk_size, run_chunk=1 if scheduler == "sequential" else RUN_CHUNK)
     index_of = {rid: i for i, rid in enumerate(ids)}
     last_write = [time.monotonic()]
 

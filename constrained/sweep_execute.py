@@ -37,7 +37,8 @@ from .sweep_design import overrides_of
 
 #: Variants per batched chunk (one simulate_many call, one file).
 BATCH_CHUNK = 500
-#: Variants per per-run chunk.
+#: Variants per per-run chunk on Dask (in this process, with ``scheduler="sequential"``: one,
+#: so each run's row is on disk as soon as it finishes).
 RUN_CHUNK = 8
 #: Estimated seconds of work left above which "auto" starts a local Dask cluster.
 DASK_WORTH_S = 20.0
@@ -81,13 +82,15 @@ def _split(point: dict) -> tuple[dict, dict]:
 
 
 def plan(base: dict, points: list[dict], ids: list[str], todo: list[int], *, blocker: Callable,
-         batch_chunk: int = BATCH_CHUNK, run_chunk: int = RUN_CHUNK) -> Plan:
+         batch_chunk: int | None = None, run_chunk: int | None = None) -> Plan:
     """Group and cut the variants ``todo`` (design indices) into chunks.
 
     ``base``: the task fields every chunk shares (scene text, file, --set overrides,
     summaries, save_trajectory); ``blocker(shared_overrides)`` gives (why the scene with those
     overrides cannot run batched, "" when it can; its ``compiled`` setting). With "auto" a
     batched group is compiled when it has at least ``COMPILE_FROM`` variants."""
+    batch_chunk = batch_chunk or BATCH_CHUNK
+    run_chunk = run_chunk or RUN_CHUNK
     groups: dict[tuple, list[int]] = {}
     shared_of: dict[tuple, list[str]] = {}
     for i in todo:
@@ -99,7 +102,8 @@ def plan(base: dict, points: list[dict], ids: list[str], todo: list[int], *, blo
     notes: list[str] = []
     for key, members in groups.items():
         shared = shared_of[key]
-        reason, compiled = blocker(shared)
+        reason, compiled = ("the variant changes no [parameters] value", False) if not key[1] \
+            else blocker(shared)
         if compiled not in (True, False):
             compiled = len(members) >= COMPILE_FROM
         if reason:

@@ -26,6 +26,7 @@ from . import expressions
 from .errors import ExpressionError, InputError, RunInterrupted
 from .scene import SceneError, apply_overrides, build_scene, expect_requirements
 from .sweep_design import Summary, load_raw
+from .sweep_store import unfinished
 
 #: How many assembled Models one worker process keeps (least recently used dropped).
 MODEL_CACHE_SIZE = 64
@@ -218,14 +219,6 @@ def run_task(task: dict) -> dict:
         "worker": worker_name(),
         "trajectory": traj if (task["save_trajectory"] and traj is not None and status == "ok") else None,
     }
-
-
-def unfinished(record: dict) -> bool:
-    """Whether a result or record is of a run stopped by Ctrl-C (earlier versions recorded
-    those as failed runs): it has no result, so it is not kept and a rerun computes it."""
-    status = str(record.get("status", ""))
-    return (status.startswith("interrupted") or "the run was interrupted" in status
-            or "KeyboardInterrupt" in status)
 
 
 def message(exc: BaseException) -> str:

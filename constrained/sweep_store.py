@@ -124,7 +124,7 @@ def read_chunks(directory: Path, wanted: set[str]) -> tuple[dict[str, dict], lis
             status = rec.pop("status")
             rec.pop("run", None)
             if rid in wanted:
-                done[rid] = {"status": status, "row": {k: v for k, v in rec.items() if v is not None},
+                done[rid] = {"status": status, "row": rec,
                              "meta": meta}
     return done, notes
 
@@ -160,9 +160,17 @@ def read_legacy_records(runs_dir: Path, ids: list[str]) -> dict[str, dict]:
             rec = json.loads(path.read_text())
         except (OSError, ValueError):
             continue
-        if isinstance(rec, dict) and "row" in rec and "status" in rec:
+        if isinstance(rec, dict) and "row" in rec and "status" in rec and not unfinished(rec):
             done[rid] = {"status": rec["status"], "row": rec["row"], "meta": {"path": "per-run"}}
     return done
+
+
+def unfinished(record: dict) -> bool:
+    """Whether a record is of a run stopped by Ctrl-C (earlier versions recorded those as
+    failed runs): it has no result, so it is not kept and a rerun computes it."""
+    status = str(record.get("status", ""))
+    return (status.startswith("interrupted") or "the run was interrupted" in status
+            or "KeyboardInterrupt" in status)
 
 
 # --- the summary table -----------------------------------------------------------------------

@@ -30,6 +30,10 @@ def test_sweep_without_dask_names_both_install_commands(tmp_path, monkeypatch, c
     assert code == 2
     assert "pip install 'constrained[dask]'" in err and "pip install '.[dask]'" in err
     assert "--scheduler sequential" in err
+    # without --scheduler a small sweep runs in this process: no Dask needed
+    code = main(["sweep", str(SCENARIOS / "simple_spring.toml"), "--vary", "parameters.k=[3, 4]",
+                 "--set", "simulate.t_end=0.1", "--out", str(tmp_path / "auto")])
+    assert code == 0 and "ran in-process" in capsys.readouterr().out
 
 
 def test_local_cluster_serves_no_dashboard_and_does_not_fight_for_port_8787(tmp_path, caplog):

@@ -237,6 +237,23 @@ def test_same_table_sequential_local_and_remote(kapitza, dask_cluster, tmp_path)
     assert len(workers) == 2  # both dask workers took chunks
 
 
+def test_a_batched_sweep_on_a_running_scheduler_gives_the_in_process_numbers(dask_cluster, tmp_path):
+    """The cluster contract for the batched path: chunks of simulate_many on two `dask worker`
+    processes give the numbers of the same sweep in this process, bit for bit."""
+    scene = tmp_path / "double.toml"
+    text = (ROOT / "scenarios" / "double_pendulum_parametric.toml").read_text().split("[expect]")[0]
+    scene.write_text(text.replace('method = "projection"', 'method = "dopri"'))
+    vary = ["parameters.m1=uniform(0.5, 2)", "parameters.th2=uniform(1.5, 2.5)"]
+    kw = dict(samples=16, summary=["max_abs:w=vx_p2"], overrides=["simulate.t_end=1.0"], progress=False,
+              chunk_size=4, figure=False)
+    here = S.sweep(scene, vary, out_dir=tmp_path / "here", scheduler="sequential", **kw)
+    there = S.sweep(scene, vary, out_dir=tmp_path / "there", scheduler=dask_cluster, **kw)
+    assert here.batched == there.batched == 16 and there.where.mode == "cluster" and there.workers == 2
+    assert here.columns == there.columns
+    _compare(here.rows, there.rows, tol=0.0)
+    assert len({r["meta"]["worker"] for r in _chunk_rows(tmp_path / "there")}) == 2  # 4 chunks, 2 workers
+
+
 def test_cli_on_a_running_scheduler(dask_cluster, tmp_path, capsys):
     out = tmp_path / "cli"
     code = main(["sweep", str(KAPITZA), "--vary", "parameters.nu=[60, 200]", "--scheduler", dask_cluster,
