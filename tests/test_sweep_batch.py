@@ -42,7 +42,8 @@ def scene(tmp_path_factory) -> Path:
     return path
 
 
-RANDOM = ["parameters.m1=uniform(0.5, 2)", "parameters.l2=uniform(0.6, 1.4)", "parameters.th1=uniform(1.0, 2.5)"]
+RANDOM = ["parameters.m1=uniform(0.5, 2)", "parameters.l2=uniform(0.6, 1.4)",
+          "parameters.th1=uniform(1.0, 2.5)"]
 SUMMARY = ["max:top=y_p2", "mean:kin=0.5*m2*(vx_p2**2 + vy_p2**2)"]
 
 
@@ -74,12 +75,14 @@ def test_batched_rows_equal_the_per_run_path_and_the_rods_keep_their_lengths(sce
     per_run = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path, progress=False,
                       batch=False, scheduler="sequential", figure=False)
     assert batched.batched == 12 and batched.per_run == 0 and per_run.per_run == 12
-    assert {r["path"] for r in batched.rows} == {"batched"} and {r["path"] for r in per_run.rows} == {"per-run"}
+    assert {r["path"] for r in batched.rows} == {"batched"}
+    assert {r["path"] for r in per_run.rows} == {"per-run"}
     assert batched.columns == per_run.columns
     # the same output times and steps: the same numbers, to round-off
     _compare(batched.rows, per_run.rows, 1e-9)
     for r in batched.rows:
-        assert r["status"] == "ok" and r["method"] == "dopri(DOP853)" and r["rtol"] == 1e-10 and r["dt"] is None
+        assert r["status"] == "ok" and r["method"] == "dopri(DOP853)"
+        assert r["rtol"] == 1e-10 and r["dt"] is None
         l2 = r["parameters.l2"]
         assert np.hypot(r["x_p1"], r["y_p1"]) == pytest.approx(1.0, abs=1e-9)  # l1 = 1
         assert np.hypot(r["x_p2"] - r["x_p1"], r["y_p2"] - r["y_p1"]) == pytest.approx(l2, abs=1e-9)
@@ -178,8 +181,8 @@ def test_bad_parquet_designs_and_file_types_exit_2(scene, tmp_path, capsys):
 
 def test_what_cannot_be_batched_runs_per_run_and_says_why(tmp_path, capsys):
     # the bundled scene has [expect] checks and method projection: one run each
-    code = main(["sweep", str(PARAMETRIC), "--vary", "parameters.m1=[1.0, 1.5]", "--set", "simulate.t_end=0.2",
-                 "--out", str(tmp_path / "p")])
+    code = main(["sweep", str(PARAMETRIC), "--vary", "parameters.m1=[1.0, 1.5]", "--set",
+                 "simulate.t_end=0.2", "--out", str(tmp_path / "p")])
     out = capsys.readouterr().out
     assert code == 0
     assert "0 batched" in out and "2 one run each" in out and "method 'projection'" in out
