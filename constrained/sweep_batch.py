@@ -68,7 +68,7 @@ def batch_blocker(scene, save_trajectories: bool) -> str:
 def run_batch(task: dict) -> dict:
     """One chunk as one ``simulate_many`` call. ``task``: the chunk's scene (``scene_text``,
     ``file``, ``base_overrides``, ``summaries``), ``shared`` (the overrides every variant of
-    the chunk shares), ``variants`` ((index, run_id, overrides) triples), ``table``
+    the chunk shares), ``variants`` ((index, run_id, None) triples), ``table``
     ({parameter: [values]} in the variants' order), ``compiled``. Returns what
     ``sweep_run.run_variants`` does (no trajectories)."""
     from .ensemble import simulate_many
@@ -146,8 +146,13 @@ def _columns(ens, model, P: np.ndarray, entry: dict, summaries, residual) -> dic
     flat_t = np.tile(ens.t, n)[None, :]
     flat_p = np.repeat(P, T, axis=0).T
 
-    def along(fun, *inputs) -> np.ndarray:  # (n, T)
-        return np.asarray(fun.map(n * T)(*inputs), float).reshape(n, T)
+    maps = entry.setdefault("maps", {})
+
+    def along(fun, *inputs) -> np.ndarray:  # (n, T), the mapped Function kept per size
+        key = (fun.name(), fun.__hash__(), n * T)
+        if key not in maps:
+            maps[key] = fun.map(n * T)
+        return np.asarray(maps[key](*inputs), float).reshape(n, T)
 
     out: dict[str, np.ndarray] = {"t_final": np.full(n, float(ens.t[-1]))}
     for i, p in enumerate(names):

@@ -93,11 +93,13 @@ def plan(base: dict, points: list[dict], ids: list[str], todo: list[int], *, blo
     run_chunk = run_chunk or RUN_CHUNK
     groups: dict[tuple, list[int]] = {}
     shared_of: dict[tuple, list[str]] = {}
+    values: dict[int, dict] = {}
     for i in todo:
         params, other = _split(points[i])
         key = (tuple(overrides_of(other)), tuple(params))
         groups.setdefault(key, []).append(i)
         shared_of[key] = list(key[0])
+        values[i] = params
     chunks: list[Chunk] = []
     notes: list[str] = []
     for key, members in groups.items():
@@ -115,10 +117,10 @@ def plan(base: dict, points: list[dict], ids: list[str], todo: list[int], *, blo
         names = key[1]
         for start in range(0, len(members), batch_chunk):
             part = members[start:start + batch_chunk]
-            table = {n: [_split(points[i])[0][n] for i in part] for n in names}
+            table = {n: [values[i][n] for i in part] for n in names}
             chunks.append(Chunk("batched", part, {
                 **base, "shared": shared, "table": table, "compiled": compiled,
-                "variants": [(i, ids[i], overrides_of(points[i])) for i in part]}))
+                "variants": [(i, ids[i], None) for i in part]}))
     reasons = sorted({c.reason for c in chunks if c.path == "per-run"})
     if reasons:
         notes.append("per-run path: " + "; ".join(reasons))

@@ -70,14 +70,17 @@ def axis_label(key: str, units: dict | None = None) -> str:
 
 def save_sweep_figure(result, path, *, column: str | None = None, boundary: str | None = None,
                       scene_text: str | None = None, file: str = "scene", overrides=()) -> Path | None:
-    """1-D: ``column`` against the parameter; 2-D grid: a map, with the zero contour of ``boundary``."""
+    """1-D: ``column`` against the parameter; 2-D grid: a map, with the zero contour of ``boundary``.
+    None (nothing drawn, matplotlib not even imported) when not one or two keys vary."""
+    specs = [s for s in result.specs if len(set(map(repr, s.values))) > 1 or s.random]
+    if len(specs) not in (1, 2):
+        return None
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
     from matplotlib.colors import TwoSlopeNorm
 
-    specs = [s for s in result.specs if len(set(map(repr, s.values))) > 1 or s.random]
     if column is None:
         metric = [c for c in result.columns[result.columns.index("status") + 1:] if c not in SOLVER_COLUMNS]
         user = [c for c in metric if not c.startswith(("x_", "y_", "z_", "vx_", "vy_", "vz_", "min_", "max_"))
