@@ -41,8 +41,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import constrained as C  # noqa: E402
 from ensemble import end_positions, hand_mapped_rk4  # noqa: E402
+
+import constrained as C  # noqa: E402
 
 SCENE = ROOT / "benchmarks" / "scenes" / "double_pendulum_sweep.toml"
 T_END, TARGET, G = 2.0, 1e-6, 9.81
@@ -98,12 +99,14 @@ def sweep_command(design: Path, out: Path, env: dict) -> tuple[float, np.ndarray
     wall = time.perf_counter() - started
     if proc.returncode != 0:
         raise SystemExit(f"constrained sweep failed ({proc.returncode}):\n{proc.stderr}")
-    said = "\n".join(line for line in proc.stdout.splitlines() if line.startswith(("sweep:", "paths:", "ran")))
+    said = "\n".join(line for line in proc.stdout.splitlines()
+                     if line.startswith(("sweep:", "paths:", "ran")))
     with open(out / "summary.csv") as f:
         rows = list(csv.DictReader(f))
-    if any(r["status"] != "ok" for r in rows):
-        raise SystemExit("a variant of the sweep failed: " + next(r["status"] for r in rows if r["status"] != "ok"))
-    xy = np.array([[[float(r["x_p1"]), float(r["y_p1"])], [float(r["x_p2"]), float(r["y_p2"])]] for r in rows])
+    failed = [r["status"] for r in rows if r["status"] != "ok"]
+    if failed:
+        raise SystemExit(f"{len(failed)} variants of the sweep failed, e.g.: {failed[0]}")
+    xy = np.array([[[float(r[f"{a}_{p}"]) for a in "xy"] for p in ("p1", "p2")] for r in rows])
     return wall, xy, said
 
 
