@@ -199,7 +199,7 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
     cores = workers or os.cpu_count() or 1
     per = ", ".join(f"{cost[p] * 1e3:.2f} ms per variant {p}" for p in cost)
     estimate = (f"about {left:.1f} s of work left after the first chunk ({per}, including the model's "
-                f"assembly)")
+                "assembly and any compile)")
     if not rest:
         return Where("in-process", 1, f"one chunk ({per})")
     if left <= DASK_WORTH_S or cores < 2:
