@@ -2,9 +2,9 @@
 runs as ONE ``simulate_many`` call, and its table columns are evaluated from the Ensemble's
 arrays in mapped CasADi calls — no Scene, Model or Trajectory per variant.
 
-Which scenes can take it (``batch_blocker``): method ``dopri`` (the default), no one-sided
-constraints or [[events]], no [expect] checks (they need a Trajectory), no saved
-trajectories; every other case runs on the per-run path (constrained.sweep_run).
+Which scenes can take it (``batch_blocker``): method ``dopri`` (the default) with adaptive
+steps (no ``dt``), no one-sided constraints or [[events]], no [expect] checks (they need a
+Trajectory), no saved trajectories; every other case runs on the per-run path (constrained.sweep_run).
 
 What "over the run" means here: the samples are the scene's output times (``output_dt`` or
 ``samples``), else ``BATCH_SAMPLES`` evenly spaced times from t_start to t_end (the per-run
@@ -54,6 +54,8 @@ def batch_blocker(scene, save_trajectories: bool) -> str:
     method = scene.settings.get("method") or "dopri"
     if method != "dopri":
         return f"method '{method}' (batched runs use dopri)"
+    if scene.settings.get("dt") is not None:
+        return "a fixed step dt (batched runs choose their steps)"
     if save_trajectories:
         return "--trajectories needs each run's full trajectory"
     if scene.expectations:

@@ -24,6 +24,7 @@ build per worker.
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import re
@@ -200,18 +201,19 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
     per = ", ".join(f"{cost[p] * 1e3:.2f} ms per variant {p}" for p in cost)
     estimate = (f"about {left:.1f} s of work left after the first chunk ({per}, including the model's "
                 "assembly and any compile)")
+    if not chunks:
+        return Where("in-process", 1, "nothing left to compute")
     if not rest:
-        return Where("in-process", 1, f"one chunk ({per})")
+        return Where("in-process", 1, f"the first chunk of each path held the whole design ({per})")
     if left <= DASK_WORTH_S or cores < 2:
         _in_process(rest, record, bar)
         why = (f"{estimate}: below {DASK_WORTH_S:.0f} s a local Dask cluster (3-4 s to start, a model "
-               "build per worker) does not pay" if cores >= 2 else f"{estimate}; one core")
+               "build per worker) does not pay" if cores >= 2 else f"{estimate}; one worker")
         return Where("in-process", 1, why)
-    try:
-        client, close = _client("local", workers)
-    except ImportError as exc:  # no Dask: go on here, and say how to get it
+    if importlib.util.find_spec("distributed") is None:  # no Dask: go on here, and say how to get it
         _in_process(rest, record, bar)
-        return Where("in-process", 1, f"{estimate}, but {exc}")
+        return Where("in-process", 1, f"{estimate}, but Dask is not installed: {DASK_INSTALL_HINT}")
+    client, close = _client("local", workers)
     try:
         _on_dask(client, rest, record, bar)
         return Where("local cluster", cores, f"{estimate}: above {DASK_WORTH_S:.0f} s")
