@@ -17,9 +17,9 @@ run); a chunk is one task, and its rows are written as one file when it finishes
 dashboard); ``"tcp://HOST:PORT"`` an existing Dask cluster; a ``distributed.Client`` is
 used as it is. ``None`` (``"auto"``) decides by the estimated work: the first chunk of each
 path runs in this process as a probe, its wall time per variant times the variants left is
-the estimate, and only when that exceeds ``DASK_WORTH_S`` (and the machine has more than
-one core) does the rest go to a local cluster, which costs 3–4 s to start and a model
-build per worker.
+the estimate, and only when that exceeds ``DASK_WORTH_S`` and the machine has at least two
+idle cores (its core count minus the load average of other processes) does the rest go to a
+local cluster, which costs 3–4 s to start and a model build per worker.
 """
 
 from __future__ import annotations
@@ -198,6 +198,7 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
         bar.update(len(chunk.indices))
     left = sum(cost[c.path] * len(c.indices) for c in rest)
     cores = workers or os.cpu_count() or 1
+    idle = _idle_cores()
     per = ", ".join(f"{cost[p] * 1e3:.2f} ms per variant {p}" for p in cost)
     estimate = (f"about {left:.1f} s of work left after the first chunk ({per}, including the model's "
                 "assembly and any compile)")
@@ -205,10 +206,16 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
         return Where("in-process", 1, "nothing left to compute")
     if not rest:
         return Where("in-process", 1, f"the first chunk of each path held the whole design ({per})")
-    if left <= DASK_WORTH_S or cores < 2:
+    if left <= DASK_WORTH_S or cores < 2 or idle < 2:
         _in_process(rest, record, bar)
-        why = (f"{estimate}: below {DASK_WORTH_S:.0f} s a local Dask cluster (3-4 s to start, a model "
-               "build per worker) does not pay" if cores >= 2 else f"{estimate}; one worker")
+        if cores < 2:
+            why = f"{estimate}; one worker"
+        elif left <= DASK_WORTH_S:
+            why = (f"{estimate}: below {DASK_WORTH_S:.0f} s a local Dask cluster (3-4 s to start, a model "
+                   "build per worker) does not pay")
+        else:
+            why = (f"{estimate}, but other processes keep the machine busy (about {idle:.1f} of "
+                   f"{os.cpu_count()} cores idle): more worker processes would not run faster")
         return Where("in-process", 1, why)
     if importlib.util.find_spec("distributed") is None:  # no Dask: go on here, and say how to get it
         _in_process(rest, record, bar)
@@ -219,6 +226,17 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
         return Where("local cluster", cores, f"{estimate}: above {DASK_WORTH_S:.0f} s")
     finally:
         close()
+
+
+def _idle_cores() -> float:
+    """Cores not busy with other processes: the core count minus the 1-minute load average,
+    plus the one this sweep itself keeps busy (the core count where that is unknown)."""
+    n = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return float(n)
+    return max(1.0, min(float(n), n - load + 1.0))
 
 
 def _client(scheduler, workers: int | None):

@@ -192,6 +192,11 @@ def test_what_cannot_be_batched_runs_per_run_and_says_why(tmp_path, capsys):
 def test_auto_starts_a_local_cluster_when_the_estimate_is_large(scene, batched, tmp_path, monkeypatch):
     pytest.importorskip("distributed")
     monkeypatch.setattr(sweep_execute, "DASK_WORTH_S", 0.0)
+    monkeypatch.setattr(sweep_execute, "_idle_cores", lambda: 1.0)  # other jobs use the cores
+    busy = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path / "busy",
+                   progress=False, chunk_size=5, figure=False, workers=2)
+    assert busy.where.mode == "in-process" and "busy" in busy.where.reason
+    monkeypatch.setattr(sweep_execute, "_idle_cores", lambda: 2.0)
     r = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path, progress=False,
                 chunk_size=5, figure=False, workers=2)
     assert r.where.mode == "local cluster" and r.where.workers == 2 and "above 0 s" in r.where.reason
