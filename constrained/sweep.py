@@ -273,8 +273,8 @@ def sweep(
         if done:
             write_table(out, keys, points, ids, done, parquet=False)
         raise
-    paths = write_table(out, keys, points, ids, done, parquet=True)
-    rows, columns = table(keys, points, ids, done)
+    rows, columns = table(keys, points, ids, done, consume=True)  # (not held twice)
+    paths = write_table(out, keys, points, ids, done, parquet=True, rows_columns=(rows, columns))
     result = SweepResult(out, specs, points, rows, columns, computed=len(todo), skipped=skipped,
                          wall_time_s=0.0, paths=paths, workers=where.workers, batched=work.count("batched"),
                          per_run=work.count("per-run"), where=where, notes=work.notes,

@@ -176,23 +176,26 @@ def unfinished(record: dict) -> bool:
 # --- the summary table -----------------------------------------------------------------------
 
 
-def table(keys: list[str], points: list[dict], ids: list[str], done: dict) -> tuple[list[dict], list[str]]:
-    """(rows in design order of the variants in ``done``, columns)."""
+def table(keys: list[str], points: list[dict], ids: list[str], done: dict,
+          consume: bool = False) -> tuple[list[dict], list[str]]:
+    """(rows in design order of the variants in ``done``, columns); ``consume``: take the
+    records out of ``done`` as they go into rows (not both held at once)."""
     rows, metric_cols = [], []
     seen = set()
     for i, rid in enumerate(ids):
-        rec = done.get(rid)
+        rec = done.pop(rid, None) if consume else done.get(rid)
         if rec is None:
             continue
         row = {"run": i, "run_id": rid}
         for k in keys:
             row[k] = points[i][k]
         row["status"] = rec["status"]
-        for c, v in rec["row"].items():
+        values = rec["row"]
+        for c in values:
             if c not in seen:
                 seen.add(c)
                 metric_cols.append(c)
-            row[c] = v
+        row.update(values)
         rows.append(row)
     last = [c for c in SOLVER_COLUMNS if c in seen]
     metric_cols = [c for c in metric_cols if c not in SOLVER_COLUMNS] + last
@@ -240,9 +243,11 @@ def _arrow_table(rows: list[dict], columns: list[str]):
         return pa.table({c: [None if v is None else _cell(v) for v in vs] for c, vs in data.items()})
 
 
-def write_table(out: Path, keys: list[str], points, ids, done, *, parquet: bool) -> list[Path]:
-    """``out/summary.csv`` (and ``summary.parquet``) of the variants in ``done``, atomically."""
-    rows, columns = table(keys, points, ids, done)
+def write_table(out: Path, keys: list[str], points, ids, done, *, parquet: bool,
+                rows_columns: tuple[list[dict], list[str]] | None = None) -> list[Path]:
+    """``out/summary.csv`` (and ``summary.parquet``) of the variants in ``done``, atomically
+    (``rows_columns``: ``table(...)`` when the caller has it already)."""
+    rows, columns = rows_columns or table(keys, points, ids, done)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(columns)
