@@ -234,3 +234,22 @@ def test_ctrl_c_stops_a_batched_sweep_keeps_its_finished_chunks_and_exits_130(sc
     again = S.sweep(scene, vary, overrides=sets, out_dir=out, progress=False, limit=0, chunk_size=2,
                     figure=False)
     assert again.skipped == len(kept) and not again.complete
+
+
+def test_a_failing_variant_of_a_batched_chunk_is_a_failed_row_and_the_others_finish(scene, tmp_path, capsys):
+    """g = 1e300 overflows that variant's forces: its row says so (no numbers), the other
+    variants of the same simulate_many call finish with their own, physical results."""
+    code = main(["sweep", str(scene), "--vary", "parameters.g=[4.0, 1e300, 16.0]", "--set",
+                 "simulate.t_end=0.3", "--out", str(tmp_path), "--quiet"])
+    assert code == 0
+    assert "1 of 3 runs failed" in capsys.readouterr().err
+    rows = list(csv.DictReader(open(tmp_path / "summary.csv")))
+    assert [r["path"] for r in rows] == ["batched"] * 3
+    assert rows[1]["status"].startswith("the solution became non-finite") and rows[1]["x_p2"] == ""
+    assert rows[0]["status"] == rows[2]["status"] == "ok"
+    # gravity sets the time scale: with 4x the gravity the same motion runs twice as fast, so
+    # the pendulum at g = 16 at t = 0.15 s stands where the one at g = 4 stands at t = 0.3 s
+    again = S.sweep(scene, ["parameters.g=[16.0]"], overrides=["simulate.t_end=0.15"],
+                    out_dir=tmp_path / "fast", progress=False, figure=False)
+    for name in ("x_p1", "y_p1", "x_p2", "y_p2"):
+        assert again.rows[0][name] == pytest.approx(float(rows[0][name]), abs=1e-7)
