@@ -3,8 +3,9 @@ runs as ONE ``simulate_many`` call, and its table columns are evaluated from the
 arrays in mapped CasADi calls — no Scene, Model or Trajectory per variant.
 
 Which scenes can take it (``batch_blocker``): method ``dopri`` (the default) with adaptive
-steps (no ``dt``), no one-sided constraints or [[events]], no [expect] checks (they need a
-Trajectory), no saved trajectories; every other case runs on the per-run path (constrained.sweep_run).
+steps (no ``dt``), no one-sided constraints or [[events]], no [expect] check of a conserved
+quantity or of constraint forces (those need each run's Trajectory), no saved trajectories;
+every other case runs on the per-run path (constrained.sweep_run).
 
 What "over the run" means here: the samples are the scene's output times (``output_dt`` or
 ``samples``), else ``BATCH_SAMPLES`` evenly spaced times from t_start to t_end (the per-run
@@ -15,7 +16,10 @@ samples x_kj, v_kj at t_j:
 - ``energy_drift`` = max_j |E(x_kj, v_kj, t_j; p_k) − E(x_k0, v_k0, t_0; p_k)|;
 - ``max_constraint_residual`` = max_j max_i |f_i| / s_i (metres, constrained.residual), and
   ``max_velocity_residual`` likewise with |J_i v + f_t,i| / s_i;
-- each ``--summary`` formula at every sample, reduced over j; ``steps``: accepted steps.
+- each ``--summary`` formula at every sample, reduced over j; ``steps``: accepted steps;
+- the scene's [expect] checks (``expect.KEY``, ``expect.KEY.ok``) by the measures of
+  ``scene.check_expectations``, their formulas (parameters included) evaluated for every
+  variant's samples in mapped calls.
 
 With the same output times, every number equals the per-run path's to round-off (the same
 step sequence: ``simulate_many`` advances each column exactly as its own run).
@@ -29,7 +33,16 @@ from typing import Any
 import numpy as np
 
 from . import interrupt
-from .sweep_run import cached_model, options_of, scene_for, solver_columns, summary_function, worker_name
+from .scene import _drift, _period, expect_requirements  # the [expect] checks' own measures
+from .sweep_run import (
+    cached_model,
+    formula_function,
+    options_of,
+    scene_for,
+    solver_columns,
+    summary_function,
+    worker_name,
+)
 
 #: Output times of a batched chunk when the scene gives none (t_start and t_end included).
 BATCH_SAMPLES = 21
@@ -58,8 +71,10 @@ def batch_blocker(scene, save_trajectories: bool) -> str:
         return "a fixed step dt (batched runs choose their steps)"
     if save_trajectories:
         return "--trajectories needs each run's full trajectory"
-    if scene.expectations:
-        return "the scene's [expect] checks need each run's trajectory"
+    if any(c["kind"] == "conserved" for c in scene.expectations or ()):
+        return "the scene's [expect] conserved checks need each run's trajectory"
+    if "constraint_forces" in expect_requirements(scene):
+        return "the scene's [expect] checks use constraint forces (each run's multipliers)"
     if any(getattr(c, "unilateral", False) for c in scene.system.constraints):
         return "one-sided constraints need event handling per run"
     if getattr(scene.system, "events", None):
@@ -99,7 +114,8 @@ def run_batch(task: dict) -> dict:
         P = np.tile(np.asarray(model.parameter_values, float), (len(ids), 1))
         for name, values in table.items():
             P[:, model.parameter_names.index(name)] = values
-        columns = _columns(ens, model, P, entry, task["summaries"], residual_functions(model))
+        columns = _columns(ens, model, P, entry, task["summaries"], residual_functions(model),
+                           scene.expectations or ())
     solver = solver_columns(options)
     rows: dict[str, dict] = {}
     for k, rid in enumerate(ids):
@@ -131,12 +147,15 @@ def _reduce_rows(values: np.ndarray, how: str) -> np.ndarray:
 
 
 def _plain(value):
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
     if isinstance(value, np.integer):
         return int(value)
     return float(value)
 
 
-def _columns(ens, model, P: np.ndarray, entry: dict, summaries, residual) -> dict[str, np.ndarray]:
+def _columns(ens, model, P: np.ndarray, entry: dict, summaries, residual,
+             expectations=()) -> dict[str, np.ndarray]:
     """The table's metric columns of every variant (arrays over variants), in the per-run
     path's order."""
     n, T = len(ens), len(ens.t)
@@ -177,5 +196,41 @@ def _columns(ens, model, P: np.ndarray, entry: dict, summaries, residual) -> dic
     for summary in summaries:
         values = along(summary_function(entry, summary), flat_x, flat_v, flat_t, flat_p)
         out[summary.name] = _reduce_rows(values, summary.reduction)
+    series = {"energy_drift": energy, "constraint_residual": None, "velocity_residual": None}
+    if model.n_constraints and expectations:
+        series["constraint_residual"] = along(residual["position"], flat_x, flat_t, flat_p)
+        series["velocity_residual"] = along(residual["velocity"], flat_x, flat_v, flat_t, flat_p)
+    for c in expectations:
+        lhs = rhs = None
+        if "lhs" in c:
+            lhs = along(formula_function(entry, c["lhs"], c["key"]), flat_x, flat_v, flat_t, flat_p)
+        if "rhs" in c:
+            rhs = along(formula_function(entry, c["rhs"], c["key"]), flat_x, flat_v, flat_t, flat_p)
+        value, ok = _expect(c, ens.t, lhs, rhs, series.get(c["kind"]), n)
+        out[c["key"]] = value
+        out[f"{c['key']}.ok"] = ok
     out["steps"] = np.asarray(ens.steps, int)
     return out
+
+
+def _expect(c: dict, t: np.ndarray, lhs, rhs, data, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(value, ok) of one [expect] check for every variant, by the per-run measures of
+    ``scene.check_expectations`` (samples (n, T) of lhs / rhs / the run's quantity)."""
+    kind, tol = c["kind"], c.get("tol", 0.0)
+    if kind == "energy_drift":
+        value = np.array([_drift(row)[0] for row in data])
+    elif kind in ("constraint_residual", "velocity_residual"):
+        value = np.zeros(n) if data is None else np.max(np.abs(data), axis=1)
+    elif kind == "final":
+        value = np.abs(lhs[:, -1] - rhs[:, -1])
+    elif kind == "closed_form":
+        value = np.max(np.abs(lhs - rhs), axis=1)
+    elif kind == "period":
+        found = [_period(t, row) for row in lhs]
+        value = np.array([np.nan if f is None else abs(f - rhs[k, 0]) for k, f in enumerate(found)])
+    else:  # bounds, reaches: counts of samples outside / inside
+        inside = (lhs >= c["lo"]) & (lhs <= c["hi"])
+        if kind == "bounds":
+            return np.count_nonzero(~inside, axis=1).astype(float), np.all(inside, axis=1)
+        return np.count_nonzero(inside, axis=1).astype(float), np.any(inside, axis=1)
+    return value.astype(float), value <= tol

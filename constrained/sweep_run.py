@@ -74,17 +74,24 @@ def cached_model(raw: dict, system):
 def summary_function(entry: dict, summary: Summary):
     """``(x, v, t, p) -> value`` of a summary formula, p the model's parameters (one Function
     per structure and formula, for every run's values)."""
+    return formula_function(entry, summary.formula, f"--summary {summary.name}")
+
+
+def formula_function(entry: dict, formula, where: str):
+    """``(x, v, t, p) -> value`` of a formula in t, x_P, vx_P, ... and the parameters (or a
+    number), cached with the entry's Model."""
     import casadi as ca
 
     from .symbols import Symbols
 
-    fun = entry["summaries"].get(summary.formula)
+    fun = entry["summaries"].get(formula)
     if fun is None:
         s = entry.get("symbols") or entry.setdefault(
             "symbols", Symbols(entry["model"].system, symbolic_parameters=True))
-        expr = ca.SX(expressions.parse(summary.formula, s.state_names, where=f"--summary {summary.name}"))
-        fun = ca.Function(f"summary_{summary.name}", [s.x, s.v, s.t, s.p], [expr])
-        entry["summaries"][summary.formula] = fun
+        expr = ca.SX(float(formula)) if isinstance(formula, int | float) else \
+            ca.SX(expressions.parse(formula, s.state_names, where=where))
+        fun = ca.Function("formula", [s.x, s.v, s.t, s.p], [expr])
+        entry["summaries"][formula] = fun
     return fun
 
 

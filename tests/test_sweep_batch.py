@@ -253,3 +253,23 @@ def test_a_failing_variant_of_a_batched_chunk_is_a_failed_row_and_the_others_fin
                     out_dir=tmp_path / "fast", progress=False, figure=False)
     for name in ("x_p1", "y_p1", "x_p2", "y_p2"):
         assert again.rows[0][name] == pytest.approx(float(rows[0][name]), abs=1e-7)
+
+
+def test_expect_checks_of_a_batched_sweep_equal_the_per_run_ones(tmp_path):
+    """The bundled scene's [expect] (energy drift, residual, rods' lengths = l1, l2 at the end)
+    evaluated from the Ensemble: the same values and verdicts as each run's check_expectations,
+    and the rods keep the lengths each variant gives them."""
+    sets = ["simulate.method=\"dopri\"", "simulate.t_end=1.0", "simulate.output_dt=0.1"]
+    vary = ["parameters.l2=[0.7, 1.3]", "parameters.m1=[0.8, 1.6]"]
+    kw = dict(overrides=sets, progress=False, figure=False)
+    batched = S.sweep(PARAMETRIC, vary, out_dir=tmp_path / "b", **kw)
+    per_run = S.sweep(PARAMETRIC, vary, out_dir=tmp_path / "p", batch=False, scheduler="sequential", **kw)
+    assert batched.batched == 4 and per_run.per_run == 4
+    assert batched.columns == per_run.columns
+    _compare(batched.rows, per_run.rows, 1e-9)
+    checks = [c for c in batched.columns if c.startswith("expect.") and not c.endswith(".ok")]
+    assert len(checks) == 4
+    for row in batched.rows:
+        assert all(row[f"{c}.ok"] is True for c in checks)
+        lengths = [c for c in checks if "x_p2 - x_p1" in c]
+        assert row[lengths[0]] < 1e-9  # |p2 - p1| = l2 of this variant at the end
