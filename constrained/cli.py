@@ -215,23 +215,34 @@ def _add_view(verbs) -> None:
 def _add_sweep(verbs) -> None:
     """The ``sweep`` verb (constrained.sweep): many runs of one scene on Dask."""
     sw = _verb(
-        verbs, "sweep", "run a parameter sweep or an ensemble (on Dask); one summary row per run",
+        verbs, "sweep", "run a parameter sweep or an ensemble (batched, here or on Dask); one row per run",
         "Run SCENE once per point of the design given by --vary KEY=SPEC (a full grid; "
-        "random specs draw --samples points). SPEC: [1, 2, 3], lin(a, b, n), log(a, b, n), "
-        "uniform(a, b), normal(mu, sigma), loguniform(a, b). Writes DIR/runs/<id>.json as runs "
-        "finish, DIR/summary.csv (and .parquet), DIR/sweep.png; run again, it skips finished runs. "
+        "random specs draw --samples points) and/or the rows of --design FILE.csv|.parquet (one "
+        "column per scene key). SPEC: [1, 2, 3], lin(a, b, n), log(a, b, n), "
+        "uniform(a, b), normal(mu, sigma), loguniform(a, b). Variants that differ only in "
+        "[parameters] run batched (many per simulate_many call); the others one run each. "
+        "Writes DIR/chunks/<id>.parquet as chunks finish, DIR/summary.csv (and .parquet), "
+        "DIR/sweep.png; run again, it skips finished variants. "
         "A run that fails is recorded with its error; the others go on.",
         "sweep scenarios/kapitza_sweep.toml --vary 'parameters.a=lin(0.002, 0.02, 12)' "
         "--vary 'parameters.nu=lin(20, 240, 12)' \\\n    --summary 'min:up=y_bob - a*cos(nu*t)' "
         "--boundary 'a**2*nu**2 - 2*g*l' --out out/kapitza",
         out="output directory (default: out/<scene file stem>_sweep)", quiet=True)
-    sw.add_argument("--vary", action="append", default=[], metavar="KEY=SPEC", required=True,
+    sw.add_argument("--vary", action="append", default=[], metavar="KEY=SPEC",
                     help="a scene key (--set syntax) and its values (repeatable: a grid)")
+    sw.add_argument("--design", metavar="FILE",
+                    help="a .csv or .parquet file of variants: one column per scene key (parameters.m1, "
+                    "...), one row per variant, numbers only")
     sw.add_argument("--samples", type=int, metavar="N", help="random draws of the random specs")
     sw.add_argument("--seed", type=int, default=0, help="seed of the random specs (default 0)")
     sw.add_argument("--scheduler", metavar="ADDRESS",
-                    help="tcp://HOST:PORT of a running Dask scheduler, or 'sequential' (no Dask); "
-                    "default: a local cluster, one worker process per core")
+                    help="tcp://HOST:PORT of a running Dask scheduler, 'local' (a local Dask cluster, one "
+                    "worker process per core) or 'sequential' (this process, no Dask); default: this "
+                    "process or a local cluster, chosen by the estimated work")
+    sw.add_argument("--per-run", action="store_true",
+                    help="run every variant on its own (no batching)")
+    sw.add_argument("--chunk-size", type=int, metavar="N",
+                    help="variants per batched chunk: one simulate_many call, one file (default 500)")
     sw.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster")
     sw.add_argument("--summary", action="append", default=[], metavar="[RED:]NAME=FORMULA",
                     help="a summary column: a formula in t, x_P, vx_P, ..., parameters, at t_end or "
@@ -933,16 +944,24 @@ def _sweep(args) -> int:
     """Parameter sweep / ensemble: DIR/summary.csv (.parquet), DIR/runs/, DIR/sweep.png."""
     from .sweep import sweep
 
-    result = sweep(args.scene, args.vary, samples=args.samples, seed=args.seed, scheduler=args.scheduler,
-                   out_dir=args.out, overrides=args.overrides, summary=args.summary,
+    result = sweep(args.scene, args.vary, design_file=args.design, samples=args.samples, seed=args.seed,
+                   scheduler=args.scheduler, out_dir=args.out, overrides=args.overrides, summary=args.summary,
                    save_trajectories=args.trajectories, progress=not args.quiet, limit=args.limit,
-                   workers=args.workers, plot=args.plot, boundary=args.boundary)
+                   workers=args.workers, plot=args.plot, boundary=args.boundary, batch=not args.per_run,
+                   chunk_size=args.chunk_size)
+    for warning in result.warnings:
+        _say(f"{PROG}: warning: {warning}", always=True)
     if result.failed:
         _say(f"{PROG}: warning: {result.failed} of {len(result.rows)} runs failed (their errors are in "
              f"the status column)", always=True)
     if not args.quiet:
         print(f"sweep: {result.total} runs ({result.computed} computed, {result.skipped} already done, "
               f"{result.failed} failed) on {result.workers} worker(s) in {result.wall_time_s:.1f} s")
+        if result.computed:
+            print(f"paths: {result.batched} batched (simulate_many per chunk), {result.per_run} one run each")
+            print(f"ran {result.where.mode}: {result.where.reason}")
+            for note in result.notes:
+                print(f"note: {note}")
         if not result.complete:
             print(f"{result.total - len(result.rows)} runs still missing: run the same command again")
         print("wrote: " + ", ".join(str(p) for p in result.paths))

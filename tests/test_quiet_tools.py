@@ -24,11 +24,16 @@ def test_sweep_without_dask_names_both_install_commands(tmp_path, monkeypatch, c
 
     monkeypatch.setattr(builtins, "__import__", no_dask)
     code = main(["sweep", str(SCENARIOS / "simple_spring.toml"), "--vary", "parameters.k=[3, 4]",
+                 "--scheduler", "local",
                  "--set", "simulate.t_end=0.1", "--out", str(tmp_path / "s"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2
     assert "pip install 'constrained[dask]'" in err and "pip install '.[dask]'" in err
     assert "--scheduler sequential" in err
+    # without --scheduler a small sweep runs in this process: no Dask needed
+    code = main(["sweep", str(SCENARIOS / "simple_spring.toml"), "--vary", "parameters.k=[3, 4]",
+                 "--set", "simulate.t_end=0.1", "--out", str(tmp_path / "auto")])
+    assert code == 0 and "ran in-process" in capsys.readouterr().out
 
 
 def test_local_cluster_serves_no_dashboard_and_does_not_fight_for_port_8787(tmp_path, caplog):
@@ -45,7 +50,7 @@ def test_local_cluster_serves_no_dashboard_and_does_not_fight_for_port_8787(tmp_
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            r = sweep(SCENARIOS / "simple_spring.toml", ["parameters.k=[3, 4]"], workers=1,
+            r = sweep(SCENARIOS / "simple_spring.toml", ["parameters.k=[3, 4]"], workers=1, scheduler="local",
                       overrides=["simulate.t_end=0.1", "expect={}"], out_dir=tmp_path / "s", progress=False)
     finally:
         if busy is not None:

@@ -95,10 +95,10 @@ def test_ctrl_c_stops_a_sequential_sweep_and_the_rerun_redoes_the_interrupted_ru
             "--set", sets[0], "--out", str(out), "--scheduler", "sequential", "--quiet"]
     proc = subprocess.Popen(args, env=_env(), cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    runs = out / "runs"
+    chunks = out / "chunks"
     try:
         deadline = time.monotonic() + 90
-        while not list(runs.glob("*.json")):  # the short first run is done: the long one runs
+        while not list(chunks.glob("*.parquet")):  # the short first run is done: the long one runs
             assert proc.poll() is None, proc.communicate()[1]
             assert time.monotonic() < deadline
             time.sleep(0.05)
@@ -114,8 +114,10 @@ def test_ctrl_c_stops_a_sequential_sweep_and_the_rerun_redoes_the_interrupted_ru
             proc.wait()
     assert proc.returncode == 130, err
     assert seconds < 10.0 and "Traceback" not in err
-    records = [json.loads(p.read_text()) for p in runs.glob("*.json")]
-    assert [r["index"] for r in records] == [0]  # neither the interrupted run nor the one after
+    import pyarrow.parquet as pq
+
+    records = [r for p in chunks.glob("*.parquet") for r in pq.read_table(p).to_pylist()]
+    assert [r["run"] for r in records] == [0]  # neither the interrupted run nor the one after
     assert records[0]["status"] == "ok"
     # the rerun finds one run done and two to compute (limit=0: compute none of them here)
     again = S.sweep(KAPITZA, vary, overrides=sets, out_dir=out, scheduler="sequential", progress=False,
@@ -124,6 +126,10 @@ def test_ctrl_c_stops_a_sequential_sweep_and_the_rerun_redoes_the_interrupted_ru
 
 
 def test_a_run_recorded_as_interrupted_by_an_earlier_version_is_computed_again(tmp_path):
+    """Earlier versions kept one DIR/runs/<run_id>.json per run (and recorded Ctrl-C as a
+    failed run): a rerun counts their finished runs as done and computes the interrupted one."""
+    import shutil
+
     from constrained import sweep as S
 
     vary = ["parameters.nu=[100, 200]"]
@@ -131,13 +137,17 @@ def test_a_run_recorded_as_interrupted_by_an_earlier_version_is_computed_again(t
     first = S.sweep(KAPITZA, vary, overrides=sets, out_dir=tmp_path, scheduler="sequential",
                     progress=False, figure=False)
     assert first.complete and first.failed == 0
-    path = tmp_path / "runs" / f"{first.rows[1]['run_id']}.json"
-    rec = json.loads(path.read_text())
-    rec["status"] = "the run was interrupted at t = 0.01 s; what was computed is kept"
-    path.write_text(json.dumps(rec))
+    shutil.rmtree(tmp_path / "chunks")  # the layout of an earlier version: a record per run
+    (tmp_path / "runs").mkdir()
+    for k, row in enumerate(first.rows):
+        status = "ok" if k == 0 else "the run was interrupted at t = 0.01 s; what was computed is kept"
+        metrics = {c: v for c, v in row.items() if c not in ("run", "run_id", "status", "parameters.nu")}
+        (tmp_path / "runs" / f"{row['run_id']}.json").write_text(
+            json.dumps({"run_id": row["run_id"], "index": k, "status": status, "row": metrics}))
     again = S.sweep(KAPITZA, vary, overrides=sets, out_dir=tmp_path, scheduler="sequential",
                     progress=False, figure=False)
     assert again.skipped == 1 and again.computed == 1 and again.failed == 0
+    assert again.rows[0]["y_bob"] == first.rows[0]["y_bob"]
 
 
 # --- item 8: non-finite values stop the run with a diagnosis ---------------------------------------

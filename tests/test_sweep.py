@@ -34,18 +34,34 @@ def _env():
     return env
 
 
-def _compare(rows_a, rows_b):
-    """Same run ids, same status, numbers equal to 1e-12 (relative to max(1, |value|))."""
+def _compare(rows_a, rows_b, tol=1e-12, skip=("run", "run_id", "status")):
+    """Same run ids, same status, numbers equal to ``tol`` (relative to max(1, |value|)), the
+    other columns (method, path) equal."""
     by_id = {r["run_id"]: r for r in rows_b}
     assert {r["run_id"] for r in rows_a} <= set(by_id)
     for ra in rows_a:
         rb = by_id[ra["run_id"]]
         assert ra["status"] == rb["status"] == "ok"
         for k, va in ra.items():
-            if k in ("run", "run_id", "status"):
+            if k in skip:
                 continue
             vb = rb[k]
-            assert abs(float(va) - float(vb)) <= 1e-12 * max(1.0, abs(float(va))), (k, va, vb)
+            if isinstance(va, str) or va is None:
+                assert va == vb, (k, va, vb)
+                continue
+            assert abs(float(va) - float(vb)) <= tol * max(1.0, abs(float(va))), (k, va, vb)
+
+
+def _chunk_rows(out) -> list[dict]:
+    """Every row of the chunk files in ``out/chunks`` (with the chunk's metadata as "meta")."""
+    import pyarrow.parquet as pq
+
+    rows = []
+    for path in sorted((Path(out) / "chunks").glob("*.parquet")):
+        table = pq.read_table(path)
+        meta = json.loads(table.schema.metadata[b"constrained"])
+        rows += [{**r, "meta": meta} for r in table.to_pylist()]
+    return rows
 
 
 # --- specs and design ------------------------------------------------------------------------
@@ -92,10 +108,11 @@ def test_toml_values_read_back_exactly():
 
 @pytest.fixture(scope="module")
 def kapitza(tmp_path_factory):
-    """The 12 x 12 (a, nu) sweep on the default local Dask cluster (one process per core)."""
+    """The 12 x 12 (a, nu) sweep on a local Dask cluster (one process per core)."""
     out = tmp_path_factory.mktemp("kapitza")
     started = time.perf_counter()
-    result = S.sweep(KAPITZA, GRID, summary=[UP], out_dir=out, progress=False, boundary="a**2*nu**2 - 2*g*l")
+    result = S.sweep(KAPITZA, GRID, summary=[UP], out_dir=out, progress=False, boundary="a**2*nu**2 - 2*g*l",
+                     scheduler="local")
     result.elapsed = time.perf_counter() - started
     return result
 
@@ -132,8 +149,13 @@ def test_parquet_and_csv_tables(kapitza):
 
     rows = list(csv.DictReader(open(kapitza.out_dir / "summary.csv")))
     assert len(rows) == 144
-    _compare(kapitza.rows, [{k: (v if k in ("run_id", "status") else float(v)) for k, v in r.items()}
-                            for r in rows])
+    def cell(k, v):
+        if k in ("run_id", "status", "method", "path"):
+            return v
+        return None if v == "" else float(v)
+
+    _compare(kapitza.rows, [{k: cell(k, v) for k, v in r.items()} for r in rows])
+    assert {r["method"] for r in rows} == {"rattle"} and {r["path"] for r in rows} == {"per-run"}
     pq = pytest.importorskip("pyarrow.parquet")
     table = pq.read_table(kapitza.out_dir / "summary.parquet").to_pylist()
     _compare(kapitza.rows, table)
@@ -210,9 +232,26 @@ def test_same_table_sequential_local_and_remote(kapitza, dask_cluster, tmp_path)
     assert seq.computed == remote.computed == 24 and remote.workers == 2
     assert seq.columns == remote.columns
     _compare(seq.rows, remote.rows)
-    _compare(seq.rows, kapitza.rows)  # the same runs inside the 12 x 12 sweep (default local cluster)
-    workers = {json.loads(p.read_text())["worker"] for p in (tmp_path / "remote" / "runs").glob("*.json")}
-    assert len(workers) == 2  # both dask workers took runs
+    _compare(seq.rows, kapitza.rows)  # the same runs inside the 12 x 12 sweep (local cluster)
+    workers = {r["meta"]["worker"] for r in _chunk_rows(tmp_path / "remote")}
+    assert len(workers) == 2  # both dask workers took chunks
+
+
+def test_a_batched_sweep_on_a_running_scheduler_gives_the_in_process_numbers(dask_cluster, tmp_path):
+    """The cluster contract for the batched path: chunks of simulate_many on two `dask worker`
+    processes give the numbers of the same sweep in this process, bit for bit."""
+    scene = tmp_path / "double.toml"
+    text = (ROOT / "scenarios" / "double_pendulum_parametric.toml").read_text().split("[expect]")[0]
+    scene.write_text(text.replace('method = "projection"', 'method = "dopri"'))
+    vary = ["parameters.m1=uniform(0.5, 2)", "parameters.th2=uniform(1.5, 2.5)"]
+    kw = dict(samples=16, summary=["max_abs:w=vx_p2"], overrides=["simulate.t_end=1.0"], progress=False,
+              chunk_size=4, figure=False)
+    here = S.sweep(scene, vary, out_dir=tmp_path / "here", scheduler="sequential", **kw)
+    there = S.sweep(scene, vary, out_dir=tmp_path / "there", scheduler=dask_cluster, **kw)
+    assert here.batched == there.batched == 16 and there.where.mode == "cluster" and there.workers == 2
+    assert here.columns == there.columns
+    _compare(here.rows, there.rows, tol=0.0)
+    assert len({r["meta"]["worker"] for r in _chunk_rows(tmp_path / "there")}) == 2  # 4 chunks, 2 workers
 
 
 def test_cli_on_a_running_scheduler(dask_cluster, tmp_path, capsys):
@@ -233,10 +272,10 @@ def test_a_killed_sweep_run_again_computes_only_the_missing_runs(kapitza, tmp_pa
             "--vary", SMALL[1], "--summary", UP, "--out", str(out), "--scheduler", "sequential", "--quiet"]
     proc = subprocess.Popen(args, env=_env(), cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    runs = out / "runs"
+    chunks = out / "chunks"
     try:
         deadline = time.monotonic() + 60
-        while len(list(runs.glob("*.json"))) < 6:
+        while not list(chunks.glob("*.parquet")):
             assert proc.poll() is None, "the sweep finished before it could be killed"
             assert time.monotonic() < deadline
             time.sleep(0.02)
@@ -245,9 +284,9 @@ def test_a_killed_sweep_run_again_computes_only_the_missing_runs(kapitza, tmp_pa
         if proc.poll() is None:
             proc.kill()
         proc.wait(timeout=10)
-    done = len(list(runs.glob("*.json")))
-    assert 6 <= done < 24
-    assert not list(runs.glob(".*.part"))  # atomic writes: nothing half-written counts as done
+    done = len(_chunk_rows(out))
+    assert 1 <= done < 24
+    assert not list(chunks.glob(".*.part"))  # atomic writes: nothing half-written counts as done
     again = S.sweep(KAPITZA, SMALL, summary=[UP], out_dir=out, scheduler="sequential", progress=False)
     assert again.skipped == done and again.computed == 24 - done and again.complete
     _compare(again.rows, kapitza.rows)  # nothing lost, nothing different
@@ -277,7 +316,7 @@ def test_a_failing_run_is_recorded_and_the_others_finish(tmp_path):
     assert "mass" in r.rows[1]["status"] and "positive" in r.rows[1]["status"]
     assert r.failed == 1 and r.complete
     assert np.isnan(r.column("x_bob")[1]) and np.isfinite(r.column("x_bob")[[0, 2]]).all()
-    rec = json.loads((tmp_path / "runs" / f"{r.rows[1]['run_id']}.json").read_text())
+    rec = {row["run_id"]: row for row in _chunk_rows(tmp_path)}[r.rows[1]["run_id"]]
     assert rec["status"] == r.rows[1]["status"]
 
 
