@@ -41,6 +41,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from .model import FastCall, Model
+from .sparse_rows import row_max
 
 
 @dataclass(frozen=True)
@@ -348,17 +349,15 @@ def velocity_correction_graph(model: Model, X, V, T, *, rows=None, linsol: str =
 
 def row_scales_expr(J, n_particles: int):
     """s_i = max_p |∂f_i/∂x_p| as a column (C,) of J's type (SX or MX), 1 where a row's gradient
-    vanishes."""
+    vanishes. O(nnz J) operations (constrained.sparse_rows): the squared per-particle norms
+    Q = (J∘J) B, with B (3N × N) summing each particle's three columns, then each row's
+    largest √Q_ip over its stored entries."""
     C = J.shape[0]
     if C == 0:
         return ca.SX(0, 1)
-    per_particle = []
-    for p in range(n_particles):
-        block = J[:, 3 * p:3 * p + 3]
-        per_particle.append(ca.sqrt(ca.sum2(block * block)))
-    norms = per_particle[0]
-    for column in per_particle[1:]:
-        norms = ca.fmax(norms, column)
+    B = ca.DM(ca.Sparsity.triplet(3 * n_particles, n_particles, list(range(3 * n_particles)),
+                                  [k // 3 for k in range(3 * n_particles)]), 1.0)
+    norms = row_max(ca.sqrt(ca.mtimes(J * J, B)))
     return ca.if_else(norms > 0, norms, 1.0)
 
 

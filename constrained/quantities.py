@@ -115,17 +115,28 @@ def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray,
     return lam
 
 
+def _constraint_force_function(model: Model) -> ca.Function:
+    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once."""
+    def build():
+        X, T, L = ca.MX.sym("x", model.n_coordinates), ca.MX.sym("t"), ca.MX.sym("lam", model.n_constraints)
+        _, J = model.jacobian(X, T)
+        return ca.Function("constraint_force", [X, T, L], [ca.densify(ca.mtimes(J.T, L))])
+
+    return built_once(model, "constraint_force", build)
+
+
 def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """(Jᵀλ)_i for each particle, (T, N, 3), in blocks of samples."""
+    """(Jᵀλ)_i for each particle, (T, N, 3): the sparse product mapped over blocks of samples
+    (never a dense J). Samples whose λ is not finite give NaN forces."""
     t = np.asarray(t, float)
     n, C, n3 = len(t), model.n_constraints, model.n_coordinates
     out = np.zeros((n, model.n_particles, 3))
-    if C == 0:
+    if C == 0 or n == 0:
         return out
     X = np.asarray(X, float).reshape(n, n3)
-    for block in _blocks(n, C * n3):
-        _, Jcat = model.evaluate(model.jacobian, X[block], t[block])
-        k = len(t[block])
-        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
-        out[block] = np.einsum("kci,kc->ki", J, lam[block]).reshape(k, model.n_particles, 3)
+    lam = np.asarray(lam, float).reshape(n, C)
+    force = _constraint_force_function(model)
+    for block in _blocks(n, 2 * (C + n3)):
+        (values,) = model.evaluate(force, X[block], t[block], lam[block])
+        out[block] = np.asarray(values, float).T.reshape(-1, model.n_particles, 3)
     return out
