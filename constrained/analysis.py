@@ -97,11 +97,11 @@ def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = N
         C = model.n_constraints
         return ConstraintReport(n_coordinates=model.n_coordinates, n_constraints=C, rank=C, generic_rank=C,
                                 labels=list(model.constraint_labels), residuals=f, redundant=[])
-    if model.n_constraints > SPARSE_FROM:
-        report = _sparse_report(model, system, x, t, f, J_sparse, samples, seed)
-        if report is not None:
-            return report
-    with one_blas_thread():
+    with one_blas_thread():  # constrained/threads.py: spin-waiting BLAS threads cost more than they give
+        if model.n_constraints > SPARSE_FROM:
+            report = _sparse_report(model, system, x, t, f, J_sparse, samples, seed)
+            if report is not None:
+                return report
         return _dense_report(model, system, x, t, f, np.asarray(J_sparse), samples, seed)
 
 

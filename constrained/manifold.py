@@ -42,7 +42,7 @@ import scipy.linalg as sla
 
 from .model import FastCall, Model
 from .rank_policy import RANK, RankPolicy
-from .sparse_rank import as_scipy, independent_rows_sparse
+from .sparse_rank import as_dense, as_scipy, independent_rows_sparse
 from .sparse_rows import row_max
 from .sparse_schur import sparse_schur_solve
 
@@ -119,7 +119,7 @@ def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
         y = sparse_schur_solve(J, inverse_masses, b, policy=policy)
         if y is not None:
             return y
-        J = np.asarray(J, float)
+        J = as_dense(J)
     b = np.asarray(b, float)
     if J.shape[0] == 0:
         return np.zeros(b.shape)
@@ -155,7 +155,7 @@ def independent_rows(J: np.ndarray, inverse_masses: np.ndarray, policy: RankPoli
         rows = independent_rows_sparse(J, np.sqrt(inverse_masses), policy)
         if rows is not None:
             return rows
-    J = np.asarray(J, float)
+    J = as_dense(J)
     Jhat = _row_scale(J, inverse_masses)[:, None] * J * np.sqrt(inverse_masses)[None, :]
     _, R, order = sla.qr(Jhat.T, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
@@ -173,8 +173,7 @@ def full_row_rank(J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> b
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
-        rows, cols = J.sparsity().get_triplet()
-        Js = sp.csr_matrix((np.asarray(J.nonzeros(), float), (rows, cols)), shape=J.shape)
+        Js = as_scipy(J)
         A = (Js @ sp.diags(inverse_masses) @ Js.T).tocsc()
         d = A.diagonal()
         if d.size == 0 or np.any(d <= 0):

@@ -47,6 +47,11 @@ def as_scipy(J) -> sp.csr_matrix:
     return sp.csr_matrix(J, dtype=float)
 
 
+def as_dense(J) -> np.ndarray:
+    """A CasADi DM, a SciPy sparse matrix or an array as a dense NumPy array."""
+    return J.toarray() if sp.issparse(J) else np.asarray(J, float)
+
+
 def scaled_rows(J, weights: np.ndarray | None = None) -> sp.csr_matrix:
     """Ĵ = D J W: J's columns times ``weights`` (None: 1), then each row scaled to unit length
     (a zero row stays zero)."""
