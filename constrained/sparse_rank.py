@@ -18,8 +18,8 @@ equal rods, 5e-5 for a cube held by all 28 rods at a random shape. So √d_k onl
 rows: above CHECK_BELOW a row is independent; every other row's distance from the span of the
 independent rows eliminated before it is computed by the semi-normal equations with
 refinement (error ε·κ, as a QR's) and compared with ``dependent_rtol``, the dense pivoted
-QR's threshold. Which row of a dependent set is named depends on the elimination order; the
-rank does not.
+QR's threshold. Of a dependent set, the row latest in scene order is named (an exchange
+with the rows it depends on), as the dense QR names it.
 """
 
 from __future__ import annotations
@@ -85,13 +85,13 @@ def gram_pivots(Jhat: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray] | None:
     return np.sqrt(pivots[lu.perm_c]), np.argsort(lu.perm_c)
 
 
-def residual_norm(Jhat: sp.csr_matrix, rows: np.ndarray, k: int) -> float | None:
-    """|ĵ_k − Ĵ_Pᵀ c| minimized over c (P = ``rows``): the distance of row k from the span of
-    the others, by the semi-normal equations with two refinement steps (accurate to ε·κ(Ĵ_P),
+def least_squares_distance(Jhat: sp.csr_matrix, rows: np.ndarray, k: int) -> tuple[float, np.ndarray] | None:
+    """(|ĵ_k − Ĵ_Pᵀ c|, c) with c minimizing it (P = ``rows``): the distance of row k from the
+    span of those rows, by the semi-normal equations with refinement (accurate to ε·κ(Ĵ_P),
     not ε·κ², unlike the Gram pivot); None when the factorization fails."""
     jk = np.asarray(Jhat[k].todense()).ravel()
     if rows.size == 0:
-        return float(np.linalg.norm(jk))
+        return float(np.linalg.norm(jk)), np.zeros(0)
     A = Jhat[rows]
     lu = _factor(A @ A.T + SHIFT * sp.identity(rows.size))
     if lu is None:
@@ -101,28 +101,34 @@ def residual_norm(Jhat: sp.csr_matrix, rows: np.ndarray, k: int) -> float | None
     for _ in range(3):
         c = c + lu.solve(A @ r)
         r = jk - A.T @ c
-    return float(np.linalg.norm(r))
+    return float(np.linalg.norm(r)), c
 
 
 def split_rows(Jhat: sp.csr_matrix, policy: RankPolicy = RANK) -> tuple[np.ndarray, np.ndarray] | None:
     """(independent rows, dependent rows), each sorted, of the row-normalized Ĵ. Rows whose
     Gram pivot is clearly large (> CHECK_BELOW) are independent; each other row is taken in
     elimination order and is dependent when its distance from the span of the independent
-    rows before it is at most ``dependent_rtol`` (the dense pivoted QR's test). None when a
-    factorization fails."""
+    rows before it is at most ``dependent_rtol`` (the dense pivoted QR's test). Of a dependent
+    set the row latest in scene order is named, as the dense QR does: a dependent row k that
+    is a combination ĵ_k = Σ c_j ĵ_j with some c_j ≠ 0 for j > k trades places with the last
+    such j (the rows kept still span the same space). None when a factorization fails."""
     found = gram_pivots(Jhat)
     if found is None:
         return None
     u, order = found
     keep = u > CHECK_BELOW
-    for k in order:
+    for position, k in enumerate(order):
         if keep[k]:
             continue
-        before = order[:np.flatnonzero(order == k)[0]]
-        distance = residual_norm(Jhat, before[keep[before]], int(k))
-        if distance is None:
+        before = order[:position][keep[order[:position]]]
+        found = least_squares_distance(Jhat, before, int(k))
+        if found is None:
             return None
+        distance, c = found
         keep[k] = distance > policy.dependent_rtol
+        later = before[(before > k) & (np.abs(c) > 1e-6 * np.max(np.abs(c), initial=0.0))]
+        if not keep[k] and later.size:
+            keep[k], keep[later.max()] = True, False
     return np.flatnonzero(keep), np.flatnonzero(~keep)
 
 
