@@ -313,8 +313,8 @@ class Model:
         n = columns[0].shape[0]
         mapped = function.map(n)
         args = [np.ascontiguousarray(np.asarray(c, float).reshape(n, -1)) for c in columns]
-        dense = all(mapped.sparsity_in(i).is_dense() and mapped.nnz_in(i) == a.size
-                    for i, a in enumerate(args)) and all(
+        dense = all(function.size2_in(i) == 1 and mapped.sparsity_in(i).is_dense()  # column inputs
+                    and mapped.nnz_in(i) == a.size for i, a in enumerate(args)) and all(
             mapped.sparsity_out(i).is_dense() for i in range(mapped.n_out()))
         if dense:
             buf, run = mapped.buffer()
