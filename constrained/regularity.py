@@ -18,17 +18,18 @@ from .symbols import Symbols
 from .system import System
 
 
-def _item_values(obj, section: str, s: Symbols, built=None):
-    """The item's stacked value (SX column) from ``built`` (its rows or term, as ``rows(s)`` /
-    ``term(s)`` give them) or built here; None when it cannot be built (reported by the
-    scene's formula checks instead)."""
+def _item_values(obj, section: str, s: Symbols, built=None) -> list | None:
+    """The item's values as a list of SX columns (a constraint's rows as ``rows(s)`` gives
+    them, scalars in the usual case: no CasADi call per item; an effect's term) from
+    ``built`` or built here; None when it cannot be built (reported by the scene's formula
+    checks instead)."""
     try:
         if built is None:
             built = obj.rows(s) if section == "constraints" else obj.term(s)
-        value = ca.vertcat(*[row for row, _ in built]) if section == "constraints" else ca.vertcat(built)
+        values = [row for row, _ in built] if section == "constraints" else [built]
+        return [v if isinstance(v, ca.SX) and v.is_column() else ca.vec(ca.SX(v)) for v in values]
     except (InputError, RuntimeError, TypeError, ZeroDivisionError):
         return None
-    return ca.vec(ca.SX(value))
 
 
 def _bad_rows(matrix: ca.DM) -> np.ndarray:
@@ -52,12 +53,12 @@ def undefined_items(system: System, t0: float,
     for section, objs in (("constraints", system.constraints), ("effects", system.effects)):
         values, owner = (constraint_values, owner_c) if section == "constraints" else (effect_values, owner_e)
         for i, obj in enumerate(objs):
-            value = _item_values(obj, section, s, done.get((section, i)))
-            if value is None:
+            parts = _item_values(obj, section, s, done.get((section, i)))
+            if parts is None:
                 continue
-            owner.extend([len(items)] * value.numel())
+            owner.extend([len(items)] * sum(part.numel() for part in parts))
             items.append((section, i, obj))
-            values.append(value)
+            values.extend(parts)
     if not items:
         return []
     gc, ge = ca.vertcat(*constraint_values, ca.SX(0, 1)), ca.vertcat(*effect_values, ca.SX(0, 1))
