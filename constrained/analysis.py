@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from .manifold import RANK, full_row_rank
+from .manifold import RANK, SPARSE_FROM, full_row_rank
 from .model import Model, assemble
+from .sparse_rank import independent_rows_sparse
 from .threads import one_blas_thread
 
 #: Relative pivot size below which a row of the (row-normalized) Jacobian counts as dependent:
@@ -83,7 +84,9 @@ def jacobian_rank(J: np.ndarray) -> tuple[int, np.ndarray]:
 def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = None, samples: int = 3,
                       seed: int = 0) -> ConstraintReport:
     """Rank of J = ∂f/∂x at (x, t) (default: the system's initial positions), redundancy,
-    and the generic rank from ``samples`` random perturbations of x (seeded)."""
+    and the generic rank from ``samples`` random perturbations of x (seeded). Independent
+    rows are shown by a cheap factorization; dependent ones are found by the pivoted QR of the
+    dense J up to SPARSE_FROM rows, beyond by the sparse Gram factorization (sparse_rank)."""
     model = model or assemble(system)
     x = (system.positions if x is None else np.asarray(x, float)).ravel()
     f, J_sparse = model.jacobian(x, t)
@@ -94,8 +97,38 @@ def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = N
         C = model.n_constraints
         return ConstraintReport(n_coordinates=model.n_coordinates, n_constraints=C, rank=C, generic_rank=C,
                                 labels=list(model.constraint_labels), residuals=f, redundant=[])
-    with one_blas_thread():
+    with one_blas_thread():  # constrained/threads.py: spin-waiting BLAS threads cost more than they give
+        if model.n_constraints > SPARSE_FROM:
+            report = _sparse_report(model, system, x, t, f, J_sparse, samples, seed)
+            if report is not None:
+                return report
         return _dense_report(model, system, x, t, f, np.asarray(J_sparse), samples, seed)
+
+
+def _perturbed_states(system, x, t, samples: int, seed: int):
+    """(x + 0.1·size·N(0, 1), t + U(0, 1)) ``samples`` times, seeded: where the generic rank is read."""
+    rng = np.random.default_rng(seed)
+    size = system.size()
+    for _ in range(samples):
+        yield x + 0.1 * size * rng.standard_normal(x.shape), t + rng.uniform()
+
+
+def _sparse_report(model: Model, system, x, t, f, J, samples, seed) -> ConstraintReport | None:
+    """The rank, redundancy and generic rank of a large J by the sparse Gram factorization of
+    its row-normalized rows (constrained.sparse_rank: O(N) on a chain, never a dense J);
+    None when that factorization fails."""
+    rows = independent_rows_sparse(J)
+    if rows is None:
+        return None
+    rank, generic = rows.size, rows.size
+    for xp, tp in _perturbed_states(system, x, t, samples, seed):
+        nearby = independent_rows_sparse(model.jacobian(xp, tp)[1])
+        generic = max(generic, rank if nearby is None else nearby.size)
+    redundant = np.setdiff1d(np.arange(model.n_constraints), rows)
+    return ConstraintReport(
+        n_coordinates=model.n_coordinates, n_constraints=model.n_constraints, rank=rank,
+        generic_rank=generic, labels=list(model.constraint_labels), residuals=f,
+        redundant=[model.constraint_labels[k] for k in redundant])
 
 
 def _dense_report(model: Model, system, x, t, f, J, samples, seed) -> ConstraintReport:
@@ -103,12 +136,9 @@ def _dense_report(model: Model, system, x, t, f, J, samples, seed) -> Constraint
     rank, order = jacobian_rank(J)
     # rows beyond the rank: implied by the others; report them in scene order
     redundant_rows = sorted(order[rank:].tolist())
-    rng = np.random.default_rng(seed)
-    size = system.size()
     generic = rank
-    for _ in range(samples):
-        xp = x + 0.1 * size * rng.standard_normal(x.shape)
-        generic = max(generic, jacobian_rank(np.asarray(model.jacobian(xp, t + rng.uniform())[1]))[0])
+    for xp, tp in _perturbed_states(system, x, t, samples, seed):
+        generic = max(generic, jacobian_rank(np.asarray(model.jacobian(xp, tp)[1]))[0])
     return ConstraintReport(
         n_coordinates=model.n_coordinates,
         n_constraints=model.n_constraints,

@@ -353,7 +353,7 @@ def _run(args) -> int:
     file = args.scene
     s = scene.settings
     _end_time(scene, file)
-    check_regular_start(scene)
+    check_regular_start(scene, loaded=True)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -665,7 +665,7 @@ def _statics(args) -> int:
     """Equilibrium near the scene's positions: report on stdout, DIR/equilibrium.json, statics.png."""
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
-    check_regular_start(scene)
+    check_regular_start(scene, loaded=True)
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -739,7 +739,7 @@ def _derive(args) -> int:
 def _check(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
-    check_regular_start(scene)
+    check_regular_start(scene, loaded=True)
     from .analysis import constraint_report
     from .model import assemble
 
@@ -899,7 +899,7 @@ def _bench(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     t_end = _end_time(scene, file)
-    check_regular_start(scene)
+    check_regular_start(scene, loaded=True)
     methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
     try:
         tolerances = (tuple(float(x) for x in args.tolerances.split(","))

@@ -42,33 +42,10 @@ import scipy.linalg as sla
 
 from .fast_call import FastCall
 from .model import Model
-
-
-@dataclass(frozen=True)
-class RankPolicy:
-    """The one set of thresholds that decides when constraint rows are dependent.
-
-    ``dependent_rtol``: a row of the row-normalized, mass-weighted Jacobian ``Ĵ`` whose pivot
-    (pivoted QR) or singular value falls below this fraction of the largest is dependent on
-    the others (redundant), and is cut from minimum-norm solves. Exactly dependent rows sit
-    at round-off, about 1e-16; 1e-9 leaves seven orders of magnitude on both sides.
-
-    ``cholesky_rtol``: the fast path's test. A pivot of the Cholesky factor of ``D A D``
-    below this fraction of the largest sends the solve to the SVD. It is larger than
-    ``dependent_rtol`` because forming ``A`` squares the round-off: two identical rows leave
-    a pivot near √ε ≈ 1e-8, not 0.
-
-    ``singular_sigma``: a configuration is (nearly) singular when the smallest singular value
-    of the row-normalized ``J`` falls below this; the diagnostics name the rows involved.
-    """
-
-    dependent_rtol: float = 1e-9
-    cholesky_rtol: float = 1e-6
-    singular_sigma: float = 1e-6
-
-
-#: The policy every module uses unless a caller passes its own.
-RANK = RankPolicy()
+from .rank_policy import RANK, RankPolicy
+from .sparse_rank import as_dense, as_scipy, independent_rows_sparse
+from .sparse_rows import row_max
+from .sparse_schur import sparse_schur_solve
 
 
 class ProjectionStatus(enum.Enum):
@@ -136,8 +113,14 @@ def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
     when rows are dependent.
 
     ``full_rank=False`` skips the Cholesky attempt (the caller knows rows are redundant).
-    ``b`` may be a vector (C,) or a matrix (C, k).
+    ``b`` may be a vector (C,) or a matrix (C, k). A sparse J (SciPy or CasADi) of more than
+    SPARSE_FROM rows: the same solution without a dense J (constrained.sparse_schur).
     """
+    if not isinstance(J, np.ndarray) and J.shape[0] > SPARSE_FROM:
+        y = sparse_schur_solve(J, inverse_masses, b, policy=policy)
+        if y is not None:
+            return y
+        J = as_dense(J)
     b = np.asarray(b, float)
     if J.shape[0] == 0:
         return np.zeros(b.shape)
@@ -164,10 +147,16 @@ def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
 
 def independent_rows(J: np.ndarray, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> np.ndarray:
     """A maximal set of independent rows of J, in scene order (pivoted QR of Ĵᵀ; a row whose
-    pivot is below ``dependent_rtol`` of the largest is implied by the others)."""
+    pivot is below ``dependent_rtol`` of the largest is implied by the others). A sparse J of
+    more than SPARSE_FROM rows: the sparse Gram factorization (constrained.sparse_rank)."""
     C = J.shape[0]
     if C == 0:
         return np.zeros(0, dtype=int)
+    if C > SPARSE_FROM and not isinstance(J, np.ndarray):  # CasADi/SciPy sparse: constrained.sparse_rank
+        rows = independent_rows_sparse(J, np.sqrt(inverse_masses), policy)
+        if rows is not None:
+            return rows
+    J = as_dense(J)
     Jhat = _row_scale(J, inverse_masses)[:, None] * J * np.sqrt(inverse_masses)[None, :]
     _, R, order = sla.qr(Jhat.T, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
@@ -185,8 +174,7 @@ def full_row_rank(J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> b
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
-        rows, cols = J.sparsity().get_triplet()
-        Js = sp.csr_matrix((np.asarray(J.nonzeros(), float), (rows, cols)), shape=J.shape)
+        Js = as_scipy(J)
         A = (Js @ sp.diags(inverse_masses) @ Js.T).tocsc()
         d = A.diagonal()
         if d.size == 0 or np.any(d <= 0):
@@ -222,6 +210,11 @@ def tangent_basis(J: np.ndarray, n: int | None = None, policy: RankPolicy = RANK
 
 #: From this many constraint rows, full rank is first shown by a sparse factorization.
 SPARSE_FROM = 100
+
+
+def jacobian_matrix(J: ca.DM):
+    """A CasADi J as NumPy: dense up to SPARSE_FROM rows, SciPy CSR beyond (never C × 3N dense)."""
+    return np.asarray(J, float) if J.shape[0] <= SPARSE_FROM else as_scipy(J)
 
 
 def dense_jacobian(model: Model):
@@ -269,7 +262,7 @@ def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tupl
         J = dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
     if full_row_rank(J, model.inverse_masses, policy):
         return None
-    rows = independent_rows(np.asarray(J, float), model.inverse_masses, policy)
+    rows = independent_rows(J, model.inverse_masses, policy)
     return None if rows.size == model.n_constraints else tuple(int(k) for k in rows)
 
 
@@ -375,17 +368,15 @@ def velocity_correction_graph(model: Model, X, V, T, *, rows=None, linsol: str =
 
 def row_scales_expr(J, n_particles: int):
     """s_i = max_p |∂f_i/∂x_p| as a column (C,) of J's type (SX or MX), 1 where a row's gradient
-    vanishes."""
+    vanishes. O(nnz J) operations (constrained.sparse_rows): the squared per-particle norms
+    Q = (J∘J) B, with B (3N × N) summing each particle's three columns, then each row's
+    largest √Q_ip over its stored entries."""
     C = J.shape[0]
     if C == 0:
         return ca.SX(0, 1)
-    per_particle = []
-    for p in range(n_particles):
-        block = J[:, 3 * p:3 * p + 3]
-        per_particle.append(ca.sqrt(ca.sum2(block * block)))
-    norms = per_particle[0]
-    for column in per_particle[1:]:
-        norms = ca.fmax(norms, column)
+    B = ca.DM(ca.Sparsity.triplet(3 * n_particles, n_particles, list(range(3 * n_particles)),
+                                  [k // 3 for k in range(3 * n_particles)]), 1.0)
+    norms = row_max(ca.sqrt(ca.mtimes(J * J, B)))
     return ca.if_else(norms > 0, norms, 1.0)
 
 
@@ -605,8 +596,8 @@ class Manifold:
             self.counters.nlu += 1
             if np.all(np.isfinite(a)) and np.all(np.isfinite(lam)):
                 return a, lam
-        F, J, gamma = (np.asarray(o, float) for o in m.dynamics(x, v, t))
-        F, gamma = F.ravel(), gamma.ravel()
+        F, J, gamma = m.dynamics(x, v, t)
+        F, J, gamma = np.asarray(F, float).ravel(), jacobian_matrix(J), np.asarray(gamma, float).ravel()
         if m.n_constraints == 0:
             return m.inverse_masses * F, np.zeros(0)
         lam = self.schur_solve(J, -gamma - J @ (m.inverse_masses * F))
@@ -638,8 +629,9 @@ class Manifold:
             best = min(best, err)
             self.counters.nlu += 1
             if not np.all(np.isfinite(dx)):
-                f, J = (np.asarray(o, float) for o in m.jacobian(x, t))
-                dx = m.inverse_masses * (J.T @ self.schur_solve(J, f.ravel()))
+                f, J = m.jacobian(x, t)
+                J = jacobian_matrix(J)
+                dx = m.inverse_masses * (J.T @ self.schur_solve(J, np.asarray(f, float).ravel()))
             x = x - dx
         return ProjectionResult(x, ProjectionStatus.MAX_ITERATIONS, max_iter, err)  # pragma: no cover
 
@@ -653,6 +645,7 @@ class Manifold:
         (dv,) = _fast_or_nan(self._fast.velocity_correction, (m.n_coordinates,), x, v, t, self._p)
         if np.all(np.isfinite(dv)):
             return v - dv
-        J, f_t = (np.asarray(o, float) for o in m.velocity_terms(x, t))
-        c = J @ v + f_t.ravel()
+        J, f_t = m.velocity_terms(x, t)
+        J = jacobian_matrix(J)
+        c = J @ v + np.asarray(f_t, float).ravel()
         return v - m.inverse_masses * (J.T @ self.schur_solve(J, c))

@@ -13,7 +13,16 @@ import casadi as ca
 import numpy as np
 
 from . import residual
-from .manifold import RANK, RankPolicy, acceleration_function, built_once, redundant_rows, schur_solve
+from .manifold import (
+    RANK,
+    SPARSE_FROM,
+    RankPolicy,
+    acceleration_function,
+    built_once,
+    jacobian_matrix,
+    redundant_rows,
+    schur_solve,
+)
 from .model import Model
 from .trajectory import QUANTITIES, Trajectory
 
@@ -86,8 +95,9 @@ def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray,
 
     Independent rows (``full_rank``; None: decided at the first sample): the sparse LDLᵀ,
     mapped over the samples (O(N) per sample on a chain), kept where the acceleration it
-    gives satisfies J a + γ = 0 to 1e-9. Other samples, and redundant rows, take the dense
-    ``schur_solve`` (minimum-norm, accurate whatever the spread of the masses)."""
+    gives satisfies J a + γ = 0 to 1e-9. Other samples, and redundant rows, take
+    ``schur_solve`` (minimum-norm, accurate whatever the spread of the masses): on the dense J
+    in blocks of samples, or beyond SPARSE_FROM rows sample by sample on the sparse J."""
     t = np.asarray(t, float)
     n, C, n3 = len(t), model.n_constraints, model.n_coordinates
     if C == 0:
@@ -104,6 +114,13 @@ def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray,
             lam[block] = np.where(good[:, None], np.asarray(values, float).T, np.nan)
     redo = np.flatnonzero(~np.all(np.isfinite(lam), axis=1))
     minv = model.inverse_masses
+    if C > SPARSE_FROM:  # one sample at a time with J sparse (constrained.sparse_schur)
+        for k in redo:
+            F, J, gamma = model.dynamics(X[k], V[k], float(t[k]))
+            J = jacobian_matrix(J)
+            F, gamma = np.asarray(F, float).ravel(), np.asarray(gamma, float).ravel()
+            lam[k] = schur_solve(J, minv, -gamma - J @ (minv * F), policy=policy, full_rank=full_rank)
+        return lam
     per_block = max(1, BLOCK_FLOATS // (C * n3))
     for start in range(0, len(redo), per_block):
         rows = redo[start:start + per_block]
@@ -115,17 +132,28 @@ def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray,
     return lam
 
 
+def _constraint_force_function(model: Model) -> ca.Function:
+    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once."""
+    def build():
+        X, T, L = ca.MX.sym("x", model.n_coordinates), ca.MX.sym("t"), ca.MX.sym("lam", model.n_constraints)
+        _, J = model.jacobian(X, T)
+        return ca.Function("constraint_force", [X, T, L], [ca.densify(ca.mtimes(J.T, L))])
+
+    return built_once(model, "constraint_force", build)
+
+
 def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """(Jᵀλ)_i for each particle, (T, N, 3), in blocks of samples."""
+    """(Jᵀλ)_i for each particle, (T, N, 3): the sparse product mapped over blocks of samples
+    (never a dense J). Samples whose λ is not finite give NaN forces."""
     t = np.asarray(t, float)
     n, C, n3 = len(t), model.n_constraints, model.n_coordinates
     out = np.zeros((n, model.n_particles, 3))
-    if C == 0:
+    if C == 0 or n == 0:
         return out
     X = np.asarray(X, float).reshape(n, n3)
-    for block in _blocks(n, C * n3):
-        _, Jcat = model.evaluate(model.jacobian, X[block], t[block])
-        k = len(t[block])
-        J = Jcat.reshape(C, k, n3).transpose(1, 0, 2)
-        out[block] = np.einsum("kci,kc->ki", J, lam[block]).reshape(k, model.n_particles, 3)
+    lam = np.asarray(lam, float).reshape(n, C)
+    force = _constraint_force_function(model)
+    for block in _blocks(n, 2 * (C + n3)):
+        (values,) = model.evaluate(force, X[block], t[block], lam[block])
+        out[block] = np.asarray(values, float).T.reshape(-1, model.n_particles, 3)
     return out

@@ -32,6 +32,7 @@ from .defaults import DEFAULT_METHOD
 from .effects import EFFECT_TYPES
 from .errors import InputError
 from .parameters import RESERVED_NAMES
+from .regularity import undefined_items
 from .symbols import Symbols
 from .system import Particle, System, sketch
 from .trajectory import QUANTITIES
@@ -308,7 +309,7 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
-    raw, set_paths = _apply_overrides(raw, overrides, file)
+    raw, set_paths = _apply_overrides(raw, overrides, file) if overrides else (raw, [])
     key = (*digest, tuple(overrides))
     try:
         scene = build_scene(raw, path=path)
@@ -317,6 +318,8 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
         if origin is None:
             raise
         raise SceneError(f"{exc.reason} (value given by --set {origin})", file=file, key=exc.key) from None
+    if scene.system.n_particles > KEPT_PARTICLES:  # not kept: the caller's own, no copy
+        return scene
     with _LOADED_LOCK:
         _LOADED[key] = scene
         while len(_LOADED) > SCENES_KEPT:
@@ -328,6 +331,8 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
 #: again (a sweep, a fresh call) skips the validation and formula checks (about 1 ms). Each
 #: caller gets its own copies of the mutable parts.
 SCENES_KEPT = 32
+#: Scenes of more particles are not kept: copying one costs a good part of validating it.
+KEPT_PARTICLES = 2000
 _LOADED: collections.OrderedDict = collections.OrderedDict()
 _LOADED_LOCK = threading.Lock()
 
@@ -400,12 +405,15 @@ def build_scene(raw: Mapping, path: str | Path | None = None) -> Scene:
     return _Builder(raw, None if path is None else Path(path)).build()
 
 
-def check_regular_start(scene: Scene) -> None:
+def check_regular_start(scene: Scene, *, loaded: bool = False) -> None:
     """Refuse (SceneError) a scene whose constraints or effects are undefined at its particles'
     initial positions (a rod whose particle sits on its anchor, 1/r at r = 0). ``load_scene``
     checks this itself, except for scenes with a [reduced] section, whose particle positions
     may be placeholders for the mapped start of ``crosscheck``: verbs that start from the
-    particle positions call this."""
+    particle positions call this, with ``loaded=True`` for a scene just returned by
+    ``load_scene`` (then only a [reduced] scene is checked: twice costs seconds at 10⁴ particles)."""
+    if loaded and "reduced" not in scene.raw:
+        return
     builder = _Builder(scene.raw, scene.path)
     builder.names = [p.name for p in scene.system.particles]
     builder.regular_start(scene.system, scene.settings["t_start"])
@@ -675,7 +683,7 @@ class _Builder:
     def particle(self, value, key: str) -> str:
         if not isinstance(value, str):
             self.fail(key, f"must be a particle name, got {_describe(value)}")
-        if value not in self.names:
+        if value not in self.name_set():
             known = ", ".join(self.names)
             self.fail(
                 key,
@@ -683,14 +691,23 @@ class _Builder:
             )
         return value
 
+    def name_set(self) -> frozenset:
+        """``self.names`` as a set (kept while the list stays the same): a 10,000-particle
+        scene looks names up 30,000 times."""
+        cache = self.__dict__.get("_name_set")
+        if cache is None or cache[0] is not self.names or cache[1] != len(self.names):
+            cache = self._name_set = (self.names, len(self.names), frozenset(self.names))
+        return cache[2]
+
     def particle_list(self, value, key: str) -> list[str]:
         if isinstance(value, str):
             return [self.particle(value, key)]
         if not isinstance(value, list) or not value:
             self.fail(key, f"must be a particle name or a non-empty list of names, got {_describe(value)}")
         out = [self.particle(v, _join(key, i)) for i, v in enumerate(value)]
+        first: dict[str, int] = {}
         for i, name in enumerate(out):
-            if name in out[:i]:
+            if first.setdefault(name, i) != i:
                 self.fail(_join(key, i), f"particle '{name}' is listed twice")
         return out
 
@@ -778,11 +795,11 @@ class _Builder:
             system = System(particles, constraints, effects, parameters, name, definitions)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
-        self.check_formulas(system)
+        built = self.check_formulas(system)
         system.events = self.events_section(system)
         settings = self.simulate()
         if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
-            self.regular_start(system, settings["t_start"])
+            self.regular_start(system, settings["t_start"], built)
         outputs = self.outputs()
         reduced = self.reduced({**parameters, **definitions})
         expect = self.raw.get("expect")
@@ -1103,9 +1120,11 @@ class _Builder:
             return cls(a.pop("charges"), **a, name=name, where=where)
         return cls(**a, name=name, where=where)  # custom, potential: expr
 
-    def check_formulas(self, system: System) -> None:
-        """Parse every formula now (cheap), so a bad one is reported at load time."""
+    def check_formulas(self, system: System) -> tuple[Symbols, dict]:
+        """Parse every formula now (cheap), so a bad one is reported at load time; returns the
+        Symbols and the built rows and terms, {(section, index): value}, for ``regular_start``."""
         s = Symbols(system)
+        built = {}
         for section, items, call in (
             ("constraints", system.constraints, lambda c: c.rows(s)),
             ("effects", system.effects, lambda e: e.term(s)),
@@ -1113,47 +1132,21 @@ class _Builder:
             for i, obj in enumerate(items):
                 key = _join(section, i)
                 try:
-                    call(obj)
+                    built[section, i] = call(obj)
                 except InputError as exc:
                     self.fail(exc.where or key, exc.reason)
                 except (RuntimeError, TypeError, ZeroDivisionError) as exc:
                     self.fail(key, f"cannot be built: {exc}")
+        return s, built
 
-    def regular_start(self, system: System, t0: float) -> None:
+    def regular_start(self, system: System, t0: float, built: tuple[Symbols, dict] | None = None) -> None:
         """Every constraint row, its gradient, and every effect's term and gradients must be
         finite at the initial state: a rod whose particle sits on its anchor, or a 1/r potential
-        at r = 0, is refused here with the item's key instead of failing inside a solver."""
-        import casadi as ca
-
-        s = Symbols(system)
-        items, outputs = [], []
-        for section, objs in (("constraints", system.constraints), ("effects", system.effects)):
-            for i, obj in enumerate(objs):
-                try:
-                    if section == "constraints":
-                        value = ca.vertcat(*[row for row, _ in obj.rows(s)])
-                    else:
-                        value = ca.vertcat(obj.term(s))
-                except (InputError, RuntimeError, TypeError, ZeroDivisionError):
-                    continue  # check_formulas reports these
-                value = ca.SX(value)
-                parts = [value, ca.vec(ca.jacobian(value, s.x))]
-                if section == "effects":
-                    parts.append(ca.vec(ca.jacobian(value, s.v)))
-                items.append((_join(section, i), obj))
-                outputs.append(ca.vertcat(*parts))
-        if not items:
-            return
-        x0 = np.asarray(system.positions, float).reshape(-1)
-        v0 = np.asarray(system.velocities, float).reshape(-1)
-        with np.errstate(all="ignore"):
-            values = ca.Function("start", [s.x, s.v, s.t], outputs)(x0, v0, t0)
-        values = values if isinstance(values, list | tuple) else [values]
-        for (key, obj), value in zip(items, values, strict=True):
-            if np.all(np.isfinite(np.asarray(value, float))):
-                continue
-            what = "constraint" if key.startswith("constraints") else "effect"
-            self.fail(key, f"this {what} ({obj.label}) is undefined at the initial state "
+        at r = 0, is refused here with the item's key instead of failing inside a solver
+        (constrained.regularity: one sparse evaluation for the whole system)."""
+        for section, i, obj in undefined_items(system, t0, built)[:1]:
+            what = "constraint" if section == "constraints" else "effect"
+            self.fail(_join(section, i), f"this {what} ({obj.label}) is undefined at the initial state "
                       f"(t = {t0:g} s): its value or its gradient is not finite there"
                       f"{_why_singular(obj, system, t0)}")
 

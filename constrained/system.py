@@ -170,12 +170,24 @@ class System:
             p = particle_or_name
         else:
             p = Particle(particle_or_name, mass, position, velocity)
-        if any(q.name == p.name for q in self.particles):
+        names = self._particle_names()
+        if p.name in names:
             raise InputError(f"duplicate particle name '{p.name}'", where=p.where or "particles")
         if p.formulas:
             p.resolve(self.parameter_values)
         self.particles.append(p)
+        names.add(p.name)
+        self._names = (self.particles, len(self.particles), names)
         return p
+
+    def _particle_names(self) -> set[str]:
+        """The particles' names as a set, kept while ``particles`` is the same list of the same
+        length (O(1) per added particle instead of a scan: a chain of 10,000 adds them in turn)."""
+        cache = self.__dict__.get("_names")
+        if cache is None or cache[0] is not self.particles or cache[1] != len(self.particles):
+            cache = (self.particles, len(self.particles), {q.name for q in self.particles})
+        self._names = cache
+        return cache[2]
 
     def add(self, *items):
         """Add constraints and effects (objects from constrained.constraints / .effects)."""

@@ -48,6 +48,10 @@ AUTO_COMPILE_COORDINATES = 200
 #: (and not above one whose call took longer than CHUNK_SECONDS: Ctrl-C waits for a call).
 CHUNKS = (1, 8, 64)
 CHUNK_SECONDS = 0.1
+#: A chain of k attempts is built only when k × coordinates is at most this: an attempt costs
+#: ~1.3 µs per coordinate, so longer chains would exceed CHUNK_SECONDS anyway, and building
+#: the 64-chain of a 10,000-particle chain took 0.6 s and 350 MB.
+CHUNK_COORDINATE_ATTEMPTS = 80_000
 #: Up to this many constraint rows the whole step is one SX expression (the KKT solves
 #: written out symbolically): ~2.7x faster than calling the sparse linear solver.
 SYMBOLIC_MAX_CONSTRAINTS = 8
@@ -89,7 +93,7 @@ class Dopri(Stepper):
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
         )
         self._chunks = self._functions()  # the one-time cost, outside the run's wall time
-        self._longest = CHUNKS[-1]
+        self._longest = max(self._chunks)
         self._scale = None
         n = model.n_coordinates
         self._slots = tuple(_slot(n, k) for k in ("t", "h", "n_acc", "n_rej", "res", "t_target"))
@@ -192,7 +196,9 @@ class Dopri(Stepper):
     def _build_functions(self) -> tuple[str, dict[int, FastCall]]:
         step = self._step_function()
         evaluation = "virtual machine"
-        chunks = {k: (step if k == 1 else step.mapaccum(f"{step.name()}_{k}", k)) for k in CHUNKS}
+        n = self.model.n_coordinates
+        chunks = {k: (step if k == 1 else step.mapaccum(f"{step.name()}_{k}", k)) for k in CHUNKS
+                  if k == 1 or k * n <= CHUNK_COORDINATE_ATTEMPTS}
         if self.compiled:
             compiled = compiled_evaluation.compile_functions(list(chunks.values()))
             if all(f.class_name() == "External" for f in compiled):
@@ -237,12 +243,12 @@ class Dopri(Stepper):
         state = state.copy()
         state[TARGET] = t_stop
         expected = (t_stop - state[T]) / max(state[H], 1e-300) + 1
-        k = max(c for c in CHUNKS if c <= max(expected, 1) and c <= self._longest)
+        k = max(c for c in self._chunks if c <= max(expected, 1) and c <= self._longest)
         called = time.perf_counter()
         (out,) = self._chunks[k](state)
         if k > 1 and time.perf_counter() - called > CHUNK_SECONDS:
             # Ctrl-C waits for the call: keep calls short on slow (large) models
-            self._longest = max(c for c in CHUNKS if c < k)
+            self._longest = max(c for c in self._chunks if c < k)
         cols = out.reshape(k, -1)
         finite = bool(np.isfinite(out).all())
         good = cols if finite else cols[:np.argmin(np.isfinite(cols).all(axis=1))]
