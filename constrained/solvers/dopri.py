@@ -44,8 +44,9 @@ from .tableaus import TABLEAUS
 #: Under compiled="auto", the step loop is compiled for models up to this many coordinates
 #: (the one-time C compile takes a few seconds there and is cached; beyond, it grows steeply).
 AUTO_COMPILE_COORDINATES = 200
-#: Attempts chained per CasADi call; Python picks the largest not above the expected count
-#: (and not above one whose call took longer than CHUNK_SECONDS: Ctrl-C waits for a call).
+#: Attempts chained per CasADi call; Python picks the shortest chain expected to reach the
+#: stop (attempts past it are skipped), else the longest, but none above one whose call took
+#: longer than CHUNK_SECONDS (Ctrl-C waits for a call).
 CHUNKS = (1, 8, 64)
 CHUNK_SECONDS = 0.1
 #: A chain of k attempts is built only when k × coordinates is at most this: an attempt costs
@@ -243,7 +244,10 @@ class Dopri(Stepper):
         state = state.copy()
         state[TARGET] = t_stop
         expected = (t_stop - state[T]) / max(state[H], 1e-300) + 1
-        k = max(c for c in self._chunks if c <= max(expected, 1) and c <= self._longest)
+        # the shortest chain that should reach t_stop (attempts past it are skipped, nearly
+        # free), else the longest allowed: fewer calls, each with its Python overhead
+        fits = [c for c in self._chunks if c <= self._longest]
+        k = next((c for c in fits if c >= expected), fits[-1])
         called = time.perf_counter()
         (out,) = self._chunks[k](state)
         if k > 1 and time.perf_counter() - called > CHUNK_SECONDS:
