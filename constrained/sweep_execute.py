@@ -33,8 +33,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from .ensemble import BLOCK, MIN_THREAD_COLUMNS
 from .sweep_batch import COMPILE_FROM
 from .sweep_design import overrides_of
+from .threads import available_cores
 
 #: Variants per batched chunk (one simulate_many call, one file).
 BATCH_CHUNK = 500
@@ -197,6 +199,10 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
         record(chunk, result)
         bar.update(len(chunk.indices))
     left = sum(cost[c.path] * len(c.indices) for c in rest)
+    # a batched chunk here shares its columns out over this machine's cores itself
+    # (simulate_many's threads): worker processes on the same cores would not run it faster
+    threaded = available_cores() <= BLOCK // MIN_THREAD_COLUMNS
+    spread = sum(cost[c.path] * len(c.indices) for c in rest if not (c.path == "batched" and threaded))
     cores = workers or os.cpu_count() or 1
     idle = _idle_cores()
     per = ", ".join(f"{cost[p] * 1e3:.2f} ms per variant {p}" for p in cost)
@@ -206,10 +212,14 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
         return Where("in-process", 1, "nothing left to compute")
     if not rest:
         return Where("in-process", 1, f"the first chunk of each path held the whole design ({per})")
-    if left <= DASK_WORTH_S or cores < 2 or idle < 2:
+    if spread <= DASK_WORTH_S or cores < 2 or idle < 2:
         _in_process(rest, record, bar)
         if cores < 2:
             why = f"{estimate}; one worker"
+        elif spread < left and spread <= DASK_WORTH_S:
+            why = (f"{estimate}: batched chunks share their variants out over this machine's "
+                   f"{available_cores()} cores themselves (simulate_many's threads), so worker "
+                   "processes would not run them faster")
         elif left <= DASK_WORTH_S:
             why = (f"{estimate}: below {DASK_WORTH_S:.0f} s a local Dask cluster (3-4 s to start, a model "
                    "build per worker) does not pay")

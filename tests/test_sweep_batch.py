@@ -194,13 +194,20 @@ def test_auto_starts_a_local_cluster_when_the_estimate_is_large(scene, batched, 
     monkeypatch.setattr(sweep_execute, "DASK_WORTH_S", 0.0)
     monkeypatch.setattr(sweep_execute, "_idle_cores", lambda: 1.0)  # other jobs use the cores
     busy = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path / "busy",
-                   progress=False, chunk_size=5, figure=False, workers=2)
+                   progress=False, chunk_size=5, figure=False, workers=2, batch=False)
     assert busy.where.mode == "in-process" and "busy" in busy.where.reason
     monkeypatch.setattr(sweep_execute, "_idle_cores", lambda: 2.0)
-    r = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path, progress=False,
-                chunk_size=5, figure=False, workers=2)
+    monkeypatch.setattr(sweep_execute, "available_cores", lambda: 2)
+    # batched chunks use the cores here already (simulate_many's threads): no cluster for them
+    here = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path / "here",
+                   progress=False, chunk_size=5, figure=False, workers=2)
+    assert here.where.mode == "in-process" and "share their variants out" in here.where.reason
+    _compare(here.rows, batched.rows, 0.0)
+    # runs one at a time do go to worker processes
+    r = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path / "spread",
+                progress=False, chunk_size=5, figure=False, workers=2, batch=False)
     assert r.where.mode == "local cluster" and r.where.workers == 2 and "above 0 s" in r.where.reason
-    _compare(r.rows, batched.rows, 0.0)  # the same numbers on the cluster's workers
+    _compare(r.rows, batched.rows, 1e-9)  # the per-run numbers on the cluster's workers
 
 
 def test_ctrl_c_stops_a_batched_sweep_keeps_its_finished_chunks_and_exits_130(scene, tmp_path):
