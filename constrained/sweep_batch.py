@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from . import interrupt
-from .scene import _drift, _period, expect_requirements  # the [expect] checks' own measures
+from .expectations import drift, expect_requirements, period  # the [expect] checks' own measures
 from .sweep_run import (
     cached_model,
     formula_function,
@@ -218,7 +218,7 @@ def _expect(c: dict, t: np.ndarray, lhs, rhs, data, n: int) -> tuple[np.ndarray,
     ``scene.check_expectations`` (samples (n, T) of lhs / rhs / the run's quantity)."""
     kind, tol = c["kind"], c.get("tol", 0.0)
     if kind == "energy_drift":
-        value = np.array([_drift(row)[0] for row in data])
+        value = np.array([drift(row)[0] for row in data])
     elif kind in ("constraint_residual", "velocity_residual"):
         value = np.zeros(n) if data is None else np.max(np.abs(data), axis=1)
     elif kind == "final":
@@ -226,7 +226,7 @@ def _expect(c: dict, t: np.ndarray, lhs, rhs, data, n: int) -> tuple[np.ndarray,
     elif kind == "closed_form":
         value = np.max(np.abs(lhs - rhs), axis=1)
     elif kind == "period":
-        found = [_period(t, row) for row in lhs]
+        found = [period(t, row) for row in lhs]
         value = np.array([np.nan if f is None else abs(f - rhs[k, 0]) for k, f in enumerate(found)])
     else:  # bounds, reaches: counts of samples outside / inside
         inside = (lhs >= c["lo"]) & (lhs <= c["hi"])
