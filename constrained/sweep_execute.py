@@ -201,8 +201,7 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
     left = sum(cost[c.path] * len(c.indices) for c in rest)
     # a batched chunk here shares its columns out over this machine's cores itself
     # (simulate_many's threads): worker processes on the same cores would not run it faster
-    threaded = available_cores() <= BLOCK // MIN_THREAD_COLUMNS
-    spread = sum(cost[c.path] * len(c.indices) for c in rest if not (c.path == "batched" and threaded))
+    spread = sum(cost[c.path] * len(c.indices) for c in rest if not _uses_the_cores(c))
     cores = workers or os.cpu_count() or 1
     idle = _idle_cores()
     per = ", ".join(f"{cost[p] * 1e3:.2f} ms per variant {p}" for p in cost)
@@ -236,6 +235,13 @@ def _auto(chunks: list[Chunk], record, bar, workers: int | None) -> Where:
         return Where("local cluster", cores, f"{estimate}: above {DASK_WORTH_S:.0f} s")
     finally:
         close()
+
+
+def _uses_the_cores(chunk: Chunk) -> bool:
+    """Whether the chunk's simulate_many call gets a thread per core (its threads: one per
+    MIN_THREAD_COLUMNS of its variants in a block, at most the cores)."""
+    width = min(len(chunk.indices), BLOCK)
+    return chunk.path == "batched" and width // MIN_THREAD_COLUMNS >= available_cores()
 
 
 def _idle_cores() -> float:

@@ -198,6 +198,7 @@ def test_auto_starts_a_local_cluster_when_the_estimate_is_large(scene, batched, 
     assert busy.where.mode == "in-process" and "busy" in busy.where.reason
     monkeypatch.setattr(sweep_execute, "_idle_cores", lambda: 2.0)
     monkeypatch.setattr(sweep_execute, "available_cores", lambda: 2)
+    monkeypatch.setattr(sweep_execute, "MIN_THREAD_COLUMNS", 1)  # chunks of 5 and 2: two threads each
     # batched chunks use the cores here already (simulate_many's threads): no cluster for them
     here = S.sweep(scene, RANDOM, samples=12, seed=5, summary=SUMMARY, out_dir=tmp_path / "here",
                    progress=False, chunk_size=5, figure=False, workers=2)
