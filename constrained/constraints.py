@@ -69,6 +69,8 @@ class Constraint(Labelled):
     restitution = 0.0
     #: Why a type cannot be one-sided (None: it can).
     two_sided_only: str | None = None
+    #: Fields whose plain numbers are inputs of the Structure's Functions (constrained.lifting).
+    numbers: tuple[str, ...] = ()
 
     def rows(self, s) -> list[tuple]:
         raise NotImplementedError
@@ -102,6 +104,7 @@ class Distance(Constraint):
     """
 
     side = -1
+    numbers = ("point", "length")
 
     def __init__(self, a: str, b: str | None = None, *, point=None, length, name=None, where=None,
                  unilateral: bool = False, restitution: float = 0.0):
@@ -139,6 +142,7 @@ class Pin(Constraint):
     two_sided_only = ("pin holds a particle at a point and has no side to leave by (a one-sided "
                       "distance to the point of length 0 is not defined either); use a one-sided "
                       "plane or surface through the point")
+    numbers = ("point",)
 
     def __init__(self, a: str, point, *, name=None, where=None, unilateral: bool = False,
                  restitution: float = 0.0):
@@ -157,6 +161,8 @@ class Pin(Constraint):
 
 class Plane(Constraint):
     """n(t)·x_i − offset(t) = 0 for each listed particle, scaled by 1/|n| (metres)."""
+
+    numbers = ("normal", "offset")
 
     def __init__(self, particles, normal, offset=0.0, *, name=None, where=None, unilateral: bool = False,
                  restitution: float = 0.0):

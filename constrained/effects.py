@@ -24,6 +24,8 @@ class Effect(Labelled):
 
     kind = "effect"
     slot: str = ""
+    #: Fields whose plain numbers are inputs of the Structure's Functions (constrained.lifting).
+    numbers: tuple[str, ...] = ()
 
     def term(self, s):
         raise NotImplementedError
@@ -39,6 +41,7 @@ class Gravity(Effect):
     """Uniform field: force m_i g on each particle; V = −Σ m_i g·x_i."""
 
     slot = "potential"
+    numbers = ("g",)
 
     def __init__(self, g, particles=None, *, name=None, where=None):
         self.g, self.name, self.where, self.particles = g, name, where, None
@@ -56,8 +59,7 @@ class Gravity(Effect):
             return 0.0
         # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
         P = ca.horzcat(*[s.position(p, where) for p in names])
-        ms = [s.masses[s.index(p, where)] for p in names]  # numbers, or SX of p (symbolic masses)
-        m = ca.horzcat(*map(ca.SX, ms)) if any(isinstance(m, ca.SX) for m in ms) else ca.DM([ms])
+        m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
         return -ca.dot(ca.mtimes(g.T, P), m)
 
 
@@ -65,6 +67,7 @@ class Spring(Effect):
     """Linear spring: V = ½ k (|x_a − x_b| − rest)², between particles or to a point."""
 
     slot = "potential"
+    numbers = ("point", "k", "rest")
 
     def __init__(self, a, b=None, *, point=None, k, rest=0.0, name=None, where=None):
         self.a, self.b, self.point, self.k, self.rest = a, b, point, k, rest
@@ -105,6 +108,7 @@ class Central(Effect):
     """A central potential V(r), r = |x_a − x_b| or |x_a − point|; ``expr`` in r (and t)."""
 
     slot = "potential"
+    numbers = ("point",)
 
     def __init__(self, a, b=None, *, point=None, expr: str, name=None, where=None):
         self.a, self.b, self.point, self.expr = a, b, point, expr
@@ -159,6 +163,7 @@ class Damping(Effect):
     """Rayleigh dissipation R = ½ c Σ|v_i|² (listed particles), or ½ c |v_a − v_b|² (a pair)."""
 
     slot = "dissipation"
+    numbers = ("coefficient",)
 
     def __init__(self, coefficient, particles=None, *, a=None, b=None, name=None, where=None):
         self.coefficient, self.a, self.b, self.name, self.where = coefficient, a, b, name, where
@@ -188,6 +193,7 @@ class Force(Effect):
     """An applied force F(particle coordinates, velocities, t) on one particle (3 formulas)."""
 
     slot = "applied_force"
+    numbers = ("expr",)
 
     def __init__(self, particle: str, expr: Sequence, *, name=None, where=None):
         self.particle, self.expr, self.name, self.where = particle, expr, name, where
@@ -216,6 +222,7 @@ class Electromagnetic(Effect):
     """
 
     slot = "generalized_potential"
+    numbers = ("charges", "phi", "A")
 
     def __init__(self, charges: Mapping[str, float], phi="0", A=("0", "0", "0"), *, name=None, where=None):
         self.charges, self.phi, self.A, self.name, self.where = dict(charges), phi, A, name, where

@@ -107,7 +107,8 @@ def _table(model: Model, parameters) -> tuple[tuple[str, ...], np.ndarray]:
 
 def _start_function(model: Model, system) -> ca.Function:
     """``p -> (x0, v0)``: the particles' initial positions and velocities (numbers, or
-    formulas of the parameters and definitions) as one Function of the parameter vector."""
+    formulas of the parameters and definitions) as one Function of the parameter vector
+    (``Model.parameter_vector``)."""
     def build():
         p, names = symbolic(system.parameters, system.definitions)
         parts = {"position": [], "velocity": []}
@@ -120,7 +121,8 @@ def _start_function(model: Model, system) -> ca.Function:
                                       if isinstance(entry, str) else ca.SX(float(entry)))
         x0 = ca.vertcat(*parts["position"]) if parts["position"] else ca.SX(0, 1)
         v0 = ca.vertcat(*parts["velocity"]) if parts["velocity"] else ca.SX(0, 1)
-        return ca.Function("start", [p], [x0, v0])
+        numbers = ca.SX.sym("number", model.structure.n_numbers)  # the rest of p: unused here
+        return ca.Function("start", [ca.vertcat(p, numbers)], [x0, v0])
 
     cache, prefix = structure_cache(model)
     key = (*prefix, "ensemble start")
@@ -136,7 +138,7 @@ def _projector(model: Model, rows) -> ca.Function:
     if key not in cache:
         n3 = model.n_coordinates
         X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        P = ca.MX.sym("p", len(model.parameter_values))
+        P = ca.MX.sym("p", len(model.parameter_vector))
         view = ParametricView(model, P)
         x, v, residual = X, V, ca.MX(0)
         for _ in range(START_SWEEPS):
@@ -154,7 +156,7 @@ def _start_block(model: Model, system, dopri: Dopri, width: int) -> FastCall:
     rows = dopri.manifold.rows
     key = (*prefix, "ensemble start block", rows, dopri.compiled, width)
     if key not in cache:
-        P, T = ca.MX.sym("p", len(model.parameter_values)), ca.MX.sym("t")
+        P, T = ca.MX.sym("p", len(model.parameter_vector)), ca.MX.sym("t")
         x0, v0 = _start_function(model, system)(P)
         x, v, _ = _projector(model, rows)(x0, v0, T, P)
         a, _ = acceleration_function(model, rows, parametric=True)(x, v, T, P)
@@ -173,7 +175,7 @@ def _mapped_acceleration(dopri: Dopri, width: int) -> FastCall:
     if key not in cache:
         n3 = dopri.model.n_coordinates
         X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        P = ca.MX.sym("p", len(dopri.model.parameter_values))
+        P = ca.MX.sym("p", len(dopri.model.parameter_vector))
         a, _ = acceleration_function(dopri.model, rows, parametric=True)(X, V, T, P)
         accel = ca.Function("ensemble_acceleration", [X, V, T, P], [a]).map(width)
         if dopri.compiled:
@@ -254,7 +256,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     model = model or assemble(system)
     names, table = _table(model, parameters)
     n_var = table.shape[0]
-    P = np.tile(np.asarray(model.parameter_values, float), (n_var, 1))
+    P = np.tile(np.asarray(model.parameter_vector, float), (n_var, 1))
     for j, name in enumerate(names):
         P[:, model.parameter_names.index(name)] = table[:, j]
     targets = np.array([t_end], float) if t_eval is None else np.asarray(list(t_eval), float).ravel()

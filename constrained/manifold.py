@@ -244,9 +244,9 @@ def structural_call(model: Model, key, build, *inputs: str):
     if fast is None:
         n3 = model.n_coordinates
         symbols = [ca.SX.sym(name, n3 if name in ("x", "v") else 1) for name in inputs]
-        P = ca.SX.sym("p", len(model.parameter_values))
+        P = ca.SX.sym("p", len(model.parameter_vector))
         fast = cache[full_key] = FastCall(build(ParametricView(model, P), *symbols, P))
-    p = model.parameter_values
+    p = model.parameter_vector
     return lambda *args: fast(*args, p)
 
 
@@ -421,7 +421,7 @@ def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
         return cached
     n3 = model.n_coordinates
     X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-    P = ca.MX.sym("p", len(model.parameter_values))
+    P = ca.MX.sym("p", len(model.parameter_vector))
     view = ParametricView(model, P)
     d = ca.densify
     if model.n_constraints:
@@ -480,7 +480,7 @@ def acceleration_function(model: Model, rows=None, *, symbolic: bool = False,
         if not parametric:
             graph = acceleration_graph(model, X, V, T, rows=rows, linsol=linsol)
             return ca.Function(name, [X, V, T], list(graph))
-        P = kind.sym("p", len(model.parameter_values))
+        P = kind.sym("p", len(model.parameter_vector))
         graph = acceleration_graph(ParametricView(model, P), X, V, T, rows=rows, linsol=linsol)
         return ca.Function(name, [X, V, T, P], list(graph))
 
@@ -503,7 +503,7 @@ class ParametricView:
         self.P = P
         self._model = model
         for name in ("n_coordinates", "n_constraints", "n_particles", "masses", "inverse_masses",
-                     "rheonomic", "constraint_labels", "parameter_values"):
+                     "rheonomic", "constraint_labels", "parameter_vector"):
             setattr(self, name, getattr(model, name))
         if model.masses_follow_parameters:  # masses as formulas of P in the graphs
             self.masses = model.parametric("masses")(P)
@@ -566,7 +566,7 @@ class Manifold:
         self.policy = policy
         self.counters = Counters()
         self._fast = _fast_paths(model, rows, compiled)
-        self._p = model.parameter_values
+        self._p = model.parameter_vector
 
     @classmethod
     def at(cls, model: Model, x, t: float, *, policy: RankPolicy = RANK, compiled: bool = False) -> Manifold:

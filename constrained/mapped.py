@@ -8,11 +8,12 @@ time, which grows faster than the length of a function — grows with N. Here ev
 of the constraints and every summand V_k of V = Σ_k V_k is cut out of the Structure's
 expressions (``Structure.expressions``) with the coordinates it depends on, I_k (ascending),
 as a local function of x_l = x[I_k], and its numbers are lifted out (``lifted``: the k-th
-constant becomes c_k), giving φ_k(x_l, c, t, p). Instances whose lifted functions are the
-same (the same operations: equal serializations, and the same split of x_l into particles)
-form a group g, whatever their numbers (rods of different lengths, particles of different
-masses); a group of MIN_GROUP instances or more becomes one SX kernel evaluated by ``map`` on
-the columns X_g = [x[I_1], …, x[I_n]] (a gather: index data) and C_g = [c_1, …, c_n] (data):
+constant or entry of p it reads becomes c_k), giving φ_k(x_l, c, t). Instances whose lifted
+functions are the same (the same operations: equal serializations, and the same split of x_l
+into particles) form a group g, whatever their numbers (rods of different lengths, particles
+of different masses: entries of p, constrained.lifting); a group of MIN_GROUP instances or
+more becomes one SX kernel evaluated by ``map`` on the columns X_g = [x[I_1], …, x[I_n]] (a
+gather: index data) and C_g = [c_1, …, c_n], gathered from [p; the constants] (index data):
 
     f[r_k] = φ_g(x_l, c_k, t, p),   J[r_k, I_k] = ∂φ_g/∂x_l,      f_t[r_k] = ∂φ_g/∂t,
     γ[r_k] = ∂w/∂x_l · v_l + ∂w/∂t  with  w = J_l v_l + f_t,
@@ -57,17 +58,27 @@ _OUTPUTS = {"constraint": (("f",), False), "jacobian": (("f", "J"), False),
 @dataclass
 class _Group:
     """Instances of one local function: ``local`` (SX in ``xl``, ``c``, t, p), ``index`` (d, n)
-    the coordinates of each instance, ``constants`` (k, n) the numbers of each instance (the
-    values of ``c``), ``place`` (n,) each instance's row (constraints), ``parts`` the particle
-    of each local coordinate (0, 1, … in order of appearance)."""
+    the coordinates of each instance, ``sources`` (k, n) where each instance's value of ``c``
+    comes from: an index into [p; ``constants``], ``place`` (n,) each instance's row
+    (constraints), ``parts`` the particle of each local coordinate (0, 1, … in order of
+    appearance)."""
 
     local: ca.SX
     xl: ca.SX
     c: ca.SX
     index: np.ndarray
+    sources: np.ndarray
     constants: np.ndarray
     place: np.ndarray
     parts: tuple
+
+    def data(self, P) -> ca.MX:
+        """C_g (k, n): the instances' values of ``c`` from p (an MX) and the constants."""
+        k, n = self.sources.shape
+        if k == 0:
+            return ca.MX(0, n)
+        values = ca.vertcat(P, ca.DM(self.constants)) if self.constants.size else P
+        return ca.reshape(values[self.sources.ravel(order="F").tolist()], k, n)
 
 
 def summands(term) -> list:
@@ -86,18 +97,24 @@ def summands(term) -> list:
     return out
 
 
-def lifted(function: ca.Function, c: ca.SX) -> tuple[ca.SX, list[float]] | None:
-    """The scalar output of the SX ``function`` with its k-th numeric constant replaced by
-    ``c[k]`` (the same operations otherwise), and the constants' values; None when ``c`` is
-    too short or an operation cannot be rebuilt (a call)."""
+def lifted(function: ca.Function, c: ca.SX, parameters: int | None = None) -> tuple[ca.SX, list] | None:
+    """The scalar output of the SX ``function`` with its k-th numeric constant, or k-th read
+    of an entry of its input number ``parameters`` (p), replaced by ``c[k]`` (the same
+    operations otherwise), and what each c[k] stands for: ``("c", value)`` or ``("p", j)``;
+    None when ``c`` is too short or an operation cannot be rebuilt (a call)."""
     inputs = [function.sx_in(i) for i in range(function.n_in())]
     work: dict[int, ca.SX] = {}
-    values: list[float] = []
+    values: list[tuple] = []
     out = None
     for k in range(function.n_instructions()):
         op, args = function.instruction_id(k), function.instruction_input(k)
         res = function.instruction_output(k)
-        if op == ca.OP_INPUT:
+        if op == ca.OP_INPUT and args[0] == parameters:
+            if len(values) == c.numel():
+                return None
+            work[res[0]] = c[len(values)]
+            values.append(("p", int(args[1])))
+        elif op == ca.OP_INPUT:
             work[res[0]] = inputs[args[0]][args[1]]
         elif op == ca.OP_OUTPUT:
             out = work[args[0]]
@@ -105,7 +122,7 @@ def lifted(function: ca.Function, c: ca.SX) -> tuple[ca.SX, list[float]] | None:
             if len(values) == c.numel():
                 return None
             work[res[0]] = c[len(values)]
-            values.append(function.instruction_constant(k))
+            values.append(("c", function.instruction_constant(k)))
         elif len(args) == 1 and op != ca.OP_CALL:
             work[res[0]] = ca.SX.unary(op, work[args[0]])
         elif len(args) == 2 and op != ca.OP_CALL:
@@ -141,7 +158,7 @@ def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[in
         except RuntimeError:  # it depends on more than x_l, t and p (velocities)
             rest.append(k)
             continue
-        lift = lifted(local, c)
+        lift = lifted(local, c, parameters=2)
         if lift is None:
             expr, numbers, cs = local.sx_out(0), [], ca.SX(0, 1)
         else:
@@ -157,9 +174,22 @@ def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[in
             rest += [k for k, _, _ in members]
             continue
         index = np.array([i for _, i, _ in members], dtype=np.int64).T  # (d, n)
-        constants = np.array([v for _, _, v in members], dtype=float).reshape(len(members), -1).T
-        groups.append(_Group(expr, xl, cs, index, constants, np.array([k for k, _, _ in members]), parts))
+        sources, constants = _sources([v for _, _, v in members], p.numel())
+        groups.append(_Group(expr, xl, cs, index, sources, constants,
+                             np.array([k for k, _, _ in members]), parts))
     return groups, sorted(rest)
+
+
+def _sources(members: list, n_p: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(sources, constants)`` of a group: for each lifted value (k) of each instance (n) its
+    index into [p (n_p entries); constants], and the constants (each distinct value once)."""
+    k = len(members[0])
+    sources = np.empty((k, len(members)), dtype=np.int64)
+    constants: dict[float, int] = {}
+    for j, values in enumerate(members):
+        for i, (kind, value) in enumerate(values):
+            sources[i, j] = value if kind == "p" else n_p + constants.setdefault(value, len(constants))
+    return sources, np.array(list(constants), dtype=float)
 
 
 def _row_scale(J_row, parts) -> ca.SX:
@@ -256,7 +286,7 @@ class MappedBuild:
         pieces = {k: [rest[i]] for i, k in enumerate(outputs)}
         for j, g in enumerate(self.rows):
             velocities = [_gather(V, g.index)] if with_v else []
-            gather = [_gather(X, g.index), *velocities, ca.DM(g.constants), T, P]
+            gather = [_gather(X, g.index), *velocities, g.data(P), T, P]
             out = self._kernel(g, outputs, with_v, f"{name}_{j}")(*gather)
             for k, o in zip(outputs, out if isinstance(out, list | tuple) else [out], strict=True):
                 pieces[k].append(ca.vec(o))
@@ -269,7 +299,7 @@ class MappedBuild:
             outs[1] = ca.MX(self.n_rows, 1)  # structurally zero, as the Structure's
         if dynamics:
             gradients = [ca.vec(self._potential_kernel(g, f"potential_{j}")(
-                _gather(X, g.index), ca.DM(g.constants), T, P)) for j, g in enumerate(self.terms)]
+                _gather(X, g.index), g.data(P), T, P)) for j, g in enumerate(self.terms)]
             F = rest[-1]
             if gradients:
                 F = F - ca.mtimes(self._scatter(), ca.vertcat(*gradients))
@@ -356,7 +386,7 @@ def acceleration_function(model: Model, rows=None) -> ca.Function:
     if key not in cache:
         n3 = model.n_coordinates
         X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        P = ca.MX.sym("p", len(model.parameter_values))
+        P = ca.MX.sym("p", len(model.parameter_vector))
         a, lam = acceleration_graph(MappedView(model, P), X, V, T, rows=rows, linsol="ldl")
         cache[key] = ca.Function("acceleration", [X, V, T, P], [a, lam])
     return cache[key]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from . import lifting
 from .errors import InputError
 from .symbols import Symbols
 
@@ -34,18 +35,25 @@ class Structure:
     constants, so Models for other parameter values share one Structure
     (``Model.with_parameters``) and nothing is parsed or differentiated again.
 
-    ``functions`` / ``function(name)``: the parametric Functions; ``parameter_names``: the
-    order of ``p``.
+    ``p`` is the named parameters (``parameter_names``, in order) followed by the system's
+    ``n_numbers`` nonzero plain numbers (masses, lengths, ``k``, ``g`` entries …: the hidden
+    parameters of constrained.lifting), so a system that differs only in such a number has
+    this Structure too (``lift=False`` keeps them as constants: a reference for tests).
+    ``functions`` / ``function(name)``: the parametric Functions.
     """
 
     #: Structures built in this process (each one parses and differentiates the system).
     builds = 0
 
-    def __init__(self, system):
-        s = Symbols(system, symbolic_parameters=True)
+    def __init__(self, system, *, lift: bool = True):
+        system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+        s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
         x, v, t, p = s.x, s.v, s.t, s.p
         n3 = 3 * system.n_particles
         self.parameter_names: tuple[str, ...] = tuple(system.parameters)
+        #: How many plain numbers of the system are hidden parameters (constrained.lifting):
+        #: p is the named parameters' values, then these.
+        self.n_numbers = len(numbers)
         self.n_particles = system.n_particles
         self.n_coordinates = n3
         self.particle_names = tuple(q.name for q in system.particles)
@@ -57,6 +65,8 @@ class Structure:
                 rows.append(expr)
                 labels.append(label)
                 owners.append(k)
+        #: The rows' labels, a plain number written as a token (``lifting.fill`` puts a
+        #: Model's values in).
         self.constraint_labels: list[str] = labels
         self.constraint_owner = np.array(owners, dtype=int)
         self.n_constraints = len(rows)
@@ -76,17 +86,23 @@ class Structure:
             gamma = ca.jtimes(c, x, v)
 
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
+        terms = []
         for effect in system.effects:
-            slots[effect.slot].append(effect.term(s))
+            terms.append(effect.term(s))
+            slots[effect.slot].append(terms[-1])
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
         self.active_terms = frozenset(active)
         #: The expressions the Functions are made of: the constraint rows (in order) and the
         #: effects' terms by slot (constrained.mapped cuts them into repeated kernels).
-        self.expressions = Expressions(x, v, t, p, rows, slots)
+        self.expressions = Expressions(x, v, t, p, rows, slots, terms)
 
-        if any(isinstance(m, ca.SX) for m in s.masses):  # a mass given by a formula of p
-            m3 = ca.vertcat(*[ca.SX(m) for m in s.masses for _ in range(3)])
+        #: Whether the masses are symbols of p (plain numbers and formulas are): step graphs
+        #: then take them from p, not from a Model's numbers.
+        self.masses_symbolic = any(isinstance(m, ca.SX) for m in s.masses)
+        if self.masses_symbolic:
+            m = s.mass_column()
+            m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1)  # each mass three times, in place
         else:
             m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
         T = 0.5 * ca.dot(m3 * v, v)
@@ -135,13 +151,25 @@ class Structure:
             self._fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names) if free else None
         return self._fixed[name]
 
+    def _uses(self, name: str) -> np.ndarray:
+        """Indices of the entries of p that the outputs of Function ``name`` depend on."""
+        uses = self.__dict__.setdefault("_used", {})
+        if name not in uses:
+            fun = self.function(name)
+            last = fun.n_in() - 1
+            used = {int(c) for i in range(fun.n_out()) if fun.nnz_out(i) and fun.nnz_in(last)
+                    for c in fun.jac_sparsity(i, last, True).get_col()}  # sparsity only: O(nnz)
+            uses[name] = np.array(sorted(used), dtype=np.int64)
+        return uses[name]
+
     def bind(self, name: str, values: np.ndarray) -> ca.Function:
         """The Function ``name`` without its last input ``p``: p fixed at ``values`` (an SX
         Function of the same inputs and outputs as the Model's public ones)."""
         fixed = self.fixed(name)
         if fixed is not None:
             return fixed
-        key = (name, np.asarray(values, float).tobytes())
+        # keyed by the entries of p the Function uses: Models differing elsewhere share it
+        key = (name, np.asarray(values, float)[self._uses(name)].tobytes())
         bound = self._bound.get(key)
         if bound is None:  # Models with equal values share the Function objects
             fun = self.function(name)
@@ -158,7 +186,8 @@ class Structure:
 @dataclass(frozen=True)
 class Expressions:
     """A Structure's symbols and the SX expressions it is built from: ``rows`` (f's rows, in
-    order) and ``slots`` (slot name -> the effects' terms, constrained.effects)."""
+    order), ``slots`` (slot name -> the effects' terms, constrained.effects) and ``terms``
+    (each effect's term, in the system's order)."""
 
     x: ca.SX
     v: ca.SX
@@ -166,6 +195,7 @@ class Expressions:
     p: ca.SX
     rows: list
     slots: dict
+    terms: list
 
 
 def forces(slots: dict, x, v, t) -> tuple:
@@ -211,7 +241,8 @@ class Model:
     Immutable once built: runs keep their counters and redundancy in their own ``Manifold``
     (constrained.manifold), which also holds the KKT solve.
 
-    Functions (all with flat 3N vectors; the parameters at ``parameter_values``):
+    Functions (all with flat 3N vectors; p at ``parameter_vector``: the parameters'
+    ``parameter_values``, then the plain ``numbers``):
       ``constraint(x, t) -> f``                (C,)
       ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C, 3N)
       ``velocity_terms(x, t) -> (J, f_t)``
@@ -226,7 +257,7 @@ class Model:
     anything again (the ``structure`` is shared).
     """
 
-    def __init__(self, system, *, structure: Structure | None = None):
+    def __init__(self, system, *, structure: Structure | None = None, numbers: np.ndarray | None = None):
         structure = structure if structure is not None else Structure(system)
         if tuple(system.parameters) != structure.parameter_names:
             raise InputError(
@@ -237,19 +268,37 @@ class Model:
         self.system = system
         self.parameter_names: tuple[str, ...] = structure.parameter_names
         self.parameter_values = np.array([system.parameters[k] for k in self.parameter_names], float)
+        numbers = lifting.numbers(system) if numbers is None else np.asarray(numbers, float)
+        if numbers.size != structure.n_numbers:
+            raise InputError(
+                f"the system has {numbers.size} plain numbers (masses, lengths, constants) where the "
+                f"structure has {structure.n_numbers}: it is not a system of this structure; "
+                "assemble the system itself")
+        #: The system's plain numbers, in the order of ``constrained.lifting``.
+        self.numbers = numbers
+        #: The values of the parametric Functions' last input p: the parameters, then the numbers.
+        self.parameter_vector = np.concatenate([self.parameter_values, numbers])
         self.n_particles = structure.n_particles
         self.n_coordinates = structure.n_coordinates
         self.masses = np.repeat(system.masses, 3)
         self.inverse_masses = 1.0 / self.masses
-        for array in (self.parameter_values, self.masses, self.inverse_masses):
+        for array in (self.parameter_values, self.numbers, self.parameter_vector, self.masses,
+                      self.inverse_masses):
             array.flags.writeable = False
-        self.constraint_labels: list[str] = structure.constraint_labels
         self.constraint_owner = structure.constraint_owner
         self.n_constraints = structure.n_constraints
         self.rheonomic = structure.rheonomic
         self.active_terms = structure.active_terms
         #: The system's data the numeric side needs, copied so the Model does not change.
         self.particle_names = structure.particle_names
+
+    @functools.cached_property
+    def constraint_labels(self) -> list[str]:
+        """One label per constraint row (its plain numbers the system's)."""
+        labels = self.structure.constraint_labels
+        if not self.structure.n_numbers:
+            return labels
+        return [lifting.fill(label, self.numbers) for label in labels]
 
     @property
     def parameters(self) -> dict[str, float]:
@@ -264,7 +313,8 @@ class Model:
         non-finite values and masses that come out non-positive raise InputError."""
         if not parameters:
             return self
-        return Model(self.system.with_parameters(parameters), structure=self.structure)
+        return Model(self.system.with_parameters(parameters), structure=self.structure,
+                     numbers=self.numbers)
 
     @functools.cached_property
     def symbols(self) -> Symbols:
@@ -273,18 +323,19 @@ class Model:
         return Symbols(self.system)
 
     def _bound(self, name: str) -> ca.Function:
-        return self.structure.bind(name, self.parameter_values)
+        return self.structure.bind(name, self.parameter_vector)
 
     def parametric(self, name: str) -> ca.Function:
         """The Function ``name`` with the parameter vector p as its last input (the
-        structure's: shared by every Model of this structure, whatever the values)."""
+        structure's: shared by every Model of this structure, whatever the values; this
+        Model's p is ``parameter_vector``)."""
         return self.structure.function(name)
 
-    @functools.cached_property
+    @property
     def masses_follow_parameters(self) -> bool:
-        """Whether a particle's mass is a formula of the parameters (then the masses, numbers
-        in the step graphs, belong to these values, not to the structure)."""
-        return any("mass" in p.formulas for p in self.system.particles)
+        """Whether the structure's masses are symbols of p (a plain number or a formula of the
+        parameters): step graphs built for the structure then take them from p."""
+        return self.structure.masses_symbolic
 
     constraint = functools.cached_property(lambda self: self._bound("constraint"))
     jacobian = functools.cached_property(lambda self: self._bound("jacobian"))
@@ -332,17 +383,19 @@ def assemble(system, parameters: Mapping[str, float] | None = None, *, reuse: bo
     system's parameter values updated by ``parameters``.
 
     ``reuse``: a System with the same structure as one assembled before in this process (the
-    same particles and masses, constraints, effects, parameter names and definitions; initial
-    state and parameter values may differ) gets that Structure again instead of a new one
-    (see ``structure_fingerprint``; the most recent few, up to STRUCTURE_CACHE_COORDINATES
-    coordinates in all, are kept)."""
-    structure = _cached_structure(system) if reuse else None
-    return Model(system, structure=structure).with_parameters(parameters)
+    same particles, constraints, effects, parameter names and definitions; initial state,
+    parameter values and nonzero plain numbers — masses, lengths, constants — may differ)
+    gets that Structure again instead of a new one
+    (see ``structure_fingerprint`` and ``kept_structure``)."""
+    structure, numbers = kept_structure(system) if reuse else (None, None)
+    return Model(system, structure=structure, numbers=numbers).with_parameters(parameters)
 
 
 #: The Structures ``assemble`` keeps for reuse hold this many coordinates at most, in all.
 STRUCTURE_CACHE_COORDINATES = 3000
 _structures: collections.OrderedDict[str, Structure] = collections.OrderedDict()
+#: [fingerprint, Structure] of the most recent system over STRUCTURE_CACHE_COORDINATES.
+_largest: list = [None, None]
 _structures_lock = threading.Lock()
 
 
@@ -354,6 +407,8 @@ def _plain(value):
     """``value`` as JSON-able data that determines it exactly (floats by their repr)."""
     if value is None or isinstance(value, bool | int | float | str):
         return value
+    if isinstance(value, lifting.Number):
+        return ["number", value.index]
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
@@ -368,37 +423,53 @@ def _plain(value):
 def structure_fingerprint(system) -> str | None:
     """A hash of everything a Structure is built from: particle names and masses (numbers, or
     their formulas), each constraint and effect (its class and every attribute), the parameter
-    names in order and the definitions. Not the initial state, not the parameters' values.
-    None when an item holds a value that cannot be described exactly (then nothing is reused)."""
+    names in order and the definitions. Not the initial state, not the parameters' values, not
+    the nonzero plain numbers of masses and items' numeric fields (constrained.lifting: only
+    where they stand). None when an item holds a value that cannot be described exactly (then
+    nothing is reused)."""
+    return _fingerprint(system)[0]
+
+
+def _fingerprint(system) -> tuple[str | None, np.ndarray]:
+    """``(structure_fingerprint(system), lifting.numbers(system))`` in one walk."""
+    values: list[float] = []
     try:
-        data = [
-            [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas else p.mass]
-             for p in system.particles],
-            [[type(item).__module__, type(item).__qualname__, _plain(vars(item))]
-             for item in (*system.constraints, *system.effects)],
-            list(system.parameters),
-            _plain(system.definitions),
-        ]
+        particles = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
+                      else _plain(lifting._entries(p.mass, values))] for p in system.particles]
+        items = []
+        for item in (*system.constraints, *system.effects):
+            names = lifting.fields(item)
+            lifted = {name: lifting._entries(getattr(item, name), values) for name in names}
+            rest = {k: v for k, v in vars(item).items() if k not in lifted}
+            items.append([type(item).__module__, type(item).__qualname__, _plain(lifted), _plain(rest)])
+        data = [particles, items, list(system.parameters), _plain(system.definitions)]
         text = json.dumps(data)
     except (_NotPlain, TypeError, ValueError):
-        return None
-    return hashlib.sha256(text.encode()).hexdigest()
+        return None, lifting.numbers(system)
+    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float)
 
 
-def _cached_structure(system) -> Structure:
-    if 3 * system.n_particles > STRUCTURE_CACHE_COORDINATES:  # never kept: skip the fingerprint
-        return Structure(system)
-    key = structure_fingerprint(system)
+def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
+    """The Structure for ``system`` (kept, or built and kept) and the system's plain numbers
+    (None: the Model walks them). Up to STRUCTURE_CACHE_COORDINATES coordinates in all are
+    kept, the most recent first; a larger system is kept alone, in a slot of its own, so that
+    reading a big scene and running it build its Structure once."""
+    big = 3 * system.n_particles > STRUCTURE_CACHE_COORDINATES
+    key, numbers = _fingerprint(system)
     if key is None:
-        return Structure(system)
+        return Structure(system), numbers
     with _structures_lock:
-        structure = _structures.get(key)
+        structure = _largest[1] if big and _largest[0] == key else _structures.get(key)
         if structure is not None:
-            _structures.move_to_end(key)
-            return structure
+            if not big:
+                _structures.move_to_end(key)
+            return structure, numbers
     structure = Structure(system)
     with _structures_lock:
+        if big:
+            _largest[:] = [key, structure]
+            return structure, numbers
         _structures[key] = structure
         while sum(s.n_coordinates for s in _structures.values()) > STRUCTURE_CACHE_COORDINATES:
             _structures.popitem(last=False)
-    return structure
+    return structure, numbers

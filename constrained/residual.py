@@ -40,7 +40,7 @@ def functions(model) -> dict[str, ca.Function]:
 def _build(model) -> dict:
     n3 = model.n_coordinates
     x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
-    p = ca.SX.sym("p", len(model.parameter_values))
+    p = ca.SX.sym("p", len(model.parameter_vector))
     view = ParametricView(model, p)
     f, J = view.jacobian(x, t)
     _, f_t = view.velocity_terms(x, t)
@@ -59,14 +59,14 @@ def _build(model) -> dict:
 
 def _parameters(model, n: int) -> np.ndarray:
     """The model's parameter values, one row per sample (for ``Model.evaluate``)."""
-    return np.tile(model.parameter_values, (n, 1))
+    return np.tile(model.parameter_vector, (n, 1))
 
 
 def row_scales(model, x, t: float = 0.0) -> np.ndarray:
     """s_i (see the module) at (x, t), shape (C,)."""
     if model.n_constraints == 0:
         return np.zeros(0)
-    return functions(model)["scales"](np.asarray(x, float).ravel(), t, model.parameter_values)[0]
+    return functions(model)["scales"](np.asarray(x, float).ravel(), t, model.parameter_vector)[0]
 
 
 def smallest_scale(model, x, t: float = 0.0) -> float:
@@ -79,7 +79,7 @@ def position_residual(model, x, t: float = 0.0) -> float:
     """max_i |f_i(x, t)| / s_i in metres at one state."""
     if model.n_constraints == 0:
         return 0.0
-    value = functions(model)["position"](np.asarray(x, float).ravel(), t, model.parameter_values)
+    value = functions(model)["position"](np.asarray(x, float).ravel(), t, model.parameter_vector)
     return float(np.asarray(value).ravel()[0])
 
 

@@ -39,6 +39,7 @@ from .expectations import (
     expect_requirements,
     force_names,
 )
+from .model import kept_structure
 from .parameters import RESERVED_NAMES
 from .regularity import undefined_items
 from .symbols import Symbols
@@ -311,13 +312,8 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
     values = _parameter_values(overrides, plain, file)
     if values is not None:  # only new parameter values for a scene read before
         return _with_parameter_values(plain, values, file)
-    try:
-        raw = tomllib.loads(data.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"not valid TOML: {exc}", file=file) from None
-    raw, set_paths = _apply_overrides(raw, overrides, file) if overrides else (raw, [])
+    raw = _parsed(data, digest, file)
+    raw, set_paths = _apply_overrides(raw, overrides, file) if overrides else (_data_copy(raw), [])
     key = (*digest, tuple(overrides))
     try:
         scene = build_scene(raw, path=path)
@@ -343,6 +339,28 @@ SCENES_KEPT = 32
 KEPT_PARTICLES = 2000
 _LOADED: collections.OrderedDict = collections.OrderedDict()
 _LOADED_LOCK = threading.Lock()
+
+
+def _parsed(data: bytes, digest: tuple, file: str) -> dict:
+    """The TOML of a scene file, parsed once per content (kept: callers copy it)."""
+    with _LOADED_LOCK:
+        raw = _PARSED.get(digest)
+    if raw is None:
+        try:
+            raw = tomllib.loads(data.decode("utf-8"))
+        except UnicodeDecodeError as exc:
+            raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(f"not valid TOML: {exc}", file=file) from None
+        with _LOADED_LOCK:
+            _PARSED[digest] = raw
+            while len(_PARSED) > SCENES_KEPT:
+                _PARSED.popitem(last=False)
+    return raw
+
+
+#: Parsed scene files by (path, SHA-256 of the content): ``--set`` overrides apply to a copy.
+_PARSED: collections.OrderedDict = collections.OrderedDict()
 
 
 def _sets_a_parameter(text) -> bool:
@@ -474,10 +492,15 @@ _TOKEN_RE = re.compile(r"([A-Za-z0-9_\-]+)|\[(\d+)\]")
 _NUMBER_RE = re.compile(r"[+-]?(?:0|[1-9][0-9]*)(?:(\.[0-9]+)?([eE][+-]?[0-9]+)?)")
 
 
+_NUMBERS_RE = re.compile(rf"\[\s*(?:{_NUMBER_RE.pattern}\s*,\s*)*{_NUMBER_RE.pattern}\s*,?\s*\]")
+
+
 def _parse_value(text: str):
     number = _NUMBER_RE.fullmatch(text)
     if number:  # the common case, read as TOML would without its parser
         return float(text) if number.group(1) or number.group(2) else int(text)
+    if _NUMBERS_RE.fullmatch(text):  # a list of such numbers (a position, a vector)
+        return [_parse_value(entry.strip()) for entry in text.strip()[1:-1].split(",") if entry.strip()]
     try:
         return tomllib.loads(f"value = {text}")["value"]
     except tomllib.TOMLDecodeError:
@@ -490,7 +513,7 @@ def _parse_value(text: str):
 
 def _apply_overrides(raw: Mapping, overrides: list[str], file: str | None):
     """Apply overrides; returns the new dict and [(canonical key path, override text)]."""
-    out = copy.deepcopy(dict(raw))
+    out = _data_copy(dict(raw))
     applied: list[tuple[str, str]] = []
     for text in overrides:
         tokens, value = parse_override(text, file=file)
@@ -803,11 +826,11 @@ class _Builder:
             system = System(particles, constraints, effects, parameters, name, definitions)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
-        built = self.check_formulas(system)
+        structure = self.structure(system)
         system.events = self.events_section(system)
         settings = self.simulate()
         if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
-            self.regular_start(system, settings["t_start"], built)
+            self.regular_start(system, settings["t_start"], structure)
         outputs = self.outputs()
         reduced = self.reduced({**parameters, **definitions})
         expect = self.raw.get("expect")
@@ -1128,6 +1151,19 @@ class _Builder:
             return cls(a.pop("charges"), **a, name=name, where=where)
         return cls(**a, name=name, where=where)  # custom, potential: expr
 
+    def structure(self, system: System) -> tuple:
+        """The system's Structure and plain numbers (``model.kept_structure``: built here, or
+        the one kept from an equal scene read before, and kept for the run), which parses and
+        differentiates every formula: a bad one is reported at load time, with its item's key
+        (``check_formulas`` finds the item when the Structure's error does not name one)."""
+        try:
+            return kept_structure(system)
+        except (InputError, RuntimeError, TypeError, ValueError, ZeroDivisionError) as exc:
+            self.check_formulas(system)
+            if isinstance(exc, InputError):
+                self.fail(exc.where or "effects", exc.reason)
+            self.fail("constraints", f"the equations cannot be built: {exc}")
+
     def check_formulas(self, system: System) -> tuple[Symbols, dict]:
         """Parse every formula now (cheap), so a bad one is reported at load time; returns the
         Symbols and the built rows and terms, {(section, index): value}, for ``regular_start``."""
@@ -1147,12 +1183,14 @@ class _Builder:
                     self.fail(key, f"cannot be built: {exc}")
         return s, built
 
-    def regular_start(self, system: System, t0: float, built: tuple[Symbols, dict] | None = None) -> None:
+    def regular_start(self, system: System, t0: float, structure: tuple | None = None) -> None:
         """Every constraint row, its gradient, and every effect's term and gradients must be
         finite at the initial state: a rod whose particle sits on its anchor, or a 1/r potential
         at r = 0, is refused here with the item's key instead of failing inside a solver
-        (constrained.regularity: one sparse evaluation for the whole system)."""
-        for section, i, obj in undefined_items(system, t0, built)[:1]:
+        (constrained.regularity: one sparse evaluation for the whole system, of a Function
+        built once per structure). ``structure``: ``(Structure, numbers)`` of the system."""
+        structure, numbers = structure if structure is not None else self.structure(system)
+        for section, i, obj in undefined_items(system, t0, structure=structure, numbers=numbers)[:1]:
             what = "constraint" if section == "constraints" else "effect"
             self.fail(_join(section, i), f"this {what} ({obj.label}) is undefined at the initial state "
                       f"(t = {t0:g} s): its value or its gradient is not finite there"

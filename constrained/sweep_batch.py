@@ -111,7 +111,7 @@ def run_batch(task: dict) -> dict:
                             max_initial_correction=options.max_initial_correction,
                             progress=task.get("progress"), threads=task.get("threads"), **kwargs)
         interrupted = "interrupted" in ens.status or interrupt.requested()
-        P = np.tile(np.asarray(model.parameter_values, float), (len(ids), 1))
+        P = np.tile(np.asarray(model.parameter_vector, float), (len(ids), 1))
         for name, values in table.items():
             P[:, model.parameter_names.index(name)] = values
         columns = _columns(ens, model, P, entry, task["summaries"], residual_functions(model),

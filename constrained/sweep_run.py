@@ -79,7 +79,8 @@ def summary_function(entry: dict, summary: Summary):
 
 def formula_function(entry: dict, formula, where: str):
     """``(x, v, t, p) -> value`` of a formula in t, x_P, vx_P, ... and the parameters (or a
-    number), cached with the entry's Model."""
+    number), cached with the entry's Model; p is the Model's ``parameter_vector`` (the plain
+    numbers after the parameters: unused here)."""
     import casadi as ca
 
     from .symbols import Symbols
@@ -87,7 +88,8 @@ def formula_function(entry: dict, formula, where: str):
     fun = entry["summaries"].get(formula)
     if fun is None:
         s = entry.get("symbols") or entry.setdefault(
-            "symbols", Symbols(entry["model"].system, symbolic_parameters=True))
+            "symbols", Symbols(entry["model"].system, symbolic_parameters=True,
+                               numbers=entry["model"].structure.n_numbers))
         expr = ca.SX(float(formula)) if isinstance(formula, int | float) else \
             ca.SX(expressions.parse(formula, s.state_names, where=where))
         fun = ca.Function("formula", [s.x, s.v, s.t, s.p], [expr])
@@ -207,7 +209,7 @@ def run_task(task: dict) -> dict:
             if traj.velocity_residual is not None:
                 row["max_velocity_residual"] = float(np.max(traj.velocity_residual))
             for summary in task["summaries"]:
-                values = _series(summary_function(entry, summary), traj, model.parameter_values)
+                values = _series(summary_function(entry, summary), traj, model.parameter_vector)
                 row[summary.name] = _reduce(values, summary.reduction)
             row.update(_expect_columns(scene, traj, model))
         row["steps"] = int(traj.stats.get("steps", 0) or 0)

@@ -14,6 +14,7 @@ import numpy as np
 
 from . import expressions, parameters
 from .errors import ExpressionError, InputError
+from .lifting import Number
 
 
 class Symbols:
@@ -25,9 +26,12 @@ class Symbols:
     stacked into ``p`` (in the order of ``system.parameters``), each definition an SX
     expression of them, and ``masses`` a list (a float, or an SX expression for a mass given
     by a formula): the Model builds its parametric Functions of ``p`` from these.
+
+    ``numbers``: how many plain numbers the (lifted, constrained.lifting) system holds as
+    ``Number`` entries; each is the symbol ``p[len(parameters) + index]``.
     """
 
-    def __init__(self, system, *, symbolic_parameters: bool = False):
+    def __init__(self, system, *, symbolic_parameters: bool = False, numbers: int = 0):
         self.system = system
         n = system.n_particles
         self.x = ca.SX.sym("x", 3 * n)
@@ -37,13 +41,17 @@ class Symbols:
         self.symbolic_parameters = symbolic_parameters
         if symbolic_parameters:
             self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
+            hidden = ca.SX.sym("number", numbers)
+            self._numbers = ca.vertsplit(hidden) if numbers else []
+            self.p = ca.vertcat(self.p, hidden)
             self.masses = [
                 expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
-                if "mass" in p.formulas else p.mass
+                if "mass" in p.formulas else self.number(p.mass)
                 for p in system.particles
             ]
         else:
             self.p = ca.SX(0, 1)
+            self._numbers = []
             self.parameters = system.parameter_values
             self.masses = system.masses
         # One split each instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs in
@@ -51,6 +59,18 @@ class Symbols:
         self._xp = ca.vertsplit(self.x, 3) if n else []
         self._vp = ca.vertsplit(self.v, 3) if n else []
         self._position_names = self._state_names = None
+
+    def mass_column(self, indices=None):
+        """The masses of the particles ``indices`` (all by default) as a column: a DM of
+        numbers, or an SX when some are symbols (one CasADi call, not one per particle)."""
+        masses = self.masses if indices is None else [self.masses[i] for i in indices]
+        if not any(isinstance(m, ca.SX) for m in masses):
+            return ca.DM(np.asarray(masses, float))
+        return ca.vertcat(*[m if isinstance(m, ca.SX) else ca.SX(m) for m in masses])
+
+    def number(self, value):
+        """``value``, or the symbol of the hidden parameter when it is a lifted Number."""
+        return self._numbers[value.index] if type(value) is Number else value
 
     @property
     def position_names(self) -> dict:
@@ -90,6 +110,8 @@ class Symbols:
 
     def parse(self, text, where: str, *, velocities: bool = False, extra: dict | None = None):
         """Parse a formula in particle coordinates (and velocities if allowed), t, parameters."""
+        if type(text) is Number:
+            return self.number(text)
         names = dict(self.state_names if velocities else self.position_names)
         if extra:
             names.update(extra)
@@ -108,6 +130,8 @@ class Symbols:
 
     def parse_field(self, text, where: str, at, *, velocity=None):
         """Parse a field formula in x, y, z, t (and parameters) evaluated at the point ``at``."""
+        if type(text) is Number:
+            return self.number(text)
         extra = {"x": at[0], "y": at[1], "z": at[2], "t": self.t, **self.parameters}
         if velocity is not None:
             extra.update({"vx": velocity[0], "vy": velocity[1], "vz": velocity[2]})
@@ -115,6 +139,8 @@ class Symbols:
 
     def time_function(self, text, where: str):
         """A formula of t (and parameters) only: moving anchors, plane offsets."""
+        if type(text) is Number:
+            return self.number(text)
         return expressions.parse(text, {"t": self.t, **self.parameters}, where=where)
 
     def point(self, entries: Sequence, where: str):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import compiled, mapped
+from constrained import compiled, lifting, mapped
 from constrained.held import held
 from constrained.manifold import acceleration_function, structure_cache
 from constrained.model import Structure, assemble
@@ -58,12 +58,14 @@ CASES = [dict(), dict(pairs=True), dict(parametric=True), dict(pairs=True, param
 
 @pytest.mark.parametrize("options", CASES, ids=lambda o: "-".join(o) or "plain")
 def test_mapped_functions_give_the_structures_numbers(options):
-    structure = Structure(chain(12, **options))
+    system = chain(12, **options)
+    structure = Structure(system)
     build = mapped.MappedBuild(structure)
     assert build.mapped_instances >= 11 + 12 + 12  # rods, plane rows, gravity terms
     rng = np.random.default_rng(3)
     x, v, t = rng.normal(size=36), rng.normal(size=36), 0.37
-    p = [1.1, 0.8, 7.0, 3.0] if options.get("parametric") else []
+    # the parameters, then the plain numbers (constrained.lifting)
+    p = [1.1, 0.8, 7.0, 3.0] * bool(options.get("parametric")) + lifting.numbers(system).tolist()
     for name, args in (("constraint", (x, t)), ("jacobian", (x, t)), ("velocity_terms", (x, t)),
                        ("dynamics", (x, v, t))):
         want = structure.function(name)(*args, p)
@@ -93,17 +95,20 @@ def test_each_kind_is_held_once_whatever_n():
 def test_numbers_are_lifted_into_data_so_differing_numbers_share_a_kernel():
     """Rods of different lengths and particles of different masses are one kind each; their
     numbers are columns of data beside the index columns."""
-    build = mapped.MappedBuild(Structure(chain(12, varied=True)))
+    system = chain(12, varied=True)
+    build = mapped.MappedBuild(Structure(system))
     rods, planes = build.rows
     assert rods.index.shape[1] == 11 and planes.index.shape[1] == 12
-    np.testing.assert_array_equal(np.sort(rods.constants.ravel()), 1.0 + 0.05 * np.arange(1, 12))
+    P = ca.MX.sym("p", len(lifting.numbers(system)))  # the lengths are entries of p
+    lengths = ca.Function("lengths", [P], [rods.data(P)])(lifting.numbers(system))
+    np.testing.assert_array_equal(np.sort(np.asarray(lengths).ravel()), 1.0 + 0.05 * np.arange(1, 12))
     (gravity,) = build.terms
     assert gravity.index.shape[1] == 12 and list(build.rest_place) == [0]
     x = ca.SX.sym("x", 2)
     f = ca.Function("f", [x], [2.5 * ca.sin(x[0]) - x[1] / 7.0])
     c = ca.SX.sym("c", 4)
     expr, values = mapped.lifted(f, c)
-    assert values == [2.5, 7.0]
+    assert values == [("c", 2.5), ("c", 7.0)]
     assert float(ca.Function("g", [x, c], [expr])([0.3, 2.0], [2.5, 7.0, 0, 0])) == float(f([0.3, 2.0]))
     assert mapped.lifted(f, c[:1]) is None  # more numbers than room: kept as they are
 
@@ -121,7 +126,7 @@ def test_mapped_accelerations_and_multipliers_equal_the_unmapped(options):
     system = chain(12, **options)
     model = assemble(system, reuse=False)
     x, v, _ = consistent_state(model, system.positions, system.velocities, 0.0, size=system.size())
-    p = model.parameter_values
+    p = model.parameter_vector
     plain = acceleration_function(model, parametric=True)(x, v, 0.0, p)
     with_map = mapped.acceleration_function(model)(x, v, 0.0, p)
     for a, b in zip(plain, with_map, strict=True):

@@ -16,7 +16,7 @@ import pytest
 
 import constrained as C
 from constrained.errors import InputError
-from constrained.model import Structure, assemble
+from constrained.model import Model, Structure, assemble
 from constrained.scene import SceneError, build_scene
 
 PARAMETRIC_SCENE = Path(__file__).resolve().parent.parent / "scenarios" / "double_pendulum_parametric.toml"
@@ -212,7 +212,9 @@ def test_with_parameters_equals_rebuilding_and_builds_nothing(text, values):
     assert changed.structure is model.structure
     rebuilt = assemble(literal_scene(text, **values).system)
     assert rebuilt.structure is not model.structure
-    assert all(rebuilt.structure.fixed(name) is not None for name in FUNCTIONS)  # numbers only, no p
+    constants = Model(rebuilt.system, structure=Structure(rebuilt.system, lift=False), numbers=np.zeros(0))
+    assert all(constants.structure.fixed(name) is not None for name in FUNCTIONS)  # numbers only, no p
+    assert_same_functions(rebuilt, constants)  # plain numbers as inputs = plain numbers as constants
     assert changed.parameters == rebuilt.parameters
     np.testing.assert_array_equal(changed.masses, rebuilt.masses)
     np.testing.assert_array_equal(changed.system.positions, rebuilt.system.positions)
@@ -220,7 +222,7 @@ def test_with_parameters_equals_rebuilding_and_builds_nothing(text, values):
     assert_same_functions(changed, rebuilt)
     # the parametric Functions (p last) are what the bound ones evaluate
     for x, v, t in random_states(model, 2):
-        F, J, gamma = model.structure.functions["dynamics"](x, v, t, changed.parameter_values)
+        F, J, gamma = model.structure.functions["dynamics"](x, v, t, changed.parameter_vector)
         F2, J2, gamma2 = changed.dynamics(x, v, t)
         np.testing.assert_allclose(np.asarray(F), np.asarray(F2), rtol=1e-14, atol=1e-14)
         np.testing.assert_allclose(np.asarray(gamma), np.asarray(gamma2), rtol=1e-14, atol=1e-14)
@@ -264,7 +266,7 @@ def test_assemble_reuses_the_structure_of_an_equal_system():
     assert_same_functions(again, reference)
     changed = [
         DOUBLE_PENDULUM.replace('length = "l2"', 'length = "l2 + 0"'),   # a formula
-        DOUBLE_PENDULUM.replace('mass = "m2"', "mass = 1.5"),            # a mass
+        DOUBLE_PENDULUM.replace('mass = "m2"', "mass = 1.5"),            # a formula -> a number
         DOUBLE_PENDULUM.replace('name = "p2"', 'name = "q2"').replace('b = "p2"', 'b = "q2"')
         .replace('particles = ["p1", "p2"]', 'particles = ["p1", "q2"]').replace("p2 = [", "q2 = ["),
         DOUBLE_PENDULUM.replace("[parameters]", "[parameters]\nunused = 1.0"),  # parameter names

@@ -101,7 +101,7 @@ class Dopri(Stepper):
 
     # --- the step as a CasADi graph -------------------------------------------------------
     def _state_size(self) -> int:
-        return 3 * self.model.n_coordinates + len(SCALARS) + len(self.model.parameter_values)
+        return 3 * self.model.n_coordinates + len(SCALARS) + len(self.model.parameter_vector)
 
     def _step_function(self) -> ca.Function:
         """One attempted step on the state [x, v, a, *SCALARS, *p]: the parameters are part of
@@ -235,7 +235,7 @@ class Dopri(Stepper):
             self._scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
         start = {"t": t0, "h": h, "t_target": t0, "rtol": self.rtol, "atol": self.atol,
                  "n_acc": self.stats["steps"], "n_rej": self.stats.get("rejected", 0)}
-        return np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS], self.model.parameter_values])
+        return np.concatenate([x0, v0, a0, [start.get(k, 0.0) for k in SCALARS], self.model.parameter_vector])
 
     def step(self, state, t_stop) -> Advance:
         """One call of the chained steps (CHUNKS) towards t_stop: its accepted columns."""

@@ -146,7 +146,7 @@ class _IdasBase(Stepper):
                 return Advance.empty((t_prev, y, z, inner + times), n3)
         span = seg[-1] - t_prev
         grid = tuple((np.asarray(seg) - t_prev) / span)
-        p = np.concatenate([[t_prev, span], self._weights, m.parameter_values])
+        p = np.concatenate([[t_prev, span], self._weights, m.parameter_vector])
         called = time.perf_counter()
         try:
             res = None
@@ -253,7 +253,7 @@ class _IdasBase(Stepper):
         key = (*prefix, self.name, "scaled dae", tuple(self.rows))
         if key not in cache:
             m = self.model
-            P = ca.SX.sym("p", len(m.parameter_values))
+            P = ca.SX.sym("p", len(m.parameter_vector))
             W = ca.SX.sym("w", len(self._weights))
             span = ca.SX.sym("span", 2)
             tau = ca.SX.sym("tau")

@@ -1,0 +1,129 @@
+"""Plain numbers as hidden parameters: what lets a new mass or length reuse the Structure.
+
+A scene's or a constructor's plain numbers (a particle's ``mass = 1.0``, a rod's
+``length = 0.8``, a spring's ``k``, gravity's ``g`` entries, …) are not constants of the
+CasADi expressions. Each nonzero number in a field an item declares numeric (its class's
+``numbers``: ``Distance.numbers == ("point", "length")``) becomes an entry of the parameter
+vector after the named parameters,
+
+    p = [named parameters (System.parameters, in order); plain numbers (in walk order)],
+
+so two systems that differ only in such numbers have the same Structure (the same
+fingerprint, the same Functions, the same compiled step loops) and differ in p alone.
+Zeros stay constants: they decide sparsity (a plane's normal [0, 0, 1], a pivot at the
+origin) and sometimes the formula (a spring of rest length 0 is smooth at zero length).
+Numbers written inside formula strings (``"0.5*k*x**2"``) are part of the formula, hence
+of the structure.
+
+The walk order is the same for every reader: particles' masses (numbers, not formulas) in
+order, then each constraint and each effect in order, its declared fields in the order
+declared, vector and mapping entries in order.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from collections.abc import Mapping
+
+import numpy as np
+
+
+class Number:
+    """A plain number of the scene in the Structure's build: the hidden parameter
+    ``p[offset + index]`` (``offset`` the number of named parameters). Formats as a token
+    that ``fill`` replaces by the value, so labels read as the scene wrote them."""
+
+    __slots__ = ("index",)
+
+    def __init__(self, index: int):
+        self.index = index
+
+    def __format__(self, spec: str) -> str:
+        return f"⟦{self.index}⟧"
+
+    __str__ = __repr__ = lambda self: format(self)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Number) and other.index == self.index
+
+    def __hash__(self) -> int:
+        return hash(("Number", self.index))
+
+
+def _is_number(value) -> bool:
+    return (not isinstance(value, bool) and isinstance(value, int | float | np.number)
+            and math.isfinite(value) and value != 0)
+
+
+def _entries(value, out: list | None):
+    """``value`` with each nonzero plain number replaced by a Number (appending its value
+    to ``out``), or, when ``out`` is None, only the values (list of floats, in order)."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, list | tuple):
+        return [_entries(v, out) for v in value]
+    if isinstance(value, Mapping):
+        return {k: _entries(v, out) for k, v in value.items()}
+    if _is_number(value):
+        out.append(float(value))
+        return Number(len(out) - 1)
+    return value
+
+
+def fields(item) -> tuple[str, ...]:
+    """The fields of a constraint or an effect whose plain numbers are hidden parameters."""
+    return getattr(type(item), "numbers", ())
+
+
+def lift(system) -> tuple[object, np.ndarray]:
+    """``(lifted, values)``: a shallow copy of ``system`` whose particles' numeric masses and
+    items' numeric fields hold Numbers instead of their nonzero numbers, and those numbers
+    in order. Only the Structure's build reads the lifted copy (its particles have no state)."""
+    values: list[float] = []
+    lifted = copy.copy(system)
+    particles = []
+    for p in system.particles:
+        q = copy.copy(p)
+        if "mass" not in p.formulas:
+            q.mass = _entries(p.mass, values)
+        particles.append(q)
+    lifted.particles = particles
+
+    def items(sequence):
+        out = []
+        for item in sequence:
+            names = fields(item)
+            if names:
+                item = copy.copy(item)
+                for name in names:
+                    setattr(item, name, _entries(getattr(item, name), values))
+            out.append(item)
+        return out
+
+    lifted.constraints, lifted.effects = items(system.constraints), items(system.effects)
+    return lifted, np.array(values, float)
+
+
+def numbers(system) -> np.ndarray:
+    """The values ``lift`` takes out of ``system``, in the same order, without copying."""
+    values: list[float] = []
+    for p in system.particles:
+        if "mass" not in p.formulas and _is_number(p.mass):
+            values.append(float(p.mass))
+    for item in (*system.constraints, *system.effects):
+        for name in fields(item):
+            _entries(getattr(item, name), values)
+    return np.array(values, float)
+
+
+_TOKEN = re.compile("⟦([0-9]+)⟧")
+
+
+def fill(text: str, values: np.ndarray) -> str:
+    """``text`` with each Number token replaced by its value (formatted ``:g``, as a label
+    formats a number)."""
+    if "⟦" not in text:
+        return text
+    return _TOKEN.sub(lambda m: f"{values[int(m.group(1))]:g}", text)

@@ -1,0 +1,146 @@
+"""Plain numbers are inputs too (constrained.lifting): a mass, length, spring constant, field
+strength … written as a number, in a scene or a constructor, is an entry of p, so systems that
+differ only in such numbers share one Structure (counted: ``Structure.builds``) and one
+compiled step loop (counted: compilations), and give what the numbers written in as constants
+give (``Structure(system, lift=False)``), to round-off."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import constrained as C
+from constrained import compiled, lifting
+from constrained.errors import InputError
+from constrained.model import Model, Structure, assemble
+
+SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
+BASE = dict(m=1.3, k=40.0, rest=0.3, c=0.2, q=0.7, length=0.9, offset=0.05, g=9.81, F=0.4,
+            anchor=0.5)
+
+
+def plain(**changes) -> C.System:
+    """Two particles held by a rod to a point and a plane, with gravity, a spring to a point,
+    damping, a charge in a field and an applied force: every number a plain number."""
+    v = {**BASE, **changes}
+    s = C.System(name="plain numbers")
+    s.add_particle("a", v["m"], [v["anchor"] + v["length"], 0.0, v["offset"]], [0.0, 0.3, 0.0])
+    s.add_particle("b", 1.0, [0.0, -1.0, v["offset"]])
+    s.add(C.Distance("a", point=[v["anchor"], 0.0, 0.0], length=v["length"]),
+          C.Plane(["a", "b"], [0, 0, 1], v["offset"]),
+          C.Gravity([0.0, -v["g"], 0.0]),
+          C.Spring("b", point=[0.0, v["anchor"], 0.0], k=v["k"], rest=v["rest"]),
+          C.Damping(v["c"]),
+          C.Electromagnetic({"a": v["q"]}, phi="-1.5*x", A=["0", "0.75*x", "0"]),
+          C.Force("b", [v["F"], 0.0, 0.0]))
+    return s
+
+
+def constants(system) -> Model:
+    """The reference: the numbers as constants inside the expressions (nothing lifted)."""
+    return Model(system, structure=Structure(system, lift=False), numbers=np.zeros(0))
+
+
+FUNCTIONS = {"constraint": "xt", "jacobian": "xt", "velocity_terms": "xt", "dynamics": "xvt",
+             "energy": "xvt", "potential": "xt", "kinetic": "v"}
+
+
+def assert_same(a: Model, b: Model) -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        args = {"x": rng.standard_normal(a.n_coordinates), "v": rng.standard_normal(a.n_coordinates),
+                "t": rng.uniform(0, 2)}
+        for name, takes in FUNCTIONS.items():
+            for oa, ob in zip(getattr(a, name).call([args[k] for k in takes]),
+                              getattr(b, name).call([args[k] for k in takes]), strict=True):
+                np.testing.assert_allclose(np.asarray(oa), np.asarray(ob), rtol=1e-13, atol=1e-13,
+                                           err_msg=name)
+    np.testing.assert_array_equal(a.masses, b.masses)
+
+
+@pytest.mark.parametrize("change", [dict(m=2.1), dict(k=7.5), dict(rest=0.45), dict(c=1.1), dict(q=-0.2),
+                                    dict(length=1.4), dict(offset=-0.3), dict(g=1.62), dict(F=-3.0),
+                                    dict(anchor=-0.25), dict(m=0.4, length=2.0, g=3.7, k=0.5)])
+def test_a_new_plain_number_shares_the_structure_and_equals_the_constants(change):
+    base = assemble(plain())
+    before = Structure.builds
+    other = assemble(plain(**change))
+    assert other.structure is base.structure and Structure.builds == before
+    assert not np.array_equal(other.numbers, base.numbers)
+    assert_same(other, constants(plain(**change)))
+    assert other.constraint_labels == constants(plain(**change)).constraint_labels  # the values
+
+
+def test_the_labels_read_the_numbers_as_written():
+    labels = assemble(plain(length=0.75, anchor=0.5)).constraint_labels
+    assert labels[0] == "distance a–(0.5, 0, 0) = 0.75 m"
+    assert lifting.fill("k=⟦1⟧ N/m", np.array([3.0, 40.5])) == "k=40.5 N/m"
+
+
+def test_zeros_stay_constants_so_sparsity_and_formulas_keep_their_shape():
+    structure, reference = Structure(plain()), Structure(plain(), lift=False)
+    for name in ("jacobian", "dynamics"):
+        a, b = structure.function(name), reference.function(name)
+        for i in range(a.n_out()):
+            assert a.sparsity_out(i) == b.sparsity_out(i), name
+    # a zero that becomes a number is another structure (a spring of rest length 0 is smooth at 0)
+    base = assemble(plain())
+    assert assemble(plain(rest=0.0)).structure is not base.structure
+    assert assemble(plain(anchor=0.0)).structure is not base.structure
+
+
+def test_the_plain_numbers_are_the_tail_of_p_in_walk_order():
+    model = assemble(plain())
+    v = BASE
+    # masses, rod (point x, length), plane (normal z, offset), gravity y, spring (point y, k, rest),
+    # damping, charge, force x
+    assert model.numbers.tolist() == [v["m"], 1.0, v["anchor"], v["length"], 1.0, v["offset"], -v["g"],
+                                      v["anchor"], v["k"], v["rest"], v["c"], v["q"], v["F"]]
+    np.testing.assert_array_equal(model.parameter_vector, model.numbers)  # no named parameters
+    assert model.parameters == {}
+
+
+def test_a_system_of_another_structure_is_refused():
+    base = assemble(plain())
+    other = plain()
+    other.add(C.Spring("a", "b", k=3.0))
+    with pytest.raises(InputError, match="not a system of this structure"):
+        Model(other, structure=base.structure)
+
+
+def test_a_scene_read_with_a_new_number_shares_the_structure_and_runs_as_the_constants():
+    path = SCENARIOS / "double_pendulum.toml"
+    first = assemble(C.load_scene(path).system)
+    before = Structure.builds
+    sets = ["particles.p1.mass=1.7", "constraints[1].length=1.0", "effects[0].g=[0, -3.7, 0]"]
+    scene = C.load_scene(path, sets)
+    model = assemble(scene.system)
+    assert model.structure is first.structure and Structure.builds == before
+    kw = dict(method="dopri", rtol=1e-10, atol=1e-12, t_eval=[0.0, 1.0], outputs=["multipliers"])
+    run = C.simulate(scene.system, 1.0, model=model, **kw)
+    reference = C.simulate(scene.system, 1.0, model=constants(scene.system), compiled=False, **kw)
+    np.testing.assert_allclose(run.x, reference.x, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(run.multipliers, reference.multipliers, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.skipif(compiled.compiler() is None, reason="no C compiler on this machine")
+def test_new_plain_numbers_do_not_compile_again(tmp_path, monkeypatch):
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    builds = []
+    original = compiled._build
+    monkeypatch.setattr(compiled, "_build", lambda *a, **k: builds.append(1) or original(*a, **k))
+    kw = dict(method="dopri", rtol=1e-9, atol=1e-11, t_eval=[0.0, 0.5], outputs=set(), compiled=True)
+    system = plain(k=11.0)  # a structure of its own (a number no other test uses)
+    system.add(C.Spring("a", "b", k=0.123))
+    C.simulate(system, 0.5, **kw)
+    assert len(builds) == 1
+    for change in (dict(m=0.6, k=30.0), dict(length=1.2, g=4.0, c=0.05)):
+        other = plain(**change)
+        other.add(C.Spring("a", "b", k=0.321))
+        run = C.simulate(other, 0.5, **kw)
+        assert run.stats["evaluation"] == "compiled"
+        reference = C.simulate(other, 0.5, **{**kw, "compiled": False}, model=constants(other))
+        np.testing.assert_allclose(run.x[-1], reference.x[-1], rtol=0, atol=1e-10)
+    assert len(builds) == 1, "a new plain number compiled the step loop again"
