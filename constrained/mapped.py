@@ -258,15 +258,23 @@ class MappedBuild:
         vl = ca.SX.sym("vl", xl.numel())
         terms = _row_terms(g.local, xl, vl, e.t, lambda i: g.parts[i])
         out = [ca.densify(terms[k].T if k == "J" else terms[k]) for k in outputs]
-        inputs = [xl, vl, g.c, e.t, e.p] if with_v else [xl, g.c, e.t, e.p]
+        inputs = [xl, vl, g.c, e.t, self._p(g)] if with_v else [xl, g.c, e.t, self._p(g)]
         kernel = ca.Function(f"{name}_kernel", inputs, out)
         shared = [len(inputs) - 2, len(inputs) - 1]  # t and p: the same for every instance
         return kernel.map(f"{name}_map", "serial", g.index.shape[1], shared, [])
 
+    def _p(self, g: _Group) -> ca.SX:
+        """The kernel's input p: the Structure's, or an empty one when every entry of p the
+        kernel reads was lifted into its data (the usual case: the map then passes no p)."""
+        return self.e.p if ca.depends_on(g.local, self.e.p) else ca.SX.sym("p", 0)
+
+    def _p_argument(self, g: _Group, P):
+        return P if ca.depends_on(g.local, self.e.p) else ca.MX(0, 1)
+
     def _potential_kernel(self, g: _Group, name: str) -> ca.Function:
         e = self.e
         gradient = ca.densify(ca.gradient(g.local, g.xl))
-        kernel = ca.Function(f"{name}_kernel", [g.xl, g.c, e.t, e.p], [gradient])
+        kernel = ca.Function(f"{name}_kernel", [g.xl, g.c, e.t, self._p(g)], [gradient])
         return kernel.map(f"{name}_map", "serial", g.index.shape[1], [2, 3], [])
 
     # --- the assembled MX Functions --------------------------------------------------------
@@ -286,7 +294,7 @@ class MappedBuild:
         pieces = {k: [rest[i]] for i, k in enumerate(outputs)}
         for j, g in enumerate(self.rows):
             velocities = [_gather(V, g.index)] if with_v else []
-            gather = [_gather(X, g.index), *velocities, g.data(P), T, P]
+            gather = [_gather(X, g.index), *velocities, g.data(P), T, self._p_argument(g, P)]
             out = self._kernel(g, outputs, with_v, f"{name}_{j}")(*gather)
             for k, o in zip(outputs, out if isinstance(out, list | tuple) else [out], strict=True):
                 pieces[k].append(ca.vec(o))
@@ -299,7 +307,7 @@ class MappedBuild:
             outs[1] = ca.MX(self.n_rows, 1)  # structurally zero, as the Structure's
         if dynamics:
             gradients = [ca.vec(self._potential_kernel(g, f"potential_{j}")(
-                _gather(X, g.index), g.data(P), T, P)) for j, g in enumerate(self.terms)]
+                _gather(X, g.index), g.data(P), T, self._p_argument(g, P))) for j, g in enumerate(self.terms)]
             F = rest[-1]
             if gradients:
                 F = F - ca.mtimes(self._scatter(), ca.vertcat(*gradients))
