@@ -38,8 +38,8 @@ def _import_verb_modules() -> None:
     global load_scene, QUANTITIES, Trajectory, atomic_write, check_regular_start
     global OutputSet, discard_uncommitted, user_path
     from .outputs import OutputSet, discard_uncommitted, user_path
+    from .overrides import _KEY_RE
     from .scene import (
-        _KEY_RE,
         SIMULATE_DEFAULTS,
         Scene,
         SceneError,

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
 
 class ConstrainedError(Exception):
     """Base class of every error this package raises on purpose."""
@@ -41,3 +46,27 @@ class SimulationError(ConstrainedError, RuntimeError):
 class RunInterrupted(SimulationError):
     """A run stopped by Ctrl-C: ``trajectory`` holds the states computed until then
     (``trajectory.info["status"] == "interrupted"``)."""
+
+
+class SceneError(InputError):
+    """A scene that cannot be used: ``file``, ``key`` (a key path) and ``reason``.
+
+    ``str(error)`` is one paragraph: ``scene file F, key K: reason``.
+    """
+
+    def __init__(self, reason: str, *, file: str | Path | None = None, key: str | None = None):
+        self.file = None if file is None else str(file)
+        self.key = key
+        reason = one_line(reason)
+        parts = []
+        if self.file is not None:
+            parts.append(f"scene file {self.file}")
+        if key:
+            parts.append(f"key {key}")
+        super().__init__(reason, where=", ".join(parts) or None)
+        self.reason = reason
+
+
+def one_line(text: str) -> str:
+    """``text`` with its runs of whitespace (newlines too) as single spaces."""
+    return " ".join(str(text).split())
