@@ -211,6 +211,11 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
     if scene.system.n_particles > KEPT_PARTICLES:  # not kept: the caller's own, no copy
         return scene
     with _LOADED_LOCK:
+        if overrides and key not in _SEEN:  # kept from its second reading: new numbers each
+            _SEEN[key] = None               # call (a loop over --set values) copy nothing
+            while len(_SEEN) > SCENES_KEPT:
+                _SEEN.popitem(last=False)
+            return scene
         _LOADED[key] = scene
         while len(_LOADED) > SCENES_KEPT:
             _LOADED.popitem(last=False)
@@ -225,6 +230,8 @@ SCENES_KEPT = 32
 KEPT_PARTICLES = 2000
 _LOADED: collections.OrderedDict = collections.OrderedDict()
 _LOADED_LOCK = threading.Lock()
+#: Keys (file content, overrides) read once: a scene read with overrides is kept when read again.
+_SEEN: collections.OrderedDict = collections.OrderedDict()
 
 
 def _parsed(data: bytes, digest: tuple, file: str) -> dict:

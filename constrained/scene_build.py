@@ -58,6 +58,10 @@ def _why_singular(obj, system: System, t0: float) -> str:
     return "; move the particles away from the singular point"
 
 
+#: [expect] formulas (with the particles' names) that parsed before and use no parameter.
+_PARSED_FORMULAS: dict = {}
+
+
 class SceneBuilder(Validator):
     """Validates a scene's sections in turn (``build``) with the checks of Validator."""
 
@@ -116,7 +120,7 @@ class SceneBuilder(Validator):
     def expect_section(self, table: dict, system: System) -> list[dict]:
         """Validate [expect]; returns one normalized check per entry (formulas parsed once here)."""
         self.keys(table, "expect", EXPECT_KEYS, what="[expect]")
-        s = Symbols(system)
+        symbols: list[Symbols] = []  # made when a formula is parsed
         out: list[dict] = []
 
         def formula(text, key: str):
@@ -124,10 +128,22 @@ class SceneBuilder(Validator):
                 return self.number(text, key)
             if not isinstance(text, str) or not text.strip():
                 self.fail(key, f"must be a number or a formula string, got {_describe(text)}")
+            # a formula of coordinates, velocities, forces and t alone parses the same for
+            # every scene with these particles: checked once (parameters' values could matter)
+            names = (text, tuple(system.names))
+            if names in _PARSED_FORMULAS:
+                return text
+            if not symbols:
+                symbols.append(Symbols(system))
+            s = symbols[0]
             try:
                 s.parse(text, key, velocities=True, extra=force_names(s))
             except InputError as exc:
                 self.fail(key, exc.reason)
+            if not expressions.free_names(text) & (set(system.parameters) | set(system.definitions)):
+                _PARSED_FORMULAS[names] = None
+                while len(_PARSED_FORMULAS) > 256:
+                    _PARSED_FORMULAS.pop(next(iter(_PARSED_FORMULAS)))
             return text
 
         def tolerance(value, key: str) -> float:
@@ -192,9 +208,10 @@ class SceneBuilder(Validator):
         from .events import CONSTRAINT_KINDS
         from .user_events import DIRECTIONS, FormulaEvent
 
-        s = Symbols(system)
+        entries = self.array_of_tables("events")
+        s = Symbols(system) if entries else None
         out, seen = [], {}
-        for i, item in enumerate(self.array_of_tables("events")):
+        for i, item in enumerate(entries):
             key = _join("events", i)
             self.keys(item, key, EVENT_KEYS[0] + EVENT_KEYS[1], EVENT_KEYS[0], what="an event")
             name = self.string(item["name"], f"{key}.name", "an event name")
