@@ -505,8 +505,10 @@ class ParametricView:
         for name in ("n_coordinates", "n_constraints", "n_particles", "masses", "inverse_masses",
                      "rheonomic", "constraint_labels", "parameter_vector"):
             setattr(self, name, getattr(model, name))
-        if model.masses_follow_parameters:  # masses as formulas of P in the graphs
-            self.masses = model.parametric("masses")(P)
+        if model.masses_follow_parameters:  # masses as entries or formulas of P in the graphs
+            entries = getattr(model.structure, "mass_entries", None)
+            self.masses = (ca.vec(P[entries.tolist()]) if entries is not None
+                           else model.parametric("masses")(P))
             self.inverse_masses = 1 / self.masses
 
     def _call(self, name: str, *args):

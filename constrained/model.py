@@ -100,9 +100,16 @@ class Structure:
         #: Whether the masses are symbols of p (plain numbers and formulas are): step graphs
         #: then take them from p, not from a Model's numbers.
         self.masses_symbolic = any(isinstance(m, ca.SX) for m in s.masses)
+        #: When every mass is an entry of p (a plain number, or a parameter's name): the entry
+        #: of each coordinate's mass (3N indices), so that step graphs gather them (index
+        #: data) instead of calling the "masses" Function (3N operations of generated code).
+        self.mass_entries = None
         if self.masses_symbolic:
             m = s.mass_column()
             m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1)  # each mass three times, in place
+            entries = _entries_of(s.masses, p)
+            if entries is not None:
+                self.mass_entries = np.repeat(entries, 3)
         else:
             m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
         T = 0.5 * ca.dot(m3 * v, v)
@@ -181,6 +188,18 @@ class Structure:
                 while len(self._bound) > BOUND_FUNCTIONS_KEPT:
                     self._bound.popitem(last=False)
         return bound
+
+
+def _entries_of(values: list, p: ca.SX) -> np.ndarray | None:
+    """For each of ``values`` that is a bare entry of the symbol vector ``p``, its index in p;
+    None when one is anything else (a formula, a number)."""
+    symbols = {e.element_hash(): k for k, e in enumerate(ca.vertsplit(p))} if p.numel() else {}
+    out = []
+    for e in values:
+        if not isinstance(e, ca.SX) or not e.is_symbolic() or e.element_hash() not in symbols:
+            return None
+        out.append(symbols[e.element_hash()])
+    return np.array(out, dtype=np.int64)
 
 
 @dataclass(frozen=True)

@@ -140,6 +140,54 @@ def test_dopri_stops_with_a_message_and_keeps_what_it_computed():
             raise KeyboardInterrupt
 
     with pytest.raises(C.SimulationError, match="interrupted") as info:
-        C.simulate(double_pendulum(), 2.0, method="dopri", t_eval=np.linspace(0, 2, 41), progress=stop,
-                   compiled=False)
+        C.simulate(double_pendulum(), 2.0, method="dopri", t_eval=np.linspace(0, 2, 11), progress=stop,
+                   compiled=False)  # (11 outputs: each ends a step, so the run takes several calls)
     assert 0.5 <= info.value.trajectory.t[-1] < 2.0  # the outputs reached before the interrupt
+
+
+@pytest.mark.parametrize("base, rtol", [("DOP853", 1e-6), ("DOP853", 1e-10), ("DOPRI5", 1e-8)])
+def test_a_fine_output_grid_comes_from_the_dense_output_within_the_tolerance(base, rtol, monkeypatch):
+    """More than LANDED_OUTPUTS output times (of a model of DENSE_FROM coordinates or more:
+    here every model) are interpolated (degree-6 Hermite) and projected instead of each ending
+    a step: no extra steps, the constraints held to round-off, and the samples about as
+    accurate as landed ones (both against a run at 1e-13)."""
+    from constrained.solvers import dopri
+    from constrained.solvers.dopri import LANDED_OUTPUTS
+
+    monkeypatch.setattr(dopri, "DENSE_FROM", 0)
+
+    grid = np.linspace(0.0, 2.0, 401)
+    assert len(grid) > LANDED_OUTPUTS
+    kw = dict(method="dopri", base=base, rtol=rtol, atol=rtol * 1e-2, compiled=False,
+              outputs=["constraint_residual"])
+    fine = C.simulate(double_pendulum(), 2.0, t_eval=grid, **kw)
+    coarse = C.simulate(double_pendulum(), 2.0, **kw)  # every accepted step, no outputs to land on
+    assert fine.stats["steps"] == coarse.stats["steps"]  # the grid cost no steps
+    np.testing.assert_array_equal(fine.t, grid)
+    np.testing.assert_allclose(fine.x[-1], coarse.x[-1], rtol=0, atol=1e-14)
+    assert np.max(fine.constraint_residual) <= 1e-12
+    reference = C.simulate(double_pendulum(), 2.0, method="dopri", rtol=1e-13, atol=1e-15, t_eval=grid[::50],
+                           compiled=False)  # 9 outputs: landed
+    interpolated = np.max(np.abs(fine.x[::50] - reference.x))
+    landed = np.max(np.abs(C.simulate(double_pendulum(), 2.0, t_eval=grid[::50], **kw).x - reference.x))
+    assert interpolated <= max(3 * landed, 10 * rtol)
+
+
+def test_a_large_model_takes_a_fine_grid_from_the_dense_output():
+    """From DENSE_FROM coordinates a fine grid costs no steps (a 100-link chain, 201 outputs)."""
+    from constrained.solvers.dopri import DENSE_FROM
+
+    n = DENSE_FROM // 3
+    s = C.System()
+    for i in range(n):
+        s.add_particle(f"p{i}", 1.0, [(i + 1) * np.sin(0.4), -(i + 1) * np.cos(0.4), 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=1.0), C.Plane([f"p{i}" for i in range(n)], [0, 0, 1]),
+          C.Gravity([0, -9.81, 0]), *[C.Distance(f"p{i - 1}", f"p{i}", length=1.0) for i in range(1, n)])
+    kw = dict(method="dopri", rtol=1e-6, atol=1e-8, compiled=False, outputs=["constraint_residual"])
+    fine = C.simulate(s, 0.2, t_eval=np.linspace(0, 0.2, 201), **kw)
+    steps = C.simulate(s, 0.2, **kw)
+    assert fine.stats["steps"] == steps.stats["steps"] < 100
+    np.testing.assert_allclose(fine.x[-1], steps.x[-1], rtol=0, atol=1e-13)
+    assert np.max(fine.constraint_residual) <= 1e-11
+    rods = np.linalg.norm(np.diff(fine.x, axis=1), axis=2)
+    np.testing.assert_allclose(rods, 1.0, rtol=0, atol=1e-11)

@@ -31,6 +31,7 @@ from .. import diagnostics, interrupt
 from ..errors import InputError
 from ..manifold import Manifold
 from ..model import Model
+from .dense import hermite
 
 
 class Status(enum.Enum):
@@ -244,6 +245,16 @@ class Solver:
     def step(self, state, t_stop: float) -> Advance:
         """Advance towards t_stop (never past it) by one or more accepted steps."""
         raise NotImplementedError
+
+    def start_acceleration(self, state) -> np.ndarray | None:
+        """The acceleration at the start of a run from ``init``'s state, when the state holds
+        it (the first interval's dense output is then quintic too), else None."""
+        return None
+
+    def between(self, t0: float, x0, v0, a0, t1: float, x1, v1, a1):
+        """The dense output on [t0, t1] from two accepted samples (``dense.hermite``) for a
+        method without an interpolant of its own: ``t -> (x, v)``."""
+        return hermite(t0, x0, v0, a0, t1, x1, v1, a1)
 
     def output(self, t: float, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """An output sample taken from the dense output: projecting methods project it."""

@@ -3,10 +3,32 @@
 from __future__ import annotations
 
 
-def hermite(t0: float, x0, v0, a0, t1: float, x1, v1, a1):
+def hermite(t0: float, x0, v0, a0, t1: float, x1, v1, a1, acceleration=None):
     """(x(t), v(t)) on [t0, t1] from the ends: quintic Hermite when a is known at both ends
-    (error O(h⁶)), else cubic Hermite in x (its derivative for v)."""
+    (error O(h⁶)), else cubic Hermite in x (its derivative for v).
+
+    ``acceleration(t, x, v)``: with it the quintic is corrected to degree 6 by one more
+    acceleration, at the midpoint: the quintic's error is x⁽⁶⁾ h⁶ s³(s − 1)³ / 720 (s the
+    fraction of the step), so adding c·s³(1 − s)³ — which leaves x, v, a at both ends as they
+    are — with c chosen so that the second derivative at s = ½ is the acceleration there,
+
+        c = −(8/3) h² (a(½) − a_H(½)),   a_H(½) = 1.5 (v1 − v0)/h − 0.25 (a0 + a1),
+
+    removes that error term (what is left is O(h⁷)). Computed the first time it is needed."""
     h = t1 - t0
+    correction = []  # [c], once asked for
+
+    def corrected(t: float):
+        x, v = at(t)
+        if acceleration is None or a0 is None or a1 is None or not h:
+            return x, v
+        if not correction:
+            xm, vm = at(t0 + 0.5 * h)
+            a_hermite = 1.5 * (v1 - v0) / h - 0.25 * (a0 + a1)
+            correction.append(-(8.0 / 3.0) * h * h * (acceleration(t0 + 0.5 * h, xm, vm) - a_hermite))
+        s = (t - t0) / h
+        c = correction[0]
+        return x + c * (s * (1 - s)) ** 3, v + c * 3 * (s * (1 - s)) ** 2 * (1 - 2 * s) / h
 
     def at(t: float):
         s = (t - t0) / h if h else 1.0
@@ -28,4 +50,4 @@ def hermite(t0: float, x0, v0, a0, t1: float, x1, v1, a1):
              + db[5] * h * h * a1) / h if h else v1
         return x, v
 
-    return at
+    return corrected

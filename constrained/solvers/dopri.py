@@ -33,11 +33,12 @@ import casadi as ca
 import numpy as np
 
 from .. import compiled as compiled_evaluation
-from .. import diagnostics, mapped
+from .. import diagnostics, mapped, residual
 from ..errors import InputError
 from ..fast_call import FastCall
 from ..manifold import ParametricView, acceleration_function, projection_graph, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
+from .dense import hermite
 from .driver import Stepper
 from .tableaus import TABLEAUS
 
@@ -60,6 +61,13 @@ SYMBOLIC_MAX_CONSTRAINTS = 8
 #: Newton converges quadratically, so this leaves |f| ≈ 1e-12 after it.
 PROJECTION_FAIL = 1e-6
 SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 10.0
+#: A run with at most this many output times ends a step at each; with more, and a model of
+#: DENSE_FROM coordinates or more, they come from the dense output (``Dopri.prepare``).
+LANDED_OUTPUTS = 16
+#: Below this many coordinates every output time ends a step: a step is cheap there, and a
+#: landed sample is exact where an interpolated one carries up to about twice the step's
+#: error (conservation checks at tight tolerances notice).
+DENSE_FROM = 300
 #: The scalars after [x, v, a] in the state a step works on, in order.
 SCALARS = ("t", "h", "rejected", "n_acc", "n_rej", "res", "t_target", "rtol", "atol")
 
@@ -208,6 +216,42 @@ class Dopri(Stepper):
         return evaluation, {k: FastCall(f) for k, f in chunks.items()}
 
     # --- the stepper -----------------------------------------------------------------------
+    def prepare(self, t0, t_end, t_eval) -> None:
+        """Output times end a step each (exact step ends), except more than LANDED_OUTPUTS of
+        them for a model of DENSE_FROM coordinates or more: those are taken from the dense
+        output between steps (``between``) and projected (``output``), so a fine grid costs
+        no steps where steps are expensive."""
+        self.lands = (t_eval is None or len(t_eval) <= LANDED_OUTPUTS
+                      or self.model.n_coordinates < DENSE_FROM)
+
+    def start_acceleration(self, state):
+        n = self.model.n_coordinates
+        return np.array(state[2 * n:3 * n])
+
+    def between(self, t0, x0, v0, a0, t1, x1, v1, a1):
+        """The quintic Hermite interpolant of the step's ends corrected by the acceleration at
+        its midpoint (``dense.hermite``: O(h⁷), one more acceleration per step with outputs)."""
+        def acceleration(t, x, v):
+            return self.manifold.accelerations(x, v, t)[0]
+
+        return hermite(t0, x0, v0, a0, t1, x1, v1, a1, acceleration)
+
+    def output(self, t, x, v):
+        """A dense-output sample, projected onto both manifolds as a step's end is."""
+        m = self.manifold
+        if not self.model.n_constraints:
+            return x, v
+        projected = m.project_positions(x, t, tol=1e-14 * (self._scale or 1.0) * self._row_scale(x, t))
+        if not np.isfinite(projected.residual):
+            return np.full_like(x, np.nan), np.full_like(v, np.nan)
+        m.counters.projections += 1
+        return projected.x, m.project_velocities(projected.x, v, t)
+
+    def _row_scale(self, x, t) -> float:
+        if getattr(self, "_smallest_scale", None) is None:
+            self._smallest_scale = residual.smallest_scale(self.model, x, t)
+        return self._smallest_scale
+
     def _initial_step(self, x0, v0, a0, t0, t_end) -> float:
         """Hairer's starting step (as SciPy's select_initial_step), from two evaluations."""
         if self.dt is not None:

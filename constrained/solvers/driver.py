@@ -23,7 +23,6 @@ import numpy as np
 
 from .. import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
-from .dense import hermite
 from .events import locate
 from .watches import SingularWatch, past_a_limit
 
@@ -118,7 +117,7 @@ class _Run:
             dense = None
             if self.events or (not stepper.lands and self.pending):
                 dense = (adv.interpolant if adv.interpolant is not None and k == 1 else
-                         hermite(*self.last, self.last_a, *sample, a))
+                         stepper.between(*self.last, self.last_a, *sample, a))
             hit = self.crossings(sample, dense) if self.events else None
             if not stepper.lands:
                 while self.pending and self.pending[0] <= (hit.t if hit else sample[0]):
@@ -181,6 +180,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
     stepper.prepare(t0, t_end, t_eval)
     run = _Run(stepper, x0, v0, t0, t_end, t_eval, events)
     state = stepper.init(x0, v0, t0, t_end)
+    run.last_a = stepper.start_acceleration(state)
     failure = None
     steps = 0
     try:
