@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from interrupting import env as _env
+from interrupting import interrupt_when
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenarios"
 
 
-def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 
 def _interrupt_after_start(args: list[str], cwd: Path, *, start_timeout=90.0):
@@ -91,28 +91,13 @@ def test_ctrl_c_stops_a_sequential_sweep_and_the_rerun_redoes_the_interrupted_ru
     out = tmp_path / "sweep"
     vary = ["simulate.t_end=[0.05, 1e4, 0.06]"]
     sets = [f"simulate.method={method}"]
-    args = [sys.executable, "-m", "constrained.cli", "sweep", str(KAPITZA), "--vary", vary[0],
-            "--set", sets[0], "--out", str(out), "--scheduler", "sequential", "--quiet"]
-    proc = subprocess.Popen(args, env=_env(), cwd=tmp_path, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+    args = ["sweep", str(KAPITZA), "--vary", vary[0], "--set", sets[0], "--out", str(out),
+            "--scheduler", "sequential", "--quiet"]
     chunks = out / "chunks"
-    try:
-        deadline = time.monotonic() + 90
-        while not list(chunks.glob("*.parquet")):  # the short first run is done: the long one runs
-            assert proc.poll() is None, proc.communicate()[1]
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        time.sleep(1.5)
-        assert proc.poll() is None
-        sent = time.monotonic()
-        proc.send_signal(signal.SIGINT)
-        err = proc.communicate(timeout=60)[1]
-        seconds = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 130, err
+    # busy once the short first run is done: the long one runs
+    code, seconds, err = interrupt_when(args, lambda: bool(list(chunks.glob("*.parquet"))), cwd=tmp_path,
+                                        settle=1.5)
+    assert code == 130, err
     assert seconds < 10.0 and "Traceback" not in err
     import pyarrow.parquet as pq
 

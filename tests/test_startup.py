@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import os
 import re
 import subprocess
 import sys
@@ -11,6 +10,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from interrupting import env as _env
 
 import constrained as C
 from constrained.cli import PLOT_KINDS, build_parser, main
@@ -20,9 +20,6 @@ SCENARIOS = ROOT / "scenarios"
 HEAVY = ("casadi", "matplotlib", "scipy")
 
 
-def _env():
-    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-    return {**os.environ, "PYTHONPATH": path}
 
 
 def _imported(code: str) -> set[str]:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from interrupting import env as _env
 
 import constrained as C
 from constrained import sweep as S
@@ -28,10 +29,6 @@ G, L = 9.81, 0.1
 distributed = pytest.importorskip("distributed")
 
 
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
 
 
 def _compare(rows_a, rows_b, tol=1e-12, skip=("run", "run_id", "status")):

@@ -6,15 +6,11 @@ chunks; in-process vs Dask chosen by the estimated work."""
 from __future__ import annotations
 
 import csv
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from interrupting import interrupt_when
 
 from constrained import sweep as S
 from constrained import sweep_execute
@@ -26,8 +22,6 @@ pq = pytest.importorskip("pyarrow.parquet")
 pa = pytest.importorskip("pyarrow")
 
 
-def _env():
-    return {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 
 @pytest.fixture(scope="module")
@@ -215,26 +209,10 @@ def test_ctrl_c_stops_a_batched_sweep_keeps_its_finished_chunks_and_exits_130(sc
     out = tmp_path / "stopped"
     vary = ["parameters.m1=lin(0.5, 2, 6)"]
     sets = ["simulate.t_end=400", "simulate.output_dt=100"]
-    args = [sys.executable, "-m", "constrained.cli", "sweep", str(scene), "--vary", vary[0], "--set", sets[0],
-            "--set", sets[1], "--chunk-size", "2", "--out", str(out), "--scheduler", "sequential", "--quiet"]
-    proc = subprocess.Popen(args, env=_env(), cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            text=True)
-    try:
-        deadline = time.monotonic() + 120
-        while not _chunk_files(out):
-            assert proc.poll() is None, proc.communicate()[1]
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        time.sleep(0.3)
-        sent = time.monotonic()
-        proc.send_signal(signal.SIGINT)
-        err = proc.communicate(timeout=60)[1]
-        seconds = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 130, err
+    args = ["sweep", str(scene), "--vary", vary[0], "--set", sets[0], "--set", sets[1], "--chunk-size", "2",
+            "--out", str(out), "--scheduler", "sequential", "--quiet"]
+    code, seconds, err = interrupt_when(args, lambda: bool(_chunk_files(out)), cwd=tmp_path, timeout=120)
+    assert code == 130, err
     assert seconds < 10.0 and "Traceback" not in err
     kept = [r for p in _chunk_files(out) for r in pq.read_table(p).to_pylist()]
     assert 2 <= len(kept) < 6 and all(r["status"] == "ok" for r in kept)
