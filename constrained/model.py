@@ -371,7 +371,7 @@ class Model:
         its FunctionBuffer: a (T, k) C-ordered array is the column-major (k, T) input as it
         is, so nothing is converted element by element (a DM of 10⁶ numbers costs ~0.15 s)."""
         n = columns[0].shape[0]
-        mapped = function.map(n)
+        mapped = _mapped(function, n)
         args = [np.ascontiguousarray(np.asarray(c, float).reshape(n, -1)) for c in columns]
         dense = all(function.size2_in(i) == 1 and mapped.sparsity_in(i).is_dense()  # column inputs
                     and mapped.nnz_in(i) == a.size for i, a in enumerate(args)) and all(
@@ -395,6 +395,27 @@ class Model:
             f"Model({self.n_particles} particles, {self.n_constraints} constraint rows, "
             f"active: {', '.join(sorted(self.active_terms)) or 'none'})"
         )
+
+
+#: Functions mapped over n samples (``Model.evaluate``), the most recent few: blocks of one
+#: size along a trajectory map once (a map of a large model's Function takes tens of ms).
+_MAPPED: collections.OrderedDict = collections.OrderedDict()
+MAPPED_KEPT = 8
+
+
+def _mapped(function: ca.Function, n: int) -> ca.Function:
+    key = (id(function), n)
+    with _structures_lock:
+        entry = _MAPPED.get(key)
+        if entry is not None and entry[0] is function:
+            _MAPPED.move_to_end(key)
+            return entry[1]
+    mapped = function.map(n)
+    with _structures_lock:
+        _MAPPED[key] = (function, mapped)
+        while len(_MAPPED) > MAPPED_KEPT:
+            _MAPPED.popitem(last=False)
+    return mapped
 
 
 def assemble(system, parameters: Mapping[str, float] | None = None, *, reuse: bool = True) -> Model:
