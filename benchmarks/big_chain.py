@@ -76,7 +76,7 @@ def run_once(scene: Path, out: Path, *, quiet: bool) -> dict:
                 samples=int(samples.group(1)) if samples else None)
 
 
-#: The stages of ``constrained run`` in one process: what the CLI does (constrained/cli.py
+#: The stages of ``constrained run`` in one process: what the CLI does (constrained/cli_run.py
 #: _run), with the library's stage functions wrapped to time them. Prints JSON.
 BREAKDOWN = r"""
 import json, resource, sys, time
@@ -86,10 +86,9 @@ def peak(): return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 def mark(name, t0): stages.append((name, time.perf_counter() - t0, peak()))
 import numpy as np
 from pathlib import Path
-import constrained.cli as cli
+import constrained.cli_run as cli  # what `constrained run` imports before it reads the scene
 import constrained.solvers
 import constrained.simulate
-cli._import_verb_modules()  # what `constrained run` imports before it reads the scene
 from constrained.scene import load_scene
 simulate_module = sys.modules["constrained.simulate"]
 def wrap(module, name, label):
