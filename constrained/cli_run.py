@@ -12,23 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_text import (
-    PROG,
-    _end_time,
-    _fmt_correction,
-    _fmt_value,
-    _say,
-    _say_error,
-    _scene_error,
-)
+from .cli_text import PROG, _end_time, _fmt_correction, _fmt_value, _say, _say_error, _scene_error
 from .errors import InputError, RunInterrupted, SimulationError
 from .outputs import OutputSet
-from .scene import (
-    Scene,
-    check_expectations,
-    check_regular_start,
-    load_scene,
-)
+from .scene import Scene, check_expectations, check_regular_start, load_scene
 from .trajectory import QUANTITIES, Trajectory, atomic_write
 
 

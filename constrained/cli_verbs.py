@@ -9,22 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_text import (
-    PROG,
-    _end_time,
-    _needs_reduced,
-    _say,
-    _say_error,
-    _scene_error,
-    _vec,
-)
+from .cli_text import PROG, _end_time, _needs_reduced, _say, _say_error, _scene_error, _vec
 from .errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
 from .outputs import OutputSet
-from .scene import (
-    Scene,
-    check_regular_start,
-    load_scene,
-)
+from .scene import Scene, check_regular_start, load_scene
 from .trajectory import Trajectory
 
 # --- crosscheck ------------------------------------------------------------------------------
