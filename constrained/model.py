@@ -119,6 +119,7 @@ class Structure:
         self._parts: dict[str, tuple] = {}
         self._functions: dict[str, ca.Function] = {}
         self._fixed: dict[str, ca.Function | None] = {}
+        self._used: dict[str, np.ndarray] = {}
         self._bound: collections.OrderedDict[tuple, ca.Function] = collections.OrderedDict()
         self._lock = threading.Lock()
 
@@ -160,7 +161,7 @@ class Structure:
 
     def _uses(self, name: str) -> np.ndarray:
         """Indices of the entries of p that the outputs of Function ``name`` depend on."""
-        uses = self.__dict__.setdefault("_used", {})
+        uses = self._used
         if name not in uses:
             fun = self.function(name)
             last = fun.n_in() - 1

@@ -104,6 +104,7 @@ class Dopri(Stepper):
         self._chunks = self._functions()  # the one-time cost, outside the run's wall time
         self._longest = max(self._chunks)
         self._scale = None
+        self._smallest_scale = None
         n = model.n_coordinates
         self._slots = tuple(_slot(n, k) for k in ("t", "h", "n_acc", "n_rej", "res", "t_target"))
 
@@ -241,16 +242,14 @@ class Dopri(Stepper):
         m = self.manifold
         if not self.model.n_constraints:
             return x, v
-        projected = m.project_positions(x, t, tol=1e-14 * (self._scale or 1.0) * self._row_scale(x, t))
-        if not np.isfinite(projected.residual):
+        if self._smallest_scale is None:  # the rows' scale (metres), from the first output
+            self._smallest_scale = residual.smallest_scale(self.model, x, t)
+        scale = self._scale or 1.0
+        projected = m.project_positions(x, t, tol=1e-14 * scale * self._smallest_scale)
+        if not projected.residual <= PROJECTION_FAIL * scale * self._smallest_scale:  # NaN too
             return np.full_like(x, np.nan), np.full_like(v, np.nan)
         m.counters.projections += 1
         return projected.x, m.project_velocities(projected.x, v, t)
-
-    def _row_scale(self, x, t) -> float:
-        if getattr(self, "_smallest_scale", None) is None:
-            self._smallest_scale = residual.smallest_scale(self.model, x, t)
-        return self._smallest_scale
 
     def _initial_step(self, x0, v0, a0, t0, t_end) -> float:
         """Hairer's starting step (as SciPy's select_initial_step), from two evaluations."""
