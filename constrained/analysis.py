@@ -6,7 +6,6 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 
 from .manifold import RANK, SPARSE_FROM, full_row_rank
 from .model import Model, assemble
@@ -73,6 +72,8 @@ def jacobian_rank(J: np.ndarray) -> tuple[int, np.ndarray]:
         return 0, np.zeros(0, dtype=int)
     norms = np.linalg.norm(J, axis=1)
     Jn = J / np.where(norms > 0, norms, 1.0)[:, None]
+    import scipy.linalg as sla  # (on first use: 0.1 s of imports)
+
     _, R, order = sla.qr(Jn.T, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
     if diag.size == 0 or diag[0] == 0:

@@ -38,7 +38,6 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
 
 from .fast_call import FastCall
 from .model import Model
@@ -129,6 +128,8 @@ def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
     if full_rank:
         A = s[:, None] * schur_matrix(J, inverse_masses) * s[None, :]
         try:
+            import scipy.linalg as sla  # (imported on first use: 0.1 s)
+
             L, lower = sla.cho_factor(A, lower=True, check_finite=False)
             d = np.abs(np.diag(L))
             if d.size and d.min() > policy.cholesky_rtol * d.max():
@@ -158,6 +159,8 @@ def independent_rows(J: np.ndarray, inverse_masses: np.ndarray, policy: RankPoli
             return rows
     J = as_dense(J)
     Jhat = _row_scale(J, inverse_masses)[:, None] * J * np.sqrt(inverse_masses)[None, :]
+    import scipy.linalg as sla
+
     _, R, order = sla.qr(Jhat.T, mode="economic", pivoting=True)
     diag = np.abs(np.diag(R))
     if diag.size == 0 or diag[0] == 0:
@@ -205,6 +208,8 @@ def tangent_basis(J: np.ndarray, n: int | None = None, policy: RankPolicy = RANK
     Jn = J[norms > 0] / norms[norms > 0, None]
     if Jn.shape[0] == 0:
         return np.eye(n)
+    import scipy.linalg as sla
+
     return sla.null_space(Jn, rcond=policy.dependent_rtol)
 
 

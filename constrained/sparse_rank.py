@@ -26,10 +26,24 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .rank_policy import RANK, RankPolicy
+
+
+class _Lazy:
+    """A module imported on first use: ``sp`` below is scipy.sparse, which (with the scipy
+    core it brings) costs 0.07 s of imports that a small model's run never needs."""
+
+    def __init__(self, name: str):
+        self._name = name
+
+    def __getattr__(self, attribute: str):
+        import importlib
+
+        return getattr(importlib.import_module(self._name), attribute)
+
+
+sp = _Lazy("scipy.sparse")
 
 #: Rows whose Gram pivot √d_k is above this are independent without a further test: the
 #: pivot's round-off is about √ε·κ, so a dependent row stays far below it unless κ > 1e5.
@@ -66,7 +80,7 @@ def _factor(G: sp.spmatrix):
     """SuperLU of the SPD G in a fill-reducing symmetric order without pivoting (a Cholesky
     factorization); None when a pivot is exactly 0."""
     try:
-        return spla.splu(G.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+        return _splu()(G.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                          options={"SymmetricMode": True})
     except RuntimeError:
         return None
@@ -139,3 +153,10 @@ def independent_rows_sparse(J, weights: np.ndarray | None = None,
     factorization fails (then use the dense pivoted QR)."""
     split = split_rows(scaled_rows(J, weights), policy)
     return None if split is None else split[0]
+
+
+def _splu():
+    """SciPy's sparse LU (scipy.sparse.linalg, which imports scipy.linalg: 0.1 s, on first use)."""
+    from scipy.sparse.linalg import splu
+
+    return splu

@@ -10,7 +10,6 @@ step's dense output and projected the same way, so every sample lies on both man
 from __future__ import annotations
 
 import numpy as np
-from scipy.integrate import DOP853, RK45, Radau
 
 from .. import compiled as compiled_evaluation
 from .. import interrupt, residual
@@ -22,7 +21,8 @@ from .driver import Stepper
 
 #: "CVODES" is Adams with functional iteration (non-stiff, cheapest per step); "CVODES_BDF"
 #: is BDF with Newton iteration, for stiff scenes (springs with k/m = 1e8 beside constraints).
-BASES = {"DOP853": DOP853, "RK45": RK45, "Radau": Radau, "CVODES": None, "CVODES_BDF": None}
+#: The bases: SciPy's integrators by class name (imported when a run uses one), or CVODES.
+BASES = {"DOP853": "DOP853", "RK45": "RK45", "Radau": "Radau", "CVODES": None, "CVODES_BDF": None}
 #: Explicit bases, whose accepted steps are watched for stiffness (StiffnessWarning).
 EXPLICIT = ("DOP853", "RK45")
 #: A projection that leaves |f| above this (× system size) means Newton failed: the run stops.
@@ -131,8 +131,11 @@ class Projection(Stepper):
         self._tiny = 0
         self._span = t_end - t0
         first_step = first_step or self.dt
-        return BASES[self.base](self._rhs, t0, y0, t_end, rtol=self.rtol, atol=self.atol,
-                                first_step=min(first_step, t_end - t0) if first_step else None)
+        import scipy.integrate  # (0.1 s of imports, for this method only)
+
+        integrator = getattr(scipy.integrate, BASES[self.base])
+        return integrator(self._rhs, t0, y0, t_end, rtol=self.rtol, atol=self.atol,
+                          first_step=min(first_step, t_end - t0) if first_step else None)
 
     def _stopped(self, integ, status, text, t_good, y_good) -> Advance:
         """The failed call's Advance: ``text`` and the likely cause from the last good state."""

@@ -10,7 +10,6 @@ to x and v, so it is a Trajectory like any other method's.
 from __future__ import annotations
 
 import numpy as np
-from scipy.integrate import DOP853
 
 from ..errors import InputError
 from .base import DRIVER_OPTIONS, Advance, Status
@@ -64,6 +63,8 @@ class Reduced(Stepper):
         def fun(t, y):
             self.stats["nfev"] += 1
             return np.asarray(ode(y, t)).ravel()
+
+        from scipy.integrate import DOP853  # (0.1 s of imports, for this method only)
 
         return DOP853(fun, t0, np.concatenate([q0, qd0]), t_end, rtol=self.rtol, atol=self.atol,
                       first_step=first_step)
