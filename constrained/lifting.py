@@ -77,6 +77,18 @@ def fields(item) -> tuple[str, ...]:
     return getattr(type(item), "numbers", ())
 
 
+def lifted_mass(particle, values: list):
+    """The particle's mass as the Structure reads it: a Number (its value appended to
+    ``values``), or as it is when a formula gives it. The one walk rule for masses."""
+    return particle.mass if "mass" in particle.formulas else _entries(particle.mass, values)
+
+
+def lifted_fields(item, values: list) -> dict:
+    """``{field: value}`` of the item's numeric fields, in declared order, their nonzero plain
+    numbers as Numbers (appended to ``values``). The one walk rule for items."""
+    return {name: _entries(getattr(item, name), values) for name in fields(item)}
+
+
 def lift(system) -> tuple[object, np.ndarray]:
     """``(lifted, values)``: a shallow copy of ``system`` whose particles' numeric masses and
     items' numeric fields hold Numbers instead of their nonzero numbers, and those numbers
@@ -86,19 +98,18 @@ def lift(system) -> tuple[object, np.ndarray]:
     particles = []
     for p in system.particles:
         q = copy.copy(p)
-        if "mass" not in p.formulas:
-            q.mass = _entries(p.mass, values)
+        q.mass = lifted_mass(p, values)
         particles.append(q)
     lifted.particles = particles
 
     def items(sequence):
         out = []
         for item in sequence:
-            names = fields(item)
-            if names:
+            changed = lifted_fields(item, values)
+            if changed:
                 item = copy.copy(item)
-                for name in names:
-                    setattr(item, name, _entries(getattr(item, name), values))
+                for name, value in changed.items():
+                    setattr(item, name, value)
             out.append(item)
         return out
 
@@ -110,11 +121,9 @@ def numbers(system) -> np.ndarray:
     """The values ``lift`` takes out of ``system``, in the same order, without copying."""
     values: list[float] = []
     for p in system.particles:
-        if "mass" not in p.formulas and _is_number(p.mass):
-            values.append(float(p.mass))
+        lifted_mass(p, values)
     for item in (*system.constraints, *system.effects):
-        for name in fields(item):
-            _entries(getattr(item, name), values)
+        lifted_fields(item, values)
     return np.array(values, float)
 
 

@@ -476,11 +476,10 @@ def _fingerprint(system) -> tuple[str | None, np.ndarray]:
     values: list[float] = []
     try:
         particles = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
-                      else _plain(lifting._entries(p.mass, values))] for p in system.particles]
+                      else _plain(lifting.lifted_mass(p, values))] for p in system.particles]
         items = []
         for item in (*system.constraints, *system.effects):
-            names = lifting.fields(item)
-            lifted = {name: lifting._entries(getattr(item, name), values) for name in names}
+            lifted = lifting.lifted_fields(item, values)
             rest = {k: v for k, v in vars(item).items() if k not in lifted}
             items.append([type(item).__module__, type(item).__qualname__, _plain(lifted), _plain(rest)])
         data = [particles, items, list(system.parameters), _plain(system.definitions)]
