@@ -86,11 +86,11 @@ def peak(): return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 def mark(name, t0): stages.append((name, time.perf_counter() - t0, peak()))
 import numpy as np
 from pathlib import Path
-import constrained.cli_run as cli  # what `constrained run` imports before it reads the scene
+import constrained.cli.run as cli  # what `constrained run` imports before it reads the scene
 import constrained.solvers
-import constrained.simulate
-from constrained.scene import load_scene
-simulate_module = sys.modules["constrained.simulate"]
+import constrained.run.simulate
+from constrained.scene.load import load_scene
+simulate_module = sys.modules["constrained.run.simulate"]
 def wrap(module, name, label):
     original = getattr(module, name)
     def timed(*a, **k):

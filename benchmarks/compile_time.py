@@ -43,7 +43,8 @@ os.environ["CONSTRAINED_CACHE"] = {cache!r}
 import casadi as ca
 import numpy as np
 import constrained as C
-from constrained import compiled, mapped
+from constrained.codegen import compiled
+from constrained.manifold import mapped
 from peers import chain
 
 n, kind, builds, repeats = {n}, {kind!r}, {builds!r}, {repeats}

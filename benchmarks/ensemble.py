@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import constrained as C  # noqa: E402
-from constrained import compiled as compiled_evaluation  # noqa: E402
+from constrained.codegen import compiled as compiled_evaluation  # noqa: E402
 
 SCENE = ROOT / "scenarios" / "double_pendulum_parametric.toml"
 T_END, TARGET, G = 2.0, 1e-6, 9.81

@@ -57,7 +57,7 @@ from scipy.integrate import solve_ivp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import constrained as C  # noqa: E402
 from constrained.errors import InputError  # noqa: E402
-from constrained.manifold import Manifold  # noqa: E402
+from constrained.manifold.manifold import Manifold  # noqa: E402
 
 N = 20
 ALPHA = 0.5
@@ -175,7 +175,7 @@ def run_numpy(rtol: float, atol: float, t_end: float = T_END, alpha: float = ALP
 
 def run_constrained(system: C.System, model, method: str, options: dict, rtol: float, atol: float,
                     t_end: float = T_END) -> dict:
-    """One ``constrained.simulate`` run with output at 0 and t_end only; λ at the end after timing."""
+    """One ``constrained.run.simulate`` run with output at 0 and t_end only; λ at the end after timing."""
     start = time.perf_counter()
     tr = C.simulate(system, t_end, method=method, rtol=rtol, atol=atol, t_eval=[0.0, t_end],
                     outputs=set(), model=model, **options)

@@ -10,7 +10,7 @@ SciPy on the angles). Each runner's tolerance is the loosest of 1e-8 … 1e-12 t
 - ``constrained <method>``: ``load_scene(path)`` + ``simulate(system, 2.0, method=...,
   t_eval=[0, 2], outputs=set())`` per call — the scene is read and the model assembled every
   call (assembly reuses the structure of an equal scene: nothing is differentiated or
-  compiled again, see ``constrained.model.assemble``).
+  compiled again, see ``constrained.model.structure.assemble``).
 - ``Exudyn tree + DOPRI5``: the kinematic tree built (``SystemContainer``, ``Assemble``) and
   solved per call (benchmarks/peers.py).
 - "new values": the same with a new m1 and l2 every call — constrained reads

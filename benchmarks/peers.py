@@ -168,7 +168,7 @@ def double_problem(t_end: float = 2.0) -> Problem:
     integrates the same initial condition.
     """
     C = _constrained()
-    from constrained.simulate import consistent_state
+    from constrained.run.simulate import consistent_state
 
     system = C.load_scene(DOUBLE_SCENE).system
     model = C.assemble(system)
@@ -922,7 +922,7 @@ def markdown(section: dict) -> str:
 
 
 def write_json(path: Path, data) -> None:
-    from constrained.trajectory import atomic_write  # temporary file, then rename
+    from constrained.run.trajectory import atomic_write  # temporary file, then rename
 
     text = json.dumps(data, indent=1, default=float) + "\n"
     atomic_write(Path(path), lambda f: f.write(text.encode()))

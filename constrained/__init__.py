@@ -8,40 +8,39 @@ first time the name is used.
 from __future__ import annotations
 
 import importlib
-import sys
-import types
 
 from ._version import __version__
 
 #: public name -> the submodule defining it
 _LAZY = {
-    # the action of a run: constrained.action.action (the module keeps its name)
-    **dict.fromkeys(("ActionResult", "PathResult", "StationarityResult", "stationarity",
-                     "stationary_path"), "action"),
-    **dict.fromkeys(("ConstraintReport", "constraint_report", "degrees_of_freedom"), "analysis"),
-    **dict.fromkeys(("Curve", "Custom", "Distance", "Pin", "Plane", "Surface"), "constraints"),
-    **dict.fromkeys(("Conservation", "EquationCheck", "check_equations", "check_generalized_forces",
-                     "check_lagrangian", "conservation", "describe"), "derivation"),
+    **dict.fromkeys(("ActionResult", "PathResult", "StationarityResult", "action", "stationarity",
+                     "stationary_path"), "analysis.action"),
+    **dict.fromkeys(("ConstraintReport", "constraint_report", "degrees_of_freedom"),
+                    "manifold.constraint_report"),
+    **dict.fromkeys(("Curve", "Custom", "Distance", "Pin", "Plane", "Surface"), "model.constraints"),
+    **dict.fromkeys(("Conservation", "conservation", "describe"), "analysis.derivation"),
+    **dict.fromkeys(("EquationCheck", "check_equations"), "analysis.equations"),
+    **dict.fromkeys(("check_generalized_forces", "check_lagrangian"), "analysis.candidates"),
     **dict.fromkeys(("Central", "Damping", "Electromagnetic", "Force", "Gravity", "Pairwise",
-                     "Potential", "Spring"), "effects"),
+                     "Potential", "Spring"), "model.effects"),
     **dict.fromkeys(("ConstrainedError", "InconsistentStateError", "InputError", "RunInterrupted",
                      "SimulationError"), "errors"),
-    **dict.fromkeys(("Model", "assemble"), "model"),
-    **dict.fromkeys(("CrossCheck", "ReducedModel"), "reduced"),
-    "cross_check": "crosscheck",
-    "simulate": "simulate",
-    **dict.fromkeys(("Ensemble", "simulate_many"), "ensemble"),
+    **dict.fromkeys(("Model", "assemble"), "model.structure"),
+    "CrossCheck": "analysis.crosscheck",
+    "ReducedModel": "run.reduced",
+    "cross_check": "analysis.crosscheck",
+    "simulate": "run.simulate",
+    **dict.fromkeys(("Ensemble", "simulate_many"), "run.ensemble"),
     **dict.fromkeys(("Event", "EventHit", "Status"), "solvers.base"),
     **dict.fromkeys(("Equilibrium", "constraint_virtual_work_residual", "equilibrium",
-                     "generalized_forces", "virtual_work"), "statics"),
-    # the function: constrained.sweep.sweep (the module keeps its name)
-    "SweepResult": "sweep",
+                     "generalized_forces", "virtual_work"), "analysis.statics"),
+    **dict.fromkeys(("SweepResult", "sweep"), "sweeps.sweep"),
     **dict.fromkeys(("SymmetryReport", "charge_drift", "euler_lagrange", "is_symmetry",
                      "is_symmetry_reduced", "noether_charge", "noether_charge_reduced",
-                     "with_total_derivative"), "symmetry"),
-    **dict.fromkeys(("Particle", "System"), "system"),
-    "Trajectory": "trajectory",
-    **dict.fromkeys(("Scene", "RunResult"), "scene"),
+                     "with_total_derivative"), "analysis.symmetry"),
+    **dict.fromkeys(("Particle", "System"), "model.system"),
+    "Trajectory": "run.trajectory",
+    **dict.fromkeys(("Scene", "RunResult"), "scene.load"),
 }
 
 
@@ -54,32 +53,13 @@ def __getattr__(name: str):
     return value
 
 
-class _Package(types.ModuleType):
-    """The package's module type: ``constrained.simulate`` is the function, even after the
-    submodule of the same name has been imported (the import system would otherwise set the
-    module object as the package attribute)."""
-
-    @property
-    def simulate(self):
-        from .simulate import simulate
-
-        return simulate
-
-    @simulate.setter
-    def simulate(self, value):  # the import system setting the submodule: the function wins
-        pass
-
-
-sys.modules[__name__].__class__ = _Package
-
-
 def __dir__():
     return sorted(set(globals()) | set(_LAZY))
 
 
 def load_scene(path, overrides=None):
     """Load a TOML scene: a Scene with ``.system``, ``.settings``, ``.outputs`` (and ``.run()``)."""
-    from .scene import load_scene as _load
+    from .scene.load import load_scene as _load
 
     return _load(path, overrides)
 
@@ -97,5 +77,5 @@ __all__ = [
     "noether_charge", "noether_charge_reduced", "with_total_derivative",
     "Equilibrium", "constraint_virtual_work_residual", "equilibrium", "generalized_forces",
     "virtual_work",
-    "SweepResult", "Scene", "RunResult", "__version__",
+    "SweepResult", "sweep", "action", "Scene", "RunResult", "__version__",
 ]

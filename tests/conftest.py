@@ -8,6 +8,23 @@ import pytest
 import constrained as C
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_addoption(parser):
+    parser.addoption("--all", action="store_true", default=False,
+                     help="also run the tests marked slow (every docs block, Ctrl-C of every method, "
+                          "the browser, scene fuzzing): what .ci/run runs")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The developer's loop leaves the slow tests out (deselected, not skipped); ``--all`` or
+    ``-m slow`` runs them."""
+    if config.getoption("--all") or config.getoption("-m"):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow")]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if not item.get_closest_marker("slow")]
 SCENARIOS = ROOT / "scenarios"
 #: The high-precision double-pendulum reference (30-digit arithmetic, good to < 1e-12): the
 #: one copy every test reads.

@@ -42,6 +42,26 @@ def graph() -> dict[str, set[str]]:
             if k != "constrained"}
 
 
+#: The folders from the ground up: a module may import from its own folder and from folders below
+#: its own, never from one above (the ground floor, "", is the package's top-level modules).
+FOLDERS = ("", "codegen", "model", "manifold", "solvers", "run", "analysis", "scene", "output", "sweeps",
+           "cli")
+
+
+def folder(module: str) -> str:
+    """the folder (subpackage) a module (dotted, without the package prefix) lives in."""
+    head = module.split(".")[0]
+    return head if head in FOLDERS else ""
+
+
+def upward_imports(edges: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(importer, imported) pairs that climb from a folder to one above it."""
+    rank = {name: k for k, name in enumerate(FOLDERS)}
+    entry = {"__main__"}  # python -m constrained: the command, above everything
+    return sorted((m, t) for m, targets in edges.items() if m not in entry for t in targets
+                  if rank[folder(t)] > rank[folder(m)])
+
+
 def layers(edges: dict[str, set[str]]) -> dict[str, int]:
     level: dict[str, int] = {}
 
@@ -60,7 +80,14 @@ def layers(edges: dict[str, set[str]]) -> dict[str, int]:
 def text() -> str:
     edges = graph()
     level = layers(edges)
-    lines = []
+    lines = ["folders (each imports only from those after its arrow):"]
+    for name in reversed(FOLDERS):
+        used = {folder(t) or "(ground)" for m, ts in edges.items()
+                if folder(m) == name and m != "__main__" for t in ts}
+        below = sorted(used - {name or "(ground)"},
+                       key=lambda f: -FOLDERS.index("" if f == "(ground)" else f))
+        lines.append(f"  {name or '(ground)'} ← {' '.join(below) if below else '—'}")
+    lines.append("modules, in layers:")
     for k in range(max(level.values()) + 1):
         names = sorted(n for n in level if level[n] == k)
         lines.append(f"{k:>2}  " + ", ".join(

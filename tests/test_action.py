@@ -10,9 +10,9 @@ from conftest import double_pendulum, planar_pendulum
 from scipy.integrate import solve_ivp
 
 import constrained as C
-from constrained.action import action, end_configuration, stationarity, stationary_path
-from constrained.cli import main
-from constrained.model import assemble
+from constrained.analysis.action import action, end_configuration, stationarity, stationary_path
+from constrained.cli.main import main
+from constrained.model.structure import assemble
 
 G = 9.81
 

@@ -12,9 +12,9 @@ import casadi as ca
 import pytest
 from conftest import pendulum_toml
 
-from constrained.cli import main
+from constrained.cli.main import main
 from constrained.errors import ExpressionError
-from constrained.expressions import MAX_DEPTH, parse
+from constrained.model.expressions import MAX_DEPTH, parse
 
 PENDULUM = pendulum_toml(0.01, position=(1.0, 0.0, 0.0), velocity=None)
 
@@ -194,7 +194,7 @@ def test_with_reduced_coordinates_the_particle_start_is_checked_by_the_verbs_tha
     scene.write_text(PENDULUM.replace("position = [1.0, 0.0, 0.0]", "position = [0.0, 0.0, 0.0]")
                      + '\n[reduced]\ncoordinates = ["th"]\ninitial = { th = 1.0 }\n'
                      'map = { bob = ["sin(th)", "-cos(th)", "0"] }\n')
-    from constrained.scene import load_scene
+    from constrained.scene.load import load_scene
 
     assert load_scene(scene).reduced is not None  # loads: crosscheck can use it
     extra = ["--out", tmp_path / "out"] if verb != "check" else []

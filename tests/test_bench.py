@@ -7,7 +7,7 @@ import csv
 import numpy as np
 from conftest import SCENARIOS
 
-from constrained.cli import main
+from constrained.cli.main import main
 
 
 def test_bench_writes_csv_markdown_and_figure(tmp_path):

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from conftest import BLOWUP_TOML, pendulum_toml
 
-from constrained.cli import main
-from constrained.run_options import time_grid
-from constrained.trajectory import Trajectory
+from constrained.cli.main import main
+from constrained.run.options import time_grid
+from constrained.run.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 DOUBLE_PENDULUM = ROOT / "scenarios" / "double_pendulum.toml"

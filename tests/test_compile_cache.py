@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from constrained import compiled
+from constrained.codegen import compiled
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +24,7 @@ needs_cc = pytest.mark.skipif(compiled.compiler() is None, reason="no C compiler
 # shapes and values: f(x) = sin(x) + 2 x (3 entries), and its impostor (2 entries).
 SCRIPT = """
 import sys, casadi as ca, numpy as np
-from constrained import compiled
+from constrained.codegen import compiled
 which = sys.argv[1]
 if which == "f":
     x = ca.SX.sym("x", 3); f = ca.Function("cachetest", [x], [ca.sin(x) + 2 * x])
@@ -180,7 +180,7 @@ def test_an_entry_recorded_for_another_setup_is_rebuilt(tmp_path):
 # A compiled run (dopri's chained steps) prints its end state.
 RUN = """
 import numpy as np, constrained as C
-from constrained import compiled
+from constrained.codegen import compiled
 sc = C.load_scene("scenarios/double_pendulum.toml")
 tr = C.simulate(sc.system, 0.3, method="dopri", rtol=1e-9, atol=1e-11, compiled=True, outputs=[])
 assert compiled.last_error is None, compiled.last_error

@@ -7,8 +7,8 @@ import pytest
 from conftest import double_pendulum
 
 import constrained as C
-from constrained import compiled
-from constrained.manifold import Manifold
+from constrained.codegen import compiled
+from constrained.manifold.manifold import Manifold
 
 
 def chain(n: int) -> C.System:

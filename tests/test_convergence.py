@@ -42,7 +42,7 @@ def run(method, **options):
 
 
 def declared_order(method, **options) -> int | None:
-    from constrained.manifold import Manifold
+    from constrained.manifold.manifold import Manifold
 
     model = C.assemble(circle())
     return METHODS[method](Manifold(model), **options).order
@@ -89,7 +89,7 @@ def test_reduced_route_is_eighth_order():
     exactly; the pendulum θ'' = −(g/L) sin θ shows the order, against SciPy at 1e-13."""
     from scipy.integrate import solve_ivp
 
-    from constrained.reduced import ReducedModel
+    from constrained.run.reduced import ReducedModel
 
     g, th0, t_end = 9.81, 1.0, 5.0
     s = C.System(name="pendulum")

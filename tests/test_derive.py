@@ -6,10 +6,10 @@ import pytest
 from conftest import SCENARIOS
 
 import constrained as C
-from constrained.cli import main
-from constrained.derivation import check_generalized_forces, check_lagrangian
-from constrained.reduced import ReducedModel
-from constrained.scene import build_scene
+from constrained.analysis.derivation import check_generalized_forces, check_lagrangian
+from constrained.cli.main import main
+from constrained.run.reduced import ReducedModel
+from constrained.scene.load import build_scene
 
 DOUBLE = str(SCENARIOS / "double_pendulum.toml")
 PARAMS = {"g": 9.81, "m": 1.0, "l": 1.0}

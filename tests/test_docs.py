@@ -15,9 +15,9 @@ The rules (what a reader following a page does):
 * ``toml`` blocks must parse.
 * ``text`` blocks (output, diagrams) are not run. Every fence names its language, so that
   no command hides in an untagged block.
-* A block preceded by ``<!-- slow -->`` runs in its own test, ``test_slow_block``, marked
-  ``slow`` (deselect locally with ``-m "not slow"``; CI runs every block). Such a block must
-  not depend on what earlier blocks of its page did.
+* A block preceded by ``<!-- slow -->`` runs in its own test, ``test_slow_block``. Such a block
+  must not depend on what earlier blocks of its page did. Every docs test is marked ``slow``:
+  left out of the developer's loop, run with ``--all`` as CI does.
 """
 
 from __future__ import annotations
@@ -142,6 +142,7 @@ def test_shell_line_rules():
                                     ("constrained run a.toml --set simulate.t_end=2  # exits 1", 1)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_page(page, workdir):
     """The page's blocks, in order, in one temporary directory and one Python namespace."""

@@ -10,9 +10,9 @@ from conftest import DP_REF_T2, double_pendulum
 from test_solvers import driven_pendulum
 
 import constrained as C
-from constrained import compiled
-from constrained.manifold import structure_cache
-from constrained.model import Structure
+from constrained.codegen import compiled
+from constrained.model.cache import structure_cache
+from constrained.model.structure import Structure
 
 
 @pytest.fixture(autouse=True)

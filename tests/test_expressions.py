@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from constrained.errors import ExpressionError
-from constrained.expressions import parse
+from constrained.model.expressions import parse
 
 
 def value(expr) -> float:

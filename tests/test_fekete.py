@@ -13,7 +13,7 @@ import pytest
 from conftest import ROOT
 
 import constrained as C
-from constrained.manifold import Manifold
+from constrained.manifold.manifold import Manifold
 
 _spec = importlib.util.spec_from_file_location("fekete_benchmark", ROOT / "benchmarks" / "fekete.py")
 fekete = importlib.util.module_from_spec(_spec)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import animation, plot
-from constrained.trajectory import Trajectory
+from constrained.output import animation, plot
+from constrained.run.trajectory import Trajectory
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -22,7 +22,7 @@ def crosscheck():
 
 
 def test_crosscheck_log_axis_starts_near_the_data_not_at_1e_300(crosscheck, tmp_path):
-    from constrained.reduced import save_crosscheck_figure
+    from constrained.analysis.crosscheck import save_crosscheck_figure
 
     assert crosscheck.position_difference[0] == 0.0  # same start: an exact zero at t = 0
     path = save_crosscheck_figure(crosscheck, tmp_path / "crosscheck.png")
@@ -94,7 +94,7 @@ def test_3d_labels_fit_in_the_canvas():
 
 
 def test_sweep_axis_labels_carry_units():
-    from constrained.sweep import axis_label
+    from constrained.sweeps.sweep import axis_label
 
     units = {"a": "m", "nu": "rad/s", "up": "m"}
     assert axis_label("parameters.a", units) == "a [m]"
@@ -137,7 +137,7 @@ def test_animation_is_large_and_draws_rods_without_the_scene(tmp_path):
 
 
 def test_run_writes_its_figures_through_the_helper_process(tmp_path):
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     out = tmp_path / "run"
     assert main(["run", str(SCENARIOS / "simple_pendulum.toml"), "--set", "simulate.t_end=0.5",
@@ -148,7 +148,7 @@ def test_run_writes_its_figures_through_the_helper_process(tmp_path):
 
 
 def test_figure_process_draws_here_when_the_work_cannot_be_sent(tmp_path):
-    from constrained.figure_process import FigureProcess
+    from constrained.output.figure_process import FigureProcess
 
     tr = C.load_scene(SCENARIOS / "simple_pendulum.toml").run(["simulate.t_end=0.2", "expect={}"]).trajectory
 

@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import diagnostics
-from constrained.analysis import jacobian_rank
-from constrained.cli import main
-from constrained.manifold import Manifold, schur_solve
-from constrained.quantities import multipliers_along
-from constrained.simulate import consistent_state
+from constrained.cli.main import main
+from constrained.manifold import diagnostics
+from constrained.manifold.constraint_report import jacobian_rank
+from constrained.manifold.dense import schur_solve
+from constrained.manifold.manifold import Manifold
+from constrained.run.quantities import multipliers_along
+from constrained.run.simulate import consistent_state
 
 HARD = Path(__file__).resolve().parent.parent / "scenarios" / "hard"
 

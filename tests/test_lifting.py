@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import compiled, lifting
+from constrained.codegen import compiled
 from constrained.errors import InputError
-from constrained.model import Model, Structure, assemble
+from constrained.model import lifting
+from constrained.model.structure import Model, Structure, assemble
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 BASE = dict(m=1.3, k=40.0, rest=0.3, c=0.2, q=0.7, length=0.9, offset=0.05, g=9.81, F=0.4,

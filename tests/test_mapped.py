@@ -11,11 +11,14 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import compiled, lifting, mapped
-from constrained.held import held
-from constrained.manifold import acceleration_function, structure_cache
-from constrained.model import Structure, assemble
-from constrained.simulate import consistent_state
+from constrained.codegen import compiled
+from constrained.manifold import mapped
+from constrained.manifold.manifold import acceleration_function
+from constrained.model import lifting
+from constrained.model.cache import structure_cache
+from constrained.model.held import held
+from constrained.model.structure import Structure, assemble
+from constrained.run.simulate import consistent_state
 
 needs_cc = pytest.mark.skipif(compiled.compiler() is None, reason="no C compiler on this machine")
 
@@ -74,7 +77,7 @@ def test_mapped_functions_give_the_structures_numbers(options):
         for a, b in zip(want, got, strict=True):
             assert a.shape == b.shape
             np.testing.assert_allclose(_dense(b), _dense(a), rtol=1e-13, atol=1e-13, err_msg=name)
-    from constrained.manifold import row_scales_expr
+    from constrained.manifold.graph import row_scales_expr
 
     J = structure.function("jacobian")(x, t, p)[1]
     np.testing.assert_array_equal(_dense(build.function("row_scales")(x, t, p)),

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from conftest import BLOWUP_TOML, pendulum_toml
 
-from constrained.cli import main
-from constrained.outputs import user_path
+from constrained.cli.main import main
+from constrained.output.output_set import user_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,12 +67,12 @@ def test_an_interrupted_run_leaves_the_earlier_set_untouched(tmp_path, capsys, m
     assert main(["run", str(path), "--out", str(out), "--quiet"]) == 0
     before = listing(out)
 
-    import constrained.figure_process
+    import constrained.output.figure_process
 
     def interrupted(*args, **kwargs):  # Ctrl-C after the npz was written, while the figures are drawn
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(constrained.figure_process.FigureProcess, "wait", interrupted)
+    monkeypatch.setattr(constrained.output.figure_process.FigureProcess, "wait", interrupted)
     assert main(["run", str(path), "--out", str(out), "--quiet", "--set", "simulate.t_end=0.1"]) == 130
     assert listing(out) == before
     no_strays(tmp_path)
@@ -87,8 +87,8 @@ def test_a_run_killed_between_the_npz_and_the_figures_leaves_one_set(tmp_path):
     assert first.returncode == 0, first.stderr
     before = listing(out)
     killer = (
-        "import os, signal, sys, constrained.figure_process as fp\n"
-        "from constrained.cli import main\n"
+        "import os, signal, sys, constrained.output.figure_process as fp\n"
+        "from constrained.cli.main import main\n"
         "def die(*a, **k):\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
         "fp.FigureProcess.wait = die\n"
@@ -171,7 +171,7 @@ def test_an_unwritable_output_folder_is_bad_input_exit_2_before_any_work(tmp_pat
 
 
 def test_a_failed_write_names_the_users_file_not_the_hidden_temporary(tmp_path, capsys, monkeypatch):
-    import constrained.trajectory as trajectory
+    import constrained.run.trajectory as trajectory
 
     def full_disk(prefix="", suffix="", dir=None):
         raise OSError(28, "No space left on device", os.path.join(dir, f"{prefix}x1y2z3{suffix}"))

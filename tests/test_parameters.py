@@ -16,8 +16,8 @@ import pytest
 
 import constrained as C
 from constrained.errors import InputError
-from constrained.model import Model, Structure, assemble
-from constrained.scene import SceneError, build_scene
+from constrained.model.structure import Model, Structure, assemble
+from constrained.scene.load import SceneError, build_scene
 
 PARAMETRIC_SCENE = Path(__file__).resolve().parent.parent / "scenarios" / "double_pendulum_parametric.toml"
 
@@ -358,7 +358,7 @@ def test_python_api_particles_take_formulas():
 
 
 def test_describe_prints_parameter_names():
-    from constrained.derivation import describe
+    from constrained.analysis.derivation import describe
 
     text = describe(scene())
     assert "g*" in text and "l1" in text and "m2" in text and "9.81" not in text
@@ -370,7 +370,7 @@ def test_describe_prints_parameter_names():
 
 def test_describe_gives_latex_through_sympy():
     pytest.importorskip("sympy")
-    from constrained.derivation import describe
+    from constrained.analysis.derivation import describe
 
     tex = describe(scene(), latex=True)
     assert r"\ddot{q_{1}}" in tex and "m_{2}" in tex and r"\cos" in tex
@@ -390,7 +390,7 @@ def test_scene_run_with_parameters_equals_the_overridden_scene():
 
 
 def test_cli_derive_prints_names_and_latex(capsys, tmp_path, monkeypatch):
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     path = tmp_path / "dp.toml"
     path.write_text(DOUBLE_PENDULUM)
@@ -403,7 +403,7 @@ def test_cli_derive_prints_names_and_latex(capsys, tmp_path, monkeypatch):
 
 
 def test_cli_check_lists_parameters_and_definitions(capsys, tmp_path):
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     path = tmp_path / "dp.toml"
     path.write_text(DOUBLE_PENDULUM)

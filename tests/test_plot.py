@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from mpl_toolkits.mplot3d import Axes3D
 
-from constrained.figure_style import motion_plane
-from constrained.plot import (
+from constrained.output.figure_style import motion_plane
+from constrained.output.plot import (
     FIGURES,
     energy_figure,
     phase_figure,
@@ -17,7 +17,7 @@ from constrained.plot import (
     save_figures,
     trajectory_figure,
 )
-from constrained.trajectory import Trajectory
+from constrained.run.trajectory import Trajectory
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 G = 9.81
@@ -225,8 +225,8 @@ def _short(traj: Trajectory, n: int = 40) -> Trajectory:
 @pytest.mark.filterwarnings("ignore:Animation was deleted")
 @pytest.mark.parametrize("make", [pendulum, helix], ids=["planar", "3d"])
 def test_animation_is_a_gif_with_labelled_axes(tmp_path, make):
-    from constrained.animation import animation_figure
-    from constrained.plot import KINDS
+    from constrained.output.animation import animation_figure
+    from constrained.output.plot import KINDS
 
     assert "animation" in KINDS
     traj = _short(make())
@@ -250,8 +250,8 @@ def test_every_kind_from_a_real_scene_run(tmp_path):
     non-blank PNG (the animation a GIF), and `constrained plot` redraws them from the .npz."""
     from pathlib import Path
 
-    from constrained.cli import main
-    from constrained.plot import KINDS
+    from constrained.cli.main import main
+    from constrained.output.plot import KINDS
 
     scene = Path(__file__).resolve().parent.parent / "scenarios" / "simple_pendulum.toml"
     out = tmp_path / "run"
@@ -273,7 +273,7 @@ def test_every_kind_from_a_real_scene_run(tmp_path):
 
 
 def test_plot_verb_bad_input_exits_2(tmp_path, capsys):
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     assert main(["plot", str(tmp_path / "nothere.npz")]) == 2
     assert "no such file" in capsys.readouterr().err

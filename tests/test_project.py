@@ -26,7 +26,7 @@ def test_readme_run_command_names_a_bundled_scene():
 
 def test_ci_runs_the_readme_test_command():
     cmd = readme_command("test-command")
-    assert "pytest" in cmd and 'pip install ".[test]"' in cmd
+    assert "pytest" in cmd and 'pip install ".[test]"' in cmd and "--all" in cmd
     script = (ROOT / ".ci" / "run").read_text()
     assert "test-command" in script
 
@@ -52,6 +52,31 @@ def test_no_import_cycles_counting_imports_inside_functions():
     edges = graph()
     level = layers(edges)  # raises on a cycle, naming a module on it
     assert all(level[t] < level[m] for m, targets in edges.items() for t in targets)
+
+
+def test_folders_import_downward_only():
+    """cli → sweeps, output → scene → analysis → run → solvers → manifold → model → codegen → the
+    ground floor: no module imports from a folder above its own (docs/architecture.md)."""
+    from import_graph import FOLDERS, graph, upward_imports
+
+    assert upward_imports(graph()) == []
+    package = ROOT / "constrained"
+    folders = {p.name for p in package.iterdir() if (p / "__init__.py").is_file()}
+    assert folders == set(FOLDERS) - {""}, "a new folder needs its place in import_graph.FOLDERS"
+
+
+def test_modules_and_folders_stay_small():
+    """A module over ~500 lines, or a folder over ~12 modules, is asking to be split."""
+    package = ROOT / "constrained"
+    long = {str(p.relative_to(package)): n for p in package.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 530}
+    assert not long, long
+    def modules(folder):
+        return [p for p in folder.glob("*.py") if p.name not in ("__init__.py", "__main__.py")]
+
+    crowded = {str(d.relative_to(package)): n for d in package.rglob("*") if d.is_dir()
+               and (n := len(modules(d))) > 12}
+    assert not crowded, crowded
 
 
 def test_architecture_shows_the_real_import_graph():

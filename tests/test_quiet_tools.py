@@ -13,7 +13,7 @@ SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 def test_sweep_without_dask_names_both_install_commands(tmp_path, monkeypatch, capsys):
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     real_import = builtins.__import__
 
@@ -37,7 +37,7 @@ def test_sweep_without_dask_names_both_install_commands(tmp_path, monkeypatch, c
 
 
 def test_local_cluster_serves_no_dashboard_and_does_not_fight_for_port_8787(tmp_path, caplog):
-    from constrained.sweep import sweep  # Dask: the [test] extra installs it
+    from constrained.sweeps.sweep import sweep  # Dask: the [test] extra installs it
 
     busy = socket.socket()
     busy.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -61,7 +61,7 @@ def test_local_cluster_serves_no_dashboard_and_does_not_fight_for_port_8787(tmp_
 
 
 def test_bench_reports_casadi_notices_once_in_plain_words(capfd):
-    from constrained.bench import work_precision
+    from constrained.analysis.bench import work_precision
 
     scene = C.load_scene(SCENARIOS / "double_pendulum.toml")
     result = work_precision(scene.system, 0.3, methods=("pantelides",), tolerances=(1e-6, 1e-8), repeats=1)
@@ -75,7 +75,7 @@ def test_bench_reports_casadi_notices_once_in_plain_words(capfd):
 def test_bench_passes_other_stderr_output_through(capfd):
     import os
 
-    from constrained.bench import BenchResult, _casadi_stderr, _report_casadi_messages
+    from constrained.analysis.bench import BenchResult, _casadi_stderr, _report_casadi_messages
 
     result = BenchResult(scene="s", t_end=1.0)
     with _casadi_stderr() as printed:

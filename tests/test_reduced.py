@@ -9,11 +9,11 @@ import pytest
 from conftest import DP_ENERGY, DP_REF_T2, SCENARIOS
 
 import constrained as C
-from constrained.cli import main
-from constrained.crosscheck import cross_check
-from constrained.derivation import check_equations, conservation, describe
-from constrained.reduced import ReducedModel
-from constrained.scene import build_scene
+from constrained.analysis.crosscheck import cross_check
+from constrained.analysis.derivation import check_equations, conservation, describe
+from constrained.cli.main import main
+from constrained.run.reduced import ReducedModel
+from constrained.scene.load import build_scene
 
 TIGHT = {"rtol": 1e-11, "atol": 1e-12}
 
@@ -248,7 +248,7 @@ def test_cli_crosscheck_bad_map_exit_2(tmp_path, capsys):
 
 
 def test_describe_prints_the_double_pendulum_equations_in_readable_form():
-    from constrained.derivation import pretty
+    from constrained.analysis.derivation import pretty
 
     scene = C.load_scene(SCENARIOS / "double_pendulum.toml")
     text = C.describe(scene)

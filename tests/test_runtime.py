@@ -57,6 +57,7 @@ METHOD_SETTINGS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", list(METHOD_SETTINGS))
 def test_ctrl_c_stops_every_method_promptly_and_keeps_the_partial_run(tmp_path, variant):
     method = variant.split("-")[0]
@@ -86,7 +87,7 @@ KAPITZA = SCENES / "kapitza_sweep.toml"
 
 @pytest.mark.parametrize("method", ["rattle", "dopri"])
 def test_ctrl_c_stops_a_sequential_sweep_and_the_rerun_redoes_the_interrupted_run(tmp_path, method):
-    from constrained import sweep as S
+    from constrained.sweeps import sweep as S
 
     out = tmp_path / "sweep"
     vary = ["simulate.t_end=[0.05, 1e4, 0.06]"]
@@ -115,7 +116,7 @@ def test_a_run_recorded_as_interrupted_by_an_earlier_version_is_computed_again(t
     failed run): a rerun counts their finished runs as done and computes the interrupted one."""
     import shutil
 
-    from constrained import sweep as S
+    from constrained.sweeps import sweep as S
 
     vary = ["parameters.nu=[100, 200]"]
     sets = ["simulate.t_end=0.02"]
@@ -170,7 +171,7 @@ quantities = ["energy", "constraint_residual"]
 def test_an_infinite_potential_energy_at_the_start_is_refused_naming_the_effect(tmp_path, capsys, method):
     """exp(1000 x) overflows at x = 1: the scene is bad input (exit 2, nothing written), the
     message names the effect; a constant that overflows is refused by the formula parser."""
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     scene = tmp_path / "overflow.toml"
     for expr, words in (("exp(1000 * x_p) ** 2", "(runaway) is undefined at the initial state"),
@@ -238,8 +239,8 @@ def test_a_stiff_spring_is_named_with_its_period_and_the_distance_constraint(tmp
 
 def test_stiff_springs_reports_the_reduced_mass_period_and_stretch(tmp_path):
     import constrained as C
-    from constrained.diagnostics import stiff_springs
-    from constrained.model import assemble
+    from constrained.manifold.diagnostics import stiff_springs
+    from constrained.model.structure import assemble
 
     system = C.load_scene(_stiff_scene(tmp_path)).system
     (spring,) = stiff_springs(assemble(system), system.positions)
@@ -273,7 +274,7 @@ g = [0.0, 0.0, -9.81]
 def _sphere(scale: str):
     import tomllib
 
-    from constrained.scene import build_scene
+    from constrained.scene.load import build_scene
 
     return build_scene(tomllib.loads(SPHERE.replace("SCALE", scale)), path="sphere").system
 
@@ -305,8 +306,8 @@ def test_a_scaled_surface_gives_the_same_run_and_residual_in_metres(method, sett
 
 def test_a_scaled_surface_starts_statics_and_reports_in_metres():
     import constrained as C
-    from constrained.model import assemble
-    from constrained.simulate import consistent_state
+    from constrained.model.structure import assemble
+    from constrained.run.simulate import consistent_state
 
     for scale in ("1", "1e8", "1e-8"):
         system = _sphere(scale)
@@ -384,7 +385,7 @@ def test_every_constraint_type_reports_its_residual_in_metres(constraint):
     import tomllib
 
     import constrained as C
-    from constrained.scene import build_scene
+    from constrained.scene.load import build_scene
 
     runs = []
     for scale in ("1", "1e8", "1e-8"):

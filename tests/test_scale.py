@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained.fast_call import FastCall
-from constrained.manifold import (
+from constrained.codegen.fast_call import FastCall
+from constrained.manifold.dense import schur_solve
+from constrained.manifold.manifold import (
     Manifold,
     ProjectionStatus,
     acceleration_function,
-    schur_solve,
     symbolic_acceleration,
 )
 
@@ -105,8 +105,8 @@ def test_hanging_chain_200_links_conserves_energy():
 def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr(monkeypatch):
     import itertools
 
-    from constrained import manifold
-    from constrained.analysis import jacobian_rank
+    from constrained.manifold.algebra import DENSE, SPARSE
+    from constrained.manifold.constraint_report import jacobian_rank
 
     chain = C.System()
     for i in range(30):
@@ -123,11 +123,9 @@ def test_sparse_and_cholesky_full_rank_tests_agree_with_the_rank_revealing_qr(mo
     for system, full in ((chain, True), (cube, False)):
         model = C.assemble(system)
         J = model.jacobian(system.positions.ravel(), 0.0)[1]
-        for sparse_from in (0, 10**9):  # the sparse LU, then the dense Cholesky
-            monkeypatch.setattr(manifold, "SPARSE_FROM", sparse_from)
-            assert bool(manifold.full_row_rank(J, model.inverse_masses)) is full
-        assert (manifold.independent_rows(np.asarray(J), model.inverse_masses).size
-                == model.n_constraints) is full
+        for algebra in (SPARSE, DENSE):  # the sparse LU, then the dense Cholesky
+            assert bool(algebra.full_row_rank(J, model.inverse_masses)) is full
+            assert (algebra.independent_rows(J, model.inverse_masses).size == model.n_constraints) is full
         assert (jacobian_rank(np.asarray(J))[0] == model.n_constraints) is full
 
 

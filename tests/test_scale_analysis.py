@@ -11,14 +11,18 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import analysis, manifold, quantities
-from constrained.cli import main
-from constrained.manifold import independent_rows, row_scales_expr, schur_solve
-from constrained.regularity import undefined_items
+from constrained.cli.main import main
+from constrained.manifold import algebra
+from constrained.manifold import constraint_report as analysis
+from constrained.manifold.algebra import DENSE, SPARSE
+from constrained.manifold.dense import schur_solve
+from constrained.manifold.graph import row_scales_expr
+from constrained.manifold.sparse_rank import independent_rows_sparse
+from constrained.manifold.sparse_rows import row_max
+from constrained.model.regularity import undefined_items
+from constrained.run import quantities
+from constrained.run.start import consistent_start
 from constrained.solvers.dopri import CHUNK_COORDINATE_ATTEMPTS, CHUNKS, Dopri
-from constrained.sparse_rank import independent_rows_sparse
-from constrained.sparse_rows import row_max
-from constrained.sparse_schur import sparse_schur_solve
 
 
 def planar_chain(n: int, *, bend: float = 0.5, duplicates=(), masses=None) -> C.System:
@@ -79,7 +83,7 @@ def test_planar_chain_report_closed_form_at_large_n(no_dense_rank, duplicates):
 def test_sparse_report_equals_dense_report(monkeypatch):
     system = chain_and_cube()
     sparse = C.constraint_report(system)
-    monkeypatch.setattr(analysis, "SPARSE_FROM", 10**9)
+    monkeypatch.setattr(algebra, "SPARSE_FROM", 10**9)
     dense = C.constraint_report(system)
     assert sparse.n_constraints == dense.n_constraints == 131
     assert (sparse.rank, sparse.generic_rank, len(sparse.redundant)) == (dense.rank, dense.generic_rank, 13)
@@ -99,8 +103,8 @@ def test_sparse_independent_rows_match_the_pivoted_qr():
     rng = np.random.default_rng(5)
     for x in (system.positions.ravel(), system.positions.ravel() + 0.05 * rng.standard_normal(3 * 58)):
         J = model.jacobian(x, 0.0)[1]
-        dense = manifold.independent_rows(np.asarray(J), model.inverse_masses)
-        sparse = independent_rows(J, model.inverse_masses)  # CasADi-sparse J: the sparse route
+        dense = DENSE.independent_rows(np.asarray(J), model.inverse_masses)
+        sparse = SPARSE.independent_rows(J, model.inverse_masses)
         assert sparse.size == dense.size
         assert np.linalg.matrix_rank(np.asarray(J)[sparse]) == sparse.size
         assert independent_rows_sparse(J).size == analysis.jacobian_rank(np.asarray(J))[0]
@@ -117,7 +121,7 @@ def test_sparse_minimum_norm_solve_equals_the_svd():
     B = np.stack([b, rng.standard_normal(b.size)], axis=1)
     for rhs in (b, B):
         dense = schur_solve(J, model.inverse_masses, rhs, full_rank=False)
-        sparse = sparse_schur_solve(model.jacobian(x, 0.0)[1], model.inverse_masses, rhs)
+        sparse = SPARSE.schur_solve(model.jacobian(x, 0.0)[1], model.inverse_masses, rhs)
         assert np.max(np.abs(sparse - dense)) <= 1e-11 * np.max(np.abs(dense))
 
 
@@ -132,7 +136,7 @@ def test_multipliers_and_forces_of_the_sparse_path_equal_the_dense_path(monkeypa
     X, V, t = tr.x.reshape(len(tr.t), -1), tr.v.reshape(len(tr.t), -1), tr.t
     sparse = quantities.multipliers_along(model, X, V, t)
     forces = quantities.constraint_forces_along(model, X, t, sparse)
-    monkeypatch.setattr(quantities, "SPARSE_FROM", 10**9)
+    monkeypatch.setattr(algebra, "SPARSE_FROM", 10**9)
     dense = quantities.multipliers_along(model, X, V, t)
     assert np.all(np.isfinite(sparse))
     assert np.max(np.abs(sparse - dense)) <= 1e-10 * np.max(np.abs(dense))
@@ -150,7 +154,7 @@ def test_full_rank_multipliers_at_large_n_satisfy_the_dynamics():
     x, v = system.positions.ravel(), np.zeros(3 * n)
     lam = quantities.multipliers_along(model, x[None], v[None], np.zeros(1))[0]
     F, J, gamma = model.dynamics(x, v, 0.0)
-    J = manifold.jacobian_matrix(J)
+    J = SPARSE.matrix(J)
     a = model.inverse_masses * (np.asarray(F).ravel() + J.T @ lam)
     assert np.max(np.abs(J @ a + np.asarray(gamma).ravel())) <= 1e-9 * 9.81 * n
 
@@ -216,7 +220,7 @@ def test_evaluate_through_the_buffer_equals_the_mapped_call():
 
 def test_dopri_builds_only_the_chains_of_attempts_that_fit():
     system = planar_chain(1500)  # 4,500 coordinates: chains of 8, not of 64
-    start = C.start.consistent_start(C.assemble(system), system.positions, system.velocities)
+    start = consistent_start(C.assemble(system), system.positions, system.velocities)
     solver = Dopri(start.manifold, rtol=1e-6, atol=1e-8)
     assert set(solver._chunks) == {k for k in CHUNKS if k * 4500 <= CHUNK_COORDINATE_ATTEMPTS} | {1} == {1, 8}
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained.cli import main
-from constrained.scene import load_scene
+from constrained.cli.main import main
+from constrained.scene.load import load_scene
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 SCENES = sorted(SCENARIOS.glob("*.toml"))  # top level only: scenarios/hard/ etc. are not run here
@@ -90,7 +90,7 @@ def test_expect_lines_report_value_and_tolerance(tmp_path, capsys):
 def test_expectations_enforced_by_construction_are_flagged():
     """A rod length and a projected residual pass whatever the dynamics: they are flagged, and
     a check of the motion itself (energy, a closed form of the dynamics) is not."""
-    from constrained.scene import check_expectations
+    from constrained.scene.load import check_expectations
 
     scene = C.load_scene(SCENARIOS / "four_bar_linkage.toml", overrides=["simulate.t_end=0.5"])
     tr = C.simulate(scene.system, 0.5, method="projection", t_eval=np.linspace(0, 0.5, 21))

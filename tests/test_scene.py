@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from constrained.constraints import Distance, Plane
-from constrained.effects import Gravity
 from constrained.errors import InputError
-from constrained.scene import SceneError, apply_overrides, load_scene
+from constrained.model.constraints import Distance, Plane
+from constrained.model.effects import Gravity
+from constrained.scene.load import SceneError, apply_overrides, load_scene
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 DOUBLE_PENDULUM = SCENARIOS / "double_pendulum.toml"

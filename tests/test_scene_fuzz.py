@@ -30,8 +30,10 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-import constrained.cli as cli_module
-from constrained.cli import main
+import constrained.cli.main as cli_module
+from constrained.cli.main import main
+
+pytestmark = pytest.mark.slow  # thousands of generated scenes: CI's run (--all), not the developer's loop
 
 TOTAL = int(os.environ.get("CONSTRAINED_HYPOTHESIS_EXAMPLES", "2000"))
 #: A generated run still going after this many seconds is interrupted (as by Ctrl-C).

@@ -87,7 +87,7 @@ def test_rattle_long_run_energy_stays_bounded():
 def test_every_method_has_counters_and_refuses_bad_arguments():
     from conftest import SCENARIOS
 
-    from constrained.reduced import ReducedModel
+    from constrained.run.reduced import ReducedModel
 
     rm = ReducedModel.from_scene(C.load_scene(SCENARIOS / "double_pendulum.toml"))
     extra = {"rattle": {"dt": 1e-2}, "reduced": {"reduced_model": rm}}
@@ -138,7 +138,7 @@ def test_every_method_takes_the_redundant_cube(method):
 def test_reduced_method_reaches_the_reference_and_maps_back_to_the_constraints():
     from conftest import SCENARIOS
 
-    from constrained.reduced import ReducedModel
+    from constrained.run.reduced import ReducedModel
 
     scene = C.load_scene(SCENARIOS / "double_pendulum.toml")
     exact = double_pendulum()  # the reference's exact angles, carried into q by the method

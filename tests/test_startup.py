@@ -13,7 +13,7 @@ import pytest
 from interrupting import env as _env
 
 import constrained as C
-from constrained.cli import PLOT_KINDS, build_parser, main
+from constrained.cli.main import PLOT_KINDS, build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
@@ -38,9 +38,9 @@ def test_import_constrained_imports_nothing_heavy():
 
 
 def test_cli_help_imports_nothing_heavy():
-    names = _imported("import sys; from constrained.cli import main; "
+    names = _imported("import sys; from constrained.cli.main import main; "
                       "sys.argv = ['constrained', '--help']\ntry:\n    main()\nexcept SystemExit:\n    pass")
-    assert "constrained.cli" in names
+    assert "constrained.cli.main" in names
     assert not [h for h in (*HEAVY, "numpy") if h in names]
 
 
@@ -48,7 +48,7 @@ def test_public_names_still_resolve_lazily():
     # every name of __all__ is reachable, simulate is the function even after its module loaded
     for name in C.__all__:
         assert getattr(C, name) is not None, name
-    import constrained.simulate  # noqa: F401  (the submodule of the same name)
+    import constrained.run.simulate  # noqa: F401  (the submodule of the same name)
 
     assert callable(C.simulate) and C.simulate.__name__ == "simulate"
     with pytest.raises(AttributeError):
@@ -99,7 +99,7 @@ def test_quiet_crosscheck_writes_the_figure_and_prints_nothing(tmp_path, capsys)
 
 
 def test_plot_kinds_of_the_cli_match_the_plot_module():
-    from constrained.plot import KINDS
+    from constrained.output.plot import KINDS
 
     assert tuple(PLOT_KINDS) == tuple(KINDS)
 
@@ -112,7 +112,7 @@ class _Terminal(io.StringIO):
 def test_progress_bar_appears_on_a_terminal_after_the_delay_and_covers_writing(monkeypatch):
     """The bar is tqdm's, shown only on a terminal; its delay counts from the start of the run
     and the writing stage (figures, animation frames) has a bar of its own."""
-    from constrained import cli
+    from constrained.cli import main as cli
 
     terminal = _Terminal()
     monkeypatch.setattr(cli._progress, "DELAY", 0.0)
@@ -137,7 +137,7 @@ def test_progress_bar_appears_on_a_terminal_after_the_delay_and_covers_writing(m
 
 
 def test_progress_waits_for_the_delay(monkeypatch):
-    from constrained import cli
+    from constrained.cli import main as cli
 
     terminal = _Terminal()
     with cli._progress(False, 0.0, 1.0, stream=terminal) as progress:  # DELAY = 2 s: a quick run
@@ -150,7 +150,7 @@ def test_run_leaves_matplotlib_to_the_figure_process(tmp_path):
     """The figures of a run are drawn by a forked helper that imports matplotlib while the run
     simulates; the run itself must not import it too (0.25 s on its critical path)."""
     scene, out = str(SCENARIOS / "double_pendulum.toml"), str(tmp_path / "out")
-    code = ("import sys\nfrom constrained.cli import main\n"
+    code = ("import sys\nfrom constrained.cli.main import main\n"
             f"code = main(['run', {scene!r}, '--out', {out!r}, '--quiet', '--set', 'simulate.t_end=0.2',"
             " '--set', 'expect.energy_drift=1e-6'])\n"
             "print(code, 'matplotlib' in sys.modules)")

@@ -14,14 +14,14 @@ import pytest
 from scipy.optimize import fsolve
 
 import constrained as C
-from constrained.cli import main
-from constrained.manifold import Manifold
-from constrained.statics import (
+from constrained.analysis.statics import (
     constraint_virtual_work_residual,
     equilibrium,
     generalized_forces,
     virtual_work,
 )
+from constrained.cli.main import main
+from constrained.manifold.manifold import Manifold
 
 ROOT = Path(__file__).resolve().parents[1]
 G = 9.81

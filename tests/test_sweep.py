@@ -1,4 +1,4 @@
-"""constrained.sweep: specs, the Kapitza stability map, Dask vs sequential, resume, bad input."""
+"""constrained.sweeps.sweep: specs, the Kapitza stability map, Dask vs sequential, resume, bad input."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ import pytest
 from interrupting import env as _env
 
 import constrained as C
-from constrained import sweep as S
-from constrained.cli import main
+from constrained.cli.main import main
 from constrained.errors import InputError
+from constrained.sweeps import sweep as S
 
 ROOT = Path(__file__).resolve().parents[1]
 KAPITZA = ROOT / "scenarios" / "kapitza_sweep.toml"
@@ -386,8 +386,8 @@ def test_expect_checks_become_columns(tmp_path):
 
 
 def test_sweep_runs_compile_nothing_unless_the_scene_asks(tmp_path):
-    from constrained.scene import load_scene
-    from constrained.sweep import _settings_kwargs
+    from constrained.scene.load import load_scene
+    from constrained.sweeps.sweep import _settings_kwargs
 
     scene = load_scene(ROOT / "scenarios" / "double_pendulum.toml", ["simulate.method=dopri"])
     assert _settings_kwargs(scene, set())["compiled"] is False  # "auto": a compile per variant

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from interrupting import interrupt_when
 
-from constrained import sweep as S
-from constrained import sweep_execute
-from constrained.cli import main
+from constrained.cli.main import main
+from constrained.sweeps import execute as sweep_execute
+from constrained.sweeps import sweep as S
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMETRIC = ROOT / "scenarios" / "double_pendulum_parametric.toml"

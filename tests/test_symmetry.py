@@ -9,7 +9,7 @@ import pytest
 from conftest import double_pendulum
 
 import constrained as C
-from constrained.symmetry import (
+from constrained.analysis.symmetry import (
     charge_drift,
     euler_lagrange,
     is_symmetry,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.integrate import DOP853, RK45
 
-from constrained.solvers.tableau import from_scipy
 from constrained.solvers.tableaus import TABLEAUS
+from constrained.solvers.tableaus.tableau import from_scipy
 
 
 @pytest.mark.parametrize("name, solver, errors", [("DOP853", DOP853, ("E5", "E3")), ("DOPRI5", RK45, ("E",))])

@@ -24,11 +24,11 @@ import pytest
 from scipy.optimize import brentq
 
 from constrained import System
-from constrained.constraints import Distance, Plane, Surface
-from constrained.effects import Gravity
 from constrained.errors import InputError
-from constrained.simulate import simulate
-from constrained.system import Particle
+from constrained.model.constraints import Distance, Plane, Surface
+from constrained.model.effects import Gravity
+from constrained.model.system import Particle
+from constrained.run.simulate import simulate
 
 G = 9.81
 TIGHT = {"rtol": 1e-12, "atol": 1e-12}
@@ -175,7 +175,7 @@ def test_particle_in_a_bowl_never_leaves():
 
 def test_events_survive_save_and_load(tmp_path):
     traj = simulate(whirled_string(np.sqrt(3.5 * G)), 1.5, **TIGHT)
-    from constrained.trajectory import Trajectory
+    from constrained.run.trajectory import Trajectory
 
     back = Trajectory.load(traj.save(tmp_path / "t.npz"))
     def summary(t):
@@ -223,7 +223,7 @@ def test_other_methods_refuse_one_sided_constraints():
 
 
 def test_pin_cannot_be_one_sided_and_restitution_needs_unilateral():
-    from constrained.constraints import Pin
+    from constrained.model.constraints import Pin
 
     with pytest.raises(InputError, match="no side"):
         Pin("p", [0, 0, 0], unilateral=True)
@@ -257,7 +257,7 @@ atol = 1e-12
 
 
 def ball_scene(tmp_path, constraint="unilateral = true", events=""):
-    from constrained.scene import load_scene
+    from constrained.scene.load import load_scene
 
     path = tmp_path / "ball.toml"
     path.write_text(BALL.format(constraint=constraint, events=events))
@@ -285,7 +285,7 @@ def test_scene_keys_unilateral_restitution_and_events(tmp_path):
     ("", '[[events]]\nexpr = "y_b"', "missing required key 'name'"),
 ])
 def test_bad_one_sided_keys_are_refused_with_the_key_named(tmp_path, constraint, events, message):
-    from constrained.scene import SceneError
+    from constrained.scene.load import SceneError
 
     with pytest.raises(SceneError, match=message):
         ball_scene(tmp_path, constraint, events)
@@ -297,7 +297,7 @@ def test_viewer_lists_the_events_and_jumps_to_them(tmp_path):
 
     if test_viewer.CHROMIUM is None:
         pytest.skip("no chromium on this machine (the viewer's browser tests run in CI)")
-    from constrained import viewer
+    from constrained.output import viewer
 
     ball = System([Particle("b", 1.0, [0, 1, 0])],
                   [Plane("b", [0, 1, 0], 0, unilateral=True, restitution=0.5, name="floor")],
@@ -315,9 +315,9 @@ def test_statics_a_string_beside_a_spring_holds_only_when_taut(L):
     """A mass on a spring (k, rest length 0) and a string of length L from the same anchor:
     the spring alone would hang it at d = mg/k. Shorter string (L < mg/k): the string holds
     at d = L with tension mg − kL. Longer: the string is slack, d = mg/k, multiplier 0."""
-    from constrained.effects import Spring
-    from constrained.statics import equilibrium
-    from constrained.statics_report import format_equilibrium
+    from constrained.analysis.statics import equilibrium
+    from constrained.analysis.statics_report import format_equilibrium
+    from constrained.model.effects import Spring
 
     m, k = 1.0, 20.0
     system = System([Particle("p", m, [0.0, -0.4, 0.0])],
@@ -384,7 +384,7 @@ def test_string_between_two_particles_jerks_taut_keeping_momentum():
 
 
 def test_check_verb_reports_one_sided_rows_at_the_start(tmp_path, capsys):
-    from constrained.cli import main
+    from constrained.cli.main import main
 
     scene = tmp_path / "ball.toml"
     scene.write_text(BALL.format(constraint="unilateral = true", events=""))

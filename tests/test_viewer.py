@@ -25,9 +25,9 @@ import numpy as np
 import pytest
 
 import constrained as C
-from constrained import viewer
-from constrained.cli import main
-from constrained.trajectory import Trajectory
+from constrained.cli.main import main
+from constrained.output import viewer
+from constrained.run.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "scenarios" / "double_pendulum.toml"
@@ -92,6 +92,7 @@ def dp_run(tmp_path_factory) -> Path:
 # --------------------------------------------------------------------------------- in the browser
 
 
+@pytest.mark.slow
 def test_run_writes_viewer_html_that_works_in_chromium(dp_run, chromium):
     page = dp_run / "viewer.html"
     assert page.is_file()
@@ -116,6 +117,7 @@ def test_run_writes_viewer_html_that_works_in_chromium(dp_run, chromium):
     assert "pause" in played["button"] and "play" in report["paused"]["button"]
 
 
+@pytest.mark.slow
 def test_view_verb_screenshots_change_with_time(dp_run, chromium, tmp_path, capsys):
     page = tmp_path / "dp.html"
     assert main(["view", str(dp_run / "trajectory.npz"), "--scene", str(SCENE), "--out", str(page)]) == 0
@@ -129,6 +131,7 @@ def test_view_verb_screenshots_change_with_time(dp_run, chromium, tmp_path, caps
     assert changed[:, : a.shape[1] // 2].sum() > 200  # in the picture of the scene itself
 
 
+@pytest.mark.slow
 def test_view_without_scene_draws_what_the_file_has(dp_run, chromium, tmp_path):
     page = tmp_path / "bare.html"
     assert main(["view", str(dp_run), "--out", str(page), "--quiet"]) == 0
@@ -179,6 +182,7 @@ def _zoo() -> tuple[C.System, Trajectory]:
                          particle_names=["a", "b", "c", "d"])
 
 
+@pytest.mark.slow
 def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
     system, traj = _zoo()
     data = viewer.page_data(traj, system=system, title="zoo")
@@ -223,6 +227,7 @@ def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
     assert report["slider_changes_picture"] and report["rotation_changes_picture"]
 
 
+@pytest.mark.slow
 def test_large_run_is_decimated_and_the_page_stays_small(chromium, tmp_path):
     """1e5 samples of 300 particles: frames and series decimated, spikes kept, page bounded."""
     T, N, C_ = 100_000, 300, 300

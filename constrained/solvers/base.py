@@ -27,10 +27,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import diagnostics, interrupt
+from .. import interrupt
 from ..errors import InputError
-from ..manifold import Manifold
-from ..model import Model
+from ..manifold import diagnostics
+from ..manifold.manifold import Manifold
+from ..model.structure import Model
 from .dense import hermite
 
 

@@ -16,7 +16,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from ..manifold import acceleration_graph
+from ..manifold.graph import acceleration_graph
 from .base import DRIVER_OPTIONS, Advance
 from .driver import Stepper
 from .projection import EXPLICIT, Projection

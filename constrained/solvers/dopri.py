@@ -32,11 +32,13 @@ import time
 import casadi as ca
 import numpy as np
 
-from .. import compiled as compiled_evaluation
-from .. import diagnostics, mapped, residual
+from ..codegen import compiled as compiled_evaluation
+from ..codegen.fast_call import FastCall
 from ..errors import InputError
-from ..fast_call import FastCall
-from ..manifold import ParametricView, acceleration_function, projection_graph, structure_cache
+from ..manifold import diagnostics, mapped, residual
+from ..manifold.graph import projection_graph
+from ..manifold.manifold import acceleration_function
+from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .dense import hermite
 from .driver import Stepper

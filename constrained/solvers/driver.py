@@ -21,7 +21,7 @@ import bisect
 
 import numpy as np
 
-from .. import diagnostics
+from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
 from .events import locate
 from .watches import SingularWatch, past_a_limit

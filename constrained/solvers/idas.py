@@ -25,9 +25,10 @@ from collections import OrderedDict
 import casadi as ca
 import numpy as np
 
-from .. import interrupt, residual
+from .. import interrupt
 from ..errors import InputError
-from ..manifold import ParametricView, structure_cache
+from ..manifold import residual
+from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 

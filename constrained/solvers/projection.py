@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import compiled as compiled_evaluation
-from .. import interrupt, residual
+from .. import interrupt
+from ..codegen import compiled as compiled_evaluation
+from ..codegen.fast_call import FastCall
 from ..errors import InputError
-from ..fast_call import FastCall
-from ..manifold import Manifold, acceleration_graph, per_model_cache
+from ..manifold import residual
+from ..manifold.graph import acceleration_graph
+from ..manifold.manifold import Manifold
+from ..model.cache import per_model_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 

@@ -26,11 +26,11 @@ import math
 import casadi as ca
 import numpy as np
 
-from .. import compiled as compiled_evaluation
-from .. import diagnostics, residual
+from ..codegen import compiled as compiled_evaluation
+from ..codegen.fast_call import FastCall
 from ..errors import InputError
-from ..fast_call import FastCall
-from ..manifold import schur_solve_graph, velocity_correction_graph
+from ..manifold import diagnostics, residual
+from ..manifold.graph import schur_solve_graph, velocity_correction_graph
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 

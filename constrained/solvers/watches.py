@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from .. import diagnostics
-from ..manifold import Manifold
+from ..manifold import diagnostics
+from ..manifold.manifold import Manifold
 from .base import Solver
 
 #: Up to this many coordinates the singular watch takes the dense SVD of the row-normalized J.

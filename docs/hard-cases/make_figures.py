@@ -14,8 +14,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 import constrained as C
-from constrained import diagnostics
-from constrained.plot import driving_terms
+from constrained.manifold import diagnostics
+from constrained.output.plot import driving_terms
 
 ROOT = Path(__file__).resolve().parents[2]
 HARD = ROOT / "scenarios" / "hard"

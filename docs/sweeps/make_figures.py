@@ -21,8 +21,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from constrained.sweep import cell_edges, sweep  # noqa: E402
-from constrained.trajectory import Trajectory  # noqa: E402
+from constrained.run.trajectory import Trajectory  # noqa: E402
+from constrained.sweeps.sweep import cell_edges, sweep  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent

@@ -1,8 +1,8 @@
 """The explicit Runge–Kutta pairs ``dopri`` can run (``base``): one module per pair."""
 
-from ..tableau import Tableau
 from .dop853 import DOP853
 from .dopri5 import DOPRI5
+from .tableau import Tableau
 from .tsit5 import TSIT5
 
 #: The pairs by name. Dormand–Prince 8(5,3) and 5(4) are SciPy's own coefficients.

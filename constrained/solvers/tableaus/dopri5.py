@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..tableau import Tableau
+from .tableau import Tableau
 
 A = np.array([
     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],

@@ -5,7 +5,7 @@ tuned for a small principal error: at equal work often more accurate than Dorman
 
 import numpy as np
 
-from ..tableau import Tableau
+from .tableau import Tableau
 
 _c = [0.0, 0.161, 0.327, 0.9, 0.9800255409045096857, 1.0]
 _a = [

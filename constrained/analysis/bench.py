@@ -1,0 +1,292 @@
+"""Work-precision measurement: what accuracy costs in time, per method and tolerance.
+
+For each (method, tolerance) the scene is simulated ``repeats`` times; the row records the
+end-position error against a reference, the largest constraint and velocity residuals, the
+energy drift (where energy is conserved), the median wall time, steps and evaluations.
+
+The reference is the most accurate route available: ``projection`` at rtol = atol = 1e-13,
+checked against ``idas`` at the same tolerance. Their disagreement bounds the reference's
+own error; errors below it are reported as not measurable, and the result says so (as for
+chaotic scenes over long horizons).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import statistics
+import sys
+import tempfile
+from contextlib import contextmanager, redirect_stderr
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, RunInterrupted, SimulationError
+from ..model.structure import assemble
+from ..run.simulate import simulate
+from ..run.trajectory import atomic_write
+
+DEFAULT_METHODS = ("dopri", "projection", "projection:CVODES", "baumgarte", "idas", "ggl", "rattle")
+DEFAULT_TOLERANCES = (1e-6, 1e-8, 1e-10, 1e-12)
+#: rattle is fixed-step: tolerance k of the list maps to the k-th of these steps.
+RATTLE_STEPS = (1e-2, 3e-3, 1e-3, 3e-4)
+COLUMNS = ("method", "rtol", "dt", "error", "constraint_residual", "velocity_residual",
+           "energy_drift", "wall_time_s", "steps", "nfev", "status")
+
+
+class _Skip(Exception):
+    """No numerical cross-check needed: the reference is a closed form."""
+
+
+@dataclass
+class BenchResult:
+    scene: str
+    t_end: float
+    rows: list[dict] = field(default_factory=list)
+    reference_error: float = float("nan")
+    conserves_energy: bool = False
+    notes: list[str] = field(default_factory=list)
+
+    def csv(self) -> str:
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        for row in self.rows:
+            writer.writerow({k: _fmt(row.get(k)) for k in COLUMNS})
+        return buf.getvalue()
+
+    def markdown(self) -> str:
+        lines = [f"### Work-precision: {self.scene}, t_end = {self.t_end:g} s", ""]
+        lines += [f"- {note}" for note in self.notes] + [""]
+        lines.append("| method | rtol / dt | error at t_end [m] | max constraint residual | "
+                     "energy drift [J] | wall time [s] | steps |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for r in self.rows:
+            setting = f"dt {r['dt']:g}" if r["method"] == "rattle" else f"{r['rtol']:g}"
+            if r["status"] != "ok":
+                lines.append(f"| {r['method']} | {setting} | {r['status']} | | | | |")
+                continue
+            lines.append(
+                f"| {r['method']} | {setting} | {_err(r['error'], self.reference_error)} | "
+                f"{r['constraint_residual']:.1e} | {_fmt(r['energy_drift'])} | "
+                f"{r['wall_time_s']:.3g} | {r['steps']} |"
+            )
+        return "\n".join(lines) + "\n"
+
+    def figure(self):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(11, 4.5))
+        FigureCanvasAgg(fig)
+        ax1, ax2 = fig.subplots(1, 2)
+        floor = max(self.reference_error, 1e-16) if math.isfinite(self.reference_error) else 1e-16
+        for method in dict.fromkeys(r["method"] for r in self.rows):
+            rows = [r for r in self.rows if r["method"] == method and r["status"] == "ok"]
+            if not rows:
+                continue
+            t = [r["wall_time_s"] for r in rows]
+            ax1.loglog(t, [max(r["error"], floor) for r in rows], "o-", label=method)
+            ax2.loglog(t, [max(r["constraint_residual"], 1e-17) for r in rows], "o-", label=method)
+        if math.isfinite(self.reference_error) and self.reference_error > 0:
+            ax1.axhline(self.reference_error, color="grey", ls="--", lw=1, label="reference accuracy")
+        ax1.set(xlabel="wall time [s]", ylabel="position error at t_end [m]",
+                title=f"Work-precision: {self.scene} (t_end = {self.t_end:g} s)")
+        ax2.set(xlabel="wall time [s]", ylabel="max constraint residual |f| [m]",
+                title="Constraint drift")
+        for ax in (ax1, ax2):
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        return fig
+
+    def write(self, out_dir) -> list[Path]:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = [out / "bench.csv", out / "bench.md", out / "bench.png"]
+        atomic_write(paths[0], lambda f: f.write(self.csv().encode()))
+        atomic_write(paths[1], lambda f: f.write(self.markdown().encode()))
+        fig = self.figure()
+        atomic_write(paths[2], lambda f: fig.savefig(f, format="png", dpi=110))
+        return paths
+
+
+def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=DEFAULT_TOLERANCES,
+                   repeats: int = 3, name: str = "", progress=None, error_of=None,
+                   reference_note: str = "") -> BenchResult:
+    """Measure every (method, tolerance) on ``system`` up to ``t_end`` (see module doc).
+
+    ``error_of(trajectory) -> float`` replaces the numerical reference, e.g. a scene's
+    declared closed form (``scene.closed_form_error``); ``reference_note`` says what it is.
+    """
+    from ..solvers import METHODS
+
+    unknown = [m for m in methods if m.split(":")[0] not in METHODS]
+    if unknown:
+        raise InputError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(METHODS)})")
+    if not tolerances or any(not (0 < tol < 1) for tol in tolerances):
+        raise InputError("tolerances must be numbers between 0 and 1")
+    if repeats < 1:
+        raise InputError("repeats must be at least 1")
+    result = BenchResult(scene=name or system.name or "scene", t_end=float(t_end))
+    ref = simulate(system, t_end, rtol=1e-13, atol=1e-13, t_eval=[0.0, t_end])
+    x_ref = ref.x[-1]
+    if error_of is not None:
+        result.reference_error = float(error_of(ref))
+        result.notes.append(f"reference: {reference_note or 'the closed form'}; projection at rtol 1e-13 "
+                            f"differs from it by {result.reference_error:.1e}")
+
+        def measure(tr):
+            return float(error_of(tr))
+    else:
+        def measure(tr):
+            return float(np.max(np.abs(tr.x[-1] - x_ref)))
+    try:
+        if error_of is not None:
+            raise _Skip
+        check = simulate(system, t_end, method="idas", rtol=1e-13, atol=1e-13, t_eval=[0.0, t_end])
+        result.reference_error = float(np.max(np.abs(check.x[-1] - x_ref)))
+        result.notes.append(
+            f"reference: projection at rtol 1e-13; idas at 1e-13 agrees within "
+            f"{result.reference_error:.1e} m, so errors below that are not measurable"
+        )
+    except _Skip:
+        pass
+    except RunInterrupted:  # Ctrl-C stops the whole measurement, not just this run
+        raise KeyboardInterrupt from None
+    except (InputError, SimulationError) as exc:
+        result.notes.append(f"reference: projection at rtol 1e-13 (not cross-checked: {exc})")
+    if math.isfinite(result.reference_error) and result.reference_error > 1e-6:
+        result.notes.append(
+            "the reference itself cannot be trusted to better than "
+            f"{result.reference_error:.1e} m at t_end (chaotic or very sensitive motion): judge "
+            "the methods on constraint residual and energy drift, or shorten t_end"
+        )
+    model = assemble(system)  # one model for every run: solvers keep what they build on it
+    model_terms = set(ref.info.get("active_terms", ()))
+    result.conserves_energy = not model_terms & {
+        "rheonomic", "dissipation", "applied_force", "time_dependent_forces"
+    }
+    for method in methods:
+        with _casadi_stderr() as printed:
+            _bench_method(result, system, t_end, method, tolerances, repeats, model, measure, progress)
+        _report_casadi_messages(result, method, printed)
+    return result
+
+
+def _bench_method(result, system, t_end, method, tolerances, repeats, model, measure, progress) -> None:
+    """The rows of one method: each setting timed ``repeats`` times, then measured densely."""
+    name, _, base = method.partition(":")  # "projection:CVODES" picks a base integrator
+    extra = {"base": base} if base else {}
+    settings = (
+        [dict(dt=dt) for dt in RATTLE_STEPS[: len(tolerances)]]
+        if name == "rattle"
+        else [dict(rtol=tol, atol=tol, **extra) for tol in tolerances]
+    )
+    for opts in settings:
+        if progress:
+            progress(method, opts)
+        row = {"method": method, "rtol": opts.get("rtol", float("nan")),
+               "dt": opts.get("dt", float("nan")), "status": "ok"}
+        times = []
+        try:
+            for _ in range(repeats):
+                tr = simulate(system, t_end, method=name, t_eval=[0.0, t_end], model=model,
+                              outputs={"energy", "constraint_residual", "velocity_residual"}, **opts)
+                times.append(tr.stats["wall_time_s"])
+        except RunInterrupted:  # Ctrl-C: not a failed method; the measurement stops
+            raise KeyboardInterrupt from None
+        except (InputError, SimulationError) as exc:
+            row["status"] = f"failed: {str(exc).splitlines()[0][:120]}"
+            result.rows.append(row)
+            continue
+        try:  # every step's residuals and energy (no output grid)
+            dense = simulate(system, t_end, method=name, model=model, **opts,
+                             outputs={"energy", "constraint_residual", "velocity_residual"})
+        except RunInterrupted:
+            raise KeyboardInterrupt from None
+        except (InputError, SimulationError) as exc:
+            row["status"] = f"failed without an output grid: {str(exc).splitlines()[0][:100]}"
+            result.rows.append(row)
+            continue
+        row.update(
+            error=measure(tr),
+            constraint_residual=float(np.max(dense.constraint_residual)),
+            velocity_residual=float(np.max(dense.velocity_residual)),
+            energy_drift=(float(np.max(np.abs(dense.energy - dense.energy[0])))
+                          if result.conserves_energy else float("nan")),
+            wall_time_s=statistics.median(times),
+            steps=int(tr.stats.get("steps", 0)),
+            nfev=int(tr.stats.get("nfev", 0)),
+        )
+        result.rows.append(row)
+
+
+#: CasADi messages a bench summarizes in a note instead of repeating: pattern -> plain words
+_CASADI_NOTES = {
+    "NLP is overconstrained": (
+        "CasADi said {count} time(s) that an NLP \"is overconstrained\": {method} set up a "
+        "system with more equations than unknowns (the constraints together with their time "
+        "derivatives, which agree on the constraint manifold). It is a notice, not a failure: the "
+        "rows are measured all the same, so judge {method} by its error and residual columns."
+    ),
+}
+
+
+@contextmanager
+def _casadi_stderr():
+    """Capture what is printed on stderr inside the block — through ``sys.stderr`` (where
+    CasADi's Python bindings send its warnings) and on file descriptor 2 (C code writing
+    directly); yields the list of lines, filled at the end."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    python_level = io.StringIO()  # CasADi's Python bindings write through sys.stderr
+    try:
+        saved = os.dup(2)
+    except OSError:  # no file descriptor 2: capture what goes through sys.stderr only
+        saved = None
+    with tempfile.TemporaryFile() as tmp:
+        if saved is not None:
+            os.dup2(tmp.fileno(), 2)
+        try:
+            with redirect_stderr(python_level):
+                yield lines
+        finally:
+            if saved is not None:
+                os.dup2(saved, 2)
+                os.close(saved)
+            tmp.seek(0)
+            lines.extend(python_level.getvalue().splitlines())
+            lines.extend(tmp.read().decode("utf-8", "replace").splitlines())
+
+
+def _report_casadi_messages(result: BenchResult, method: str, lines: list[str]) -> None:
+    """Known CasADi warnings become one note per method; anything else is printed as it was."""
+    counts = dict.fromkeys(_CASADI_NOTES, 0)
+    for line in lines:
+        known = next((k for k in _CASADI_NOTES if k in line), None)
+        if known:
+            counts[known] += 1
+        elif line.strip():
+            print(line, file=sys.stderr)
+    for key, count in counts.items():
+        if count:
+            result.notes.append(_CASADI_NOTES[key].format(count=count, method=method))
+
+
+def _err(error: float, reference_error: float) -> str:
+    if math.isfinite(reference_error) and error < reference_error:
+        return f"< {reference_error:.1e} (reference limit)"
+    return f"{error:.2e}"
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return "" if math.isnan(value) else f"{value:.6g}"
+    return str(value)

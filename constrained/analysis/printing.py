@@ -1,0 +1,215 @@
+"""Readable printouts of the reduced route's equations: T, V, L, the momenta and Lagrange's
+equations in the names of the coordinates, their rates and the scene's parameters.
+
+- ``describe``: the printout (text, or LaTeX through SymPy, the ``pretty`` extra);
+- ``pretty``: one SX expression as compact infix text (simplified by SymPy when installed);
+- ``to_sympy``: one SX expression as a SymPy expression, to hand on (``sympy.latex``, solving);
+- ``symbolic_reduced``: a ReducedModel's expressions with the parameters as named symbols.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+from ..errors import InputError
+from ..run.reduced import ReducedModel
+
+__all__ = ["describe", "pretty", "symbolic_reduced", "to_sympy"]
+
+_BINARY = {
+    ca.OP_ADD: ("+", 1), ca.OP_SUB: ("-", 1), ca.OP_MUL: ("*", 2), ca.OP_DIV: ("/", 2),
+}
+_UNARY = {
+    ca.OP_SIN: "sin", ca.OP_COS: "cos", ca.OP_TAN: "tan", ca.OP_EXP: "exp", ca.OP_LOG: "log",
+    ca.OP_SQRT: "sqrt", ca.OP_ASIN: "asin", ca.OP_ACOS: "acos", ca.OP_ATAN: "atan",
+    ca.OP_SINH: "sinh", ca.OP_COSH: "cosh", ca.OP_TANH: "tanh", ca.OP_FABS: "abs",
+}
+
+
+def pretty(expr, digits: int = 6, *, simplify: bool = True, latex: bool = False) -> str:
+    """A compact infix string of a scalar SX expression (``sq(x)`` → ``x^2``).
+
+    With SymPy installed (the ``pretty`` extra) and ``simplify``, the expression is
+    expanded and trigonometrically simplified first (``cos(a)cos(b) + sin(a)sin(b)`` →
+    ``cos(a - b)``); without it, CasADi's graph is printed as it is. ``latex``: LaTeX
+    (through SymPy, which it needs).
+    """
+    expr = ca.SX(expr)
+    if expr.numel() != 1:
+        parts = [pretty(expr[k], digits, simplify=simplify, latex=latex) for k in range(expr.numel())]
+        return (r"\left[" + ", ".join(parts) + r"\right]") if latex else "[" + ", ".join(parts) + "]"
+    if simplify or latex:
+        sympy = _sympy(required=latex)
+        if sympy is not None:
+            converted = _to_sympy(expr, sympy, {})
+            simplified = sympy.trigsimp(sympy.expand(converted)) if simplify else converted
+            if simplified.atoms(sympy.Float):
+                simplified = simplified.evalf(digits)
+                simplified = simplified.xreplace({f: sympy.Integer(int(f)) for f in
+                                                  simplified.atoms(sympy.Float) if float(f).is_integer()})
+            return sympy.latex(simplified) if latex else str(simplified).replace("**", "^")
+    return _pp(expr, digits)[0]
+
+
+def _sympy(*, required: bool):
+    """The sympy module, or None when it is not installed (InputError when ``required``)."""
+    try:
+        import sympy
+    except ImportError:
+        if required:
+            raise InputError("LaTeX output needs SymPy: install the 'pretty' extra "
+                             "(pip install 'constrained[pretty]') or leave LaTeX off") from None
+        return None
+    return sympy
+
+
+def to_sympy(expr):
+    """A scalar CasADi SX expression as a SymPy expression (symbols keep their names: the
+    coordinates, their rates and the parameters). Needs SymPy (the ``pretty`` extra)."""
+    expr = ca.SX(expr)
+    if expr.numel() != 1:
+        raise InputError(f"to_sympy takes a scalar expression, got {expr.numel()} entries")
+    return _to_sympy(expr, _sympy(required=True), {})
+
+
+def _to_sympy(e, sympy, names: dict):
+    """The SX graph of ``e`` as a SymPy expression (same op-codes as ``_pp``)."""
+    if e.is_symbolic():
+        return names.setdefault(e.name(), sympy.Symbol(e.name(), real=True))
+    if e.is_constant():
+        v = float(e)
+        return sympy.Integer(int(v)) if v.is_integer() and abs(v) < 1e15 else sympy.Float(v)
+    op = e.op()
+    a = _to_sympy(e.dep(0), sympy, names)
+    if op == ca.OP_NEG:
+        return -a
+    if op == ca.OP_SQ:
+        return a**2
+    if op == ca.OP_TWICE:
+        return 2 * a
+    if op == ca.OP_INV:
+        return 1 / a
+    if op in _UNARY:
+        return getattr(sympy, {"abs": "Abs"}.get(_UNARY[op], _UNARY[op]))(a)
+    b = _to_sympy(e.dep(1), sympy, names)
+    if op in (ca.OP_POW, ca.OP_CONSTPOW):
+        return a**b
+    if op == ca.OP_ATAN2:
+        return sympy.atan2(a, b)
+    ops = {ca.OP_ADD: a + b, ca.OP_SUB: a - b, ca.OP_MUL: a * b} if op != ca.OP_DIV else {op: a / b}
+    if op in ops:
+        return ops[op]
+    return sympy.sympify(str(e))
+
+
+def _num(value: float, digits: int) -> str:
+    if float(value).is_integer() and abs(value) < 1e15:
+        return str(int(value))
+    return f"{value:.{digits}g}"
+
+
+def _pp(e, digits: int) -> tuple[str, int]:
+    """(text, precedence): 3 atom, 2 product, 1 sum."""
+    if e.is_symbolic():
+        return e.name(), 3
+    if e.is_constant():
+        v = float(e)
+        return (_num(v, digits), 3 if v >= 0 else 1)
+    op = e.op()
+    if op == ca.OP_NEG:
+        s, p = _pp(e.dep(0), digits)
+        return "-" + (s if p >= 2 else f"({s})"), 1
+    if op == ca.OP_SQ:
+        s, p = _pp(e.dep(0), digits)
+        return (s if p >= 3 else f"({s})") + "^2", 3
+    if op == ca.OP_TWICE:
+        s, p = _pp(e.dep(0), digits)
+        return "2*" + (s if p >= 2 else f"({s})"), 2
+    if op == ca.OP_POW or op == ca.OP_CONSTPOW:
+        a, pa = _pp(e.dep(0), digits)
+        b, pb = _pp(e.dep(1), digits)
+        return (a if pa >= 3 else f"({a})") + "^" + (b if pb >= 3 else f"({b})"), 3
+    if op in _UNARY:
+        return f"{_UNARY[op]}({_pp(e.dep(0), digits)[0]})", 3
+    if op in _BINARY:
+        sym, prec = _BINARY[op]
+        a, pa = _pp(e.dep(0), digits)
+        b, pb = _pp(e.dep(1), digits)
+        if pa < prec:
+            a = f"({a})"
+        if pb < prec or (pb == prec and sym in "-/"):
+            b = f"({b})"
+        if sym == "+" and b.startswith("-"):
+            return f"{a} - {b[1:]}" if pb >= 2 else f"{a} + ({b})", 1
+        return (f"{a} {sym} {b}" if prec == 1 else f"{a}*{b}" if sym == "*" else f"{a}/{b}"), prec
+    return str(e), 3
+
+
+def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int = 4000,
+             latex: bool = False) -> str:
+    """T, V, L, the conjugate momenta and Lagrange's equations ``M q̈ = rhs`` as text, in the
+    names of the coordinates, their rates and the scene's parameters (``m1``, ``l1``, ``g``:
+    their values are not substituted). ``latex``: LaTeX lines (needs SymPy, the ``pretty``
+    extra)."""
+    if not isinstance(scene_or_model, ReducedModel):
+        scene_or_model = ReducedModel.from_scene(scene_or_model, parameters=parameters)
+    rm = symbolic_reduced(scene_or_model)
+    if latex:
+        return _describe_latex(rm)
+    ex = rm.expressions
+    lines = [f"coordinates: {', '.join(rm.coordinates)}" + ("  (rheonomic map)" if rm.rheonomic else "")]
+    for name in ("T", "V", "U", "R", "L"):
+        e = ex[name]
+        if name in ("U", "R") and ca.SX(e).is_zero():
+            continue
+        lines.append(f"{name} = {pretty(e)}")
+    for j, c in enumerate(rm.coordinates):
+        lines.append(f"p_{c} = {pretty(ex['p'][j])}")
+    E = ca.mtimes(ex["M"], rm.q_ddot) - ex["rhs"]
+    for j, c in enumerate(rm.coordinates):
+        lines.append(f"equation for {c}: {pretty(E[j])} = 0")
+    text = "\n".join(lines)
+    if len(text) > max_chars:
+        text = text[:max_chars] + "\n… (truncated)"
+    return text
+
+
+def symbolic_reduced(rm: ReducedModel) -> ReducedModel:
+    """The same reduced model with the system's parameters and definitions as SX symbols and
+    expressions named after them (``expressions`` only: no Functions, no checks)."""
+    if rm.symbolic_parameters:
+        return rm
+    system = rm.system
+    extra = {k: v for k, v in rm.parameters.items()
+             if k not in system.parameters and k not in system.definitions}
+    return ReducedModel(system, rm.coordinates, rm.map, parameters=extra, t0=rm.t0, check=False,
+                        symbolic_parameters=True)
+
+
+def _describe_latex(rm: ReducedModel) -> str:
+    """describe's lines as LaTeX: q̇ as \\dot q, q̈ as \\ddot q."""
+    sympy = _sympy(required=True)
+    names: dict = {}
+    for c in rm.coordinates:
+        base = sympy.latex(sympy.Symbol(c))
+        names[f"{c}_dot"] = sympy.Symbol(rf"\dot{{{base}}}", real=True)
+        names[f"{c}_ddot"] = sympy.Symbol(rf"\ddot{{{base}}}", real=True)
+
+    def tex(e) -> str:
+        s = sympy.trigsimp(sympy.expand(_to_sympy(ca.SX(e), sympy, names)))
+        s = s.xreplace({f: sympy.Integer(int(f)) for f in s.atoms(sympy.Float) if float(f).is_integer()})
+        return sympy.latex(s)
+
+    ex = rm.expressions
+    lines = []
+    for name in ("T", "V", "U", "R", "L"):
+        if name in ("U", "R") and ca.SX(ex[name]).is_zero():
+            continue
+        lines.append(f"{name} = {tex(ex[name])}")
+    for j, c in enumerate(rm.coordinates):
+        lines.append(f"p_{{{sympy.latex(sympy.Symbol(c))}}} = {tex(ex['p'][j])}")
+    E = ca.mtimes(ex["M"], rm.q_ddot) - ex["rhs"]
+    for j in range(len(rm.coordinates)):
+        lines.append(f"{tex(E[j])} = 0")
+    return "\n".join(lines)
+

@@ -1,0 +1,526 @@
+"""Statics by the principle of virtual work: equilibrium, reactions, stability, generalized forces.
+
+At rest the equations of motion ``M x'' = F + Jᵀλ`` (DESIGN.md) reduce to the KKT conditions
+
+    F(x) + J(x)ᵀ λ = 0,   f(x, t) = 0,
+
+with ``F`` the applied force at zero velocity (for potential forces ``F = −∇V``). This is the
+principle of virtual work: ``δW = F·δx = 0`` for every admissible virtual displacement
+(``J δx = 0``), because the ideal constraint forces ``Jᵀλ`` do no virtual work.
+
+Sign conventions (the package's): the constraint force on particle i is ``(Jᵀλ)_i``; the
+Lagrangian of statics is ``L(x, λ) = V(x) − λᵀ f(x)`` so that ``∇ₓL = −(F + Jᵀλ)``; its
+Hessian restricted to the tangent space ``null(J)`` decides stability (all eigenvalues
+positive: a strict constrained minimum of V, stable). ``anchor_reactions`` give the force the
+support exerts on the particles; the load on the support is the negative.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ..errors import InputError
+from ..manifold import residual
+from ..manifold.dense import schur_solve, tangent_basis
+from ..manifold.manifold import Manifold
+from ..model.structure import Model, assemble
+from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
+
+#: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
+#: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
+#: beside a 1e6 kg one on the same footing: both swing with ω² = g/L.
+STABILITY_RTOL = 1e-8
+#: Convergence: force balance within FORCE_RTOL × force scale, constraints within LENGTH_RTOL × size.
+FORCE_RTOL = 1e-10
+LENGTH_RTOL = 1e-12
+
+__all__ = [
+    "Equilibrium",
+    "equilibrium",
+    "virtual_work",
+    "constraint_virtual_work_residual",
+    "generalized_forces",
+    "tangent_basis",
+]
+
+
+@dataclass
+class Equilibrium:
+    """A static equilibrium ``F(x) + Jᵀλ = 0, f(x) = 0`` and what follows from it.
+
+    Shapes: ``x``, ``constraint_forces``, ``applied_forces`` (N, 3); ``multipliers`` (C,);
+    ``eigenvalues`` (d,) of the tangent-space Hessian of ``V − λ·f`` (d = 3N − rank J);
+    ``frequencies_squared`` (d,) the squared small-oscillation frequencies ω² [1/s²] of the
+    mass-weighted problem, which decide ``stable``; ``soft_modes`` (k, N, 3) unit tangent
+    directions whose ω² is zero within ``stability_tolerance`` [1/s²].
+    ``anchor_reactions``: (constraint label, support force) for each constraint tying
+    particles to the environment; the support force is the net constraint force on the
+    particles, ``Σ_i (J_kᵀ λ_k)_i``; the force on the support is its negative.
+    ``stable``: True (strict minimum), False (some negative eigenvalue), None (neutral, or the
+    forces are not conservative so the energy test does not apply).
+    """
+
+    x: np.ndarray
+    multipliers: np.ndarray
+    constraint_forces: np.ndarray
+    applied_forces: np.ndarray
+    anchor_reactions: list[tuple[str, np.ndarray]]
+    stable: bool | None
+    eigenvalues: np.ndarray
+    soft_modes: np.ndarray
+    virtual_work_residual: float
+    constraint_virtual_work_residual: float
+    converged: bool
+    iterations: int
+    particle_names: list[str] = field(default_factory=list)
+    constraint_labels: list[str] = field(default_factory=list)
+    t: float = 0.0
+    potential_energy: float = 0.0
+    conservative: bool = True
+    stability_tolerance: float = 0.0
+    tangent_basis: np.ndarray | None = None
+    frequencies_squared: np.ndarray | None = None
+    method: str = "newton"
+    max_constraint_residual: float = 0.0
+    #: One-sided constraint rows that do not hold at this equilibrium (their force would have
+    #: the forbidden sign there; multiplier 0).
+    slack: list[str] = field(default_factory=list)
+
+    @property
+    def degrees_of_freedom(self) -> int:
+        """Dimension of the tangent space, 3N − rank J."""
+        return int(len(self.eigenvalues))
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dictionary (plain lists and floats)."""
+        names = self.particle_names or [f"p{i}" for i in range(len(self.x))]
+        labels = self.constraint_labels or [f"constraint {k}" for k in range(len(self.multipliers))]
+        return {
+            "t": self.t,
+            "converged": self.converged,
+            "iterations": self.iterations,
+            "method": self.method,
+            "particles": [
+                {
+                    "name": n,
+                    "position": self.x[i].tolist(),
+                    "applied_force": self.applied_forces[i].tolist(),
+                    "constraint_force": self.constraint_forces[i].tolist(),
+                }
+                for i, n in enumerate(names)
+            ],
+            "multipliers": [
+                {"constraint": label, "value": float(v)}
+                for label, v in zip(labels, self.multipliers, strict=True)
+            ],
+            "anchor_reactions": [
+                {"constraint": label, "support_force": f.tolist(), "load_on_support": (-f).tolist()}
+                for label, f in self.anchor_reactions
+            ],
+            "potential_energy": self.potential_energy,
+            "stable": self.stable,
+            "conservative": self.conservative,
+            "eigenvalues": self.eigenvalues.tolist(),
+            "frequencies_squared": ([] if self.frequencies_squared is None
+                                    else self.frequencies_squared.tolist()),
+            "stability_tolerance": self.stability_tolerance,
+            "soft_modes": self.soft_modes.tolist(),
+            "virtual_work_residual": self.virtual_work_residual,
+            "constraint_virtual_work_residual": self.constraint_virtual_work_residual,
+            "max_constraint_residual": self.max_constraint_residual,
+            "slack": list(self.slack),
+        }
+
+    def __repr__(self) -> str:
+        verdict = {True: "stable", False: "unstable", None: "neutral"}[self.stable]
+        return (
+            f"Equilibrium({len(self.x)} particles, {verdict}, virtual work residual "
+            f"{self.virtual_work_residual:.3g}, {self.iterations} iterations)"
+        )
+
+
+# --- building blocks ---------------------------------------------------------------------------
+
+
+def _flat(system, x, what: str = "x") -> np.ndarray:
+    n3 = 3 * system.n_particles
+    try:
+        arr = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be an array of positions, shape (N, 3)", where=what) from None
+    if arr.size != n3:
+        raise InputError(
+            f"{what} must hold one position per particle, shape ({system.n_particles}, 3); "
+            f"got shape {arr.shape}",
+            where=what,
+        )
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{what} has non-finite entries", where=what)
+    return arr.reshape(n3)
+
+
+def _forces_at_rest(model: Model, x: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """F(x, v = 0, t) (3N,) and J (C, 3N)."""
+    F, J, _ = model.dynamics(x, np.zeros_like(x), t)
+    return np.asarray(F, float).ravel(), np.asarray(J, float).reshape(model.n_constraints, -1)
+
+
+def virtual_work(system, x, t: float = 0.0, *, model: Model | None = None) -> float:
+    """max |δW| over unit admissible virtual displacements: ‖Nᵀ F‖₂, N an orthonormal basis
+    of null(J(x)), F = all effects' forces at (x, v = 0, t). Zero exactly at equilibrium."""
+    model = model or assemble(system)
+    xf = _flat(system, x)
+    F, J = _forces_at_rest(model, xf, t)
+    N = tangent_basis(J, xf.size)
+    return float(np.linalg.norm(N.T @ F))
+
+
+def constraint_virtual_work_residual(system, x, lam, t: float = 0.0, *, model: Model | None = None) -> float:
+    """max |Σ F_con,i · δx_i| over unit admissible δx: ‖Nᵀ Jᵀλ‖₂ (ideal constraints do no
+    virtual work, so this is ~0; it measures the numerical quality of J and its null space)."""
+    model = model or assemble(system)
+    xf = _flat(system, x)
+    _, J = _forces_at_rest(model, xf, t)
+    lam = np.asarray(lam, float).ravel()
+    if lam.size != model.n_constraints:
+        raise InputError(
+            f"lam must have {model.n_constraints} entries (one per constraint row), got {lam.size}"
+        )
+    N = tangent_basis(J, xf.size)
+    return float(np.linalg.norm(N.T @ (J.T @ lam))) if lam.size else 0.0
+
+
+def generalized_forces(system, x, map_jacobian, t: float = 0.0, *, model: Model | None = None) -> np.ndarray:
+    """Q_j = Σ_i F_i · ∂x_i/∂q_j (n,), from the Jacobian ∂x/∂q of a coordinate map, shape
+    (3N, n) (or (N, 3, n)), with F = all effects' forces at (x, v = 0, t).
+
+    For potential forces Q_j = −∂V/∂q_j. Constraint forces are left out: when the map satisfies
+    the constraints identically, (∂x/∂q)ᵀ Jᵀ λ = 0 and they contribute nothing.
+    """
+    model = model or assemble(system)
+    xf = _flat(system, x)
+    D = np.asarray(map_jacobian, dtype=float)
+    D = D.reshape(xf.size, -1) if D.ndim != 2 else D
+    if D.shape[0] != xf.size:
+        raise InputError(
+            f"map_jacobian must have 3N = {xf.size} rows (∂x/∂q), got shape {np.shape(map_jacobian)}"
+        )
+    F, _ = _forces_at_rest(model, xf, t)
+    return D.T @ F
+
+
+def _min_norm_multipliers(model: Model, J: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """λ with Jᵀλ = −F in the mass-weighted least-squares sense, (J M⁻¹ Jᵀ) λ = −J M⁻¹ F: the
+    multipliers that keep every particle at rest (a = 0), minimum-norm for redundant rows
+    (identical rods share the load evenly), accurate whatever the spread of the masses."""
+    if J.shape[0] == 0:
+        return np.zeros(0)
+    return schur_solve(J, model.inverse_masses, -J @ (model.inverse_masses * F))
+
+
+class _KKT:
+    """CasADi functions of the static problem of one model at a fixed t."""
+
+    def __init__(self, model: Model, t: float):
+        n3, C = model.n_coordinates, model.n_constraints
+        xs, lam = ca.SX.sym("x", n3), ca.SX.sym("lam", C)
+        F, J, _ = model.dynamics(xs, ca.SX.zeros(n3), t)
+        f = model.constraint(xs, t)
+        g = F + ca.mtimes(J.T, lam)  # force balance = −∇ₓ(V − λᵀf)
+        K = -ca.jacobian(g, xs)  # ∇²ₓ(V − λᵀf) for potential forces
+        r = ca.vertcat(g, f)
+        self.residual = ca.Function("kkt", [xs, lam], [r, ca.jacobian(r, ca.vertcat(xs, lam))])
+        self.stiffness = ca.Function("stiffness", [xs, lam], [K])
+        self.potential = ca.Function("V", [xs], [model.potential(xs, t)])
+        self.objective = model.potential(xs, t)
+        self.f = f
+        self.xs = xs
+        self.n3, self.C = n3, C
+
+    def residual_and_jacobian(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, A = self.residual(z[: self.n3], z[self.n3 :])
+        return np.asarray(r, float).ravel(), np.asarray(A, float)
+
+
+def _newton(
+    kkt: _KKT, z: np.ndarray, w: np.ndarray, max_iter: int, restore=None
+) -> tuple[np.ndarray, int, bool]:
+    """Newton on the scaled KKT residual W r(z) = 0 with a backtracking line search on
+    ½‖W r‖², falling back to Levenberg–Marquardt steps when the Newton step does not descend.
+    Steps use least squares (minimum norm) so redundant constraints do no harm. ``restore``
+    maps each trial point back onto f = 0 (a second-order correction: without it the
+    curvature of the constraints forces tiny steps)."""
+    restore = restore or (lambda z: z)
+    z = restore(z)
+    r, A = kkt.residual_and_jacobian(z)
+    merit = 0.5 * float(np.sum((w * r) ** 2))
+    polish = 0
+    for it in range(1, max_iter + 1):
+        if not np.isfinite(merit):
+            return z, it, False
+        if np.all(np.abs(w * r) <= 1.0):
+            polish += 1  # within tolerance: a couple more steps take it to round-off
+            if polish > 2:
+                return z, it - 1, True
+        B = w[:, None] * A
+        b = w * r
+        dz, *_ = np.linalg.lstsq(B, -b, rcond=1e-14)
+        accepted = False
+        alpha = 1.0
+        while alpha >= 1e-4:
+            zn = restore(z + alpha * dz)
+            rn, An = kkt.residual_and_jacobian(zn)
+            mn = 0.5 * float(np.sum((w * rn) ** 2))
+            if np.isfinite(mn) and mn <= (1.0 - 1e-4 * alpha) * merit:
+                accepted = True
+                break
+            alpha *= 0.5
+        if not accepted:
+            # Levenberg–Marquardt: (BᵀB + μI) dz = −Bᵀb, μ grown until the merit decreases
+            BtB, Btb = B.T @ B, B.T @ b
+            mu = 1e-6 * max(float(np.max(np.diag(BtB))), 1e-300)
+            for _ in range(16):
+                dz = np.linalg.solve(BtB + mu * np.eye(len(z)), -Btb)
+                zn = restore(z + dz)
+                rn, An = kkt.residual_and_jacobian(zn)
+                mn = 0.5 * float(np.sum((w * rn) ** 2))
+                if np.isfinite(mn) and mn < merit:
+                    accepted = True
+                    break
+                mu *= 10.0
+        if not accepted:
+            return z, it, bool(np.all(np.abs(w * r) <= 1.0))
+        z, r, A, merit = zn, rn, An, mn
+    return z, max_iter, bool(np.all(np.abs(w * r) <= 1.0))
+
+
+def _ipopt(kkt: _KKT, x0: np.ndarray) -> np.ndarray | None:
+    """A constrained minimum of V near x0 (IPOPT), or None when IPOPT fails."""
+    try:
+        nlp = {"x": kkt.xs, "f": kkt.objective, "g": kkt.f}
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-12}
+        solver = ca.nlpsol("statics", "ipopt", nlp, opts)
+        sol = solver(x0=x0, lbg=0, ubg=0)
+        x = np.asarray(sol["x"], float).ravel()
+        return x if np.all(np.isfinite(x)) else None
+    except RuntimeError:
+        return None
+
+
+def _anchor_reactions(model: Model, J: np.ndarray, lam: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Support forces of the constraint rows that tie particles to the environment.
+
+    A row is internal when f is unchanged by a rigid translation of all particles (the sum
+    over particles of its gradient blocks vanishes, e.g. a distance between two particles):
+    its forces cancel in pairs. Every other row is a support; rows of one constraint acting
+    on the same particles (the three rows of a pin) are summed into one force.
+    """
+    N = model.n_particles
+    groups: dict[tuple, list[int]] = {}
+    for k in range(model.n_constraints):
+        blocks = J[k].reshape(N, 3)
+        scale = float(np.max(np.linalg.norm(blocks, axis=1), initial=0.0))
+        if scale == 0 or np.linalg.norm(blocks.sum(axis=0)) <= 1e-12 * scale:
+            continue
+        touched = tuple(np.flatnonzero(np.linalg.norm(blocks, axis=1) > 0))
+        groups.setdefault((int(model.constraint_owner[k]), touched), []).append(k)
+    out = []
+    for (owner, _), rows in groups.items():
+        force = sum(J[k].reshape(N, 3).sum(axis=0) * lam[k] for k in rows)
+        n_rows_owner = int(np.sum(model.constraint_owner == owner))
+        if len(rows) > 1 and len(rows) == n_rows_owner:
+            label = model.system.constraints[owner].label
+        elif len(rows) > 1:
+            label = " + ".join(model.constraint_labels[k] for k in rows)
+        else:
+            label = model.constraint_labels[rows[0]]
+        out.append((label, np.asarray(force, float)))
+    return out
+
+
+def _worst_residual(model: Model, r: np.ndarray, w: np.ndarray, size: float = 1.0) -> str:
+    n3 = model.n_coordinates
+    k = int(np.nanargmax(np.abs(w * r)))
+    if k < n3:
+        name = model.system.particles[k // 3].name
+        return f"the force balance F + Jᵀλ on particle '{name}' ({'xyz'[k % 3]}) is off by {abs(r[k]):.3g} N"
+    label = model.constraint_labels[k - n3]
+    return f"constraint '{label}' is violated by {abs(r[k]) * w[k] * LENGTH_RTOL * size:.3g} m"
+
+
+# --- the equilibrium ---------------------------------------------------------------------------
+
+
+def equilibrium(
+    system,
+    x_guess=None,
+    t: float = 0.0,
+    *,
+    method: str = "auto",
+    max_iter: int = 100,
+    stability_rtol: float = STABILITY_RTOL,
+    model: Model | None = None,
+) -> Equilibrium:
+    """A static equilibrium near ``x_guess`` (default: the initial positions projected onto
+    the constraints): F(x, 0, t) + J(x)ᵀλ = 0, f(x, t) = 0.
+
+    ``method``: ``"newton"`` (Newton on the KKT conditions with a line search; finds any
+    stationary point, also unstable ones, near the guess), ``"ipopt"`` (a constrained minimum
+    of V by IPOPT, then Newton polish; potential forces only), ``"auto"`` (Newton, then IPOPT
+    if Newton fails). Multipliers are the minimum-norm solution of Jᵀλ = −F (redundant
+    constraints share the load). Raises InputError naming the largest residual when no
+    equilibrium is found.
+
+    One-sided constraints (constrained.unilateral) hold only where their force has the
+    allowed sign: starting from the rows touching at the guess, a row pulling (pushing) the
+    wrong way is dropped and a slack row that the equilibrium would violate is added, until
+    both hold; ``slack`` names the one-sided rows that do not hold (multiplier 0).
+    """
+    model = model or (assemble(system) if system.n_particles else None)
+    if model is None or not has_one_sided(model):
+        return _equilibrium(system, x_guess, t, method=method, max_iter=max_iter,
+                            stability_rtol=stability_rtol, model=model)
+    info = one_sided(model)
+    x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
+    g = gaps(model, x0, t) / scales(model, x0, t)
+    held = {k for k in info.rows if g[k] <= 1e-8 * system.size()}
+    for _ in range(2 * len(info.rows) + 1):
+        sub, rows = held_system(system, model, held)
+        eq = _equilibrium(sub, x_guess, t, method=method, max_iter=max_iter, stability_rtol=stability_rtol,
+                          model=None)
+        lam = np.zeros(model.n_constraints)
+        lam[rows] = eq.multipliers
+        step = statics_active_set(model, eq.x.ravel(), t, lam, held, system.size())
+        if step is None:
+            break
+        held = held - {step[1]} if step[0] == "drop" else held | {step[1]}
+    else:
+        raise InputError("no consistent set of holding one-sided constraints found (the active set "
+                         "cycles); give a starting configuration nearer the equilibrium (x_guess)")
+    eq.multipliers, eq.constraint_labels = lam, list(model.constraint_labels)
+    eq.slack = [model.constraint_labels[k] for k in info.rows if k not in held]
+    return eq
+
+
+def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model) -> Equilibrium:
+    """``equilibrium`` with every constraint two-sided."""
+    if system.n_particles == 0:
+        raise InputError("the system has no particles")
+    if method not in ("auto", "newton", "ipopt"):
+        raise InputError(f"unknown method {method!r} (choose from auto, newton, ipopt)", where="method")
+    if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+        raise InputError(f"t must be a finite number of seconds, got {t!r}", where="t")
+    model = model or assemble(system)
+    kkt = _KKT(model, float(t))
+    n3, C = model.n_coordinates, model.n_constraints
+    x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
+    size = system.size()
+    manifold = Manifold.at(model, x0, t)
+    if C:
+        projected = manifold.project_positions(x0, t, tol=1e-13 * size, max_iter=50)
+        if np.isfinite(projected.residual) and np.all(np.isfinite(projected.x)):
+            x0 = projected.x
+    F0, J0 = _forces_at_rest(model, x0, t)
+    lam0 = _min_norm_multipliers(model, J0, F0)
+    force_scale = max(
+        float(np.max(np.abs(F0), initial=0.0)), float(np.max(np.abs(J0.T @ lam0), initial=0.0)) if C else 0.0
+    )
+    force_scale = force_scale if force_scale > 0 else 1.0
+    # residual weights: one unit of the scaled residual is the convergence tolerance
+    # (constraint rows in metres: each over its scale, constrained.residual)
+    w = np.concatenate(
+        [np.full(n3, 1.0 / (FORCE_RTOL * force_scale)),
+         1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t))]
+    )
+
+    def restore(z: np.ndarray) -> np.ndarray:
+        """Project x onto f = 0 (mass-weighted Newton) and take the least-squares λ there."""
+        if not C:
+            return z
+        with np.errstate(all="ignore"):
+            projected = manifold.project_positions(z[:n3], t, tol=1e-14 * size, max_iter=8)
+            xr, err = projected.x, projected.residual
+            if not (np.isfinite(err) and err <= 1e-10 * size and np.all(np.isfinite(xr))):
+                return z
+            Fr, Jr = _forces_at_rest(model, xr, t)
+            return np.concatenate([xr, _min_norm_multipliers(model, Jr, Fr)])
+
+    used = "newton"
+    iterations, converged, z = 0, False, np.concatenate([x0, lam0])
+    if method in ("auto", "newton"):
+        z, iterations, converged = _newton(kkt, np.concatenate([x0, lam0]), w, max_iter, restore)
+    if not converged and method in ("auto", "ipopt"):
+        conservative_only = not ({"applied_force", "generalized_potential"} & model.active_terms)
+        if conservative_only:
+            xi = _ipopt(kkt, x0)
+            if xi is not None:
+                Fi, Ji = _forces_at_rest(model, xi, t)
+                zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
+                zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
+                if conv2 or method == "ipopt":
+                    z, iterations, converged, used = zi, iterations + it2, conv2, "ipopt"
+    r, _ = kkt.residual_and_jacobian(z)
+    if not converged or not np.all(np.isfinite(z)):
+        raise InputError(
+            f"no static equilibrium found near the guess after {iterations} iterations: "
+            f"{_worst_residual(model, r, w, size)}; try another starting configuration (x_guess, or the "
+            "particles' positions), or check that the forces can be balanced by the constraints"
+        )
+    x = z[:n3]
+    F, J = _forces_at_rest(model, x, t)
+    lam = _min_norm_multipliers(model, J, F)
+    N = tangent_basis(J, n3)
+    K = np.asarray(kkt.stiffness(x, lam), float)
+    knorm = float(np.linalg.norm(K, 2)) if K.size else 0.0
+    conservative = bool(np.linalg.norm(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
+    Ks = 0.5 * (K + K.T)
+    H = N.T @ Ks @ N
+    eig = np.linalg.eigvalsh(H) if H.size else np.zeros(0)
+    # the verdict on the mass-weighted problem: ω² of (M^(-1/2) K M^(-1/2)) on null(J M^(-1/2)),
+    # congruent to H (same signs) but with every particle's scale its own
+    r = np.sqrt(model.inverse_masses)
+    Kw = r[:, None] * Ks * r[None, :]
+    Nw = tangent_basis(J * r[None, :], n3) if C else np.eye(n3)
+    omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
+    tol = stability_rtol * (float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0)
+    soft = np.abs(omega2) <= tol
+    if not conservative:
+        stable = None
+    elif np.any(omega2 < -tol):
+        stable = False
+    elif np.any(soft):
+        stable = None
+    else:
+        stable = True
+    modes = r[:, None] * (Nw @ vec[:, soft])
+    modes = modes / np.maximum(np.linalg.norm(modes, axis=0), 1e-300)
+    soft_modes = modes.T.reshape(-1, model.n_particles, 3)
+    Fc = J.T @ lam if C else np.zeros(n3)
+    return Equilibrium(
+        x=x.reshape(-1, 3),
+        multipliers=lam,
+        constraint_forces=Fc.reshape(-1, 3),
+        applied_forces=F.reshape(-1, 3),
+        anchor_reactions=_anchor_reactions(model, J, lam) if C else [],
+        stable=stable,
+        eigenvalues=eig,
+        frequencies_squared=omega2,
+        soft_modes=soft_modes,
+        virtual_work_residual=float(np.linalg.norm(N.T @ F)),
+        constraint_virtual_work_residual=float(np.linalg.norm(N.T @ Fc)),
+        converged=converged,
+        iterations=iterations,
+        particle_names=list(system.names),
+        constraint_labels=list(model.constraint_labels),
+        t=float(t),
+        potential_energy=float(kkt.potential(x)),
+        conservative=conservative,
+        stability_tolerance=tol,
+        tangent_basis=N,
+        method=used,
+        max_constraint_residual=residual.position_residual(model, x, t),  # metres
+    )

@@ -1,0 +1,1 @@
+"""The ``constrained`` command: ``main`` (parser, exit statuses) and one module per verb family."""

@@ -1,0 +1,494 @@
+"""Numerical diagnostics for hard cases: conditioning of the KKT solve along a run, rank drop
+of the constraint Jacobian (singular configurations, named), incompatible constraint sets,
+stiffness, and a scaled multiplier solve that stays accurate for extreme mass ratios.
+
+Everything here reads a Model's public CasADi Functions (``jacobian``, ``dynamics``,
+``constraint``) and a Trajectory; nothing changes the equations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .dense import schur_matrix
+from .manifold import RANK, Manifold, dense_jacobian
+
+#: Smallest singular value of the row-normalized Jacobian below which a configuration counts as
+#: singular: the rank policy's (constrained.manifold.RANK).
+SINGULAR_SIGMA = RANK.singular_sigma
+
+
+class StiffnessWarning(UserWarning):
+    """An explicit integrator's step is held down by stability, not accuracy: use an implicit base."""
+
+
+def _jacobians(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    n = len(t)
+    _, Jcat = model.evaluate(model.jacobian, X.reshape(n, -1), t)
+    return Jcat.reshape(model.n_constraints, n, model.n_coordinates).transpose(1, 0, 2)
+
+
+# --- conditioning and singular configurations ---------------------------------------------------
+@dataclass
+class Conditioning:
+    """Along a run: ``cond`` of J M⁻¹ Jᵀ (2-norm), ``cond_scaled`` of its Jacobi-scaled form,
+    ``sigma_min`` the smallest singular value of the row-normalized J (0 at a singular
+    configuration), and ``rank`` of J (relative cut-off ``SINGULAR_SIGMA``)."""
+
+    t: np.ndarray
+    cond: np.ndarray
+    cond_scaled: np.ndarray
+    sigma_min: np.ndarray
+    rank: np.ndarray
+    labels: list[str] = field(default_factory=list)
+
+    @property
+    def worst(self) -> int:
+        """Index of the sample closest to a singular configuration."""
+        return int(np.argmin(self.sigma_min))
+
+
+def _row_normalized(J: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(J, axis=1)
+    return J / np.where(norms > 0, norms, 1.0)[:, None]
+
+
+def conditioning(model, trajectory) -> Conditioning:
+    """cond(J M⁻¹ Jᵀ)(t) and the distance to a singular configuration along ``trajectory``."""
+    t = np.asarray(trajectory.t, float)
+    n = len(t)
+    if model.n_constraints == 0 or n == 0:
+        z = np.ones(n)
+        return Conditioning(t, z, z, z, np.zeros(n, int), [])
+    J = _jacobians(model, trajectory.x, t)
+    cond, cond_s, smin, rank = (np.empty(n) for _ in range(4))
+    for k in range(n):
+        A = schur_matrix(J[k], model.inverse_masses)
+        sv = np.linalg.svd(A, compute_uv=False)
+        cond[k] = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
+        d = 1.0 / np.sqrt(np.maximum(np.diag(A), np.finfo(float).tiny))
+        svs = np.linalg.svd(A * d[:, None] * d[None, :], compute_uv=False)
+        cond_s[k] = svs[0] / svs[-1] if svs[-1] > 0 else np.inf
+        svj = np.linalg.svd(_row_normalized(J[k]), compute_uv=False)
+        smin[k] = svj[-1] if svj.size >= J[k].shape[0] else 0.0
+        rank[k] = int(np.sum(svj > SINGULAR_SIGMA * max(svj[0], 1e-300)))
+    return Conditioning(t, cond, cond_s, smin, rank.astype(int), list(model.constraint_labels))
+
+
+@dataclass
+class Singularity:
+    """The constraints that become dependent at one state: ``sigma`` the smallest singular value
+    of the row-normalized J, ``rows`` the constraint indices in the dependency (largest weight
+    first), ``labels`` their names, ``weights`` their share in it."""
+
+    sigma: float
+    rows: list[int]
+    labels: list[str]
+    weights: list[float]
+
+    def describe(self) -> str:
+        names = ", ".join(f"'{name}'" for name in self.labels)
+        return (
+            f"the constraints {names} are (nearly) dependent there (smallest singular value of the "
+            f"row-normalized constraint Jacobian {self.sigma:.2g}): a toggle / dead-centre "
+            "configuration, where the motion can branch or the drive asks for a motion the "
+            "constraints cannot make"
+        )
+
+
+def _normalized_jacobian(model, x, t) -> np.ndarray:
+    J = dense_jacobian(model)(np.asarray(x, float).ravel(), t)[0]  # (a FunctionBuffer call)
+    return _row_normalized(J.reshape(model.n_coordinates, model.n_constraints).T)
+
+
+def numerical_rank(model, x, t: float = 0.0) -> int:
+    """Rank of the row-normalized J at (x, t) (relative cut-off ``SINGULAR_SIGMA``)."""
+    sv = np.linalg.svd(_normalized_jacobian(model, x, t), compute_uv=False)
+    return int(np.sum(sv > SINGULAR_SIGMA * max(sv[0], 1e-300))) if sv.size else 0
+
+
+def rank_sigma(model, x, t: float, rank: int) -> float:
+    """The rank-th singular value of the row-normalized J at (x, t): it falls to 0 where the
+    constraints lose rank (redundant rows beyond ``rank`` do not count)."""
+    sv = np.linalg.svd(_normalized_jacobian(model, x, t), compute_uv=False)
+    return float(sv[rank - 1]) if 0 < rank <= sv.size else 0.0
+
+
+def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: float = 0.05) -> Singularity:
+    """The near-dependency of the constraint rows at (x, t): the left singular vector of the
+    row-normalized J for its rank-th singular value (default: the smallest that rows and
+    coordinates allow), rows with weight above ``ignore``."""
+    Jn = _normalized_jacobian(model, x, t)
+    U, sv, _ = np.linalg.svd(Jn, full_matrices=True)
+    k = min(Jn.shape) if rank is None else rank
+    if k > sv.size or k <= 0:
+        sigma, u = 0.0, U[:, -1]
+    else:
+        sigma, u = float(sv[k - 1]), U[:, k - 1]
+    w = u**2
+    order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+    labels = model.constraint_labels
+    return Singularity(sigma, order, [labels[k] for k in order], [float(w[k]) for k in order])
+
+
+# --- incompatible constraint sets -----------------------------------------------------------------
+@dataclass
+class Incompatibility:
+    """The least-squares closest state to the constraints and what stays violated there.
+
+    ``compatible`` is False when no state satisfies all constraints near the start:
+    ``residual`` is then the smallest max |f| found and ``labels`` the constraints still
+    violated at that state (a set that cannot hold together).
+    """
+
+    compatible: bool
+    residual: float
+    labels: list[str]
+    violations: list[float]
+    x: np.ndarray
+
+    def describe(self) -> str:
+        if self.compatible:
+            return "the constraints are compatible"
+        items = ", ".join(f"'{n}' ({v:+.3g})" for n, v in zip(self.labels, self.violations, strict=True))
+        return (
+            f"the constraints cannot all hold: at the closest state (least squares) these stay "
+            f"violated: {items}; they contradict each other (lengths, triangle inequalities, anchors)"
+        )
+
+
+def incompatible_constraints(model, x0=None, t: float = 0.0, *, tol: float = 1e-8,
+                             max_iter: int = 200) -> Incompatibility:
+    """Minimize ½|f(x, t)|² from ``x0`` (Levenberg–Marquardt on the constraint rows) and name
+    the constraints that stay violated at the minimum. ``tol`` is relative to the size of x."""
+    x = np.asarray(model.system.positions if x0 is None else x0, float).ravel().copy()
+    scale = max(float(np.max(np.abs(x), initial=0.0)), 1.0)
+    mu = 1e-3
+    f, J = (np.asarray(a) for a in model.jacobian(x, t))
+    f = f.ravel()
+    cost = 0.5 * float(f @ f)
+    for _ in range(max_iter):
+        if np.max(np.abs(f), initial=0.0) <= tol * scale:
+            break
+        g = J.T @ f
+        H = J.T @ J
+        step = np.linalg.solve(H + mu * (np.diag(np.diag(H)) + 1e-12 * np.eye(len(x))), -g)
+        fn = np.asarray(model.constraint(x + step, t)).ravel()
+        cn = 0.5 * float(fn @ fn)
+        if np.isfinite(cn) and cn < cost:
+            x, cost, mu = x + step, cn, max(mu / 3, 1e-12)
+            f, J = (np.asarray(a) for a in model.jacobian(x, t))
+            f = f.ravel()
+            if np.linalg.norm(step) <= 1e-14 * scale:
+                break
+        else:
+            mu *= 4
+            if mu > 1e12:
+                break
+    res = float(np.max(np.abs(f), initial=0.0))
+    compatible = res <= tol * scale
+    bad = [] if compatible else [int(k) for k in np.argsort(-np.abs(f)) if abs(f[k]) > 1e-3 * res]
+    labels = model.constraint_labels
+    return Incompatibility(compatible, res, [labels[k] for k in bad], [float(f[k]) for k in bad], x)
+
+
+# --- stiffness ------------------------------------------------------------------------------------
+def spectral_radius(rhs, t: float, y: np.ndarray, f0: np.ndarray | None = None, *,
+                    iterations: int = 12, seed: int = 0) -> float:
+    """Estimate the largest |eigenvalue| of ∂rhs/∂y at (t, y): power iteration on directional
+    differences (a diagnostic only; the equations themselves are never differenced)."""
+    f0 = rhs(t, y) if f0 is None else f0
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal(y.shape)
+    w /= np.linalg.norm(w)
+    eps = 1e-7 * max(np.linalg.norm(y), 1.0)
+    growth = []
+    for _ in range(iterations):
+        jw = (rhs(t, y + eps * w) - f0) / eps
+        nrm = float(np.linalg.norm(jw))
+        if not np.isfinite(nrm) or nrm == 0:
+            break
+        growth.append(nrm)
+        w = jw / nrm
+    if not growth:
+        return 0.0
+    # complex pairs make single ratios oscillate: the geometric mean of the last few is robust
+    tail = np.array(growth[len(growth) // 2:])
+    return float(np.exp(np.mean(np.log(tail))))
+
+
+#: An explicit run is called stiff when, over at least STIFFNESS_MIN_STEPS steps, the median
+#: of h·ρ (sampled every STIFFNESS_EVERY accepted steps) sits near the stability boundary of
+#: the explicit method (about 3.3 for DOP853 on the negative real axis, 2.8 for RK45): the
+#: step is then held down by stability, not accuracy.
+STIFFNESS_EVERY = 50
+STIFFNESS_MIN_STEPS = 500
+STIFFNESS_H_RHO = 1.0
+
+
+def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, advice: str,
+                      stacklevel: int = 5) -> None:
+    """Record h·ρ in ``stats["stiffness"]``; warn (StiffnessWarning) when the explicit
+    method's steps were held down by stability over many steps."""
+    import warnings
+
+    med = float(np.median(h_rho)) if h_rho else 0.0
+    stiff = stats["steps"] >= STIFFNESS_MIN_STEPS and len(h_rho) >= 5 and med >= STIFFNESS_H_RHO
+    stats["stiffness"] = {"h_rho_median": med, "rho_max": rho_max, "checks": len(h_rho),
+                          "stiff": bool(stiff)}
+    if stiff:
+        warnings.warn(
+            f"the problem looks stiff: {what} took {stats['steps']} steps with h·ρ ≈ {med:.2g} "
+            f"(ρ ≈ {rho_max:.3g} /s, the fastest rate of the equations), so its step size is "
+            f"limited by stability, not accuracy; {advice}",
+            StiffnessWarning,
+            stacklevel=stacklevel,
+        )
+
+
+def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str:
+    """The likely cause of a stopped run, from its last good state (x, v, t): a singular
+    configuration (a rank drop below the run's rank: redundant rows do not count), or the
+    particle whose acceleration blows up."""
+    try:
+        manifold = manifold or Manifold.at(model, x, t)
+        if model.n_constraints:
+            rank = model.n_constraints if manifold.rows is None else len(manifold.rows)
+            sing = singularity(model, x, t, rank=min(rank, model.n_coordinates))
+            if sing.sigma < 1e-3:
+                return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
+        strongest = _strongest_effect(model, model.symbols, np.asarray(x, float).ravel(),
+                                      np.asarray(v, float).ravel(), t)
+        if strongest is not None and strongest[3] > 1e100:  # one step of it overflows the state
+            k, label, particle, size = strongest
+            return (f"likely cause: effect {k} ('{label}') pushes particle '{particle}' with a force of "
+                    f"{size:.3g} N at t = {t:.6g} s: a formula overflows there (e.g. exp of a large "
+                    "number); check the formula, its units and its scale")
+        a, _ = manifold.accelerations(x, v, t)
+        acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
+        k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
+        name = model.particle_names[k]
+        pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
+        return (f"likely cause: forces that blow up: at the last good state particle '{name}' at "
+                f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
+    except Exception:  # a diagnosis must never hide the stop itself
+        return "likely cause: a singular configuration, stiffness, or forces that blow up"
+
+
+# --- non-finite values ----------------------------------------------------------------------------
+def nonfinite_cause(model, x, v, t: float) -> str:
+    """The likely cause of non-finite values (energy, forces, multipliers) at the state (x, v, t):
+    the effects whose term or force is not finite there, else the constraints, else
+    ``likely_cause``. A diagnosis only: the equations are not changed."""
+    import casadi as ca
+
+    s = model.symbols
+    x = np.asarray(x, float).ravel()
+    v = np.asarray(v, float).ravel()
+    found = []
+    try:
+        for k, effect in enumerate(model.system.effects):
+            term = effect.term(s)
+            if isinstance(term, int | float):  # a constant formula (folded by the parser)
+                term = ca.SX(term)
+            parts = {"potential": [term, ca.gradient(term, s.x)],
+                     "generalized_potential": [term, ca.gradient(term, s.x), ca.gradient(term, s.v)],
+                     "dissipation": [term, ca.gradient(term, s.v)]}.get(effect.slot, [term])
+            f = ca.Function("term", [s.x, s.v, s.t], [ca.vertcat(*[ca.vec(p) for p in parts])])
+            values = np.asarray(f(x, v, t)).ravel()
+            if not np.all(np.isfinite(values)):
+                what = {"potential": "potential energy or its force", "applied_force": "force",
+                        "dissipation": "damping force", "generalized_potential": "generalized potential"}
+                found.append(f"effect {k} ('{effect.label}') gives a non-finite "
+                             f"{what.get(effect.slot, 'term')} ({values[0]:.3g})")
+        if not found and model.n_constraints:
+            f, J = (np.asarray(a) for a in model.jacobian(x, t))
+            rows = np.flatnonzero(~np.all(np.isfinite(np.hstack([f, J])), axis=1))
+            found += [f"constraint '{model.constraint_labels[r]}' is not finite (or its gradient)"
+                      for r in rows[:3]]
+        if not found:
+            strongest = _strongest_effect(model, s, x, v, t)
+            if strongest is not None:
+                k, label, particle, size = strongest
+                if size > 1e100:  # finite, but one step of it overflows the state
+                    found.append(f"effect {k} ('{label}') pushes particle '{particle}' with a force "
+                                 f"of {size:.3g} N")
+    except Exception:  # a diagnosis must never hide the stop itself
+        found = []
+    if not found:
+        return likely_cause(model, x, v, t)
+    return (f"likely cause: {'; '.join(found)} at the state reached at t = {t:.6g} s: a formula "
+            "overflows there (beyond ~1.8e308, e.g. exp of a large number) or divides by zero; "
+            "check the formula, its units and its scale")
+
+
+# --- stiff elements: springs much stiffer than the motion they carry --------------------------------
+#: A spring whose stretch is below this fraction of its length stands for a rigid link.
+RIGID_STRETCH = 1e-6
+
+
+@dataclass
+class StiffElement:
+    """A spring effect and its oscillation: ω² = k / m_reduced (m_a m_b / (m_a + m_b), or m_a
+    for a spring to a point), ``period`` = 2π/ω; ``stretch`` |ℓ − rest| at the state given."""
+
+    index: int
+    label: str
+    k: float
+    reduced_mass: float
+    omega: float
+    length: float
+    rest: float
+    stretch: float
+    ends: tuple
+
+    @property
+    def period(self) -> float:
+        return 2 * np.pi / self.omega
+
+    @property
+    def rigid_like(self) -> bool:
+        return self.stretch <= RIGID_STRETCH * max(self.rest, self.length, 1e-300)
+
+    def constraint_advice(self) -> str:
+        a, b = self.ends
+        other = f'b = "{b}"' if isinstance(b, str) else f"point = {list(b)}"
+        return (f'a spring that stiff stands for a rigid link: replace it by a constraint '
+                f'(type = "distance", a = "{a}", {other}, length = {self.rest:g})')
+
+
+def stiff_springs(model, x, t: float = 0.0) -> list[StiffElement]:
+    """The scene's springs with their oscillation at the state (x, t), fastest first (springs
+    whose stiffness or rest length are not plain numbers at t are evaluated there)."""
+    import casadi as ca
+
+    from ..model.effects import Spring
+
+    system = model.system
+    if not any(isinstance(effect, Spring) for effect in system.effects):
+        return []
+    s = model.symbols
+    x = np.asarray(x, float).reshape(-1, 3)
+    found = []
+    for index, effect in enumerate(system.effects):
+        if not isinstance(effect, Spring):
+            continue
+        try:
+            where = f"effects[{index}]"
+            k, rest = (float(np.asarray(ca.Function("c", [s.t], [ca.SX(s.time_function(v, where))])(t),
+                                        float).ravel()[0]) for v in (effect.k, effect.rest))
+            ia = s.index(effect.a, where)
+            ma = float(system.masses[ia])
+            if effect.b is not None:
+                ib = s.index(effect.b, where)
+                mb, xb, other = float(system.masses[ib]), x[ib], effect.b
+            else:
+                p = ca.Function("p", [s.t], [s.point(effect.point, where)])
+                mb, xb = np.inf, np.asarray(p(t), float).ravel()
+                other = tuple(float(c) for c in xb)
+        except Exception:  # a diagnosis only: a spring it cannot evaluate is left out
+            continue
+        if not (np.isfinite(k) and k > 0):
+            continue
+        m_red = ma if not np.isfinite(mb) else ma * mb / (ma + mb)
+        length = float(np.linalg.norm(x[ia] - xb))
+        found.append(StiffElement(index, effect.label, k, m_red, float(np.sqrt(k / m_red)), length, rest,
+                                  abs(length - rest), (effect.a, other)))
+    return sorted(found, key=lambda e: -e.omega)
+
+
+class StiffnessWatch:
+    """Watches a run for a spring that holds the steps down to its own oscillation.
+
+    The solvers call ``check(t, steps, x)`` after every step or chunk (it costs a clock read).
+    From ``AFTER_S`` seconds of wall time on, twice a second: when reaching t_end at the pace
+    so far would take more than ``BUDGET_S`` seconds, the run is more than ``MIN_PERIODS``
+    periods of the fastest spring long, the steps average less than that period, and the
+    spring is barely stretched (a rigid link in disguise), ``check`` returns the diagnosis
+    (the run stops with it); otherwise None.
+    """
+
+    AFTER_S = 2.0
+    BUDGET_S = 15.0
+    MIN_PERIODS = 1e3
+
+    def __init__(self, model, x0, t0: float, t_end: float, *, method: str):
+        import time
+
+        self._clock = time.perf_counter
+        self.model, self.t0, self.t_end, self.method = model, float(t0), float(t_end), method
+        length = self.t_end - self.t0
+        self.elements = [e for e in stiff_springs(model, x0, t0) if e.period * self.MIN_PERIODS < length]
+        self.started = self._clock()
+        self.next = self.started + self.AFTER_S
+
+    def check(self, t: float, steps: int, x=None) -> str | None:
+        if not self.elements:
+            return None
+        now = self._clock()
+        if now < self.next:
+            return None
+        self.next = now + 0.5
+        done = float(t) - self.t0
+        projected = np.inf if done <= 0 else (now - self.started) * (self.t_end - self.t0) / done
+        if projected < self.BUDGET_S:
+            return None
+        element = self.fastest(x, t)
+        if element is None or not element.rigid_like or (steps and done / steps > element.period):
+            return None
+        return self.describe(element, t, steps, projected)
+
+    def fastest(self, x=None, t: float | None = None) -> StiffElement | None:
+        """The fastest watched spring, re-measured at (x, t) when given."""
+        if not self.elements:
+            return None
+        if x is None:
+            return self.elements[0]
+        now = stiff_springs(self.model, x, self.t0 if t is None else t)
+        return next((e for e in now if e.index == self.elements[0].index), self.elements[0])
+
+    def describe(self, element: StiffElement, t: float, steps: int | None = None,
+                 projected: float | None = None) -> str:
+        e, length = element, self.t_end - self.t0
+        pace = ""
+        if steps:
+            h = (float(t) - self.t0) / steps
+            total = steps * length / max(float(t) - self.t0, 1e-300)
+            pace = (f"; {self.method} took {steps} steps to t = {float(t):.3g} s (mean step {h:.3g} s, "
+                    f"{e.period / h:.3g} per period): about {total:.3g} steps to t_end")
+            if projected is not None and np.isfinite(projected):
+                pace += f", {projected:.0f} s of wall time"
+        return (f"likely cause: stiffness: the spring '{e.label}' (effect {e.index}) has k = {e.k:.3g} N/m "
+                f"on a reduced mass of {e.reduced_mass:.3g} kg, so it oscillates with period "
+                f"2π/ω = {e.period:.3g} s (ω = {e.omega:.3g} rad/s), {length / e.period:.3g} periods in "
+                f"the run of {length:g} s{pace}. Its stretch is {e.stretch:.2g} m of {e.rest:g} m: "
+                f"{e.constraint_advice()}; or, to keep the spring, use a method that steps over the "
+                'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
+
+
+def _strongest_effect(model, s, x, v, t):
+    """(index, label, particle, |F|) of the effect with the largest force on one particle."""
+    import casadi as ca
+
+    best = None
+    for k, effect in enumerate(model.system.effects):
+        term = effect.term(s)
+        if isinstance(term, int | float):
+            continue
+        if effect.slot == "potential":
+            force = -ca.gradient(term, s.x)
+        elif effect.slot == "dissipation":
+            force = -ca.gradient(term, s.v)
+        elif effect.slot == "applied_force":
+            force = term
+        else:
+            continue
+        F = np.asarray(ca.Function("force", [s.x, s.v, s.t], [force])(x, v, t), float).reshape(-1, 3)
+        big = np.max(np.abs(F), axis=1, keepdims=True)  # scaled: |F| itself may be near overflow
+        norms = big.ravel() * np.linalg.norm(F / np.where(big > 0, big, 1.0), axis=1)
+        i = int(np.argmax(norms))
+        if best is None or norms[i] > best[3]:
+            best = (k, effect.label, model.system.particles[i].name, float(norms[i]))
+    return best

@@ -1,0 +1,349 @@
+"""The constraint manifold: THE mass-scaled KKT/Schur solve and the projections onto
+``f(x, t) = 0`` and ``J v + f_t = 0``, in NumPy and as CasADi graphs.
+
+Every method, statics, the action module and the diagnostics solve their linear systems
+here; no other module factors ``J M⁻¹ Jᵀ``.
+
+The KKT system ``[[M, Jᵀ], [J, 0]] [a; −λ] = [F; −γ]`` is solved through its Schur
+complement ``A = J M⁻¹ Jᵀ``:
+
+    A λ = −γ − J M⁻¹ F,        a = M⁻¹ (F + Jᵀ λ).
+
+``A`` carries the spread of the masses (a 1e6 kg bob beside a 1e-6 kg one puts 1e12 between
+its diagonal entries), so every dense solve first scales it symmetrically, ``D A D`` with
+``D = diag(A)^(-1/2)``: the rows of the mass-weighted Jacobian ``Ĵ = D J M^(-1/2)`` then have
+unit length and ``D A D = Ĵ Ĵᵀ``. A Cholesky factorization of ``D A D`` is accepted when its
+pivots are well above round-off; otherwise (redundant rows, a singular configuration) the
+minimum-norm least-squares solution is taken from the SVD of ``Ĵ`` itself — never of ``A``,
+whose singular values are squares — with one relative cut-off (``RankPolicy``). Rows that
+are merely heavy are therefore never cut as if they were dependent, and identical rows share
+their load equally (two identical rods each carry half).
+
+The projections are the mass-weighted nearest points:
+
+    x ← x − M⁻¹ Jᵀ A⁻¹ f        (Newton on f(x, t) = 0)
+    v ← v − M⁻¹ Jᵀ A⁻¹ (J v + f_t)
+
+A ``Manifold`` is one run's view of a Model: the row set it solves with (all rows, or an
+independent subset when rows are redundant, decided once at the start), the rank policy,
+and the run's counters. The Model itself stays immutable and can serve many runs at once.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ..codegen.fast_call import FastCall
+from ..model.cache import ParametricView, built_once, structure_cache
+from ..model.structure import Model
+from .algebra import LinearAlgebra, algebra_for
+from .graph import acceleration_graph, position_step_graph, velocity_correction_graph
+from .rank_policy import RANK, RankPolicy
+
+
+class ProjectionStatus(enum.Enum):
+    """How a position projection ended."""
+
+    CONVERGED = "converged"
+    STALLED = "stalled"  # Newton stopped reducing |f| (incompatible constraints, or too far off)
+    MAX_ITERATIONS = "max_iterations"
+    NON_FINITE = "non_finite"
+
+    @property
+    def message(self) -> str:
+        return {
+            ProjectionStatus.CONVERGED: "the state was brought onto the constraints",
+            ProjectionStatus.STALLED: "Newton's iteration stopped reducing the constraint violation",
+            ProjectionStatus.MAX_ITERATIONS: "Newton's iteration ran out of iterations",
+            ProjectionStatus.NON_FINITE: "the constraint functions became non-finite",
+        }[self]
+
+
+@dataclass(frozen=True)
+class ProjectionResult:
+    """A position projection: the new ``x``, its ``status``, Newton ``iterations`` and the
+    ``residual`` max |f| left (in the constraints' units)."""
+
+    x: np.ndarray
+    status: ProjectionStatus
+    iterations: int
+    residual: float
+
+    @property
+    def converged(self) -> bool:
+        return self.status is ProjectionStatus.CONVERGED
+
+
+@dataclass
+class Counters:
+    """Work done by one run, incremented where it happens: right-hand sides (``nfev``),
+    Jacobian evaluations (``njev``), factorizations (``nlu``), ``projections``."""
+
+    nfev: int = 0
+    njev: int = 0
+    nlu: int = 0
+    projections: int = 0
+
+    def as_dict(self) -> dict:
+        return {"nfev": self.nfev, "njev": self.njev, "nlu": self.nlu, "projections": self.projections}
+
+
+def dense_jacobian(model: Model):
+    """``(x, t) -> [J]`` dense (column-major, flat) through a FunctionBuffer, with the model's
+    parameter values; the Function (p an input) is built once per structure."""
+    def build(view, X, T, P):
+        return ca.Function("dense_jacobian", [X, T, P], [ca.densify(view.jacobian(X, T)[1])])
+
+    return structural_call(model, "dense_jacobian", build, "x", "t")
+
+
+def constraint_values(model: Model):
+    """``(x, t) -> [f]`` (dense, a FunctionBuffer call), the Function built once per structure."""
+    def build(view, X, T, P):
+        return ca.Function("constraint_dense", [X, T, P], [ca.densify(view.constraint(X, T))])
+
+    return structural_call(model, "constraint", build, "x", "t")
+
+
+def structural_call(model: Model, key, build, *inputs: str):
+    """A fast call ``(*inputs) -> [outputs]`` of the Function ``build(view, *symbols, P)``
+    (SX symbols for ``inputs``, each "x"/"v" of 3N, "t" a scalar; ``view`` the model's
+    ``ParametricView`` with P), built once per structure and called with the model's p."""
+    cache, prefix = structure_cache(model)
+    full_key = (*prefix, "structural", key)
+    fast = cache.get(full_key)
+    if fast is None:
+        n3 = model.n_coordinates
+        symbols = [ca.SX.sym(name, n3 if name in ("x", "v") else 1) for name in inputs]
+        P = ca.SX.sym("p", len(model.parameter_vector))
+        fast = cache[full_key] = FastCall(build(ParametricView(model, P), *symbols, P))
+    p = model.parameter_vector
+    return lambda *args: fast(*args, p)
+
+
+def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
+    """None when the rows of J(x, t) are independent; otherwise the independent subset to
+    solve with (the others are implied by it). This is the run's redundancy, a value."""
+    if model.n_constraints == 0:
+        return None
+    x = np.asarray(x, float).ravel()
+    algebra = algebra_for(model.n_constraints)
+    if algebra.name == "sparse":
+        J = model.jacobian(x, t)[1]  # CasADi-sparse: the O(N) factorization
+    else:
+        J = dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
+    if algebra.full_row_rank(J, model.inverse_masses, policy):
+        return None
+    rows = algebra.independent_rows(J, model.inverse_masses, policy)
+    return None if rows.size == model.n_constraints else tuple(int(k) for k in rows)
+
+
+# --- the per-model functions, built once and shared by every run --------------------------------
+_lock = threading.Lock()
+
+
+@dataclass(frozen=True)
+class _FastPaths:
+    acceleration: FastCall
+    newton_step: FastCall
+    velocity_correction: FastCall
+    evaluation: str
+
+
+def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
+    """The acceleration, Newton step and velocity correction as one CasADi call each (sparse
+    LDLᵀ of the SPD A for the acceleration, sparse QR for the projections), with the
+    parameters p as their last input: built once per structure and row set (every parameter
+    value shares them, ``structure_cache``), optionally compiled."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "fast", rows, bool(compiled))
+    with _lock:
+        cached = cache.get(key)
+    if cached is not None:
+        return cached
+    n3 = model.n_coordinates
+    X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+    P = ca.MX.sym("p", len(model.parameter_vector))
+    view = ParametricView(model, P)
+    d = ca.densify
+    if model.n_constraints:
+        a, lam = acceleration_graph(view, X, V, T, rows=rows, linsol="ldl")
+        f, dx = position_step_graph(view, X, T, rows=rows)
+        dv = velocity_correction_graph(view, X, V, T, rows=rows)
+    else:
+        a, lam = acceleration_graph(view, X, V, T)
+        f, dx, dv = ca.MX(0, 1), ca.MX.zeros(n3), ca.MX.zeros(n3)
+    funcs = [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
+             ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
+             ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
+    evaluation = "virtual machine"
+    if compiled:
+        from ..codegen import compiled as compiled_evaluation
+
+        machine = compiled_evaluation.compile_functions(funcs)
+        if all(f.class_name() == "External" for f in machine):
+            funcs, evaluation = machine, "compiled"
+    paths = _FastPaths(*(FastCall(f) for f in funcs), evaluation)
+    with _lock:
+        cache[key] = paths
+    return paths
+
+
+def acceleration_function(model: Model, rows=None, *, symbolic: bool = False,
+                          parametric: bool = False) -> ca.Function:
+    """``(x, v, t) -> (a, λ_rows)`` as one Function, built once per model and row set: step
+    loops call it as a node of their graphs. MX with a sparse LDLᵀ inside, or (``symbolic``)
+    one SX expression with the KKT solve written out: fastest for a few constraint rows, where
+    a step loop can expand it into one SX graph; its size grows with the cube of the rows.
+    ``parametric``: ``(x, v, t, p) -> (a, λ_rows)``, built once per structure
+    (``structure_cache``)."""
+    def build():
+        n3 = model.n_coordinates
+        kind = ca.SX if symbolic else ca.MX
+        X, V, T = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
+        name = "acceleration_sx" if symbolic else "acceleration"
+        linsol = None if symbolic else "ldl"
+        if not parametric:
+            graph = acceleration_graph(model, X, V, T, rows=rows, linsol=linsol)
+            return ca.Function(name, [X, V, T], list(graph))
+        P = kind.sym("p", len(model.parameter_vector))
+        graph = acceleration_graph(ParametricView(model, P), X, V, T, rows=rows, linsol=linsol)
+        return ca.Function(name, [X, V, T, P], list(graph))
+
+    if parametric:
+        cache, prefix = structure_cache(model)
+        key = (*prefix, "acceleration", rows, symbolic)
+        if key not in cache:
+            cache[key] = build()
+        return cache[key]
+    return built_once(model, ("acceleration", rows, symbolic), build)
+
+
+def symbolic_acceleration(model: Model, rows=None) -> ca.Function:
+    """``acceleration_function(model, rows, symbolic=True)``."""
+    return acceleration_function(model, rows, symbolic=True)
+
+
+def _fast_or_nan(call: FastCall, sizes, *args) -> list[np.ndarray]:
+    """A fast-path call; NaN results when CasADi's solver fails (a singular factorization),
+    which sends the caller to the NumPy minimum-norm path."""
+    try:
+        return call(*args)
+    except RuntimeError:
+        return [np.full(k, np.nan) for k in sizes]
+
+
+# --- one run's view of the manifold ------------------------------------------------------------
+class Manifold:
+    """One run's numeric access to the KKT system and the projections of ``model``.
+
+    ``rows``: None (all rows independent) or the independent subset decided at the start
+    (``redundant_rows``); the projections and the step graphs then solve with that subset
+    (the others are implied by it), while multipliers are always the minimum-norm ones over
+    every row. ``counters`` belong to this run.
+    """
+
+    def __init__(self, model: Model, *, rows: tuple[int, ...] | None = None,
+                 policy: RankPolicy = RANK, compiled: bool = False):
+        self.model = model
+        self.rows = rows
+        self.policy = policy
+        self.algebra: LinearAlgebra = algebra_for(model.n_constraints)
+        self.counters = Counters()
+        self._fast = _fast_paths(model, rows, compiled)
+        self._p = model.parameter_vector
+
+    @classmethod
+    def at(cls, model: Model, x, t: float, *, policy: RankPolicy = RANK, compiled: bool = False) -> Manifold:
+        """The manifold of a run starting at (x, t): redundancy decided there."""
+        return cls(model, rows=redundant_rows(model, x, t, policy), policy=policy, compiled=compiled)
+
+    @property
+    def redundant(self) -> bool:
+        return self.rows is not None
+
+    @property
+    def evaluation(self) -> str:
+        return self._fast.evaluation
+
+    def schur_solve(self, J: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(J M⁻¹ Jᵀ) y = b, minimum-norm for dependent rows (see ``schur_solve``)."""
+        self.counters.nlu += 1
+        return self.algebra.schur_solve(J, self.model.inverse_masses, b, policy=self.policy,
+                                        full_rank=not self.redundant)
+
+    def accelerations(self, x: np.ndarray, v: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Accelerations and multipliers (over every row) at (x, v, t)."""
+        m = self.model
+        self.counters.nfev += 1
+        if not self.redundant:
+            a, lam = _fast_or_nan(self._fast.acceleration, (m.n_coordinates, len(m.constraint_labels)),
+                                  x, v, t, self._p)
+            self.counters.nlu += 1
+            if np.all(np.isfinite(a)) and np.all(np.isfinite(lam)):
+                return a, lam
+        F, J, gamma = m.dynamics(x, v, t)
+        F, J, gamma = np.asarray(F, float).ravel(), self.algebra.matrix(J), np.asarray(gamma, float).ravel()
+        if m.n_constraints == 0:
+            return m.inverse_masses * F, np.zeros(0)
+        lam = self.schur_solve(J, -gamma - J @ (m.inverse_masses * F))
+        return m.inverse_masses * (F + J.T @ lam), lam
+
+    def project_positions(self, x: np.ndarray, t: float, tol: float, max_iter: int = 12) -> ProjectionResult:
+        """Mass-weighted nearest point on f(x, t) = 0 by Newton, x ← x − M⁻¹Jᵀ A⁻¹ f, until
+        max|f| ≤ tol; stops when an iteration no longer halves the violation. After each step
+        f alone is evaluated (``nfev``): the next Jacobian and factorization (``njev``) only
+        when it has not converged."""
+        x = np.array(x, dtype=float)
+        m = self.model
+        if m.n_constraints == 0:
+            return ProjectionResult(x, ProjectionStatus.CONVERGED, 0, 0.0)
+        best = err = np.inf
+        for it in range(max_iter + 1):
+            if it:  # after a step: f alone says whether it converged (no factorization)
+                self.counters.nfev += 1
+                err = float(np.max(np.abs(constraint_values(m)(x, t)[0])))
+                if err <= tol:
+                    return ProjectionResult(x, ProjectionStatus.CONVERGED, it, err)
+            self.counters.njev += 1
+            f, dx = _fast_or_nan(self._fast.newton_step, (m.n_constraints, m.n_coordinates), x, t, self._p)
+            err = float(np.max(np.abs(f)))
+            if not np.isfinite(err):  # the fast path failed, or f itself is not finite
+                f = np.asarray(m.constraint(x, t), float).ravel()
+                err = float(np.max(np.abs(f)))
+                if not np.isfinite(err):
+                    return ProjectionResult(x, ProjectionStatus.NON_FINITE, it, err)
+            if err <= tol:
+                return ProjectionResult(x, ProjectionStatus.CONVERGED, it, err)
+            if it == max_iter:
+                return ProjectionResult(x, ProjectionStatus.MAX_ITERATIONS, it, err)
+            if err > 0.5 * best and it > 2:
+                return ProjectionResult(x, ProjectionStatus.STALLED, it, err)
+            best = min(best, err)
+            self.counters.nlu += 1
+            if not np.all(np.isfinite(dx)):
+                f, J = m.jacobian(x, t)
+                J = self.algebra.matrix(J)
+                dx = m.inverse_masses * (J.T @ self.schur_solve(J, np.asarray(f, float).ravel()))
+            x = x - dx
+        return ProjectionResult(x, ProjectionStatus.MAX_ITERATIONS, max_iter, err)  # pragma: no cover
+
+    def project_velocities(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
+        """Mass-weighted nearest velocity with J v + f_t = 0 (one linear solve)."""
+        m = self.model
+        if m.n_constraints == 0:
+            return np.array(v, dtype=float)
+        self.counters.njev += 1
+        self.counters.nlu += 1
+        (dv,) = _fast_or_nan(self._fast.velocity_correction, (m.n_coordinates,), x, v, t, self._p)
+        if np.all(np.isfinite(dv)):
+            return v - dv
+        J, f_t = m.velocity_terms(x, t)
+        J = self.algebra.matrix(J)
+        c = J @ v + np.asarray(f_t, float).ravel()
+        return v - m.inverse_masses * (J.T @ self.schur_solve(J, c))

@@ -1,0 +1,102 @@
+"""Constraint residuals in metres, whatever the scale a constraint's formula is written in.
+
+A surface ``1e8 * (x**2 + y**2 + z**2 - 1) = 0`` is the same sphere as the unscaled formula,
+but |f| is 1e8 times larger for the same miss, and ``1e-8 * (...)`` makes a particle 1e-8 m
+off the surface look like |f| = 1e-16. Residuals and tolerances are therefore measured per
+row as |f_i| / s_i with the row scale
+
+    s_i = max over particles p of |∂f_i/∂x_p|      (N/A rows with zero gradient: s_i = 1)
+
+— for a row that moves one particle (surface, pin, plane) |f_i|/s_i is, to first order, that
+particle's distance from the constraint in metres; for a distance constraint between two
+particles it is the error of the length. Velocity residuals |J_i v + f_t,i| / s_i are in m/s.
+
+The projections themselves are untouched (mass-weighted, in manifold/model): only the
+tolerances handed to them and the residuals reported are converted here.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from ..codegen.fast_call import FastCall
+from ..model.cache import ParametricView, structure_cache
+from .graph import row_scales_expr
+
+_CACHE_KEY = "residual_in_metres"
+
+
+def functions(model) -> dict[str, ca.Function]:
+    """``scales(x, t, p) -> s`` (C,; a FunctionBuffer call), ``position(x, t, p) -> max_i
+    |f_i|/s_i`` (m) and ``velocity(x, v, t, p) -> max_i |J_i v + f_t,i|/s_i`` (m/s), with the
+    parameters p as their last input: built once per structure (``structure_cache``)."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, _CACHE_KEY)
+    if key not in cache:
+        cache[key] = _build(model)
+    return cache[key]
+
+
+def _build(model) -> dict:
+    n3 = model.n_coordinates
+    x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
+    p = ca.SX.sym("p", len(model.parameter_vector))
+    view = ParametricView(model, p)
+    f, J = view.jacobian(x, t)
+    _, f_t = view.velocity_terms(x, t)
+    s = row_scales_expr(J, model.n_particles)
+    if model.n_constraints:
+        position = ca.mmax(ca.fabs(f) / s)
+        velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s)
+    else:
+        position = velocity = ca.SX(0)
+    return {
+        "scales": FastCall(ca.Function("row_scales", [x, t, p], [ca.densify(s)])),
+        "position": ca.Function("residual_m", [x, t, p], [position]),
+        "velocity": ca.Function("velocity_residual_m", [x, v, t, p], [velocity]),
+    }
+
+
+def _parameters(model, n: int) -> np.ndarray:
+    """The model's parameter values, one row per sample (for ``Model.evaluate``)."""
+    return np.tile(model.parameter_vector, (n, 1))
+
+
+def row_scales(model, x, t: float = 0.0) -> np.ndarray:
+    """s_i (see the module) at (x, t), shape (C,)."""
+    if model.n_constraints == 0:
+        return np.zeros(0)
+    return functions(model)["scales"](np.asarray(x, float).ravel(), t, model.parameter_vector)[0]
+
+
+def smallest_scale(model, x, t: float = 0.0) -> float:
+    """min_i s_i at (x, t): a tolerance of ``tol`` metres on every row is |f| ≤ tol × this."""
+    s = row_scales(model, x, t)
+    return float(np.min(s)) if s.size else 1.0
+
+
+def position_residual(model, x, t: float = 0.0) -> float:
+    """max_i |f_i(x, t)| / s_i in metres at one state."""
+    if model.n_constraints == 0:
+        return 0.0
+    value = functions(model)["position"](np.asarray(x, float).ravel(), t, model.parameter_vector)
+    return float(np.asarray(value).ravel()[0])
+
+
+def position_residual_along(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """max_i |f_i| / s_i (m) at each sample: X (T, 3N), t (T,)."""
+    n = len(t)
+    if model.n_constraints == 0 or n == 0:
+        return np.zeros(n)
+    position = functions(model)["position"]
+    return np.asarray(model.evaluate(position, X, t, _parameters(model, n))[0], float).ravel()
+
+
+def velocity_residual_along(model, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """max_i |J_i v + f_t,i| / s_i (m/s) at each sample."""
+    n = len(t)
+    if model.n_constraints == 0 or n == 0:
+        return np.zeros(n)
+    velocity = functions(model)["velocity"]
+    return np.asarray(model.evaluate(velocity, X, V, t, _parameters(model, n))[0], float).ravel()

@@ -1,0 +1,267 @@
+"""The holonomic constraint library: each constraint yields rows of f(x, t) = 0.
+
+Every constraint is a small object with ``rows(symbols) -> list[(expr, label)]``. One
+object may give several scalar rows (a pin gives three, a plane one per particle); each
+row gets its own multiplier. Residuals are kept in metres where the geometry allows
+(distance as |d| - L, planes with a unit normal), so multipliers are forces in newtons.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import casadi as ca
+import numpy as np
+
+from ..errors import InputError
+
+
+def _fmt(value) -> str:
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+    if isinstance(value, str):
+        return value
+    if isinstance(value, Sequence):
+        return "(" + ", ".join(_fmt(v) for v in value) + ")"
+    return f"{value:g}"
+
+
+def _as_list(value, where: str, what: str) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if not isinstance(value, Sequence) or not value or not all(isinstance(p, str) for p in value):
+        raise InputError(f"{what} must be a particle name or a non-empty list of names", where=where)
+    return list(value)
+
+
+class Labelled:
+    """A scene item with a readable ``label`` and a ``where`` (scene key) for messages."""
+
+    kind = "item"
+    name: str | None = None
+    where: str | None = None
+
+    @property
+    def label(self) -> str:
+        raise NotImplementedError
+
+    def _where(self) -> str:
+        return self.where or f"{self.kind} {self.label!r}"
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.label})"
+
+
+class Constraint(Labelled):
+    """Base class: ``rows(s)`` returns [(CasADi scalar f_k(x, t), label_k), ...].
+
+    One-sided (``unilateral = True``): the constraint holds only one way, and each of its rows
+    is switched on and off on its own (constrained.unilateral). ``side`` is the sign that turns
+    a row into its gap, g = side · f ≥ 0: −1 for a distance (a string: |d| ≤ length), +1 for
+    planes, surfaces and custom formulas (the particle stays where f ≥ 0). ``restitution`` is
+    the coefficient e of the impact law when the gap closes (0: the motion along the
+    constraint's normal stops; 1: an elastic bounce).
+    """
+
+    kind = "constraint"
+    side = 1
+    unilateral = False
+    restitution = 0.0
+    #: Why a type cannot be one-sided (None: it can).
+    two_sided_only: str | None = None
+    #: Fields whose plain numbers are inputs of the Structure's Functions (constrained.lifting).
+    numbers: tuple[str, ...] = ()
+
+    def rows(self, s) -> list[tuple]:
+        raise NotImplementedError
+
+    def _one_sided(self, unilateral, restitution) -> None:
+        """Validate and keep the one-sided settings (every subclass's __init__ calls this)."""
+        where = self._where()
+        if not isinstance(unilateral, bool):
+            raise InputError(f"unilateral must be true or false, got {unilateral!r}",
+                             where=f"{where}.unilateral")
+        if unilateral and self.two_sided_only:
+            raise InputError(f"a {self.two_sided_only}; remove 'unilateral' from it",
+                             where=f"{where}.unilateral")
+        if (isinstance(restitution, bool) or not isinstance(restitution, int | float)
+                or not 0 <= restitution <= 1):
+            raise InputError(
+                f"restitution must be a number from 0 (the motion into the constraint stops) to 1 "
+                f"(an elastic bounce), got {restitution!r}: e > 1 would create energy at every impact",
+                where=f"{where}.restitution")
+        if restitution and not unilateral:
+            raise InputError("restitution applies to a one-sided constraint, which can close with an "
+                             "impact; add unilateral = true, or remove restitution",
+                             where=f"{where}.restitution")
+        self.unilateral, self.restitution = unilateral, float(restitution)
+
+
+class Distance(Constraint):
+    """|x_a − x_b| − length = 0, or |x_a − point(t)| − length = 0 (moving anchor allowed).
+
+    The multiplier is the force along the outward direction: tension = −λ.
+    """
+
+    side = -1
+    numbers = ("point", "length")
+
+    def __init__(self, a: str, b: str | None = None, *, point=None, length, name=None, where=None,
+                 unilateral: bool = False, restitution: float = 0.0):
+        self.a, self.b, self.point, self.length = a, b, point, length
+        self.name, self.where = name, where
+        self._one_sided(unilateral, restitution)
+        if (b is None) == (point is None):
+            raise InputError("give exactly one of 'b' (a particle) or 'point'", where=self._where())
+        if isinstance(length, int | float) and not isinstance(length, bool) and length <= 0:
+            other = "'b'" if b is not None else "the point"
+            fix = ("a 'pin' constraint holds a particle at a point" if b is None
+                   else "merge the two particles into one")
+            raise InputError(
+                f"must be a positive length in m, got {length!r}: a rod of length {length!r} would hold "
+                f"'{a}' on {other}, where the direction of the rod, and so the constraint force, is "
+                f"undefined (the constraint's gradient vanishes); {fix}",
+                where=f"{self._where()}.length")
+
+    @property
+    def label(self) -> str:
+        other = self.b if self.b is not None else _fmt(self.point)
+        return self.name or f"distance {self.a}–{other} = {_fmt(self.length)} m"
+
+    def rows(self, s):
+        where = self._where()
+        xa = s.position(self.a, where)
+        xb = s.position(self.b, where) if self.b is not None else s.point(self.point, f"{where}.point")
+        length = s.time_function(self.length, f"{where}.length")
+        return [(ca.norm_2(xa - xb) - length, self.label)]
+
+
+class Pin(Constraint):
+    """x_a − point(t) = 0: a fixed position, or a prescribed path when entries depend on t."""
+
+    two_sided_only = ("pin holds a particle at a point and has no side to leave by (a one-sided "
+                      "distance to the point of length 0 is not defined either); use a one-sided "
+                      "plane or surface through the point")
+    numbers = ("point",)
+
+    def __init__(self, a: str, point, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
+        self.a, self.point, self.name, self.where = a, point, name, where
+        self._one_sided(unilateral, restitution)
+
+    @property
+    def label(self) -> str:
+        return self.name or f"pin {self.a} at {_fmt(self.point)}"
+
+    def rows(self, s):
+        where = self._where()
+        d = s.position(self.a, where) - s.point(self.point, f"{where}.point")
+        return [(d[k], f"{self.label} ({axis})") for k, axis in enumerate("xyz")]
+
+
+class Plane(Constraint):
+    """n(t)·x_i − offset(t) = 0 for each listed particle, scaled by 1/|n| (metres)."""
+
+    numbers = ("normal", "offset")
+
+    def __init__(self, particles, normal, offset=0.0, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
+        self.particles = _as_list(particles, where or "plane", "'particles'")
+        self.normal, self.offset, self.name, self.where = normal, offset, name, where
+        self._one_sided(unilateral, restitution)
+        if (
+            isinstance(normal, Sequence)
+            and not isinstance(normal, str)
+            and all(isinstance(c, int | float) and c == 0 for c in normal)
+        ):
+            raise InputError("the normal vector is zero", where=f"{self._where()}.normal")
+
+    @property
+    def label(self) -> str:
+        return self.name or f"plane n={_fmt(self.normal)}, offset {_fmt(self.offset)}"
+
+    def rows(self, s):
+        where = self._where()
+        n = s.point(self.normal, f"{where}.normal")
+        offset = s.time_function(self.offset, f"{where}.offset")
+        # all rows in a few CasADi calls (one per particle would dominate the build of a chain)
+        P = ca.horzcat(*[s.position(p, where) for p in self.particles])
+        rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
+        return [(row, f"{self.label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
+
+
+class Surface(Constraint):
+    """g(x, y, z, t) = 0 for each listed particle; ``expr`` is a formula in x, y, z, t."""
+
+    def __init__(self, particles, expr: str, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
+        self.particles = _as_list(particles, where or "surface", "'particles'")
+        self.expr, self.name, self.where = expr, name, where
+        self._one_sided(unilateral, restitution)
+
+    @property
+    def label(self) -> str:
+        return self.name or f"surface {self.expr} = 0"
+
+    def rows(self, s):
+        where = self._where()
+        return [
+            (s.parse_field(self.expr, f"{where}.expr", s.position(p, where)), f"{self.label} [{p}]")
+            for p in self.particles
+        ]
+
+
+class Curve(Constraint):
+    """A curve as the intersection of two surfaces g1 = g2 = 0, for each listed particle."""
+
+    two_sided_only = ("curve is the intersection of two surfaces and has no one side to leave by; "
+                      "give the two surfaces as separate one-sided 'surface' constraints")
+
+    def __init__(self, particles, exprs: Sequence[str], *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
+        self.particles = _as_list(particles, where or "curve", "'particles'")
+        if isinstance(exprs, str) or len(exprs) != 2:
+            raise InputError(
+                "a curve needs 'expr' as a list of two surface formulas", where=where or "curve"
+            )
+        self.exprs, self.name, self.where = list(exprs), name, where
+        self._one_sided(unilateral, restitution)
+
+    @property
+    def label(self) -> str:
+        return self.name or f"curve {self.exprs[0]} = 0, {self.exprs[1]} = 0"
+
+    def rows(self, s):
+        where = self._where()
+        out = []
+        for p in self.particles:
+            at = s.position(p, where)
+            for k, e in enumerate(self.exprs):
+                out.append((s.parse_field(e, f"{where}.expr[{k}]", at), f"{self.label} [{p}, {k + 1}]"))
+        return out
+
+
+class Custom(Constraint):
+    """Any formula in particle coordinates x_NAME, y_NAME, z_NAME and t, equal to zero."""
+
+    def __init__(self, expr: str, *, name=None, where=None, unilateral: bool = False,
+                 restitution: float = 0.0):
+        self.expr, self.name, self.where = expr, name, where
+        self._one_sided(unilateral, restitution)
+
+    @property
+    def label(self) -> str:
+        return self.name or f"{self.expr} = 0"
+
+    def rows(self, s):
+        return [(s.parse(self.expr, f"{self._where()}.expr"), self.label)]
+
+
+CONSTRAINT_TYPES = {
+    "distance": Distance,
+    "pin": Pin,
+    "plane": Plane,
+    "surface": Surface,
+    "curve": Curve,
+    "custom": Custom,
+}

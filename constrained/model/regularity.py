@@ -1,0 +1,122 @@
+"""Which constraints and effects are undefined at a state: a value or a gradient not finite.
+
+A rod whose particle sits on its anchor (the gradient (x − p)/|x − p| is 0/0) or a 1/r
+potential at r = 0 cannot be simulated from there. The test stacks every item's value g_k
+(constraint rows; effect terms) into one vector g and evaluates g, ∂g/∂x and (effects) ∂g/∂v
+as sparse matrices in one call: O(nnz) for the whole system, whatever its size. An item is
+undefined when one of its entries of g, or of its rows' stored entries of the two Jacobians,
+is not finite.
+
+With the system's Structure (``structure``: constrained.model) the same vector is made of
+the Structure's rows and effect terms, as a Function of (x, v, t, p) built once per
+structure: reading a scene again with other numbers (a sweep, a fresh call) evaluates it and
+builds nothing.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from ..errors import InputError
+from . import lifting
+from .cache import built_once
+from .structure import Structure
+from .symbols import Symbols
+from .system import System
+
+
+def _item_values(obj, section: str, s: Symbols, built=None) -> list | None:
+    """The item's values as a list of SX columns (a constraint's rows as ``rows(s)`` gives
+    them, scalars in the usual case: no CasADi call per item; an effect's term) from
+    ``built`` or built here; None when it cannot be built (reported by the scene's formula
+    checks instead)."""
+    try:
+        if built is None:
+            built = obj.rows(s) if section == "constraints" else obj.term(s)
+        values = [row for row, _ in built] if section == "constraints" else [built]
+        return [v if isinstance(v, ca.SX) and v.is_column() else ca.vec(ca.SX(v)) for v in values]
+    except (InputError, RuntimeError, TypeError, ZeroDivisionError):
+        return None
+
+
+def _bad_rows(matrix: ca.DM) -> np.ndarray:
+    """Rows of a sparse DM holding a stored entry that is not finite."""
+    values = np.asarray(matrix.nonzeros(), float)
+    if np.all(np.isfinite(values)):
+        return np.zeros(0, dtype=int)
+    rows, _ = matrix.sparsity().get_triplet()
+    return np.asarray(rows, dtype=int)[~np.isfinite(values)]
+
+
+def undefined_items(system: System, t0: float, built: tuple[Symbols, dict] | None = None, *,
+                    structure: Structure | None = None,
+                    numbers: np.ndarray | None = None) -> list[tuple[str, int, object]]:
+    """(section, index, item) of each constraint ("constraints") and effect ("effects") whose
+    value or gradient is not finite at the system's initial state (positions, velocities) and
+    time t0, in scene order. ``built``: the Symbols and {(section, index): rows or term}
+    already made for this system (the scene's formula check), reused instead of built again;
+    ``structure`` (and the system's plain ``numbers``, constrained.lifting): the system's
+    Structure, whose expressions are used instead (nothing built per call)."""
+    if structure is not None:
+        return _undefined_in(system, t0, structure, numbers)
+    s, done = built if built is not None else (Symbols(system), {})
+    items, constraint_values, effect_values = [], [], []
+    owner_c, owner_e = [], []  # row of the stacked vector -> index into items
+    for section, objs in (("constraints", system.constraints), ("effects", system.effects)):
+        values, owner = (constraint_values, owner_c) if section == "constraints" else (effect_values, owner_e)
+        for i, obj in enumerate(objs):
+            parts = _item_values(obj, section, s, done.get((section, i)))
+            if parts is None:
+                continue
+            owner.extend([len(items)] * sum(part.numel() for part in parts))
+            items.append((section, i, obj))
+            values.extend(parts)
+    if not items:
+        return []
+    gc, ge = ca.vertcat(*constraint_values, ca.SX(0, 1)), ca.vertcat(*effect_values, ca.SX(0, 1))
+    function = ca.Function("start", [s.x, s.v, s.t],
+                           [gc, ca.jacobian(gc, s.x), ge, ca.jacobian(ge, s.x), ca.jacobian(ge, s.v)])
+    x0 = np.asarray(system.positions, float).reshape(-1)
+    v0 = np.asarray(system.velocities, float).reshape(-1)
+    with np.errstate(all="ignore"):
+        vc, jc, ve, jex, jev = function(x0, v0, t0)
+    owner_c, owner_e = np.asarray(owner_c, dtype=int), np.asarray(owner_e, dtype=int)
+    bad = set(owner_c[_bad_rows(vc)]) | set(owner_c[_bad_rows(jc)])
+    bad |= set(owner_e[_bad_rows(ve)]) | set(owner_e[_bad_rows(jex)]) | set(owner_e[_bad_rows(jev)])
+    return [items[k] for k in sorted(int(k) for k in bad)]
+
+
+def _start_check(structure: Structure) -> tuple[ca.Function, np.ndarray]:
+    """``(x, v, t, p) -> (g_e, ∂g_e/∂x, ∂g_e/∂v)`` of the Structure's effect terms and the item
+    of each row of g_e (once per structure); the rows are the Structure's ``jacobian``."""
+    def build():
+        e = structure.expressions
+        terms = [ca.vec(ca.SX(term)) for term in e.terms]
+        ge = ca.vertcat(*terms, ca.SX(0, 1))
+        owner = np.repeat(np.arange(len(terms)), [term.numel() for term in terms]).astype(int)
+        function = ca.Function("start", [e.x, e.v, e.t, e.p],
+                               [ge, ca.jacobian(ge, e.x), ca.jacobian(ge, e.v)])
+        return function, owner
+
+    return built_once(structure, "start check", build)
+
+
+def _undefined_in(system: System, t0: float, structure: Structure, numbers) -> list:
+    numbers = lifting.numbers(system) if numbers is None else numbers
+    p = np.concatenate([[system.parameters[k] for k in structure.parameter_names], numbers])
+    x0 = np.asarray(system.positions, float).reshape(-1)
+    v0 = np.asarray(system.velocities, float).reshape(-1)
+    effects, owner_e = _start_check(structure)
+    with np.errstate(all="ignore"):
+        bad = set()
+        if structure.n_constraints:
+            vc, jc = structure.function("jacobian")(x0, t0, p)
+            owner_c = np.asarray(structure.constraint_owner, dtype=int)
+            bad |= {("constraints", int(k)) for k in owner_c[np.concatenate([_bad_rows(vc), _bad_rows(jc)])]}
+        if owner_e.size:
+            ve, jex, jev = effects(x0, v0, t0, p)
+            rows = np.concatenate([_bad_rows(ve), _bad_rows(jex), _bad_rows(jev)])
+            bad |= {("effects", int(k)) for k in owner_e[rows]}
+    items = {"constraints": system.constraints, "effects": system.effects}
+    return [(section, k, items[section][k]) for section, k in sorted(bad)]

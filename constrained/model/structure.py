@@ -1,0 +1,515 @@
+"""Assembly: System -> Model, the CasADi functions every solver and analysis uses.
+
+Equations (DESIGN.md): ``M x'' = F(x, x', t) + Jᵀ λ`` with ``f(x, t) = 0``. Differentiating
+the constraints twice gives ``J x'' + γ = 0``, ``γ = d/dt(J v + f_t) − J x''``, which CasADi
+forms by AD as ``γ = ∂c/∂x · v + ∂c/∂t`` for ``c = J v + f_t``. Only the terms the system
+needs are built: ``active_terms`` lists them.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import hashlib
+import json
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ..errors import InputError
+from . import lifting
+from .symbols import Symbols
+
+#: Functions bound to parameter values that a Structure keeps (the most recent), so that
+#: Models with equal values share them.
+BOUND_FUNCTIONS_KEPT = 64
+
+
+class Structure:
+    """What the structure of a System decides, built once: which particles, constraints and
+    effects, which formulas. Its Functions take the parameter vector ``p`` as their last input
+    (``dynamics(x, v, t, p)``, ...); the numbers of a scene are values of ``p``, never
+    constants, so Models for other parameter values share one Structure
+    (``Model.with_parameters``) and nothing is parsed or differentiated again.
+
+    ``p`` is the named parameters (``parameter_names``, in order) followed by the system's
+    ``n_numbers`` nonzero plain numbers (masses, lengths, ``k``, ``g`` entries …: the hidden
+    parameters of constrained.lifting), so a system that differs only in such a number has
+    this Structure too (``lift=False`` keeps them as constants: a reference for tests).
+    ``functions`` / ``function(name)``: the parametric Functions.
+    """
+
+    #: Structures built in this process (each one parses and differentiates the system).
+    builds = 0
+
+    def __init__(self, system, *, lift: bool = True):
+        system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+        s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
+        x, v, t, p = s.x, s.v, s.t, s.p
+        n3 = 3 * system.n_particles
+        self.parameter_names: tuple[str, ...] = tuple(system.parameters)
+        #: How many plain numbers of the system are hidden parameters (constrained.lifting):
+        #: p is the named parameters' values, then these.
+        self.n_numbers = len(numbers)
+        self.n_particles = system.n_particles
+        self.n_coordinates = n3
+        self.particle_names = tuple(q.name for q in system.particles)
+        active = set()
+
+        rows, labels, owners = [], [], []
+        for k, constraint in enumerate(system.constraints):
+            for expr, label in constraint.rows(s):
+                rows.append(expr)
+                labels.append(label)
+                owners.append(k)
+        #: The rows' labels, a plain number written as a token (``lifting.fill`` puts a
+        #: Model's values in).
+        self.constraint_labels: list[str] = labels
+        self.constraint_owner = np.array(owners, dtype=int)
+        self.n_constraints = len(rows)
+        f = ca.vertcat(*rows) if rows else ca.SX(0, 1)
+        J = ca.jacobian(f, x)
+        self.rheonomic = bool(rows) and ca.depends_on(f, t)
+        if rows:
+            active.add("constraints")
+        if self.rheonomic:
+            active.add("rheonomic")
+            f_t = ca.jacobian(f, t)
+            c = ca.mtimes(J, v) + f_t
+            gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
+        else:
+            f_t = ca.SX(self.n_constraints, 1)  # structurally zero: no f_t terms
+            c = ca.mtimes(J, v)
+            gamma = ca.jtimes(c, x, v)
+
+        slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
+        terms = []
+        for effect in system.effects:
+            terms.append(effect.term(s))
+            slots[effect.slot].append(terms[-1])
+        F, V, U, dU_dv, forcing = forces(slots, x, v, t)
+        active |= forcing
+        self.active_terms = frozenset(active)
+        #: The expressions the Functions are made of: the constraint rows (in order) and the
+        #: effects' terms by slot (constrained.mapped cuts them into repeated kernels).
+        self.expressions = Expressions(x, v, t, p, rows, slots, terms)
+
+        #: Whether the masses are symbols of p (plain numbers and formulas are): step graphs
+        #: then take them from p, not from a Model's numbers.
+        self.masses_symbolic = any(isinstance(m, ca.SX) for m in s.masses)
+        #: When every mass is an entry of p (a plain number, or a parameter's name): the entry
+        #: of each coordinate's mass (3N indices), so that step graphs gather them (index
+        #: data) instead of calling the "masses" Function (3N operations of generated code).
+        self.mass_entries = None
+        if self.masses_symbolic:
+            m = s.mass_column()
+            m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1)  # each mass three times, in place
+            entries = _entries_of(s.masses, p)
+            if entries is not None:
+                self.mass_entries = np.repeat(entries, 3)
+        else:
+            m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
+        T = 0.5 * ca.dot(m3 * v, v)
+        energy = T + V + U - ca.dot(v, dU_dv)
+        # The Functions are made when first asked for (making one sorts its whole graph).
+        self._p = p
+        self._parts: dict[str, tuple] = {}
+        self._functions: dict[str, ca.Function] = {}
+        self._fixed: dict[str, ca.Function | None] = {}
+        self._used: dict[str, np.ndarray] = {}
+        self._bound: collections.OrderedDict[tuple, ca.Function] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+        def function(name, inputs, in_names, outputs, out_names):
+            self._parts[name] = (inputs, in_names, outputs, out_names)
+
+        function("constraint", [x, t], ["x", "t"], [f], ["f"])
+        function("jacobian", [x, t], ["x", "t"], [f, J], ["f", "J"])
+        function("velocity_terms", [x, t], ["x", "t"], [J, f_t], ["J", "f_t"])
+        function("dynamics", [x, v, t], ["x", "v", "t"], [F, J, gamma], ["F", "J", "gamma"])
+        function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
+        function("potential", [x, t], ["x", "t"], [V], ["V"])
+        function("kinetic", [v], ["v"], [T], ["T"])
+        function("masses", [], [], [ca.SX(m3)], ["m"])  # (3N,): formulas of p, or numbers
+        Structure.builds += 1
+
+    def function(self, name: str) -> ca.Function:
+        """The parametric Function ``name``: the Model's inputs, then ``p``."""
+        if name not in self._functions:
+            inputs, in_names, outputs, out_names = self._parts[name]
+            self._functions[name] = ca.Function(name, [*inputs, self._p], outputs,
+                                                [*in_names, "p"], out_names)
+        return self._functions[name]
+
+    @property
+    def functions(self) -> dict[str, ca.Function]:
+        """name -> parametric Function (``constraint(x, t, p)``, ``dynamics(x, v, t, p)``, …)."""
+        return {name: self.function(name) for name in self._parts}
+
+    def fixed(self, name: str) -> ca.Function | None:
+        """The Function ``name`` without ``p`` when its outputs do not depend on p (the same
+        for every parameter value, shared by all Models of this structure), else None."""
+        if name not in self._fixed:
+            inputs, in_names, outputs, out_names = self._parts[name]
+            p = self._p
+            free = not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs)
+            self._fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names) if free else None
+        return self._fixed[name]
+
+    def _uses(self, name: str) -> np.ndarray:
+        """Indices of the entries of p that the outputs of Function ``name`` depend on."""
+        uses = self._used
+        if name not in uses:
+            fun = self.function(name)
+            last = fun.n_in() - 1
+            used = {int(c) for i in range(fun.n_out()) if fun.nnz_out(i) and fun.nnz_in(last)
+                    for c in fun.jac_sparsity(i, last, True).get_col()}  # sparsity only: O(nnz)
+            uses[name] = np.array(sorted(used), dtype=np.int64)
+        return uses[name]
+
+    def bind(self, name: str, values: np.ndarray) -> ca.Function:
+        """The Function ``name`` without its last input ``p``: p fixed at ``values`` (an SX
+        Function of the same inputs and outputs as the Model's public ones)."""
+        fixed = self.fixed(name)
+        if fixed is not None:
+            return fixed
+        # keyed by the entries of p the Function uses: Models differing elsewhere share it
+        key = (name, np.asarray(values, float)[self._uses(name)].tobytes())
+        bound = self._bound.get(key)
+        if bound is None:  # Models with equal values share the Function objects
+            fun = self.function(name)
+            inputs = [ca.SX.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in() - 1)]
+            outputs = fun.call([*inputs, ca.DM(values)])
+            bound = ca.Function(name, inputs, outputs, fun.name_in()[:-1], fun.name_out())
+            with self._lock:
+                self._bound[key] = bound
+                while len(self._bound) > BOUND_FUNCTIONS_KEPT:
+                    self._bound.popitem(last=False)
+        return bound
+
+
+def _entries_of(values: list, p: ca.SX) -> np.ndarray | None:
+    """For each of ``values`` that is a bare entry of the symbol vector ``p``, its index in p;
+    None when one is anything else (a formula, a number)."""
+    symbols = {e.element_hash(): k for k, e in enumerate(ca.vertsplit(p))} if p.numel() else {}
+    out = []
+    for e in values:
+        if not isinstance(e, ca.SX) or not e.is_symbolic() or e.element_hash() not in symbols:
+            return None
+        out.append(symbols[e.element_hash()])
+    return np.array(out, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Expressions:
+    """A Structure's symbols and the SX expressions it is built from: ``rows`` (f's rows, in
+    order), ``slots`` (slot name -> the effects' terms, constrained.effects) and ``terms``
+    (each effect's term, in the system's order)."""
+
+    x: ca.SX
+    v: ca.SX
+    t: ca.SX
+    p: ca.SX
+    rows: list
+    slots: dict
+    terms: list
+
+
+def forces(slots: dict, x, v, t) -> tuple:
+    """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
+
+        F = −∂V/∂x − ∂U/∂x + d/dt ∂U/∂v − ∂R/∂v + Σ applied,   V = Σ potentials, U = Σ
+        generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
+        dissipations."""
+    active = set()
+    F = ca.SX.zeros(x.numel())
+    V = U = ca.SX(0)
+    dU_dv = ca.SX.zeros(x.numel())
+    if slots["potential"]:
+        active.add("potential")
+        V = sum(slots["potential"], ca.SX(0))
+        F -= ca.gradient(V, x)
+    if slots["generalized_potential"]:
+        active.add("generalized_potential")
+        U = sum(slots["generalized_potential"], ca.SX(0))
+        dU_dv = ca.gradient(U, v)
+        if ca.depends_on(dU_dv, v):
+            raise InputError(
+                "a generalized potential must be linear in the velocities "
+                "(U = U0(x, t) + v·W(x, t)); this one is not"
+            )
+        # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
+        F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
+    if slots["dissipation"]:
+        active.add("dissipation")
+        R = sum(slots["dissipation"], ca.SX(0))
+        F -= ca.gradient(R, v)
+    if slots["applied_force"]:
+        active.add("applied_force")
+        for term in slots["applied_force"]:
+            F += term
+    if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
+        active.add("time_dependent_forces")
+    return F, V, U, dU_dv, active
+
+
+class Model:
+    """An assembled system: CasADi Functions in (x, v, t) for the system's parameter values.
+    Immutable once built: runs keep their counters and redundancy in their own ``Manifold``
+    (constrained.manifold), which also holds the KKT solve.
+
+    Functions (all with flat 3N vectors; p at ``parameter_vector``: the parameters'
+    ``parameter_values``, then the plain ``numbers``):
+      ``constraint(x, t) -> f``                (C,)
+      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C, 3N)
+      ``velocity_terms(x, t) -> (J, f_t)``
+      ``dynamics(x, v, t) -> (F, J, γ)``        what the acceleration-level KKT needs
+      ``energy(x, v, t) -> h``                 h = T + V + U − v·∂U/∂v (the energy function)
+      ``potential(x, t) -> V``
+      ``kinetic(v) -> T``
+
+    The parameters are inputs, not constants: ``structure.functions`` holds the same Functions
+    with ``p`` (values in the order of ``parameter_names``) as their last input, and
+    ``with_parameters({"m1": 1.2})`` gives the Model for other values without building
+    anything again (the ``structure`` is shared).
+    """
+
+    def __init__(self, system, *, structure: Structure | None = None, numbers: np.ndarray | None = None):
+        structure = structure if structure is not None else Structure(system)
+        if tuple(system.parameters) != structure.parameter_names:
+            raise InputError(
+                f"the system's parameters ({', '.join(system.parameters) or 'none'}) are not "
+                f"those of the structure ({', '.join(structure.parameter_names) or 'none'}); "
+                "use Model.with_parameters on a Model of this system")
+        self.structure = structure
+        self.system = system
+        self.parameter_names: tuple[str, ...] = structure.parameter_names
+        self.parameter_values = np.array([system.parameters[k] for k in self.parameter_names], float)
+        numbers = lifting.numbers(system) if numbers is None else np.asarray(numbers, float)
+        if numbers.size != structure.n_numbers:
+            raise InputError(
+                f"the system has {numbers.size} plain numbers (masses, lengths, constants) where the "
+                f"structure has {structure.n_numbers}: it is not a system of this structure; "
+                "assemble the system itself")
+        #: The system's plain numbers, in the order of ``constrained.lifting``.
+        self.numbers = numbers
+        #: The values of the parametric Functions' last input p: the parameters, then the numbers.
+        self.parameter_vector = np.concatenate([self.parameter_values, numbers])
+        self.n_particles = structure.n_particles
+        self.n_coordinates = structure.n_coordinates
+        self.masses = np.repeat(system.masses, 3)
+        self.inverse_masses = 1.0 / self.masses
+        for array in (self.parameter_values, self.numbers, self.parameter_vector, self.masses,
+                      self.inverse_masses):
+            array.flags.writeable = False
+        self.constraint_owner = structure.constraint_owner
+        self.n_constraints = structure.n_constraints
+        self.rheonomic = structure.rheonomic
+        self.active_terms = structure.active_terms
+        #: The system's data the numeric side needs, copied so the Model does not change.
+        self.particle_names = structure.particle_names
+
+    @functools.cached_property
+    def constraint_labels(self) -> list[str]:
+        """One label per constraint row (its plain numbers the system's)."""
+        labels = self.structure.constraint_labels
+        if not self.structure.n_numbers:
+            return labels
+        return [lifting.fill(label, self.numbers) for label in labels]
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """The parameters' values, name -> number."""
+        return dict(zip(self.parameter_names, self.parameter_values.tolist(), strict=True))
+
+    def with_parameters(self, parameters: Mapping[str, float] | None = None) -> Model:
+        """The Model for other values of some parameters (the rest keep theirs). Shares this
+        Model's structure: nothing is parsed or differentiated again (``Structure.builds``
+        does not grow). Masses, initial positions and velocities given by formulas follow
+        (``model.system`` is ``system.with_parameters(parameters)``). Unknown names,
+        non-finite values and masses that come out non-positive raise InputError."""
+        if not parameters:
+            return self
+        return Model(self.system.with_parameters(parameters), structure=self.structure,
+                     numbers=self.numbers)
+
+    @functools.cached_property
+    def symbols(self) -> Symbols:
+        """Symbols of ``system`` with the parameters' values as numbers, for analyses that
+        build their own expressions (effects' terms, formulas) to go with this Model's."""
+        return Symbols(self.system)
+
+    def _bound(self, name: str) -> ca.Function:
+        return self.structure.bind(name, self.parameter_vector)
+
+    def parametric(self, name: str) -> ca.Function:
+        """The Function ``name`` with the parameter vector p as its last input (the
+        structure's: shared by every Model of this structure, whatever the values; this
+        Model's p is ``parameter_vector``)."""
+        return self.structure.function(name)
+
+    @property
+    def masses_follow_parameters(self) -> bool:
+        """Whether the structure's masses are symbols of p (a plain number or a formula of the
+        parameters): step graphs built for the structure then take them from p."""
+        return self.structure.masses_symbolic
+
+    constraint = functools.cached_property(lambda self: self._bound("constraint"))
+    jacobian = functools.cached_property(lambda self: self._bound("jacobian"))
+    velocity_terms = functools.cached_property(lambda self: self._bound("velocity_terms"))
+    dynamics = functools.cached_property(lambda self: self._bound("dynamics"))
+    energy = functools.cached_property(lambda self: self._bound("energy"))
+    potential = functools.cached_property(lambda self: self._bound("potential"))
+    kinetic = functools.cached_property(lambda self: self._bound("kinetic"))
+
+    # --- batch evaluation along a trajectory ----------------------------------------------
+    def evaluate(self, function: ca.Function, *columns: np.ndarray) -> list[np.ndarray]:
+        """Evaluate ``function`` at many points at once (CasADi ``map``); columns are (T, k),
+        outputs (rows, T·cols) as the mapped Function's. Dense inputs and outputs go through
+        its FunctionBuffer: a (T, k) C-ordered array is the column-major (k, T) input as it
+        is, so nothing is converted element by element (a DM of 10⁶ numbers costs ~0.15 s)."""
+        n = columns[0].shape[0]
+        mapped = _mapped(function, n)
+        args = [np.ascontiguousarray(np.asarray(c, float).reshape(n, -1)) for c in columns]
+        dense = all(function.size2_in(i) == 1 and mapped.sparsity_in(i).is_dense()  # column inputs
+                    and mapped.nnz_in(i) == a.size for i, a in enumerate(args)) and all(
+            mapped.sparsity_out(i).is_dense() for i in range(mapped.n_out()))
+        if dense:
+            buf, run = mapped.buffer()
+            res = [np.empty(mapped.nnz_out(i)) for i in range(mapped.n_out())]
+            for i, a in enumerate(args):
+                buf.set_arg(i, memoryview(a))
+            for i, r in enumerate(res):
+                buf.set_res(i, memoryview(r))
+            run()
+            if not buf.ret():
+                return [r.reshape(mapped.size2_out(i), mapped.size1_out(i)).T for i, r in enumerate(res)]
+        out = mapped(*[a.T for a in args])  # sparse parts, or an evaluation error to raise
+        out = out if isinstance(out, tuple) else (out,)
+        return [np.asarray(o) for o in out]
+
+    def __repr__(self) -> str:
+        return (
+            f"Model({self.n_particles} particles, {self.n_constraints} constraint rows, "
+            f"active: {', '.join(sorted(self.active_terms)) or 'none'})"
+        )
+
+
+#: Functions mapped over n samples (``Model.evaluate``), the most recent few: blocks of one
+#: size along a trajectory map once (a map of a large model's Function takes tens of ms).
+_MAPPED: collections.OrderedDict = collections.OrderedDict()
+MAPPED_KEPT = 8
+
+
+def _mapped(function: ca.Function, n: int) -> ca.Function:
+    key = (id(function), n)
+    with _structures_lock:
+        entry = _MAPPED.get(key)
+        if entry is not None and entry[0] is function:
+            _MAPPED.move_to_end(key)
+            return entry[1]
+    mapped = function.map(n)
+    with _structures_lock:
+        _MAPPED[key] = (function, mapped)
+        while len(_MAPPED) > MAPPED_KEPT:
+            _MAPPED.popitem(last=False)
+    return mapped
+
+
+def assemble(system, parameters: Mapping[str, float] | None = None, *, reuse: bool = True) -> Model:
+    """Build the Model of a System (the only step that makes CasADi symbols), for the
+    system's parameter values updated by ``parameters``.
+
+    ``reuse``: a System with the same structure as one assembled before in this process (the
+    same particles, constraints, effects, parameter names and definitions; initial state,
+    parameter values and nonzero plain numbers — masses, lengths, constants — may differ)
+    gets that Structure again instead of a new one
+    (see ``structure_fingerprint`` and ``kept_structure``)."""
+    structure, numbers = kept_structure(system) if reuse else (None, None)
+    return Model(system, structure=structure, numbers=numbers).with_parameters(parameters)
+
+
+#: The Structures ``assemble`` keeps for reuse hold this many coordinates at most, in all.
+STRUCTURE_CACHE_COORDINATES = 3000
+_structures: collections.OrderedDict[str, Structure] = collections.OrderedDict()
+#: [fingerprint, Structure] of the most recent system over STRUCTURE_CACHE_COORDINATES.
+_largest: list = [None, None]
+_structures_lock = threading.Lock()
+
+
+class _NotPlain(Exception):
+    """A value structure_fingerprint cannot describe exactly."""
+
+
+def _plain(value):
+    """``value`` as JSON-able data that determines it exactly (floats by their repr)."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, lifting.Number):
+        return ["number", value.index]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return ["ndarray", value.dtype.str, list(value.shape), value.tolist()]
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        return ["mapping", [[_plain(k), _plain(v)] for k, v in value.items()]]
+    raise _NotPlain(type(value).__name__)
+
+
+def structure_fingerprint(system) -> str | None:
+    """A hash of everything a Structure is built from: particle names and masses (numbers, or
+    their formulas), each constraint and effect (its class and every attribute), the parameter
+    names in order and the definitions. Not the initial state, not the parameters' values, not
+    the nonzero plain numbers of masses and items' numeric fields (constrained.lifting: only
+    where they stand). None when an item holds a value that cannot be described exactly (then
+    nothing is reused)."""
+    return _fingerprint(system)[0]
+
+
+def _fingerprint(system) -> tuple[str | None, np.ndarray]:
+    """``(structure_fingerprint(system), lifting.numbers(system))`` in one walk."""
+    values: list[float] = []
+    try:
+        particles = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
+                      else _plain(lifting.lifted_mass(p, values))] for p in system.particles]
+        items = []
+        for item in (*system.constraints, *system.effects):
+            lifted = lifting.lifted_fields(item, values)
+            rest = {k: v for k, v in vars(item).items() if k not in lifted}
+            items.append([type(item).__module__, type(item).__qualname__, _plain(lifted), _plain(rest)])
+        data = [particles, items, list(system.parameters), _plain(system.definitions)]
+        text = json.dumps(data)
+    except (_NotPlain, TypeError, ValueError):
+        return None, lifting.numbers(system)
+    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float)
+
+
+def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
+    """The Structure for ``system`` (kept, or built and kept) and the system's plain numbers
+    (None: the Model walks them). Up to STRUCTURE_CACHE_COORDINATES coordinates in all are
+    kept, the most recent first; a larger system is kept alone, in a slot of its own, so that
+    reading a big scene and running it build its Structure once."""
+    big = 3 * system.n_particles > STRUCTURE_CACHE_COORDINATES
+    key, numbers = _fingerprint(system)
+    if key is None:
+        return Structure(system), numbers
+    with _structures_lock:
+        structure = _largest[1] if big and _largest[0] == key else _structures.get(key)
+        if structure is not None:
+            if not big:
+                _structures.move_to_end(key)
+            return structure, numbers
+    structure = Structure(system)
+    with _structures_lock:
+        if big:
+            _largest[:] = [key, structure]
+            return structure, numbers
+        _structures[key] = structure
+        while sum(s.n_coordinates for s in _structures.values()) > STRUCTURE_CACHE_COORDINATES:
+            _structures.popitem(last=False)
+    return structure, numbers

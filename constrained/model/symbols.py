@@ -1,0 +1,155 @@
+"""Symbols: the CasADi variables of one assembled system, handed to constraints and effects.
+
+Assembly is the only place CasADi symbols are made. A constraint or an effect receives a
+Symbols object and returns expressions in ``x`` (3N positions), ``v`` (3N velocities) and
+``t``; formula strings are parsed here, with exactly the names the context allows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import casadi as ca
+import numpy as np
+
+from ..errors import ExpressionError, InputError
+from . import expressions, parameters
+from .lifting import Number
+
+
+class Symbols:
+    """CasADi SX symbols ``x``, ``v``, ``t`` for a System, plus the scene's parameters.
+
+    By default the parameters and definitions are numbers (``parameters`` maps each name to
+    its value) and ``masses`` is the numeric array: expressions come out with the values
+    inside. With ``symbolic_parameters`` each parameter is an SX symbol named after it,
+    stacked into ``p`` (in the order of ``system.parameters``), each definition an SX
+    expression of them, and ``masses`` a list (a float, or an SX expression for a mass given
+    by a formula): the Model builds its parametric Functions of ``p`` from these.
+
+    ``numbers``: how many plain numbers the (lifted, constrained.lifting) system holds as
+    ``Number`` entries; each is the symbol ``p[len(parameters) + index]``.
+    """
+
+    def __init__(self, system, *, symbolic_parameters: bool = False, numbers: int = 0):
+        self.system = system
+        n = system.n_particles
+        self.x = ca.SX.sym("x", 3 * n)
+        self.v = ca.SX.sym("v", 3 * n)
+        self.t = ca.SX.sym("t")
+        self._index = {p.name: i for i, p in enumerate(system.particles)}
+        self.symbolic_parameters = symbolic_parameters
+        if symbolic_parameters:
+            self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
+            hidden = ca.SX.sym("number", numbers)
+            self._numbers = ca.vertsplit(hidden) if numbers else []
+            self.p = ca.vertcat(self.p, hidden)
+            self.masses = [
+                expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
+                if "mass" in p.formulas else self.number(p.mass)
+                for p in system.particles
+            ]
+        else:
+            self.p = ca.SX(0, 1)
+            self._numbers = []
+            self.parameters = system.parameter_values
+            self.masses = system.masses
+        # One split each instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs in
+        # CasADi's Python layer, and a big chain asks for thousands of them.
+        self._xp = ca.vertsplit(self.x, 3) if n else []
+        self._vp = ca.vertsplit(self.v, 3) if n else []
+        self._position_names = self._state_names = None
+
+    def mass_column(self, indices=None):
+        """The masses of the particles ``indices`` (all by default) as a column: a DM of
+        numbers, or an SX when some are symbols (one CasADi call, not one per particle)."""
+        masses = self.masses if indices is None else [self.masses[i] for i in indices]
+        if not any(isinstance(m, ca.SX) for m in masses):
+            return ca.DM(np.asarray(masses, float))
+        return ca.vertcat(*[m if isinstance(m, ca.SX) else ca.SX(m) for m in masses])
+
+    def number(self, value):
+        """``value``, or the symbol of the hidden parameter when it is a lifted Number."""
+        return self._numbers[value.index] if type(value) is Number else value
+
+    @property
+    def position_names(self) -> dict:
+        """Names a position formula may use: t, parameters, x_NAME, y_NAME, z_NAME (built lazily)."""
+        if self._position_names is None:
+            self._build_names()
+        return self._position_names
+
+    @property
+    def state_names(self) -> dict:
+        """position_names plus the velocities vx_NAME, vy_NAME, vz_NAME (built lazily)."""
+        if self._state_names is None:
+            self._build_names()
+        return self._state_names
+
+    def _build_names(self) -> None:
+        base = {"t": self.t, **self.parameters}
+        xs, vs = ca.vertsplit(self.x), ca.vertsplit(self.v)
+        position, state = dict(base), dict(base)
+        for name, i in self._index.items():
+            for k, axis in enumerate("xyz"):
+                position[f"{axis}_{name}"] = state[f"{axis}_{name}"] = xs[3 * i + k]
+                state[f"v{axis}_{name}"] = vs[3 * i + k]
+        self._position_names, self._state_names = position, state
+
+    def index(self, name: str, where: str) -> int:
+        if not isinstance(name, str) or name not in self._index:
+            known = ", ".join(self._index) or "(none)"
+            raise InputError(f"names unknown particle {name!r} (particles: {known})", where=where)
+        return self._index[name]
+
+    def position(self, name: str, where: str):
+        return self._xp[self.index(name, where)]
+
+    def velocity(self, name: str, where: str):
+        return self._vp[self.index(name, where)]
+
+    def parse(self, text, where: str, *, velocities: bool = False, extra: dict | None = None):
+        """Parse a formula in particle coordinates (and velocities if allowed), t, parameters."""
+        if type(text) is Number:
+            return self.number(text)
+        names = dict(self.state_names if velocities else self.position_names)
+        if extra:
+            names.update(extra)
+        try:
+            return expressions.parse(text, names, where=where)
+        except ExpressionError:
+            if not velocities and isinstance(text, str):
+                used = expressions.free_names(text)
+                vel = sorted(n for n in used if n in self.state_names and n not in names)
+                if vel:
+                    raise ExpressionError(
+                        f"velocities ({', '.join(vel)}) are not allowed in this formula",
+                        where=where,
+                    ) from None
+            raise
+
+    def parse_field(self, text, where: str, at, *, velocity=None):
+        """Parse a field formula in x, y, z, t (and parameters) evaluated at the point ``at``."""
+        if type(text) is Number:
+            return self.number(text)
+        extra = {"x": at[0], "y": at[1], "z": at[2], "t": self.t, **self.parameters}
+        if velocity is not None:
+            extra.update({"vx": velocity[0], "vy": velocity[1], "vz": velocity[2]})
+        return expressions.parse(text, extra, where=where)
+
+    def time_function(self, text, where: str):
+        """A formula of t (and parameters) only: moving anchors, plane offsets."""
+        if type(text) is Number:
+            return self.number(text)
+        return expressions.parse(text, {"t": self.t, **self.parameters}, where=where)
+
+    def point(self, entries: Sequence, where: str):
+        """A 3-vector whose entries are numbers or formula strings of t."""
+        if isinstance(entries, np.ndarray):
+            entries = entries.tolist()
+        if isinstance(entries, str) or not isinstance(entries, Sequence) or len(entries) != 3:
+            raise InputError(
+                f"must be a list of 3 entries (numbers or formulas of t), got {entries!r}",
+                where=where,
+            )
+        return ca.vertcat(*[self.time_function(e, f"{where}[{k}]") for k, e in enumerate(entries)])

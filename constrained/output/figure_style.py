@@ -1,0 +1,132 @@
+"""What every figure shares: an Agg figure, particle and constraint names, colours, legends,
+the time axis with the run's events marked, and the plane of a planar motion."""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from ..errors import InputError
+from ..run.trajectory import Trajectory
+
+#: Legends list at most this many entries, then "…".
+MAX_LEGEND = 12
+#: Relative tolerance of the planarity test (distance to the plane / size of the motion).
+PLANAR_RTOL = 1e-9
+AXES = "xyz"
+
+
+def new_figure(size=(7.0, 4.5)) -> Figure:
+    fig = Figure(figsize=size, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def particle_names(traj: Trajectory) -> list[str]:
+    n = traj.x.shape[1]
+    names = list(traj.particle_names or [])
+    return names if len(names) == n else [f"particle {i}" for i in range(n)]
+
+
+def constraint_labels(traj: Trajectory, count: int) -> list[str]:
+    labels = list(traj.constraint_labels or [])
+    return labels if len(labels) == count else [f"constraint {k}" for k in range(count)]
+
+
+def colour(i: int) -> str:
+    return f"C{i % 10}"
+
+
+def legend(ax, handles: list, labels: list[str], **kwargs) -> None:
+    """Legend with at most MAX_LEGEND entries; the rest is summed up as "… (k more)"."""
+    if not handles:
+        return
+    if len(handles) > MAX_LEGEND:
+        more = len(handles) - MAX_LEGEND
+        handles = [*handles[:MAX_LEGEND], Line2D([], [], linestyle="none")]
+        labels = [*labels[:MAX_LEGEND], f"… ({more} more)"]
+    if len(handles) > 4:  # many entries would hide the curves: put the legend outside
+        kwargs = {**kwargs, "loc": "upper left", "bbox_to_anchor": (1.01, 1.0)}
+    ax.legend(handles, labels, fontsize="small", **kwargs)
+
+
+def need(traj: Trajectory, name: str, what: str) -> np.ndarray:
+    value = getattr(traj, name)
+    if value is None:
+        raise InputError(
+            f"this trajectory has no {what}: run the simulation with '{name}' among the "
+            f"requested quantities to plot it"
+        )
+    return np.asarray(value, dtype=float)
+
+
+#: Events marked in one figure at most (a settling ball has many; the first ones tell).
+MAX_MARKED_EVENTS = 60
+#: Line colours of the event kinds (user events: grey).
+EVENT_COLOURS = {"release": "tab:red", "contact": "tab:green", "impact": "tab:purple"}
+
+
+def time_axis(ax, traj: Trajectory | None = None) -> None:
+    """The time axis; the instants of the run's events (``traj.events``) as thin dashed lines,
+    coloured by kind, with the kinds in a small legend."""
+    ax.set_xlabel("t [s]")
+    ax.grid(True, alpha=0.3)
+    events = list(getattr(traj, "events", None) or [])[:MAX_MARKED_EVENTS]
+    if not events:
+        return
+    kinds = {}
+    for e in events:
+        colour = EVENT_COLOURS.get(e.kind, "0.45")
+        ax.axvline(e.t, color=colour, lw=0.8, ls="--", alpha=0.7, zorder=0)
+        kinds.setdefault(e.kind, colour)
+    from matplotlib.legend import Legend
+
+    # an artist of its own: the figure's own legend, made later, does not replace it
+    ax.add_artist(Legend(ax, [Line2D([], [], color=c, lw=0.8, ls="--") for c in kinds.values()], list(kinds),
+                         fontsize="x-small", loc="lower left", title="events", title_fontsize="x-small"))
+
+
+# --------------------------------------------------------------------------------- planarity
+
+
+def motion_plane(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str, str]] | None:
+    """The plane holding every position of ``x`` (shape (..., 3)), or None if there is none.
+
+    Returns ``(origin, basis, labels)``: plane coordinates are ``(p - origin) @ basis.T``
+    (``basis`` is 2×3, orthonormal rows). When the plane is a coordinate plane (e.g.
+    z = const) the basis is the two other unit axes and labels are their names ("x", "y");
+    otherwise the basis is the two principal directions and labels are ("u", "v").
+    "In the plane" means within ``PLANAR_RTOL`` times the size of the motion.
+    """
+    p = np.asarray(x, dtype=float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) == 0:
+        return None
+    origin = p.mean(axis=0)
+    c = p - origin
+    size = float(np.max(np.ptp(p, axis=0)))
+    tol = PLANAR_RTOL * size
+    spread = np.ptp(p, axis=0)
+    flat = [k for k in range(3) if spread[k] <= tol]
+    if flat:
+        k = flat[-1]  # prefer z = const, then y = const, then x = const
+        keep = [j for j in range(3) if j != k]
+        return origin, np.eye(3)[keep], (AXES[keep[0]], AXES[keep[1]])
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    normal = vt[2]
+    if np.max(np.abs(c @ normal)) > tol:
+        return None
+    basis = vt[:2].copy()
+    for row in basis:  # deterministic orientation: largest component positive
+        if row[np.argmax(np.abs(row))] < 0:
+            row *= -1
+    if np.dot(np.cross(basis[0], basis[1]), normal) < 0:
+        normal = -normal
+    return origin, basis, ("u", "v")
+
+
+def fmt_vec(v: np.ndarray) -> str:
+    v = np.where(np.abs(v) < 5e-4, 0.0, v)
+    return "(" + ", ".join(f"{c:.3g}" for c in v) + ")"

@@ -1,0 +1,505 @@
+"""viewer.html: one self-contained interactive page of a run (``constrained view``).
+
+The page needs no network: the data travel inside it as JSON and base64 arrays, and
+``viewer_template.html`` (package data) draws them with plain canvas and inline JavaScript.
+Python does the heavy lifting so that the page stays small and smooth on any run:
+
+- frames are picked uniformly in time, at most ``MAX_FRAMES`` and at most
+  ``MAX_POINT_FRAMES`` (frames × particles); positions and forces are stored as int16
+  quantized to their range (a 1/65534 of the size of the motion);
+- the time series (energy, constraint residual, every multiplier) are reduced to a
+  min/max envelope of at most ``MAX_SERIES_POINTS`` points each, and all multipliers
+  together to at most ``MAX_SERIES_VALUES`` numbers, so spikes survive decimation;
+- with the scene's System the constraints are evaluated here, at the frame times: rods and
+  strings (distance constraints, also to a fixed or moving anchor), pins moving with t,
+  planes as patches and surfaces and curves as clouds of points on them, found by
+  Newton projection of a grid around the motion. Custom constraints are listed, not drawn.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import re
+import warnings
+from importlib import resources
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from ..errors import InputError
+from ..model.constraints import Curve, Custom, Distance, Pin, Plane, Surface
+from ..model.effects import Gravity
+from ..model.symbols import Symbols
+from ..run.trajectory import Trajectory, atomic_write
+
+__all__ = ["viewer_page", "write_viewer", "MAX_FRAMES", "MAX_POINT_FRAMES"]
+
+#: Most frames a page carries (the screen cannot show more along a slider).
+MAX_FRAMES = 2000
+#: Most frames × particles a page carries (bounds the page size for big systems).
+MAX_POINT_FRAMES = 400_000
+#: Fewest frames a page carries when the run has them (big systems trade frames for particles).
+MIN_FRAMES = 100
+#: Most points of one time series (a min/max envelope: half as many buckets).
+MAX_SERIES_POINTS = 2000
+#: Events listed (and marked) on the page at most.
+MAX_EVENTS = 200
+#: Most numbers of all multiplier series together.
+MAX_SERIES_VALUES = 400_000
+#: Most points of a surface or curve cloud, and most key times of a moving one.
+CLOUD_POINTS = 700
+CLOUD_KEYS = 40
+#: Most distinct surface and curve formulas drawn (each costs a Newton projection and page space).
+MAX_CLOUDS = 12
+#: How far above the level a 3-D motion is first seen from (radians; drag to turn).
+ELEVATION = math.radians(25.0)
+_GRID = 14  # seeds per axis of the Newton projection onto surfaces and curves
+_TEMPLATE = "viewer_template.html"
+
+
+# --------------------------------------------------------------------------------- encoding
+
+
+def _b64(a: np.ndarray, dtype) -> str:
+    little = np.ascontiguousarray(a, dtype=np.dtype(dtype).newbyteorder("<"))
+    return base64.b64encode(little.tobytes()).decode()
+
+
+def _f32(a) -> str:
+    return _b64(np.asarray(a, dtype=float), np.float32)
+
+
+def _quantize(a: np.ndarray, lo: np.ndarray, step: np.ndarray) -> str:
+    """int16 codes of ``(a - lo) / step - 32767``; NaN (and ±inf) become −32768."""
+    q = np.round((a - lo) / step) - 32767.0
+    q = np.where(np.isfinite(q), np.clip(q, -32767, 32767), -32768)
+    return _b64(q, np.int16)
+
+
+# --------------------------------------------------------------------------------- decimation
+
+
+def frame_indices(t: np.ndarray, n_particles: int) -> np.ndarray:
+    """Sample indices of the frames: uniform in time, at most the budgets above allow."""
+    n = len(t)
+    budget = max(MIN_FRAMES, MAX_POINT_FRAMES // max(n_particles, 1))
+    count = min(MAX_FRAMES, budget)
+    if n <= count:
+        return np.arange(n)
+    times = np.linspace(t[0], t[-1], count)
+    idx = np.clip(np.searchsorted(t, times), 0, n - 1)
+    return np.unique(idx)
+
+
+def envelope(t: np.ndarray, y: np.ndarray, points: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(times, values)`` of at most ``points`` samples keeping each bucket's min and max.
+
+    ``y`` is (T,) or (T, C); columns share the times. NaN is ignored inside a bucket.
+    """
+    y = np.asarray(y)
+    y = y.astype(np.result_type(y.dtype, np.float32), copy=False)  # float32 stays float32
+    n = len(t)
+    if n <= points:
+        return np.asarray(t, dtype=float), y
+    buckets = max(1, points // 2)
+    starts = np.linspace(0, n, buckets + 1).astype(int)[:-1]
+    ends = np.append(starts[1:], n) - 1
+    with np.errstate(invalid="ignore"):
+        lo = np.fmin.reduceat(y, starts, axis=0)
+        hi = np.fmax.reduceat(y, starts, axis=0)
+    times = np.empty(2 * buckets)
+    times[0::2], times[1::2] = t[starts], t[ends]
+    values = np.empty((2 * buckets, *y.shape[1:]))
+    values[0::2], values[1::2] = lo, hi
+    return times, values
+
+
+# --------------------------------------------------------------------------------- view
+
+
+def view_basis(x: np.ndarray, up=None) -> tuple[np.ndarray, list[str], bool]:
+    """Initial view: rows (right, up, towards the viewer), their axis names, planar or not.
+
+    A planar motion is seen face-on (a coordinate plane with its own axes when it lies in
+    one), turned so that ``up`` (against gravity; default +z) points up the screen; a
+    level plane is seen from above. A 3-D motion is seen along the normal of its best-fit
+    plane, raised ``ELEVATION`` above the level, ``up`` up the screen.
+    """
+    p = x.reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) < 2:
+        p = np.vstack([p, np.zeros((2, 3))])
+    spread = np.ptp(p, axis=0)
+    size = float(max(spread.max(), 1e-300))
+    flat = [k for k in range(3) if spread[k] <= 1e-9 * size]
+    if flat and up is None:  # a coordinate plane: its own axes, x right, then y or z up
+        k = flat[-1]
+        keep = [j for j in range(3) if j != k]
+        basis = np.eye(3)[[*keep, k]]
+        if k == 1:  # y = const: x right, z up, looking along +y keeps a right-handed frame
+            basis[2] *= -1
+        return basis, ["xyz"[j] for j in (*keep, k)], True
+    c = p - p.mean(axis=0)
+    _, sv, vt = np.linalg.svd(c[:: max(1, len(c) // 20000)], full_matrices=False)
+    normal = np.eye(3)[flat[-1]] if flat else vt[2]
+    planar = bool(flat) or bool(sv[2] <= 1e-9 * max(sv[0], 1e-300))
+    ref = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
+    ref = ref / np.linalg.norm(ref)
+    in_plane = ref - (ref @ normal) * normal
+    level = np.linalg.norm(in_plane) <= 0.3
+    if planar and not level:  # up lies (mostly) in the plane of the motion: look along its normal
+        upv = in_plane / np.linalg.norm(in_plane)
+        towards = normal if normal @ np.array([1.0, -1.0, 1.0]) >= 0 else -normal
+    elif planar:  # a level plane: look down on it from above
+        towards = ref
+        upv = np.cross(towards, vt[0])
+        if np.linalg.norm(upv) < 1e-6:
+            upv = np.cross(towards, np.eye(3)[np.argmin(np.abs(towards))])
+        upv /= np.linalg.norm(upv)
+    else:  # 3-D: along the best-fit plane's normal, from ELEVATION above the level
+        h = normal - (normal @ ref) * ref
+        if np.linalg.norm(h) < 0.3:  # a level best-fit plane: a default azimuth
+            h = np.array([0.5, -0.866, 0.0]) - (np.array([0.5, -0.866, 0.0]) @ ref) * ref
+            if np.linalg.norm(h) < 1e-6:
+                h = np.cross(ref, np.eye(3)[np.argmin(np.abs(ref))])
+        h /= np.linalg.norm(h)
+        if h @ np.array([1.0, -1.0, 1.0]) < 0:
+            h = -h
+        towards = math.cos(ELEVATION) * h + math.sin(ELEVATION) * ref
+        upv = ref - (ref @ towards) * towards
+        upv /= np.linalg.norm(upv)
+    right = np.cross(upv, towards)
+    right /= np.linalg.norm(right)
+    basis = np.array([right, np.cross(towards, right), towards])
+    names = ["u", "v", "w"]
+    for r, row in enumerate(basis):  # name the rows after coordinate axes when they are ones
+        k = int(np.argmax(np.abs(row)))
+        if abs(row[k]) > 1 - 1e-12:
+            names[r] = "xyz"[k]
+    return basis, names, planar
+
+
+def up_direction(system) -> np.ndarray | None:
+    """Against the scene's uniform gravity, when it has one with constant numbers."""
+    for e in getattr(system, "effects", ()):
+        if isinstance(e, Gravity):
+            try:
+                g = np.array([float(v) for v in e.g])
+            except (TypeError, ValueError):
+                continue
+            if np.linalg.norm(g) > 0:
+                return -g / np.linalg.norm(g)
+    return None
+
+
+# --------------------------------------------------------------------------------- geometry
+
+
+def _time_vector(fn: ca.Function, times: np.ndarray) -> np.ndarray:
+    """(len(times), k) values of a CasADi function of t returning k numbers."""
+    out = fn.map(len(times))(times.reshape(1, -1))
+    return np.asarray(out, dtype=float).T
+
+
+class _Geometry:
+    """The constraints of a System, evaluated at the frame times for the page."""
+
+    def __init__(self, system, names: list[str], times: np.ndarray, x: np.ndarray):
+        self.s = Symbols(system)
+        self.names = {n: k for k, n in enumerate(names)}
+        self.times = times
+        finite = x.reshape(-1, 3)
+        finite = finite[np.all(np.isfinite(finite), axis=1)]
+        self.lo = finite.min(axis=0) if len(finite) else np.zeros(3)
+        self.hi = finite.max(axis=0) if len(finite) else np.zeros(3)
+        self.size = float(max(np.max(self.hi - self.lo), 1e-3))
+        self.centre = 0.5 * (self.lo + self.hi)
+        self.items: list[dict] = []
+        self._clouds: dict[tuple, dict] = {}  # one cloud per distinct formula (a chain repeats them)
+
+    def particle(self, name, where) -> int:
+        if name not in self.names:
+            raise InputError(f"names particle {name!r}, which the trajectory does not have", where=where)
+        return self.names[name]
+
+    def point(self, entries, where) -> dict:
+        """A point of t: fixed ``[x, y, z]`` or per frame (base64 float32, frames × 3)."""
+        vec = self.s.point(entries, where)
+        fn = ca.Function("p", [self.s.t], [vec])
+        if not ca.depends_on(vec, self.s.t):
+            return {"fixed": [float(v) for v in np.asarray(fn(0.0)).ravel()]}
+        return {"moving": _f32(_time_vector(fn, self.times))}
+
+    def add(self, c) -> None:
+        where = c.where or c.label
+        label = c.label
+        if isinstance(c, Distance):
+            item = {"kind": "rod", "label": label, "a": self.particle(c.a, where)}
+            if c.b is not None:
+                item["b"] = self.particle(c.b, where)
+            else:
+                item["point"] = self.point(c.point, where)
+            self.items.append(item)
+        elif isinstance(c, Pin):
+            self.items.append({"kind": "pin", "label": label, "a": self.particle(c.a, where),
+                               "point": self.point(c.point, where)})
+        elif isinstance(c, Plane):
+            self.items.append({"kind": "plane", "label": label, **self.plane(c, where)})
+        elif isinstance(c, Surface | Curve):
+            exprs = [c.expr] if isinstance(c, Surface) else c.exprs
+            self.items.append({"kind": "surface" if isinstance(c, Surface) else "curve",
+                               "label": label, **self.cloud(exprs, where)})
+        else:  # Custom, or a constraint class this page does not know
+            kind = "custom" if isinstance(c, Custom) else type(c).__name__.lower()
+            self.items.append({"kind": "undrawn", "label": f"{label} ({kind}: not drawn)"})
+
+    def plane(self, c: Plane, where) -> dict:
+        """The plane as a square patch around the motion: 4 corners, fixed or per frame."""
+        s = self.s
+        n = s.point(c.normal, f"{where}.normal")
+        d = s.time_function(c.offset, f"{where}.offset")
+        fn = ca.Function("n", [s.t], [ca.vertcat(n, d)])
+        moving = ca.depends_on(ca.vertcat(n, d), s.t)
+        nd = _time_vector(fn, self.times if moving else np.zeros(1))
+        corners = np.array([self._square(row[:3], row[3]) for row in nd])  # (K, 4, 3)
+        if moving:
+            return {"moving": _f32(corners.reshape(len(corners), 12))}
+        return {"fixed": corners[0].tolist()}
+
+    def _square(self, normal, offset) -> np.ndarray:
+        norm = float(np.linalg.norm(normal))
+        if not np.isfinite(norm) or norm == 0:
+            return np.full((4, 3), np.nan)
+        n = normal / norm
+        centre = self.centre - (n @ self.centre - offset / norm) * n
+        u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
+        u /= np.linalg.norm(u)
+        w = np.cross(n, u)
+        h = 0.75 * self.size
+        return np.array([centre + h * (su * u + sw * w) for su, sw in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+
+    def cloud(self, exprs: list[str], where) -> dict:
+        """Points on g_k(x, y, z, t) = 0 near the motion (Newton from a grid), per key time."""
+        key = tuple(str(e) for e in exprs)
+        if key in self._clouds:
+            return {"same_as": self._clouds[key]["index"]}
+        if len(self._clouds) >= MAX_CLOUDS:
+            return {"points": [], "note": f"not drawn: only the first {MAX_CLOUDS} distinct formulas are"}
+        self._clouds[key] = {"index": len(self.items)}
+        return self._cloud(exprs, where)
+
+    def _cloud(self, exprs: list[str], where) -> dict:
+        s = self.s
+        p = ca.SX.sym("p", 3)
+        g = ca.vertcat(*[s.parse_field(e, f"{where}.expr", p) for e in exprs])
+        J = ca.jacobian(g, p)
+        step = p - J.T @ ca.solve(J @ J.T + 1e-14 * ca.SX.eye(g.numel()), g)
+        newton = ca.Function("newton", [p, s.t], [step, ca.norm_inf(g)])
+        moving = ca.depends_on(g, s.t)
+        lo, hi = self.lo - 0.3 * self.size, self.hi + 0.3 * self.size
+        axes = [np.linspace(lo[k], hi[k], _GRID) if hi[k] > lo[k] else np.array([lo[k]]) for k in range(3)]
+        seeds = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).T
+        mapped = newton.map(seeds.shape[1])
+        if moving:
+            count = min(CLOUD_KEYS, len(self.times))
+            keys = np.unique(np.linspace(0, len(self.times) - 1, count).astype(int))
+        else:
+            keys = np.array([0])
+        clouds = []
+        for k in keys:
+            clouds.append(self._project(mapped, seeds, float(self.times[k]), lo, hi))
+        count = max(len(c) for c in clouds)
+        if count == 0:
+            return {"points": [], "note": "no points found near the motion"}
+        if not moving:
+            return {"points": np.round(clouds[0], 6).tolist()}
+        # equal counts per key (NaN padding) so the page can index one flat array
+        padded = np.full((len(keys), count, 3), np.nan)
+        for j, c in enumerate(clouds):
+            padded[j, : len(c)] = c
+        return {"keys": keys.tolist(), "count": count, "moving": _f32(padded.reshape(len(keys), -1))}
+
+    def _project(self, newton, seeds, t, lo, hi) -> np.ndarray:
+        pts = seeds
+        with np.errstate(all="ignore"):
+            for _ in range(12):
+                step, _res = newton(pts, t)
+                pts = np.asarray(step, dtype=float)
+            res = np.asarray(newton(pts, t)[1], dtype=float).ravel()
+        pts = pts.T
+        ok = np.isfinite(res) & (res < 1e-6 * self.size) & np.all((pts >= lo) & (pts <= hi), axis=1)
+        pts = pts[ok]
+        if len(pts) == 0:
+            return pts
+        cells = np.round((pts - lo) / (self.size / 80)).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        pts = pts[np.sort(first)]
+        if len(pts) > CLOUD_POINTS:
+            pts = pts[np.linspace(0, len(pts) - 1, CLOUD_POINTS).astype(int)]
+        return pts
+
+
+def _check_scene(system, names: list[str], n: int) -> None:
+    scene_names = [p.name for p in system.particles]
+    if len(scene_names) != n or (names and scene_names != names):
+        have = ", ".join(names) if names else f"{n} particles"
+        raise InputError(
+            f"the scene's particles ({', '.join(scene_names) or 'none'}) are not the run's "
+            f"({have}): give the scene the run was made from"
+        )
+
+
+# --------------------------------------------------------------------------------- page
+
+
+def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
+    """Everything the page draws, decimated and encoded (JSON-ready)."""
+    t = np.asarray(traj.t, dtype=float)
+    x = np.asarray(traj.x)  # maybe float32 and big: converted after decimation only
+    if t.ndim != 1 or x.ndim != 3 or x.shape[0] != len(t) or x.shape[2] != 3 or len(t) == 0:
+        raise InputError(f"the trajectory's arrays do not fit: t {t.shape}, x {x.shape} "
+                         "(expected t (T,), x (T, N, 3), T > 0)")
+    n = x.shape[1]
+    names = list(traj.particle_names or [])
+    if system is not None:  # before any work: the scene must be the run's
+        _check_scene(system, names, n)
+        names = [p.name for p in system.particles]
+    names = names if len(names) == n else [f"particle {i}" for i in range(n)]
+    idx = frame_indices(t, n)
+    times, xf = t[idx], np.asarray(x[idx], dtype=float)
+    basis, axes, planar = view_basis(xf, up_direction(system) if system is not None else None)
+    with warnings.catch_warnings():  # an axis that is NaN throughout: drawn nowhere
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lo, hi = np.nanmin(xf, axis=(0, 1)), np.nanmax(xf, axis=(0, 1))
+    lo, hi = np.where(np.isfinite(lo), lo, 0.0), np.where(np.isfinite(hi), hi, 0.0)
+    step = np.maximum((hi - lo) / 65534.0, 1e-12)
+    data: dict = {
+        "title": title, "names": names, "n": n, "frames": len(idx), "samples": len(t),
+        "t": _f32(times), "t0": float(t[0]), "t1": float(t[-1]),
+        "x": {"lo": lo.tolist(), "step": step.tolist(), "q": _quantize(xf, lo, step)},
+        "view": {"basis": basis.tolist(), "axes": axes, "planar": planar},
+        "series": {},
+    }
+    if traj.constraint_forces is not None:
+        f = np.asarray(np.asarray(traj.constraint_forces)[idx], dtype=float)
+        big = float(np.nanmax(np.abs(f))) if np.isfinite(f).any() else 0.0
+        if big > 0 and np.isfinite(big):
+            fstep = big / 32767.0
+            data["forces"] = {"lo": [-big] * 3, "step": [fstep] * 3, "q": _quantize(f, -big, fstep),
+                              "max": float(np.nanmax(np.linalg.norm(f, axis=-1)))}
+    for name in ("energy", "constraint_residual"):
+        y = getattr(traj, name)
+        if y is not None and len(y) == len(t):
+            y = np.asarray(y, dtype=float)
+            if name == "energy":  # drawn as E − E(t0), subtracted here before float32 rounding
+                finite = y[np.isfinite(y)]
+                e0 = float(finite[0]) if finite.size else 0.0
+                y = y - e0
+            tt, yy = envelope(t, y, MAX_SERIES_POINTS)
+            data["series"][name] = {"t": _f32(tt), "y": _f32(yy)}
+            if name == "energy":
+                data["series"][name]["e0"] = e0
+    lam = traj.multipliers
+    if lam is not None and lam.ndim == 2 and len(lam) == len(t) and lam.shape[1] > 0:
+        c = lam.shape[1]
+        points = int(np.clip(MAX_SERIES_VALUES // c, 100, MAX_SERIES_POINTS))
+        tt, yy = envelope(t, lam, points)
+        labels = list(traj.constraint_labels or [])
+        labels = labels if len(labels) == c else [f"multiplier {k}" for k in range(c)]
+        data["series"]["multipliers"] = {"t": _f32(tt), "y": _f32(yy.T), "count": c, "labels": labels}
+    events = list(getattr(traj, "events", None) or [])
+    if events:  # the list under the picture and the marks in the panels (the first ones tell)
+        data["events"] = [{"t": float(e.t), "kind": e.kind, "text": e.describe()}
+                          for e in events[:MAX_EVENTS]]
+        data["events_total"] = len(events)
+    if system is not None:
+        geo = _Geometry(system, names, times, xf)
+        for c in system.constraints:
+            geo.add(c)
+        data["constraints"] = geo.items
+    return data
+
+
+def viewer_page(traj: Trajectory, *, system=None, title: str = "") -> str:
+    """The HTML text of the viewer of ``traj`` (constraints drawn when ``system`` is given)."""
+    data = page_data(traj, system=system, title=title)
+    blob = json.dumps(_finite(data), separators=(",", ":"), allow_nan=False, default=_plain)
+    blob = blob.replace("</", "<\\/")  # never closes the <script> element holding it
+    template = resources.files(__package__).joinpath(_TEMPLATE).read_text(encoding="utf-8")
+    heading = html.escape(title or "constrained run")
+    fill = {"__TITLE__": heading, "__DATA__": blob}  # one pass: neither can create the other
+    return re.sub("__TITLE__|__DATA__", lambda m: fill[m.group(0)], template)
+
+
+def _finite(value):
+    """JSON has no NaN: a non-finite number (a formula undefined at some t) becomes null."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float | np.floating) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _plain(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON: {type(value).__name__}")
+
+
+def write_viewer(traj: Trajectory, path, *, system=None, title: str = "") -> Path:
+    """Write the viewer page to ``path`` atomically; returns the path."""
+    text = viewer_page(traj, system=system, title=title)
+    path = Path(path)
+    atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+    return path
+
+
+def load_run(path) -> Trajectory:
+    """The trajectory in ``path`` (a trajectory.npz, or a folder holding one), or an InputError."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "trajectory.npz"
+    if not path.is_file():
+        raise InputError(f"view: no such file {path} (give a trajectory.npz written by 'run')")
+    try:
+        traj = Trajectory.load(path)
+    except InputError as exc:
+        raise InputError(f"view: {exc}") from None
+    except Exception as exc:  # a truncated or foreign file: zip, zlib, pickle or JSON errors
+        raise InputError(f"view: cannot read {path} as a trajectory ({type(exc).__name__}: {exc})") from None
+    x = np.asarray(traj.x)
+    if x.ndim != 3 or x.shape[-1] != 3 or len(traj.t) != len(x) or len(x) == 0:
+        raise InputError(f"view: {path}: x has shape {x.shape} for {len(traj.t)} times "
+                         "(expected (T, N, 3), T > 0)")
+    if not math.isfinite(float(traj.t[0])) or not math.isfinite(float(traj.t[-1])):
+        raise InputError(f"view: {path}: the times are not finite")
+    return traj
+
+
+
+def view_command(results, *, scene=None, out=None) -> Path:
+    """``constrained view``: read RUN, write the page; bad input is an InputError.
+
+    ``scene`` is a loaded Scene (or None: the page shows what the trajectory alone allows).
+    """
+    traj = load_run(results)
+    run = Path(results)
+    target = Path(out) if out else (run if run.is_dir() else run.parent) / "viewer.html"
+    if target.is_dir():
+        raise InputError(f"view: --out {target} is a directory; give the name of the page to write")
+    system = scene.system if scene is not None else None
+    file = run / "trajectory.npz" if run.is_dir() else run
+    title = (scene.name if scene is not None else "") or f"{file.parent.name}/{file.name}".lstrip("/")
+    try:
+        return write_viewer(traj, target, system=system, title=title)
+    except OSError as exc:
+        raise InputError(f"view: cannot write {target}: {exc.strerror or exc}") from None
+    except InputError as exc:  # the scene does not fit the run, or a formula cannot be drawn
+        where = f"scene file {scene.path}" if scene is not None else str(file)
+        raise InputError(f"view: {where} with {file}: {exc}") from None

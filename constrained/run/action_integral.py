@@ -1,0 +1,356 @@
+"""The action of a run, S(t) = ∫ L dt with L = T − V − U, and the stationarity check of a
+trajectory against admissible variations (see constrained.action for the principle's three
+tools; this module holds the two that take a trajectory)."""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from ..errors import InputError
+from ..manifold.constraint_report import jacobian_rank
+from ..model.structure import Model, assemble
+from .quantities import multipliers_along
+from .trajectory import Trajectory, atomic_write
+
+__all__ = ["ActionResult", "StationarityResult", "action", "lagrangian_function", "save_action_figure",
+           "stationarity"]
+
+#: Slots of effects that have no Lagrangian (left out of L, refused by the action principle).
+NON_LAGRANGIAN_SLOTS = ("dissipation", "applied_force")
+
+_L_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+# --- the Lagrangian --------------------------------------------------------------------------
+
+
+def as_model(model_or_system) -> Model:
+    if isinstance(model_or_system, Model):
+        return model_or_system
+    if getattr(model_or_system, "n_particles", 0) == 0:
+        raise InputError("the system has no particles")
+    return assemble(model_or_system)
+
+
+def lagrangian_function(model: Model) -> ca.Function:
+    """``L(x, v, t) = T − V − U`` of an assembled model, a CasADi Function (3N vectors).
+
+    Built from ``model.symbols`` and the system's effects, summed per slot as the Model
+    does; the effects without a Lagrangian (damping, applied forces) are not in it (see
+    :func:`excluded_effects`).
+    """
+    cached = _L_CACHE.get(model)
+    if cached is not None:
+        return cached
+    s = model.symbols
+    V = ca.SX(0)
+    U = ca.SX(0)
+    for effect in model.system.effects:
+        if effect.slot == "potential":
+            V = V + effect.term(s)
+        elif effect.slot == "generalized_potential":
+            U = U + effect.term(s)
+    T = 0.5 * ca.dot(ca.DM(model.masses) * s.v, s.v)
+    L = ca.Function("L", [s.x, s.v, s.t], [T - V - U], ["x", "v", "t"], ["L"])
+    _L_CACHE[model] = L
+    return L
+
+
+def excluded_effects(model: Model) -> list[str]:
+    """Labels of the effects that have no Lagrangian (damping, applied forces)."""
+    return [e.label for e in model.system.effects if e.slot in NON_LAGRANGIAN_SLOTS]
+
+
+def require_lagrangian(model: Model, what: str) -> None:
+    bad = excluded_effects(model)
+    if bad:
+        raise InputError(
+            f"{what} needs forces that come from a Lagrangian (potentials and generalized "
+            f"potentials); the system has {', '.join(repr(b) for b in bad)}, whose forces "
+            "(dissipation, applied forces) are not in L = T − V − U"
+        )
+
+
+def flat_samples(traj: Trajectory):
+    n = len(traj.t)
+    return (np.asarray(traj.t, float), np.asarray(traj.x, float).reshape(n, -1),
+            np.asarray(traj.v, float).reshape(n, -1))
+
+
+def _check_trajectory(model: Model, traj: Trajectory, minimum: int) -> None:
+    if not isinstance(traj, Trajectory):
+        raise InputError(f"expected a Trajectory, got {type(traj).__name__}")
+    n = len(traj.t)
+    if n < minimum:
+        raise InputError(f"the trajectory has {n} samples; at least {minimum} are needed")
+    if traj.x.reshape(n, -1).shape[1] != model.n_coordinates:
+        raise InputError(
+            f"the trajectory has {traj.x.shape[1]} particles, the system {model.n_particles}"
+        )
+    if np.any(np.diff(traj.t) <= 0):
+        raise InputError("the trajectory's times must be strictly increasing")
+
+
+def _cumulative(y: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, str]:
+    """∫ y dt from t[0] at every sample: composite Simpson (O(h⁴)) where SciPy has it."""
+    if len(t) < 3:
+        from scipy.integrate import cumulative_trapezoid
+
+        return cumulative_trapezoid(y, t, initial=0.0), "trapezoid"
+    try:
+        from scipy.integrate import cumulative_simpson
+    except ImportError:  # SciPy < 1.12
+        from scipy.integrate import cumulative_trapezoid
+
+        return cumulative_trapezoid(y, t, initial=0.0), "trapezoid"
+    return cumulative_simpson(y, x=t, initial=0.0), "simpson"
+
+
+def _integral(y: np.ndarray, t: np.ndarray) -> float:
+    from scipy.integrate import simpson
+
+    return float(simpson(y, x=t))
+
+
+# --- the action of a run ---------------------------------------------------------------------
+
+
+@dataclass
+class ActionResult:
+    """The action along a trajectory: ``total = S(t_end)``, ``cumulative`` S(t) (T,),
+    ``lagrangian`` L(t) (T,), ``quadrature`` used, ``excluded`` effects not in L."""
+
+    t: np.ndarray
+    lagrangian: np.ndarray
+    cumulative: np.ndarray
+    total: float
+    quadrature: str
+    excluded: list[str] = field(default_factory=list)
+
+    def __repr__(self) -> str:
+        note = f", without {', '.join(self.excluded)}" if self.excluded else ""
+        return f"ActionResult(S = {self.total:.10g} J·s over t = {self.t[0]:g}..{self.t[-1]:g} s{note})"
+
+
+def action(model_or_system, trajectory: Trajectory) -> ActionResult:
+    """The cumulative action ``S(t) = ∫ L dt`` along ``trajectory`` (Cartesian L = T − V − U).
+
+    L is evaluated at the samples with the trajectory's positions and velocities and
+    integrated by composite Simpson on the sample times (error O(h⁴) for smooth motion;
+    sample densely for an accurate number).
+    """
+    model = as_model(model_or_system)
+    _check_trajectory(model, trajectory, 2)
+    t, X, V = flat_samples(trajectory)
+    L = model.evaluate(lagrangian_function(model), X, V, t)[0].ravel()
+    S, rule = _cumulative(L, t)
+    return ActionResult(t=t, lagrangian=L, cumulative=S, total=float(S[-1]), quadrature=rule,
+                        excluded=excluded_effects(model))
+
+
+# --- stationarity under admissible variations ------------------------------------------------
+
+
+@dataclass
+class StationarityResult:
+    """ΔS(ε) = S[x + εη] − S[x] for each ε (augmented Lagrangian L + λ·f).
+
+    ``order``: slope of log|ΔS| against log ε (≈ 2 for the true motion, ≈ 1 for a wrong
+    one); ``ratio``: (|ΔS|/ε at the smallest ε) / (|ΔS|/ε at the largest) (≈ ε_min/ε_max for
+    the true motion, ≈ 1 for a wrong one); ``first_variation`` δS = dS/dε at 0 and
+    ``second_variation`` d²S/dε² from ±ε at the smallest ε; ``constraint_violation`` the
+    largest |f| on each varied path (O(ε²)). ε is relative to the system size: the variation
+    is ε · size · η with max |η| = 1.
+    """
+
+    eps: np.ndarray
+    delta_S: np.ndarray
+    delta_S_minus: np.ndarray
+    order: float
+    ratio: float
+    first_variation: float
+    second_variation: float
+    constraint_violation: np.ndarray
+    action: float
+    scale: float
+    n_bumps: int
+    seed: int
+
+    @property
+    def delta_S_over_eps(self) -> np.ndarray:
+        return self.delta_S / self.eps
+
+    @property
+    def local_orders(self) -> np.ndarray:
+        """Slopes of log|ΔS| against log ε between neighbouring ε (the last is the asymptotic one)."""
+        d = np.log(np.abs(self.delta_S) + np.finfo(float).tiny)
+        return np.diff(d) / np.diff(np.log(self.eps))
+
+    @property
+    def is_stationary(self) -> bool:
+        """True when ΔS is second order in ε (measured slope above 1.5)."""
+        return bool(self.order > 1.5)
+
+    def table(self) -> str:
+        lines = [f"{'eps':>10}  {'dS(+eps)':>13}  {'dS/eps':>13}  {'max|f|':>9}"]
+        for e, d, c in zip(self.eps, self.delta_S, self.constraint_violation, strict=True):
+            lines.append(f"{e:10.4g}  {d:13.6g}  {d / e:13.6g}  {c:9.2g}")
+        verdict = "stationary" if self.is_stationary else "NOT stationary"
+        lines.append(f"order {self.order:.3f}, ratio {self.ratio:.4g}, δS ≈ {self.first_variation:.4g}, "
+                     f"δ²S ≈ {self.second_variation:.4g} ({verdict})")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"StationarityResult(order={self.order:.3f}, ratio={self.ratio:.4g}, "
+                f"first_variation={self.first_variation:.4g})")
+
+
+def independent_rows(model: Model, x, t) -> np.ndarray:
+    if model.n_constraints == 0:
+        return np.zeros(0, dtype=int)
+    J = np.asarray(model.jacobian(x, t)[1])
+    rank, order = jacobian_rank(J)
+    return np.sort(order[:rank])
+
+
+def _tangent_function(model: Model, rows: np.ndarray) -> ca.Function:
+    """eta(x, v, t, c, c_dot) -> (P c, d/dt (P c)) with P = I − Jᵀ(J Jᵀ)⁻¹J on the rows given."""
+    s = model.symbols
+    x, v, t = s.x, s.v, s.t
+    c, cd = ca.SX.sym("c", model.n_coordinates), ca.SX.sym("c_dot", model.n_coordinates)
+    if len(rows):
+        f = model.constraint(x, t)[[int(r) for r in rows]]
+        J = ca.jacobian(f, x)
+        A = ca.mtimes(J, J.T)
+
+        def P(w):
+            return w - ca.mtimes(J.T, ca.solve(A, ca.mtimes(J, w)))
+
+        Pc = P(c)
+        dPc = ca.jtimes(Pc, x, v) + (ca.jacobian(Pc, t) if ca.depends_on(Pc, t) else 0)
+        eta, eta_dot = Pc, P(cd) + dPc
+    else:
+        eta, eta_dot = c, cd
+    return ca.Function("eta", [x, v, t, c, cd], [eta, eta_dot])
+
+
+def stationarity(
+    model_or_system,
+    trajectory: Trajectory,
+    *,
+    eps_list: Sequence[float] = (1e-2, 5e-3, 2.5e-3, 1.25e-3),
+    n_bumps: int = 3,
+    seed: int = 0,
+) -> StationarityResult:
+    """Measure how the action changes under admissible variations of ``trajectory``.
+
+    The variation is ``δx(t) = ε · size · η(t)``, ``η = P(x(t)) c(t)``: P projects onto the
+    null space of J (a smooth choice of the null-space directions), ``c(t) = Σ_j sin²(π j s)
+    c_j`` (s = (t − t0)/T, j = 1..n_bumps, c_j seeded normal vectors), normalized to
+    max |η| = 1. It vanishes with its derivative at both ends and keeps ``f = 0`` to first
+    order. ``δv = ε · size · dη/dt`` exactly (CasADi AD of P along the trajectory's velocity),
+    so the varied path's velocity is the derivative of its positions.
+
+    The action of each path is taken with the augmented Lagrangian ``L + λ·f`` (λ the
+    trajectory's multipliers, from the KKT system when the trajectory has none), integrated
+    by Simpson on the trajectory's samples: for the true motion the first variation vanishes
+    and ΔS = O(ε²); for a wrong motion ΔS = O(ε). Sample densely: the quadrature error and
+    the integration tolerance of the trajectory set the floor below which ΔS/ε stops falling.
+    """
+    model = as_model(model_or_system)
+    require_lagrangian(model, "the stationarity check")
+    _check_trajectory(model, trajectory, 5)
+    eps = np.asarray(list(eps_list), float).ravel()
+    if eps.size < 2 or not np.all(np.isfinite(eps)) or np.any(eps <= 0):
+        raise InputError(f"eps_list must hold at least two positive numbers, got {list(eps_list)!r}")
+    if isinstance(n_bumps, bool) or not isinstance(n_bumps, int) or n_bumps < 1:
+        raise InputError(f"n_bumps must be a positive integer, got {n_bumps!r}")
+    eps = np.sort(eps)[::-1]
+    t, X, V = flat_samples(trajectory)
+    n, n3 = X.shape
+    lam = trajectory.multipliers
+    if lam is None or np.asarray(lam).shape != (n, model.n_constraints):
+        lam = multipliers_along(model, X, V, t)
+    lam = np.asarray(lam, float).reshape(n, model.n_constraints)
+
+    # the variation η(t) and its exact time derivative along the trajectory
+    rng = np.random.default_rng(seed)
+    coeffs = rng.standard_normal((n_bumps, n3))
+    s = (t - t[0]) / (t[-1] - t[0])
+    j = np.arange(1, n_bumps + 1)[:, None]
+    b = np.sin(np.pi * j * s) ** 2                                      # (n_bumps, n)
+    bd = np.pi * j / (t[-1] - t[0]) * np.sin(2 * np.pi * j * s)         # d/dt sin²(π j s)
+    c, cd = b.T @ coeffs, bd.T @ coeffs                                 # (n, 3N)
+    rows = independent_rows(model, X[0], t[0])
+    eta, eta_dot = model.evaluate(_tangent_function(model, rows), X, V, t, c, cd)
+    eta, eta_dot = eta.T, eta_dot.T
+    size = model.system.size()
+    peak = float(np.max(np.linalg.norm(eta.reshape(n, -1, 3), axis=2)))
+    if peak == 0.0:
+        raise InputError("the system has no freedom to vary (J has full column rank)")
+    eta, eta_dot = eta * (size / peak), eta_dot * (size / peak)
+
+    Lf = lagrangian_function(model)
+    s_ = model.symbols
+    lam_sym = ca.SX.sym("lam", model.n_constraints)
+    f = model.constraint(s_.x, s_.t)
+    L_aug = Lf(s_.x, s_.v, s_.t) + (ca.dot(lam_sym, f) if model.n_constraints else 0)
+    Laug = ca.Function("L_aug", [s_.x, s_.v, s_.t, lam_sym], [L_aug, ca.mmax(ca.fabs(f)) if
+                                                           model.n_constraints else ca.SX(0)])
+
+    def S_of(Xp, Vp):
+        Lv, viol = model.evaluate(Laug, Xp, Vp, t, lam)
+        return _integral(Lv.ravel(), t), float(np.max(viol))
+
+    S0, _ = S_of(X, V)
+    dplus, dminus, viol = [], [], []
+    for e in eps:
+        Sp, vp = S_of(X + e * eta, V + e * eta_dot)
+        Sm, _ = S_of(X - e * eta, V - e * eta_dot)
+        dplus.append(Sp - S0)
+        dminus.append(Sm - S0)
+        viol.append(vp)
+    dplus, dminus = np.array(dplus), np.array(dminus)
+    tiny = np.finfo(float).tiny
+    order = float(np.polyfit(np.log(eps), np.log(np.abs(dplus) + tiny), 1)[0])
+    ratio = float((abs(dplus[-1]) / eps[-1]) / max(abs(dplus[0]) / eps[0], tiny))
+    e = eps[-1]
+    return StationarityResult(
+        eps=eps, delta_S=dplus, delta_S_minus=dminus, order=order, ratio=ratio,
+        first_variation=float((dplus[-1] - dminus[-1]) / (2 * e)),
+        second_variation=float((dplus[-1] + dminus[-1]) / e**2),
+        constraint_violation=np.array(viol), action=S0, scale=size, n_bumps=n_bumps, seed=seed,
+    )
+
+
+def save_action_figure(result: ActionResult, path) -> Path:
+    """L(t) and S(t) against time, one PNG (matplotlib's Agg canvas, written atomically)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 5))
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1.plot(result.t, result.lagrangian)
+    ax1.set_ylabel("L = T − V − U  [J]")
+    ax2.plot(result.t, result.cumulative)
+    ax2.set_ylabel("S(t) = ∫ L dt  [J·s]")
+    ax2.set_xlabel("t [s]")
+    ax1.set_title(f"action along the run: S = {result.total:.6g} J·s")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path) -> Path:
+    path = Path(path)
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
+    return path
+
+
+# --- the command line's end configuration ----------------------------------------------------

@@ -1,0 +1,433 @@
+"""The hybrid run: smooth segments between events, for one-sided constraints and user events.
+
+Within a segment the held rows (every two-sided row and the active one-sided ones,
+``unilateral.ActiveSet``) are integrated as an ordinary constrained run. The segment watches
+
+* each active one-sided row's signed multiplier μ = side · λ (falling through zero: release),
+* each inactive one-sided row's gap g = side · f (falling through zero: contact),
+* the user's events,
+
+located to round-off on the integrator's dense output. At a release the row leaves the
+active set; at a contact the impact law (``unilateral.impact``) gives the velocity jump, and
+the row joins the active set when it then holds (force of the allowed sign) and does not
+bounce off. Every change is an ``EventRecord`` in ``Trajectory.events``.
+
+**Rest rule** (against Zeno chatter: a ball with e < 1 bounces infinitely often in a finite
+time): when the rebound speed e·u of an impact is below ``rest_speed`` (default
+``REST_SPEED_PER_ATOL × atol`` m/s, the velocities the integrator resolves), the contact
+settles: the row joins the active set as if e were 0. A run with more than ``max_events``
+events stops with a message naming the chattering constraint.
+
+Each segment is a run of the common driver (solvers/driver.py, ``run_segment``) with the
+method asked for (``projection``, ``dopri`` or ``baumgarte``; the others refuse, see
+``refuse_method``) on the model holding the segment's rows (``constrained.held``): the
+driver locates the releases, contacts and user events to round-off. User events on a model
+without one-sided constraints go through the driver directly (simulate).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import interrupt
+from ..errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
+from ..manifold.manifold import Manifold
+from ..model.held import held
+from ..model.structure import Model
+from ..solvers import METHODS
+from ..solvers.base import Event, Status
+from .action_integral import action
+from .event_records import EventRecord
+from .quantities import constraint_forces_along, trajectory_from
+from .trajectory import Trajectory
+from .unilateral import (
+    ActiveSet,
+    check_allowed_side,
+    constraint_velocities,
+    gaps,
+    holding_set,
+    impact,
+    one_sided,
+    scales,
+)
+
+#: Default rest speed = this × atol (m/s): rebounds slower than that settle (see the module).
+REST_SPEED_PER_ATOL = 1e3
+#: Events a run may have before it is stopped as chattering.
+MAX_EVENTS = 10_000
+
+
+#: Methods a hybrid run can use: adaptive, with events located to round-off in a segment
+#: that may hold no constraint at all (the SUNDIALS methods need constraints, rattle has no
+#: adaptive step to land an event).
+SEGMENT_METHODS = ("projection", "dopri", "baumgarte")
+
+
+def refuse_method(method: str, options: dict) -> None:
+    """An InputError when ``method`` (with ``options``) cannot run one-sided constraints."""
+    if method not in SEGMENT_METHODS:
+        raise InputError(
+            f"method '{method}' cannot run one-sided constraints: use {', '.join(SEGMENT_METHODS)} "
+            "(dopri is the default), which switch the held constraints at each release, "
+            "contact and impact")
+    if options.get("dt") is not None:
+        raise InputError("one-sided constraints need adaptive steps (each event is located "
+                         "to round-off inside a step): remove dt")
+    base = options.get("base")
+    if method == "projection" and base is not None and base.startswith("CVODES"):
+        raise InputError(f"base integrator '{base}' cannot run one-sided constraints; "
+                         "choose from DOP853, RK45, Radau")
+
+
+def run_segment(model: Model, rows, x0, v0, t0: float, t_end: float, *, t_eval, events, method: str,
+                options: dict):
+    """One segment through the common driver: ``method`` on the model holding ``rows``
+    (constrained.held), from (x0, v0, t0) to t_end or a terminal event.
+
+    Returns (t, x, v, hits, failure, stats): samples at ``t_eval`` (or at the steps, t0 and
+    the end included, when None), every event hit in time order, a failure text or None
+    ("interrupted" after Ctrl-C)."""
+    sub = held(model, rows)
+    stepper = METHODS[method](Manifold.at(sub, x0, t0), **options)
+    sol = stepper.run(x0, v0, t0, t_end, t_eval=t_eval, events=events)
+    t, x, v = sol.t, sol.x, sol.v
+    terminal = next((h for h in sol.events if h.event.terminal), None)
+    if terminal is not None and t_eval is not None and len(t) and t[-1] == terminal.t \
+            and not np.any(np.asarray(t_eval) == terminal.t):
+        t, x, v = t[:-1], x[:-1], v[:-1]  # the driver's last sample: an event, not an output
+    failure = None
+    if sol.status is Status.INTERRUPTED:
+        failure = "interrupted"
+    elif sol.status not in (Status.COMPLETED, Status.EVENT):
+        failure = str(sol.failure)
+    return t, x, v, sol.events, failure, sol.stats
+
+
+@dataclass
+class HybridRun:
+    """A hybrid run's samples, its ``segments`` (first sample, end sample, held rows, t0, t1),
+    the ``records`` and how it ended."""
+
+    t: np.ndarray
+    x: np.ndarray
+    v: np.ndarray
+    segments: list
+    records: list
+    failure: str | None = None
+    stopped_by: str | None = None  # a terminal user event's name
+    nfev: int = 0
+
+
+class _Watch:
+    """The events one segment watches: releases, contacts and the user's, with memoized
+    multipliers (solve_ivp evaluates every event function at the same point)."""
+
+    def __init__(self, model: Model, active: ActiveSet, user: list[Event], t0: float):
+        info = one_sided(model)
+        self.model, self.active, self._memo, self.t0 = model, active, (None, None), t0
+        self.events: list[Event] = []
+        self.meaning: list[tuple[str, int | None]] = []
+        for k in info.rows:
+            label = model.constraint_labels[k]
+            if k in active.rows:
+                self.events.append(Event(f"release {label}", self._mu(k), -1, True))
+                self.meaning.append(("release", k))
+            else:
+                self.events.append(Event(f"contact {label}", self._gap(k), -1, True))
+                self.meaning.append(("contact", k))
+        for e in user:
+            self.events.append(e)
+            self.meaning.append(("user", None))
+
+    def _multipliers(self, t, x, v):
+        key = (t, x.tobytes(), v.tobytes())
+        if self._memo[0] != key:
+            self._memo = (key, self.active.multipliers(x, v, t))
+        return self._memo[1]
+
+    def _open_at_start(self, value: float, t: float) -> float:
+        """At the segment's first instant a watched quantity is on its allowed side (the
+        transition made it so): its round-off is read as positive. Otherwise a rebound whose
+        whole flight fits in one step (a parabola is integrated exactly, in very long steps)
+        would show no sign change between the step's ends, and the landing would be missed."""
+        return max(abs(value), 1e-300) if t == self.t0 else value
+
+    def _mu(self, k):
+        side = one_sided(self.model).side[k]
+        return lambda t, x, v: self._open_at_start(side * self._multipliers(t, x, v)[k], t)
+
+    def _gap(self, k):
+        return lambda t, x, v: self._open_at_start(gaps(self.model, x, t)[k], t)
+
+    def kind(self, event: Event) -> tuple[str, int | None]:
+        return self.meaning[self.events.index(event)]
+
+
+def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8, atol=1e-10,
+        method="projection", options=None, user_events=(), rest_speed=None, max_events=MAX_EVENTS, size=1.0,
+        max_correction=np.inf) -> HybridRun:
+    """Segments between events from a consistent-enough (x0, v0) at t0 to t_end (module doc)."""
+    info = one_sided(model)
+    rest = REST_SPEED_PER_ATOL * atol if rest_speed is None else float(rest_speed)
+    touch = 1e-8 * size
+    tol = 1e-13 * size
+    records: list[EventRecord] = []
+    N = model.n_particles
+
+    def record(t, label, kind, x, v, **extra):
+        records.append(EventRecord(float(t), label, kind, x.reshape(N, 3).copy(), v.reshape(N, 3).copy(),
+                                   **extra))
+
+    x, v, t = np.asarray(x0, float), np.asarray(v0, float), float(t0)
+    # the start: one-sided rows touching (within `touch`) are candidates, as at a contact
+    g = gaps(model, x, t) / scales(model, x, t)
+    rows = [k for k in range(model.n_constraints) if k not in info.rows or g[k] <= touch]
+    x_given = x
+    x, v, err = ActiveSet(model, rows).project(x, v, t, tol)
+    _check_start(model, x_given, x, t, rows, err, size, max_correction)
+    touching = [k for k in info.rows if k in rows]
+    rows = [k for k in rows if k not in touching]
+    active, x, v = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True)
+
+    T, X, V, segments = [], [], [], []
+    grid = None if t_eval is None else np.asarray(t_eval, float)
+    stopped_by, failure, nfev = None, None, 0
+    while True:
+        watch = _Watch(model, active, list(user_events), t)
+        if grid is None:
+            seg_eval = None
+        else:
+            first = not T
+            seg_eval = grid[(grid >= t) & (grid <= t_end)] if first else grid[(grid > t) & (grid <= t_end)]
+        ts, xs, vs, hits, failure, seg_stats = run_segment(
+            model, active.rows, x, v, t, t_end, t_eval=seg_eval, events=watch.events, method=method,
+            options={"rtol": rtol, "atol": atol, **(options or {})})
+        nfev += int(seg_stats.get("nfev", 0))
+        if grid is None and T:  # the segment's first sample is the state after the last event
+            ts, xs, vs = ts[1:], xs[1:], vs[1:]
+        start = len(T)
+        for tk, xk, vk in zip(ts, xs, vs, strict=True):
+            xk, vk, _ = active.project(xk, vk, tk, tol)
+            T.append(float(tk))
+            X.append(xk)
+            V.append(vk)
+        terminal = next((h for h in hits if h.event.terminal), None)
+        t_stop = terminal.t if terminal is not None else float(t_end)
+        segments.append((start, len(T), active.rows, t, t_stop))
+        for h in hits:
+            if watch.kind(h.event)[0] == "user" and (not h.event.terminal or h is terminal):
+                record(h.t, h.event.name, h.event.name, h.x, h.v)
+        if failure or terminal is None:
+            break
+        t = terminal.t
+        x, v, _ = active.project(terminal.x, terminal.v, t, tol)
+        kind, row = watch.kind(terminal.event)
+        if kind == "user":  # a stop: its state is the run's last sample (output grid or not)
+            stopped_by = terminal.event.name
+            if not T or T[-1] < t:
+                T.append(t)
+                X.append(x)
+                V.append(v)
+                segments[-1] = (*segments[-1][:1], len(T), *segments[-1][2:])
+            break
+        if interrupt.requested():
+            failure = "interrupted"
+            break
+        held = [k for k in active.rows if k != row]
+        if kind == "release":
+            record(t, model.constraint_labels[row], "release", x, v)
+        closing = [row] if kind == "contact" else []
+        closing += _also_closing(model, x, v, t, active.rows, closing, touch)
+        active, x, v = _transition(model, x, v, t, held, closing, rest, tol, record)
+        if len(records) > max_events:
+            counts = {}
+            for r in records:
+                counts[r.constraint] = counts.get(r.constraint, 0) + 1
+            worst = max(counts, key=counts.get)
+            failure = (f"more than {max_events} events by t = {t:.6g} s, {counts[worst]} of them of "
+                       f"'{worst}': the constraint chatters (opens and closes ever faster); raise "
+                       "rest_speed so that slow rebounds settle, or give restitution = 0")
+            break
+    n3 = model.n_coordinates
+    return HybridRun(np.array(T), np.array(X).reshape(-1, n3), np.array(V).reshape(-1, n3), segments,
+                     records, failure, stopped_by, nfev)
+
+
+def _also_closing(model: Model, x, v, t, held, closing, touch) -> list[int]:
+    """Other free one-sided rows closing at the same instant (a ball into a corner): touching
+    (gap within ``touch``) and approaching."""
+    info = one_sided(model)
+    s = scales(model, x, t)
+    g = gaps(model, x, t) / s
+    c = info.side * constraint_velocities(model, x, v, t)
+    return [k for k in info.rows if k not in held and k not in closing and g[k] <= touch and c[k] < 0]
+
+
+def _check_start(model: Model, x_given, x, t, rows, err, size, max_correction) -> None:
+    """Refuse a start that the held rows cannot reach, or only by moving a particle more than
+    ``max_correction × size`` (as ``start.consistent_start`` does for two-sided runs)."""
+    moved = float(np.max(np.linalg.norm((x - x_given).reshape(-1, 3), axis=1), initial=0.0))
+    f = np.abs(gaps(model, x_given, t)) / scales(model, x_given, t)
+    worst = max(rows, key=lambda k: f[k]) if rows else None
+    label = model.constraint_labels[worst] if worst is not None else ""
+    if not np.isfinite(err) or err > 1e-8 * size:
+        raise InconsistentStateError(
+            f"the constraints cannot all be satisfied near the initial state: constraint '{label}' "
+            f"is violated by {f[worst]:.3g} m at the start and the projection does not reach it; check "
+            "that the constraints are compatible (lengths, anchors)")
+    if moved > max_correction * size:
+        raise InconsistentStateError(
+            f"the initial positions are too far from the constraints: constraint '{label}' is violated "
+            f"by {f[worst]:.3g} m at t = {t:g}, and the nearest consistent state moves a particle by "
+            f"{moved:.3g} m, more than the allowed {max_correction:g} × system size {size:.3g} m. "
+            "Correct the positions, or raise simulate.max_initial_correction")
+
+
+def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_start=False):
+    """Rows ``closing`` meet the state at t while ``held`` are held: impact, then the holding
+    test; returns (the new ActiveSet, x, v)."""
+    info = one_sided(model)
+    labels = model.constraint_labels
+    s = scales(model, x, t)
+    c = constraint_velocities(model, x, v, t)
+    approach = {k: max(0.0, -info.side[k] * c[k] / s[k]) for k in closing}
+    # a start moving away from a touched one-sided row leaves it free
+    joining = [k for k in closing if not at_start or info.side[k] * c[k] / s[k] <= rest]
+    hit = [k for k in joining if approach[k] > rest]
+    if hit:
+        e = {k: info.restitution[k] for k in hit}
+        settles = {k for k in hit if e[k] * approach[k] <= rest}
+        result = impact(model, x, v, t, held, hit, {k: (0.0 if k in settles else e[k]) for k in hit})
+        v = result.v
+        for k in result.released:
+            record(t, labels[k], "release", x, v, extra={"note": "released by the impact"})
+        held = [k for k in held if k not in result.released]
+        for k in hit:
+            note = (f"settles: rebound speed {e[k] * approach[k]:.3g} m/s below the rest speed {rest:.3g} m/s"
+                    if k in settles and e[k] > 0 else "")
+            record(t, labels[k], "impact", x, v, impulse=result.impulse[k],
+                   energy_lost=result.energy_lost if k == hit[0] else 0.0,
+                   extra={"approach_speed": approach[k], "restitution": float(e[k]),
+                          **({"note": note} if note else {})})
+        joining = [k for k in joining if k not in hit or k in settles or e[k] == 0]
+    candidates = sorted(set(held) | set(joining))
+    active, dropped = holding_set(model, candidates, x, v, t, tol=0.0)
+    for k in joining:
+        if k in hit:
+            continue
+        if k not in dropped and not at_start:  # the start's held rows are in info["segments"]
+            record(t, labels[k], "contact", x, v, extra={"approach_speed": approach[k]})
+    for k in dropped:
+        if k not in joining:
+            record(t, labels[k], "release", x, v)
+    x, v, _ = active.project(x, v, t, tol)
+    return active, x, v
+
+
+# ---- the run as simulate returns it --------------------------------------------------------------
+def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, method: str, rtol: float,
+                    atol: float, t_eval, wanted, events, max_initial_correction: float, build_time: float,
+                    options: dict) -> Trajectory:
+    """``simulate`` for a model with one-sided constraints or user events."""
+    options = dict(options)
+    rest_speed = options.pop("rest_speed", None)
+    max_events = options.pop("max_events", MAX_EVENTS)
+    refuse_method(method, options)
+    options = {k: value for k, value in options.items() if k != "dt"}
+    if rest_speed is not None and not (isinstance(rest_speed, int | float) and rest_speed >= 0):
+        raise InputError(f"rest_speed must be a speed >= 0 in m/s, got {rest_speed!r}")
+    size = system.size()
+    x0, v0 = np.asarray(system.positions, float).ravel(), np.asarray(system.velocities, float).ravel()
+    check_allowed_side(model, x0, t_start, max_initial_correction * size)
+    started = time.perf_counter()
+    with interrupt.watch():
+        result = run(model, x0, v0, t_start, t_end, t_eval=t_eval, rtol=rtol, atol=atol, method=method,
+                     options=options,
+                     user_events=events, rest_speed=rest_speed, max_events=max_events, size=size,
+                     max_correction=max_initial_correction)
+    wall = time.perf_counter() - started
+    correction = float(np.max(np.linalg.norm((result.x[0] - x0).reshape(-1, 3), axis=1), initial=0.0)) \
+        if len(result.t) else 0.0
+    stats = {"nfev": result.nfev, "segments": len(result.segments), "events": len(result.records),
+             "steps": max(len(result.t) - 1, 0), "wall_time_s": wall, "build_time_s": build_time,
+             "method": method}
+    traj = trajectory_quantities(model, result, wanted, stats)
+    if "action" in wanted and len(traj.t) >= 2:
+        traj.action = action(model, traj).cumulative
+    reached = float(traj.t[-1]) if len(traj.t) else t_start
+    traj.info.update({
+        "initial_correction": {"position": correction},
+        "system": system.name, "method": method, "rtol": rtol, "atol": atol,
+        "active_terms": sorted(model.active_terms),
+        "status": ("interrupted" if result.failure == "interrupted" else
+                   "stopped" if result.failure else "completed"),
+        "stop": (Status.EVENT.value if result.stopped_by else
+                 Status.INTERRUPTED.value if result.failure == "interrupted" else
+                 "failed" if result.failure else Status.COMPLETED.value),
+        "t_end": float(t_end), "t_end_reached": reached,
+        "segments": [{"t_start": t0, "t_end": t1, "held": [model.constraint_labels[k] for k in rows],
+                      "dof": _dof(model, result, i0, rows)} for i0, _, rows, t0, t1 in result.segments],
+    })
+    if traj.info["segments"]:  # the report's header: the start's degrees of freedom
+        traj.info["degrees_of_freedom"] = traj.info["segments"][0]["dof"]
+    if result.stopped_by:
+        traj.info["stopped_by_event"] = result.stopped_by
+    if result.failure == "interrupted":
+        raise RunInterrupted(f"the run was interrupted (Ctrl-C) before t_end = {t_end:g} s; what was "
+                             "computed is kept", trajectory=traj)
+    if result.failure:
+        raise SimulationError(f"the run stopped early: {result.failure}; the last good state is at "
+                              f"t = {reached:.6g} s", trajectory=traj)
+    return traj
+
+
+def _dof(model: Model, result: HybridRun, i0: int, rows) -> int:
+    """3N − rank of the held rows' Jacobian at the segment's first sample."""
+    if not rows:
+        return model.n_coordinates
+    k = min(i0, len(result.t) - 1)
+    if k < 0:
+        return model.n_coordinates - len(rows)
+    J = np.asarray(model.jacobian(result.x[k], result.t[k])[1], float)[list(rows)]
+    return model.n_coordinates - int(np.linalg.matrix_rank(J))
+
+
+def trajectory_quantities(model: Model, result: HybridRun, wanted, stats) -> Trajectory:
+    """The Trajectory of a hybrid run: the derived quantities on each segment's held rows
+    (multipliers 0 on the rows not held; the residual counts a one-sided row not held only
+    where it is violated)."""
+    per_segment = {"multipliers", "constraint_forces", "constraint_residual", "velocity_residual"}
+    traj = trajectory_from(model, result.t, result.x, result.v, set(wanted) - per_segment, stats)
+    traj.events = list(result.records)
+    n, C = len(result.t), model.n_constraints
+    if not n or not (set(wanted) & per_segment):
+        return traj
+    info = one_sided(model)
+    lam = np.zeros((n, C))
+    res_x, res_v = np.zeros(n), np.zeros(n)
+    for i0, i1, rows, _, _ in result.segments:
+        active = ActiveSet(model, rows)
+        idx = np.array(rows, dtype=int)
+        free = np.array([k for k in info.rows if k not in rows], dtype=int)
+        for i in range(i0, i1):
+            x, v, t = result.x[i], result.v[i], result.t[i]
+            if "multipliers" in wanted or "constraint_forces" in wanted:
+                lam[i] = active.multipliers(x, v, t)
+            if "constraint_residual" in wanted or "velocity_residual" in wanted:
+                s = scales(model, x, t)
+                g = gaps(model, x, t) / s
+                res_x[i] = max(np.max(np.abs(g[idx]), initial=0.0), np.max(-g[free], initial=0.0))
+                c = constraint_velocities(model, x, v, t) / s
+                res_v[i] = np.max(np.abs(c[idx]), initial=0.0)
+    if "multipliers" in wanted:
+        traj.multipliers = lam
+    if "constraint_forces" in wanted:
+        traj.constraint_forces = constraint_forces_along(model, result.x, result.t, lam)
+    if "constraint_residual" in wanted:
+        traj.constraint_residual = res_x
+    if "velocity_residual" in wanted:
+        traj.velocity_residual = res_v
+    return traj

@@ -1,0 +1,153 @@
+"""Derived quantities along a trajectory: multipliers, constraint forces, energy, residuals.
+
+Everything here works in blocks of samples, so no dense (samples × rows × coordinates)
+array is ever held whole.
+
+Only what a run asks for (``wanted``) is computed. The action, which needs the Lagrangian
+along the path, is added by the caller (constrained.action).
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from ..manifold import residual
+from ..manifold.algebra import algebra_for
+from ..manifold.manifold import RANK, RankPolicy, acceleration_function, redundant_rows
+from ..model.cache import built_once
+from ..model.structure import Model
+from .trajectory import QUANTITIES, Trajectory
+
+#: Output names accepted by ``outputs`` (``positions``/``velocities`` are always computed).
+OUTPUT_NAMES = frozenset({"positions", "velocities", *QUANTITIES})
+
+
+def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
+    """Build a Trajectory with the derived quantities in ``wanted`` evaluated at each sample."""
+    t = np.asarray(t, float)
+    n = len(t)
+    N = model.n_particles
+    traj = Trajectory(
+        t=t,
+        x=X.reshape(n, N, 3),
+        v=V.reshape(n, N, 3),
+        particle_names=list(model.particle_names),
+        constraint_labels=list(model.constraint_labels),
+        stats=dict(stats or {}),
+    )
+    if n == 0:
+        return traj
+    if "multipliers" in wanted or "constraint_forces" in wanted:
+        lam = multipliers_along(model, X, V, t)
+        if "multipliers" in wanted:
+            traj.multipliers = lam
+        if "constraint_forces" in wanted:
+            traj.constraint_forces = constraint_forces_along(model, X, t, lam)
+    if "energy" in wanted:
+        traj.energy = model.evaluate(model.energy, X, V, t)[0].ravel()
+    if "constraint_residual" in wanted:  # in metres, whatever the scale of the formulas
+        traj.constraint_residual = residual.position_residual_along(model, X, t)
+    if "velocity_residual" in wanted:  # in m/s
+        traj.velocity_residual = residual.velocity_residual_along(model, X, V.reshape(n, -1), t)
+    return traj
+
+
+# --- along a trajectory ---------------------------------------------------------------------------
+#: Samples evaluated per block along a trajectory: bounds the dense (samples × rows × coordinates)
+#: Jacobians held at once to about this many floats.
+BLOCK_FLOATS = 4_000_000
+
+
+def _blocks(n: int, per_sample: int):
+    size = max(1, BLOCK_FLOATS // max(per_sample, 1))
+    for start in range(0, n, size):
+        yield slice(start, min(n, start + size))
+
+
+def _checked_multipliers(model: Model) -> ca.Function:
+    """``(x, v, t) -> (λ, r)``: the sparse LDLᵀ multipliers and the relative residual
+    r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) of the acceleration they give. A factorization
+    that met dependent rows gives large λ without a NaN; r shows it."""
+    def build():
+        n3 = model.n_coordinates
+        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+        a, lam = acceleration_function(model)(X, V, T)
+        F, J, gamma = model.dynamics(X, V, T)
+        load = ca.mtimes(J, ca.DM(model.inverse_masses) * F)
+        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
+        r = ca.mmax(ca.fabs(ca.mtimes(J, a) + gamma)) / scale
+        return ca.Function("checked_multipliers", [X, V, T], [lam, r])
+
+    return built_once(model, "checked_multipliers", build)
+
+
+def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, *,
+                      policy: RankPolicy = RANK, full_rank: bool | None = None) -> np.ndarray:
+    """λ at each sample (T, C) from the KKT system at (x, v, t), in blocks of samples.
+
+    Independent rows (``full_rank``; None: decided at the first sample): the sparse LDLᵀ,
+    mapped over the samples (O(N) per sample on a chain), kept where the acceleration it
+    gives satisfies J a + γ = 0 to 1e-9. Other samples, and redundant rows, take
+    ``schur_solve`` (minimum-norm, accurate whatever the spread of the masses): on the dense J
+    in blocks of samples, or beyond ``algebra.SPARSE_FROM`` rows sample by sample on the sparse J."""
+    t = np.asarray(t, float)
+    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
+    if C == 0:
+        return np.zeros((n, 0))
+    X, V = np.asarray(X, float).reshape(n, n3), np.asarray(V, float).reshape(n, n3)
+    if full_rank is None:
+        full_rank = n == 0 or redundant_rows(model, X[0], float(t[0]), policy) is None
+    lam = np.full((n, C), np.nan)
+    if full_rank:
+        fast = _checked_multipliers(model)
+        for block in _blocks(n, 4 * (C + n3)):
+            values, residual = model.evaluate(fast, X[block], V[block], t[block])
+            good = np.asarray(residual, float).ravel() <= 1e-9
+            lam[block] = np.where(good[:, None], np.asarray(values, float).T, np.nan)
+    redo = np.flatnonzero(~np.all(np.isfinite(lam), axis=1))
+    minv = model.inverse_masses
+    algebra = algebra_for(C)
+    if algebra.name == "sparse":  # one sample at a time with J sparse
+        for k in redo:
+            F, J, gamma = model.dynamics(X[k], V[k], float(t[k]))
+            J = algebra.matrix(J)
+            F, gamma = np.asarray(F, float).ravel(), np.asarray(gamma, float).ravel()
+            lam[k] = algebra.schur_solve(J, minv, -gamma - J @ (minv * F), policy=policy, full_rank=full_rank)
+        return lam
+    per_block = max(1, BLOCK_FLOATS // (C * n3))
+    for start in range(0, len(redo), per_block):
+        rows = redo[start:start + per_block]
+        F, Jcat, gamma = model.evaluate(model.dynamics, X[rows], V[rows], t[rows])
+        J = Jcat.reshape(C, len(rows), n3).transpose(1, 0, 2)
+        for i, k in enumerate(rows):
+            lam[k] = algebra.schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
+                                 policy=policy, full_rank=full_rank)
+    return lam
+
+
+def _constraint_force_function(model: Model) -> ca.Function:
+    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once."""
+    def build():
+        X, T, L = ca.MX.sym("x", model.n_coordinates), ca.MX.sym("t"), ca.MX.sym("lam", model.n_constraints)
+        _, J = model.jacobian(X, T)
+        return ca.Function("constraint_force", [X, T, L], [ca.densify(ca.mtimes(J.T, L))])
+
+    return built_once(model, "constraint_force", build)
+
+
+def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """(Jᵀλ)_i for each particle, (T, N, 3): the sparse product mapped over blocks of samples
+    (never a dense J). Samples whose λ is not finite give NaN forces."""
+    t = np.asarray(t, float)
+    n, C, n3 = len(t), model.n_constraints, model.n_coordinates
+    out = np.zeros((n, model.n_particles, 3))
+    if C == 0 or n == 0:
+        return out
+    X = np.asarray(X, float).reshape(n, n3)
+    lam = np.asarray(lam, float).reshape(n, C)
+    force = _constraint_force_function(model)
+    for block in _blocks(n, 2 * (C + n3)):
+        (values,) = model.evaluate(force, X[block], t[block], lam[block])
+        out[block] = np.asarray(values, float).T.reshape(-1, model.n_particles, 3)
+    return out

@@ -1,0 +1,242 @@
+"""simulate: System -> consistent start -> solver -> Trajectory."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterable
+
+import casadi as ca
+import numpy as np
+
+from .. import interrupt
+from ..errors import InputError, RunInterrupted, SimulationError
+from ..manifold import diagnostics
+from ..manifold.manifold import structural_call
+from ..model.structure import Model, assemble
+from ..solvers import DEFAULT_METHOD, METHODS
+from ..solvers.base import Event, Status
+from ..threads import one_blas_thread
+from . import hybrid
+from .action_integral import action
+from .event_records import EventRecord
+from .quantities import OUTPUT_NAMES, trajectory_from
+from .start import consistent_start, consistent_state  # noqa: F401  (consistent_state: public name)
+from .trajectory import QUANTITIES, Trajectory
+from .unilateral import has_one_sided
+from .user_events import user_events
+
+#: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
+INTERRUPTED_QUANTITY_SAMPLES = 5000
+
+
+def simulate(
+    system,
+    t_end: float,
+    *,
+    method: str = DEFAULT_METHOD,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    dt: float | None = None,
+    t_eval: Iterable[float] | None = None,
+    t_start: float = 0.0,
+    outputs: Iterable[str] | None = None,
+    max_initial_correction: float = 1e-3,
+    model: Model | None = None,
+    parameters: dict[str, float] | None = None,
+    events: Iterable[Event] = (),
+    **options,
+) -> Trajectory:
+    """Simulate ``system`` from ``t_start`` to ``t_end`` and return a Trajectory.
+
+    ``method`` picks the solver (see ``constrained.solvers.METHODS``); ``outputs`` limits the
+    derived quantities computed (default: all). The initial state is projected onto the
+    constraints first; the correction is in ``trajectory.info["initial_correction"]``.
+    ``parameters`` (name -> value) replaces some of the system's parameters for this run:
+    the ``model`` (passed in, or assembled once) is reused for them without rebuilding, and
+    the initial state is the system's for those values (``Model.with_parameters``).
+    ``events`` are ``Event(name, g(t, x, v), direction, terminal)`` (or plain callables, as for
+    solve_ivp; the scene's [[events]] are added): their zero crossings are located to round-off
+    and recorded in ``trajectory.events``; a terminal one ends the run there (``info["stop"]``
+    is then "terminal event"). A system with one-sided constraints runs in segments between
+    releases, contacts and impacts (constrained.hybrid).
+    """
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
+    for key, value in (("t_end", t_end), ("t_start", t_start)):
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
+    if t_end <= t_start:
+        raise InputError(f"t_end ({t_end:g} s) must be later than t_start ({t_start:g} s)")
+    if not (isinstance(max_initial_correction, int | float) and max_initial_correction >= 0):
+        raise InputError(f"max_initial_correction must be >= 0, got {max_initial_correction!r}")
+    wanted = OUTPUT_NAMES if outputs is None else set(outputs)
+    unknown = wanted - OUTPUT_NAMES
+    if unknown:
+        raise InputError(
+            f"unknown output(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(OUTPUT_NAMES))})"
+        )
+    if t_eval is not None:
+        t_eval = np.asarray(list(t_eval), dtype=float).ravel()
+        if t_eval.size == 0 or not np.all(np.isfinite(t_eval)):
+            raise InputError("t_eval must be a non-empty list of finite times")
+        if np.any(np.diff(t_eval) <= 0):
+            raise InputError("t_eval must be strictly increasing")
+        if t_eval[0] < t_start or t_eval[-1] > t_end:
+            raise InputError(f"t_eval must lie within [t_start, t_end] = [{t_start:g}, {t_end:g}]")
+    if system.n_particles == 0:
+        raise InputError("the system has no particles")
+
+    started = time.perf_counter()
+    model = (model or assemble(system)).with_parameters(parameters)
+    system = system.with_parameters(parameters)  # its initial state for these values
+    build_time = time.perf_counter() - started
+    events = user_events(system, events)
+    if has_one_sided(model):
+        return hybrid.simulate_hybrid(
+            model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
+            wanted=wanted, events=events, max_initial_correction=max_initial_correction,
+            build_time=build_time, options={"dt": dt, **options})
+    start = consistent_start(
+        model, system.positions, system.velocities, t_start,
+        max_correction=max_initial_correction, size=system.size(),
+    )
+    x0, v0, correction = start.x, start.v, start.correction
+    _refuse_nonfinite_start(model, x0, v0, float(t_start))
+    started = time.perf_counter()
+    solver = METHODS[method](start.manifold, rtol=rtol, atol=atol, dt=dt, **options)
+    setup_time = time.perf_counter() - started
+    with one_blas_thread():  # see constrained.threads
+        started = time.perf_counter()
+        # Ctrl-C becomes a request the solver honours after its current step or chunk
+        with interrupt.watch():
+            solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval, events=events)
+        wall = time.perf_counter() - started
+        stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
+                 "setup_time_s": setup_time, "method": method}
+        interrupted = solution.status is Status.INTERRUPTED
+        ended_by_event = solution.status is Status.EVENT
+        if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
+            # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
+            # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
+            skipped, wanted = sorted(wanted & set(QUANTITIES)), set()
+        else:
+            skipped = []
+        traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
+        if "action" in wanted and len(traj.t) >= 2:
+            traj.action = action(model, traj).cumulative
+    reached = float(traj.t[-1]) if len(traj.t) else float(t_start)
+    traj.info.update(
+        {
+            "initial_correction": correction,
+            "system": system.name,
+            "method": method,
+            "rtol": rtol,
+            "atol": atol,
+            "active_terms": sorted(model.active_terms),
+            "status": "interrupted" if interrupted else ("stopped" if solution.failure and not ended_by_event
+                                                         else "completed"),
+            "stop": solution.status.value,  # solvers.base.Status: how the run ended
+            "t_end": float(t_end),
+            "t_end_reached": reached,
+            "events": [{"t": hit.t, "name": hit.event.name, "x": hit.x, "v": hit.v}
+                       for hit in solution.events],
+        }
+    )
+    if not start.manifold.redundant:  # independent rows at the start: rank C, as constraint_report says
+        traj.info["degrees_of_freedom"] = model.n_coordinates - model.n_constraints
+    traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
+                               np.reshape(hit.v, (-1, 3))) for hit in solution.events]
+    if interrupted:
+        note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
+                f"{len(traj.t)} samples)" if skipped else "")
+        if skipped:
+            traj.info["quantities_skipped"] = skipped
+        raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
+                             f"what was computed is kept{note}", trajectory=traj)
+    failure = None if ended_by_event else solution.failure
+    bad = None if failure else _first_nonfinite(model, traj, wanted)
+    if bad is not None:
+        what, k = bad
+        state = (traj.x[k].ravel(), traj.v[k].ravel(), float(traj.t[k]))
+        kept = traj.head(k)
+        kept.info.update(status="stopped", t_end_reached=float(kept.t[-1]) if k else float(t_start))
+        raise SimulationError(
+            f"non-finite {what} at t = {traj.t[k]:.6g} s; "
+            f"{diagnostics.nonfinite_cause(model, *state)}",
+            trajectory=kept,
+        )
+    if failure:
+        cause = ("" if "likely cause" in failure else
+                 _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
+                 " (likely cause: a singular configuration, stiffness, or forces that blow up)")
+        last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
+        raise SimulationError(
+            f"the run stopped early: {failure}; the last good state is at {last}{cause}",
+            trajectory=traj,
+        )
+    return traj
+
+
+def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: float, stats: dict) -> str:
+    """'; likely cause: stiffness: ...' when a barely stretched spring far faster than the run
+    explains a stop the solver could not name (diagnostics.StiffnessWatch), else ''."""
+    try:
+        watch = diagnostics.StiffnessWatch(model, x0, t0, t_end, method=stats.get("method", ""))
+        t = float(traj.t[-1]) if len(traj.t) else t0
+        element = watch.fastest()  # as at the start: an unstable step stretches it later
+        if element is None or not element.rigid_like:
+            return ""
+        dt = stats.get("dt")
+        limit = (f"; the fixed step dt = {dt:.3g} s is beyond its stability limit 2/ω = "
+                 f"{2 / element.omega:.3g} s" if dt and dt * element.omega > 2 else "")
+        return f"; {watch.describe(element, t, int(stats.get('steps', 0) or 0))}{limit}"
+    except Exception:  # a diagnosis must never hide the stop itself
+        return ""
+
+
+def _forces_and_energy(model: Model):
+    """``(x, v, t) -> (F, E)`` through a FunctionBuffer (a few µs a call); the Function takes
+    the parameters as an input and is built once per structure."""
+    def build(view, x, v, t, p):
+        return ca.Function("forces_and_energy", [x, v, t, p],
+                           [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
+
+    return structural_call(model, "forces_and_energy", build, "x", "v", "t")
+
+
+def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
+    """Stop before stepping when the forces (or the energy) are not finite at the start."""
+    F, E = _forces_and_energy(model)(x0, v0, t0)
+    E = float(E[0])
+    if np.all(np.isfinite(F)) and np.isfinite(E):
+        return
+    what = "forces" if not np.all(np.isfinite(F)) else f"energy ({E:g} J)"
+    start = trajectory_from(model, [t0], np.asarray(x0)[None], np.asarray(v0)[None], set())
+    start.info.update(status="stopped", t_end_reached=t0)
+    raise SimulationError(f"non-finite {what} at the initial state (t = {t0:g} s); "
+                          f"{diagnostics.nonfinite_cause(model, x0, v0, t0)}", trajectory=start)
+
+
+def _first_nonfinite(model: Model, traj: Trajectory, wanted):
+    """(name, index) of the first sample where a state or a computed quantity is not finite
+    (the energy is checked at the last sample even when not asked for), or None."""
+    n = len(traj.t)
+    if n == 0:
+        return None
+    first = None
+    for name in ("x", "v", *QUANTITIES):
+        values = getattr(traj, name)
+        if values is None or name == "action":
+            continue
+        ok = np.all(np.isfinite(values.reshape(n, -1)), axis=1)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            if first is None or k < first[1]:
+                first = ({"x": "positions", "v": "velocities"}.get(name, name.replace("_", " ")), k)
+    if first is None and "energy" not in wanted:
+        E = _forces_and_energy(model)(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1])[1]
+        if not np.all(np.isfinite(E)):  # then find the first sample where it is not
+            E = model.evaluate(model.energy, traj.x.reshape(n, -1), traj.v.reshape(n, -1), traj.t)[0]
+            first = ("energy", int(np.argmin(np.isfinite(np.asarray(E).ravel()))))
+    return first

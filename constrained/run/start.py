@@ -1,0 +1,102 @@
+"""A consistent initial state: the given (x0, v0) brought onto f = 0 and J v + f_t = 0.
+
+Initial assembly is kept apart from the projection a method does during a run (Simbody's
+split): here Newton may take many iterations and a large correction is refused, with the
+constraint that was violated named; in a run the projection only removes drift.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InconsistentStateError
+from ..manifold import residual
+from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, redundant_rows
+from ..model.structure import Model
+
+
+@dataclass(frozen=True)
+class Start:
+    """The start of a run: consistent ``x``, ``v`` (flat), the ``correction`` report (sizes of
+    the position and velocity changes, the worst violation before) and the run's ``manifold``
+    (which rows it solves with, its counters)."""
+
+    x: np.ndarray
+    v: np.ndarray
+    correction: dict
+    manifold: Manifold
+
+
+def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: float = 1e-3,
+                     size: float | None = None, policy: RankPolicy = RANK,
+                     compiled: bool = False) -> Start:
+    """Project (x0, v0) onto f = 0 and J v + f_t = 0 (minimum mass-weighted change).
+
+    Refuses with InconsistentStateError when the position correction exceeds
+    ``max_correction × size`` or when the constraints cannot all hold.
+    """
+    x0 = np.asarray(x0, float).ravel()
+    v0 = np.asarray(v0, float).ravel()
+    manifold = Manifold(model, rows=redundant_rows(model, x0, t0, policy), policy=policy, compiled=compiled)
+    size = size or max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
+    labels = model.constraint_labels
+    f0 = constraint_values(model)(x0, t0)[0] if model.n_constraints else np.zeros(0)
+    if model.n_constraints and not np.all(np.isfinite(f0)):
+        bad = labels[int(np.argmax(~np.isfinite(f0)))]
+        raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
+    # residuals and tolerances in metres: each row divided by its scale (constrained.residual)
+    scales = residual.row_scales(model, x0, t0) if model.n_constraints else np.ones(0)
+    f0 = f0 / scales if np.all(np.isfinite(scales)) and np.all(scales > 0) else f0
+    worst = int(np.argmax(np.abs(f0))) if f0.size else 0
+    s_min = float(np.min(scales)) if scales.size and np.isfinite(np.min(scales)) else 1.0
+    result = manifold.project_positions(x0, t0, tol=1e-13 * size * s_min, max_iter=50)
+    x, err = result.x, result.residual
+    if np.isfinite(err) and err > 1e-8 * size * s_min:
+        err = residual.position_residual(model, x, t0)
+    dx = float(np.max(np.linalg.norm((x - x0).reshape(-1, 3), axis=1), initial=0.0))
+    if err > 1e-8 * size or not np.isfinite(err):
+        f = np.asarray(model.constraint(x, t0)).ravel() / np.where(scales > 0, scales, 1.0)
+        k = int(np.nanargmax(np.abs(f)))
+        from ..manifold.diagnostics import incompatible_constraints
+
+        clash = incompatible_constraints(model, x0, t0)
+        named = (f"; {clash.describe()}" if not clash.compatible else
+                 "; check that the constraints are compatible (lengths, triangle inequalities, anchors)")
+        raise InconsistentStateError(
+            f"the constraints cannot all be satisfied near the initial state: after projection "
+            f"constraint '{labels[k]}' is still violated by {abs(f[k]):.3g} m (at the given start the "
+            f"worst was '{labels[worst]}', violated by {abs(f0[worst]):.3g} m){named}"
+        )
+    limit = max_correction * size
+    if dx > limit:
+        raise InconsistentStateError(
+            f"the initial positions are too far from the constraints: constraint '{labels[worst]}' "
+            f"is violated by {abs(f0[worst]):.3g} m at t = {t0:g}, and the nearest consistent state "
+            f"moves a particle by {dx:.3g} m, more than the allowed {max_correction:g} × system size "
+            f"{size:.3g} m = {limit:.3g} m. Correct the positions, or raise "
+            "simulate.max_initial_correction"
+        )
+    if not manifold.redundant and dx > 1e-8 * size:
+        # the rows may be dependent on the manifold though not at the given start
+        rows = redundant_rows(model, x, t0, policy)
+        if rows is not None:
+            manifold = Manifold(model, rows=rows, policy=policy, compiled=compiled)
+            x = manifold.project_positions(x, t0, tol=1e-13 * size * s_min, max_iter=50).x
+    v = manifold.project_velocities(x, v0, t0)
+    dv = float(np.max(np.linalg.norm((v - v0).reshape(-1, 3), axis=1), initial=0.0))
+    report = {
+        "position": dx,
+        "velocity": dv,
+        "max_residual_before": float(np.max(np.abs(f0), initial=0.0)),
+        "worst_constraint": labels[worst] if f0.size else None,
+    }
+    return Start(x, v, report, manifold)
+
+
+def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: float = 1e-3,
+                     size: float | None = None):
+    """``consistent_start`` as a tuple (x, v, correction report)."""
+    start = consistent_start(model, x0, v0, t0, max_correction=max_correction, size=size)
+    return start.x, start.v, start.correction

@@ -1,0 +1,282 @@
+"""One-sided constraints: the active set, the release test and the impact law.
+
+A one-sided row keeps its **gap** ``g = side · f ≥ 0`` (``Constraint.side``: −1 for a distance,
+a string with |d| ≤ length; +1 for planes, surfaces and custom formulas, where the particle
+stays on the side f ≥ 0). It can only push along ∇g: with ``M a = F + Jᵀλ`` its force is
+``λ ∇f = (side · λ) ∇g``, so the **allowed sign** is ``μ = side · λ ≥ 0``:
+
+=========================  =========  ================================
+constraint                 side       holding when
+=========================  =========  ================================
+distance (string, rope)    −1         λ ≤ 0 (tension −λ ≥ 0)
+plane, surface, custom     +1         λ ≥ 0 (the push along ∇f)
+=========================  =========  ================================
+
+While a row is **active** it is held as an equality; it is **released** when μ would turn
+negative. An inactive row **closes** when its gap falls to zero; the impact law then gives
+the velocity jump. The time loop that switches between these is constrained.hybrid; this
+module holds the per-state numerics. Linear systems go through ``manifold.schur_solve``.
+
+Impact law (mass-weighted, Newton's restitution on each closing row c, the active rows a
+kept): with c = J v + f_t the constraint velocities, find the impulse P over the rows a ∪ c
+with ``v⁺ = v⁻ + M⁻¹ Jᵀ P`` and ``c⁺_a = 0``, ``c⁺_c = −e c⁻_c``, i.e.
+
+    (J M⁻¹ Jᵀ) P = c⁺ − c⁻
+
+— the minimum kinetic-energy change that stops (e = 0) or reverses (e > 0) the approach, so
+momentum in every direction the constraints do not touch is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ..manifold import residual
+from ..manifold.dense import schur_solve
+from ..manifold.manifold import Manifold, constraint_values
+from ..model.cache import built_once
+from ..model.held import held
+from ..model.structure import Model
+
+
+@dataclass(frozen=True)
+class OneSided:
+    """The one-sided rows of a model: ``rows`` (indices), and per model row ``side`` (±1; +1 for
+    two-sided rows, unused there) and ``restitution`` (0 for two-sided rows)."""
+
+    rows: tuple[int, ...]
+    side: np.ndarray
+    restitution: np.ndarray
+
+    @property
+    def bilateral(self) -> tuple[int, ...]:
+        return tuple(k for k in range(len(self.side)) if k not in set(self.rows))
+
+
+def one_sided(model: Model) -> OneSided:
+    """Which rows of ``model`` are one-sided, their sides and coefficients of restitution."""
+    def build():
+        constraints = model.system.constraints
+        owner = model.constraint_owner
+        rows = tuple(int(k) for k in range(model.n_constraints) if constraints[owner[k]].unilateral)
+        side = np.array([float(constraints[owner[k]].side) for k in range(model.n_constraints)])
+        e = np.array([constraints[owner[k]].restitution for k in range(model.n_constraints)], float)
+        return OneSided(rows, side, e)
+
+    return built_once(model, "one_sided", build)
+
+
+def has_one_sided(model: Model) -> bool:
+    return bool(one_sided(model).rows)
+
+
+# --- evaluation on a row subset ------------------------------------------------------------------
+class ActiveSet:
+    """The rows held during one segment of a run (every two-sided row and the active one-sided
+    ones): the manifold of the model holding them (``held``, ``Manifold``: the one KKT solve
+    and projection), with its multipliers spread over every model row."""
+
+    def __init__(self, model: Model, rows):
+        self.model = model
+        self.rows = tuple(sorted(int(k) for k in rows))
+        self._index = np.array(self.rows, dtype=int)
+        self.manifold = Manifold(held(model, self.rows))
+
+    @property
+    def nfev(self) -> int:
+        return self.manifold.counters.nfev
+
+    def accelerations(self, x, v, t) -> tuple[np.ndarray, np.ndarray]:
+        """(a, λ over the held rows), the minimum-norm multipliers where they are dependent."""
+        return self.manifold.accelerations(x, v, t)
+
+    def multipliers(self, x, v, t) -> np.ndarray:
+        """λ over every model row: the active rows' multipliers, 0 on the others."""
+        out = np.zeros(self.model.n_constraints)
+        out[self._index] = self.accelerations(x, v, t)[1]
+        return out
+
+    def project(self, x, v, t, tol: float, max_iter: int = 20) -> tuple[np.ndarray, np.ndarray, float]:
+        """The mass-weighted nearest (x, v) on the active rows (the manifold's Newton, then its
+        velocity solve); returns (x, v, max |f_active| left)."""
+        x, v = np.array(x, float), np.array(v, float)
+        if not self.rows:
+            return x, v, 0.0
+        position = self.manifold.project_positions(x, t, tol=tol, max_iter=max_iter)
+        return position.x, self.manifold.project_velocities(position.x, v, t), float(position.residual)
+
+
+def gaps(model: Model, x, t) -> np.ndarray:
+    """g = side · f over every row (only the one-sided rows' values mean a gap)."""
+    return one_sided(model).side * constraint_values(model)(x, t)[0]
+
+
+def constraint_velocities(model: Model, x, v, t) -> np.ndarray:
+    """c = J v + f_t over every row (the rate of f along the motion)."""
+    J, f_t = (np.asarray(o, float) for o in model.velocity_terms(x, t))
+    return J @ np.asarray(v, float) + f_t.ravel()
+
+
+def scales(model: Model, x, t) -> np.ndarray:
+    """Row scales (constrained.residual): |f|/s is a distance in metres, |c|/s a speed in m/s."""
+    s = residual.row_scales(model, x, t)
+    return np.where(np.isfinite(s) & (s > 0), s, 1.0)
+
+
+def wrong_sign(model: Model, active: ActiveSet, x, v, t, tol: float) -> list[int]:
+    """The active one-sided rows whose force has the forbidden sign (μ = side·λ < −tol, in N
+    per unit of the row's scale), most negative first."""
+    info = one_sided(model)
+    lam = active.multipliers(x, v, t)
+    mu = info.side * lam * scales(model, x, t)
+    bad = [k for k in info.rows if k in active.rows and mu[k] < -tol]
+    return sorted(bad, key=lambda k: mu[k])
+
+
+def holding_set(model: Model, rows, x, v, t, tol: float) -> tuple[ActiveSet, list[int]]:
+    """Drop, one at a time, the one-sided row pulling (pushing) the wrong way hardest, until
+    every held one-sided row has the allowed sign; returns (active set, dropped rows)."""
+    active = ActiveSet(model, rows)
+    dropped = []
+    while True:
+        bad = wrong_sign(model, active, x, v, t, tol)
+        if not bad:
+            return active, dropped
+        dropped.append(bad[0])
+        active = ActiveSet(model, [k for k in active.rows if k != bad[0]])
+
+
+# --- the impact law ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Impact:
+    """The outcome of an impact: the new velocity ``v``, the impulse on each closing row
+    (``impulse``: row -> N·s along the row's unit normal, ≥ 0 in the allowed direction),
+    ``energy_lost`` (J, ≥ 0 for e ≤ 1), and ``released`` (active one-sided rows the impulse
+    would have had to pull on, which leave instead)."""
+
+    v: np.ndarray
+    impulse: dict
+    energy_lost: float
+    released: tuple[int, ...]
+
+
+def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Impact:
+    """The velocity jump when the rows ``closing`` close at (x, t) with approach velocity,
+    keeping the rows ``active_rows`` held: (J M⁻¹ Jᵀ) P = c⁺ − c⁻ over both (see the module).
+    ``restitution``: row -> e. A held one-sided row whose impulse comes out with the forbidden
+    sign is released and the jump recomputed without it."""
+    info = one_sided(model)
+    x, v = np.asarray(x, float), np.asarray(v, float)
+    J = np.asarray(model.velocity_terms(x, t)[0], float)
+    c = constraint_velocities(model, x, v, t)
+    s = scales(model, x, t)
+    held = [k for k in active_rows if k not in closing]
+    released = []
+    while True:
+        rows = np.array(sorted(held) + sorted(closing), dtype=int)
+        target = np.zeros(len(rows))
+        for i, k in enumerate(rows):
+            if k in closing:
+                target[i] = -restitution.get(k, 0.0) * c[k]
+        P = schur_solve(J[rows], model.inverse_masses, target - c[rows])
+        wrong = [(info.side[k] * P[i] * s[k], k) for i, k in enumerate(rows)
+                 if k in held and k in info.rows and info.side[k] * P[i] < 0]
+        if not wrong:
+            break
+        worst = min(wrong)[1]
+        held.remove(worst)
+        released.append(worst)
+    v_new = v + model.inverse_masses * (J[rows].T @ P)
+    kinetic = float(model.kinetic(v)) - float(model.kinetic(v_new))
+    impulse = {int(k): float(info.side[k] * P[i] * s[k]) for i, k in enumerate(rows) if k in closing}
+    return Impact(v_new, impulse, kinetic, tuple(released))
+
+
+# --- the start -----------------------------------------------------------------------------------
+def check_allowed_side(model: Model, x, t, limit: float) -> None:
+    """Refuse a start on the forbidden side of a one-sided row by more than ``limit`` metres."""
+    info = one_sided(model)
+    g = gaps(model, x, t) / scales(model, x, t)
+    for k in info.rows:
+        if g[k] < -limit:
+            what = ("the string is stretched beyond its length" if info.side[k] < 0 else
+                    "the particle is on the forbidden side (where the constraint function is negative)")
+            raise InputError(
+                f"one-sided constraint '{model.constraint_labels[k]}' is violated by {-g[k]:.3g} m at "
+                f"t = {t:g} s: {what}; move the particle to the allowed side or onto the constraint "
+                "(a one-sided constraint keeps side · f ≥ 0; see docs/scene-format.md, "
+                "\"One-sided constraints\")")
+
+
+# --- statics: which one-sided rows hold at an equilibrium ----------------------------------------
+def held_system(system, model: Model, held) -> tuple[object, np.ndarray]:
+    """The System whose constraints are the two-sided ones and the one-sided rows ``held``
+    (a one-sided plane or surface on several particles is split into one constraint per
+    particle, so each row is held or slack on its own), and for each of its rows the row of
+    ``model`` it is (``row_map``)."""
+    import copy
+
+    from ..model.system import System
+
+    info = one_sided(model)
+    owner = model.constraint_owner
+    constraints, row_map = [], []
+    for i, c in enumerate(system.constraints):
+        rows = [k for k in range(model.n_constraints) if owner[k] == i]
+        if not c.unilateral:
+            constraints.append(c)
+            row_map += rows
+            continue
+        particles = getattr(c, "particles", None)
+        for j, k in enumerate(rows):
+            if k not in held or k not in info.rows:
+                continue
+            if particles is not None and len(particles) > 1:
+                part = copy.copy(c)
+                part.particles = [particles[j]]
+                constraints.append(part)
+            else:
+                constraints.append(c)
+            row_map.append(k)
+    sub = System(system.particles, constraints, system.effects, system.parameters, system.name)
+    return sub, np.array(row_map, dtype=int)
+
+
+def statics_active_set(model: Model, x, t, multipliers_full, held, size: float):
+    """One step of the statics active set at an equilibrium x of the held rows: the row to
+    drop (a held one-sided row with a force of the forbidden sign, the most negative) or to
+    add (a slack row whose gap is violated there, the most violated), as ("drop"|"add", row),
+    or None when the held set is consistent."""
+    info = one_sided(model)
+    s = scales(model, x, t)
+    mu = info.side * np.asarray(multipliers_full, float) * s
+    bad = [(mu[k], k) for k in info.rows if k in held and mu[k] < -1e-9 * max(1.0, np.max(np.abs(mu)))]
+    if bad:
+        return "drop", min(bad)[1]
+    g = gaps(model, x, t) / s
+    violated = [(g[k], k) for k in info.rows if k not in held and g[k] < -1e-9 * size]
+    if violated:
+        return "add", min(violated)[1]
+    return None
+
+
+def start_report(model: Model, x, t: float, size: float, max_correction: float) -> str:
+    """``constrained check``'s line on the one-sided rows at the start: each touching or open
+    (with its gap), or the refusal a run would give."""
+    x = np.asarray(x, float).ravel()
+    try:
+        check_allowed_side(model, x, t, max_correction * size)
+    except InputError as exc:
+        return f"projection: FAILS, run would refuse this start: {exc}"
+    info = one_sided(model)
+    g = gaps(model, x, t) / scales(model, x, t)
+    parts = []
+    for k in info.rows:
+        state = ("touching (held while its force has the allowed sign)" if g[k] <= 1e-8 * size
+                 else f"open (gap {g[k]:.3g} m)")
+        parts.append(f"{model.constraint_labels[k]} {state}")
+    return ("one-sided constraints at the start: " + "; ".join(parts)
+            + " (the two-sided ones are projected on)")
