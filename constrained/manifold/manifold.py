@@ -119,8 +119,10 @@ def structural_call(model: Model, key, build, *inputs: str):
     fast = cache.get(full_key)
     if fast is None:
         n3 = model.n_coordinates
-        symbols = [ca.SX.sym(name, n3 if name in ("x", "v") else 1) for name in inputs]
-        P = ca.SX.sym("p", len(model.parameter_vector))
+        # MX where pair potentials are mapped kernels (in SX they would be one term per pair)
+        kind = ca.MX if getattr(model.structure, "pairs", ()) else ca.SX
+        symbols = [kind.sym(name, n3 if name in ("x", "v") else 1) for name in inputs]
+        P = kind.sym("p", len(model.parameter_vector))
         fast = cache[full_key] = FastCall(build(ParametricView(model, P), *symbols, P))
     p = model.parameter_vector
     return lambda *args: fast(*args, p)
@@ -281,6 +283,9 @@ class Manifold:
         """Accelerations and multipliers (over every row) at (x, v, t)."""
         m = self.model
         self.counters.nfev += 1
+        if m.structure.pairs:  # pair potentials' neighbour lists, rebuilt where particles moved far
+            p = m.structure.refreshed_pairs(self._p, x)
+            self._p = self._p if p is None else p
         if not self.redundant:
             a, lam = _fast_or_nan(self._fast.acceleration, (m.n_coordinates, len(m.constraint_labels)),
                                   x, v, t, self._p)

@@ -288,7 +288,10 @@ class MappedBuild:
     def _build(self, name: str) -> ca.Function:
         outputs, with_v = _OUTPUTS[name]
         n3 = self.n3
-        X, V, T, P = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t"), ca.MX.sym("p", self.e.p.numel())
+        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+        structure = self.structure
+        P_full = ca.MX.sym("p", structure.n_p)  # the physical p, then the pairs' neighbour lists
+        P = P_full[:structure.n_physical] if structure.n_p != structure.n_physical else P_full
         dynamics = name == "dynamics"
         rest = self._rest(outputs, with_v, dynamics)(*([X, V, T, P] if with_v else [X, T, P]))
         rest = rest if isinstance(rest, list | tuple) else [rest]
@@ -312,8 +315,10 @@ class MappedBuild:
             F = rest[-1]
             if gradients:
                 F = F - ca.mtimes(self._scatter(), ca.vertcat(*gradients))
+            for term in structure.pairs:  # each pair potential: its own mapped kernel
+                F = F + term.energy_and_forces(X, T, P_full, structure.n_physical)[1]
             outs, out_names = [ca.densify(F), *outs], ["F", *out_names]
-        inputs, in_names = ([X, V, T, P], ["x", "v", "t", "p"]) if with_v else ([X, T, P], ["x", "t", "p"])
+        inputs, in_names = ([X, V, T, P_full], ["x", "v", "t", "p"]) if with_v else ([X, T, P_full], ["x", "t", "p"])
         return ca.Function(name, inputs, outs, in_names, out_names)
 
     def _rows(self, pieces: list) -> ca.MX:

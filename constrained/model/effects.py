@@ -11,12 +11,14 @@ assembles only the slots some effect fills):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import casadi as ca
+import numpy as np
 
 from ..errors import InputError
-from .constraints import Labelled, _as_list, _fmt
+from .constraints import Distance, Labelled, _as_list, _fmt
 
 
 class Effect(Labelled):
@@ -127,34 +129,93 @@ class Central(Effect):
 
 
 class Pairwise(Effect):
-    """V = Σ_{i<j} V(r_ij), r_ij = |x_i − x_j|, over every pair of the listed particles (all
-    when none are listed): gravitation, Coulomb, Lennard-Jones, the Fekete problem's −log r.
-    ``expr`` in r (and t, parameters); parsed once into a function of r, called per pair."""
+    """V = Σ_{i<j} φ(r_ij), r_ij = |x_i − x_j|, over every pair of the listed particles (all
+    when none are listed): gravitation, Coulomb, Lennard-Jones, soft repulsion, the Fekete
+    problem's −log r. ``expr`` in r (and t, parameters), parsed once.
+
+    ``cutoff`` (m): only pairs closer than r_c count, through the shifted
+    φ_c(r) = φ(r) − φ(r_c) − (r − r_c) φ'(r_c) − ½ (r − r_c)² φ''(r_c) (0 beyond r_c: energy,
+    force and its derivative continuous, so the energy is conserved and error-controlled
+    steps cross r_c smoothly), found by a neighbour list kept ``skin`` beyond r_c (default
+    0.1 r_c) and rebuilt when a particle has moved more than skin/2.
+    ``exclude_bonded``: leave out the pairs joined by a distance constraint.
+
+    From model.pairs.MAPPED_PAIRS_FROM pairs the Structure builds φ once as a mapped kernel
+    (constrained.model.pairs, ``pair_spec``); fewer are written out pair by pair (``term``)."""
 
     slot = "potential"
 
-    def __init__(self, expr: str, particles=None, *, name=None, where=None):
+    def __init__(self, expr: str, particles=None, *, cutoff=None, skin=None, exclude_bonded: bool = False,
+                 name=None, where=None):
         self.expr, self.name, self.where = expr, name, where
         self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
+        for key, value in (("cutoff", cutoff), ("skin", skin)):
+            if value is not None and not (isinstance(value, int | float) and not isinstance(value, bool)
+                                          and math.isfinite(value) and value > 0):
+                raise InputError(f"'{key}' must be a positive length in m (a plain number), got {value!r}",
+                                 where=f"{self._where()}.{key}")
+        if skin is not None and cutoff is None:
+            raise InputError("'skin' is the neighbour list's margin beyond 'cutoff': give a cutoff too",
+                             where=f"{self._where()}.skin")
+        if not isinstance(exclude_bonded, bool):
+            raise InputError(f"'exclude_bonded' must be true or false, got {exclude_bonded!r}",
+                             where=f"{self._where()}.exclude_bonded")
+        self.cutoff = None if cutoff is None else float(cutoff)
+        self.skin = None if cutoff is None else float(skin if skin is not None else 0.1 * cutoff)
+        self.exclude_bonded = exclude_bonded
 
     @property
     def label(self) -> str:
         over = "all particles" if self.particles is None else f"{len(self.particles)} particles"
-        return self.name or f"pairwise V(r) = {self.expr} over {over}"
+        cut = f", cutoff {_fmt(self.cutoff)} m" if self.cutoff is not None else ""
+        return self.name or f"pairwise V(r) = {self.expr} over {over}{cut}"
 
-    def term(self, s):
+    def _parsed(self, s):
+        """(names, r, φ(r)) of the effect, its particles checked."""
         where = self._where()
         names = self.particles if self.particles is not None else list(s._index)
         if len(set(names)) != len(names):
             raise InputError("'particles' lists a particle twice", where=f"{where}.particles")
+        for p in names:
+            s.index(p, where)
         r = ca.SX.sym("r")
-        V = s.parse(self.expr, f"{where}.expr", extra={"r": r})
+        return names, r, ca.SX(s.parse(self.expr, f"{where}.expr", extra={"r": r}))
+
+    def _excluded(self, s, names) -> np.ndarray:
+        """(E, 2) positions in ``names`` of the pairs joined by a distance constraint."""
+        if not self.exclude_bonded:
+            return np.zeros((0, 2), dtype=np.int64)
+        place = {p: k for k, p in enumerate(names)}
+        pairs = {tuple(sorted((place[c.a], place[c.b]))) for c in s.system.constraints
+                 if isinstance(c, Distance) and c.b is not None and c.a in place and c.b in place}
+        return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
+
+    def pair_spec(self, s):
+        """The effect as one mapped kernel (constrained.model.pairs.PairSpec), or None where it
+        is written out pair by pair: fewer than MAPPED_PAIRS_FROM pairs, or a φ that reads
+        particle coordinates besides r."""
+        from .pairs import MAPPED_PAIRS_FROM, PairSpec
+
+        names, r, phi = self._parsed(s)
+        if len(names) * (len(names) - 1) // 2 < MAPPED_PAIRS_FROM or ca.depends_on(phi, s.x):
+            return None
+        indices = np.array([s.index(p, self._where()) for p in names], dtype=np.int64)
+        return PairSpec(self.label, r, phi, indices, self.cutoff, self.skin or 0.0, self._excluded(s, names))
+
+    def term(self, s):
+        """V written out pair by pair (the shifted φ_c with a cutoff; excluded pairs left
+        out): one SX graph of n(n−1)/2 terms."""
+        from .pairs import effective
+
+        where = self._where()
+        names, r, phi = self._parsed(s)
         positions = [s.position(p, where) for p in names]
-        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
+        excluded = {tuple(e) for e in self._excluded(s, names).tolist()}
+        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names)) if (i, j) not in excluded]
         if not pairs:
             return ca.SX(0)
-        # V may also use t, coordinates and (symbolic) parameters p
-        pair = ca.Function("pair_potential", [r, s.x, s.t, s.p], [V])
+        # φ may also use t, coordinates and (symbolic) parameters p
+        pair = ca.Function("pair_potential", [r, s.x, s.t, s.p], [effective(phi, r, self.cutoff)])
         return sum((pair(ca.norm_2(positions[i] - positions[j]), s.x, s.t, s.p) for i, j in pairs),
                    ca.SX(0))
 

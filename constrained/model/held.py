@@ -33,7 +33,8 @@ class HeldRows(Model):
         row-indexed outputs (index -> 'rows' for a column vector, 'matrix' for J) restricted
         to the held rows."""
         f = self.full.parametric(name) if parametric else getattr(self.full, name)
-        inputs = [ca.SX.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
+        kind = ca.MX if f.is_a("MXFunction") else ca.SX  # (pair potentials: mapped kernels)
+        inputs = [kind.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
         out = f.call(inputs)
         rows = list(self.rows)
         for i in outputs:

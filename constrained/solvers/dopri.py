@@ -125,7 +125,8 @@ class Dopri(Stepper):
         P = S[3 * n + len(SCALARS):]
         t, h, rejected, n_acc, n_rej, res, t_target, rtol, atol = ca.vertsplit(scalars, 1)
         rows = self.manifold.rows
-        symbolic = len(self.rows) <= SYMBOLIC_MAX_CONSTRAINTS
+        # (pair potentials are mapped kernels: written out as SX they would be one term per pair)
+        symbolic = len(self.rows) <= SYMBOLIC_MAX_CONSTRAINTS and not self.model.structure.pairs
         # compiled and large: repeated rows and terms as mapped kernels (constrained.mapped),
         # so the generated code, and the compile time, does not grow with the model
         if self.compiled and not symbolic and mapped.applies(self.model):
@@ -193,6 +194,8 @@ class Dopri(Stepper):
         # at the output time the attempt is skipped (short-circuit), so no-ops in a chain are free
         S2 = ca.MX.sym("state", S.numel())
         done = S2[_slot(n, "t")] >= S2[_slot(n, "t_target")]
+        if self.model.structure.pairs:  # a neighbour list gone stale: stop for ``step`` to refresh it
+            done = ca.logic_or(done, self.model.structure.pairs_stale(S2[:n], S2[3 * n + len(SCALARS):]))
         return ca.Function(f"{name}_step", [S2], [ca.if_else(done, S2, attempt(S2), True)])
 
     def _functions(self) -> dict[int, FastCall]:
@@ -288,6 +291,10 @@ class Dopri(Stepper):
         T, H, N_ACC, N_REJ, RES, TARGET = self._slots
         state = state.copy()
         state[TARGET] = t_stop
+        if self.model.structure.pairs:  # neighbour lists rebuilt where particles moved far
+            p = self.model.structure.refreshed_pairs(state[3 * n + len(SCALARS):], state[:n])
+            if p is not None:
+                state[3 * n + len(SCALARS):] = p
         expected = (t_stop - state[T]) / max(state[H], 1e-300) + 1
         # the shortest chain that should reach t_stop (attempts past it are skipped, nearly
         # free), else the longest allowed: fewer calls, each with its Python overhead

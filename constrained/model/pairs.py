@@ -1,0 +1,407 @@
+"""Pair potentials V = Σ_{i<j} φ(r_ij) as ONE mapped kernel, built once whatever the number of
+pairs (issue 28), and their neighbour lists.
+
+φ is parsed once into an SX function of r (and t, the parameters p). The effect's particles
+are cut into blocks of ``BLOCK``; a *tile* is the interaction of two blocks, its BLOCK² pairs
+written out once as an SX kernel giving the tile's energy and the force on each particle,
+
+    f_i = −φ'(r_ij) (x_i − x_j) / r_ij,    f_j = −f_i,
+
+and the graph applies that kernel with CasADi ``map`` (a loop in the generated code), so the
+graph, the generated C and its compile time do not grow with the pairs. Padding places of a
+block are masked: their pairs count zero.
+
+All pairs (no cutoff): an outer map over blocks a (in groups of GROUP, which bounds the
+copies CasADi's map makes of its shared inputs) of an inner map over all blocks b, the kernel
+chosen per tile by a conditional: b < a nothing, b = a the pairs i < j inside the block,
+b > a the whole tile, the reactions on b summed by the outer map. No index data: exact,
+O(N²) work, O(N) memory.
+
+Cutoff r_c (shifted force, smoothed to second order): the pair term is
+
+    φ_c(r) = φ(r) − φ(r_c) − (r − r_c) φ'(r_c) − ½ (r − r_c)² φ''(r_c)   for r < r_c,   0 beyond,
+
+continuous at r_c in energy, force and the force's derivative, so a run conserves the energy
+it reports (that of φ_c), and an error-controlled method crosses r_c without losing order
+(with the usual shifted force, φ'' jumps there: DOP853 on a small gas rejected every other
+step). Only pairs within r_c count, found outside the graph (``neighbour_data``): the
+particles sorted along a Morton curve and put in blocks of up to BLOCK that never straddle a
+cell of the curve's grid (compact blocks), and the pairs of blocks whose bounding boxes come
+within r_c + skin (SciPy's cKDTree on the block centres), each pair given to one of its two
+blocks (alternately, so every block has about as many). That list is *data*
+(``PairTerm.data``, appended to the Structure's p: every Function, the compiled step loops
+included, takes it as an input, and none is rebuilt when it changes): a map over each
+block's neighbour slots gathers the neighbours' columns by the indices it holds, the
+neighbours' reactions are added back by the transposed gather (CasADi's AD of it). The list
+is valid while no particle has moved more than skin/2 since it was built (the positions
+then, ``x_ref``, are in the data): every pair closer than r_c now was closer than r_c + skin
+then. The graph checks that itself and takes the all-pairs branch when it does not hold (a
+short-circuit conditional), so a stale list costs time, never accuracy; runs refresh it
+(``PairTerm.fresh``, ``Structure.refreshed_pairs``).
+
+Excluded pairs (``exclude_bonded``: joined by a distance constraint) are subtracted after
+the sums, from a constant list (a few per particle).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+#: Particles per block: a tile is BLOCK² pairs written out once (64 pairs, ~1.7k operations);
+#: larger tiles amortize the map's call more but waste more pairs at a cutoff's edge.
+BLOCK = 8
+#: Blocks a of the all-pairs sum per call of its outer map (whose shared inputs CasADi copies
+#: once per block: GROUP copies of the positions at a time).
+GROUP = 32
+#: Fewer pairs than this (about 25 particles) are written out pair by pair in the Structure's
+#: one SX graph (``Pairwise.term``): small enough that the SX graph is the faster.
+MAPPED_PAIRS_FROM = 300
+#: Capacities of a neighbour list: blocks (the particles' blocks at the first list, which
+#: do not fill every place) and neighbour slots per block, this factor times the count at
+#: the first list plus CAPACITY_EXTRA; a list that needs more is not used (all pairs are).
+CAPACITY_FACTOR = 1.5
+CAPACITY_EXTRA = 4
+MORTON_BITS = 10
+
+
+@dataclass(frozen=True)
+class PairSpec:
+    """What a ``pairwise`` effect declares: ``phi`` (SX in the symbol ``r``, and t, p), its
+    ``particles`` (indices into the system's), ``cutoff`` (None: every pair) and ``skin``
+    (metres), ``excluded`` pairs (E, 2) as positions in ``particles``, and its ``label``."""
+
+    label: str
+    r: ca.SX
+    phi: ca.SX
+    particles: np.ndarray
+    cutoff: float | None
+    skin: float
+    excluded: np.ndarray
+
+
+def effective(phi: ca.SX, r: ca.SX, cutoff: float | None) -> ca.SX:
+    """φ itself, or with a cutoff the shifted φ_c (see the module's docstring)."""
+    if cutoff is None:
+        return phi
+    rc = ca.SX(cutoff)
+    at_cut = ca.substitute(phi, r, rc)
+    d1 = ca.jacobian(phi, r)
+    slope, curvature = ca.substitute(d1, r, rc), ca.substitute(ca.jacobian(d1, r), r, rc)
+    return ca.if_else(r < rc, phi - at_cut - (r - rc) * slope - 0.5 * (r - rc) ** 2 * curvature, 0)
+
+
+def _pair(phi: ca.SX, r: ca.SX, t, p) -> ca.Function:
+    """(x_i, x_j, t, p) -> (φ(r_ij), f_i = −∂φ/∂x_i)."""
+    xi, xj = ca.SX.sym("xi", 3), ca.SX.sym("xj", 3)
+    d = xi - xj
+    rij = ca.sqrt(ca.dot(d, d))
+    v = ca.substitute(phi, r, rij)
+    dphi = ca.substitute(ca.jacobian(phi, r), r, rij)
+    return ca.Function("pair", [xi, xj, t, p], [v, -dphi * d / rij])
+
+
+def _tiles(pair: ca.Function, t, p) -> dict[str, ca.Function]:
+    """The tile kernels (x_a, x_b, m_a, m_b, t, p) -> (V, F_a, F_b) (3B, 3B, B, B: coordinates
+    and 0/1 masks): ``full`` every pair of the two blocks, ``diag`` the pairs i < j of block a
+    alone (x_b, m_b unused, F_b = 0), ``zero`` nothing; the conditional ``tile(case, …)``
+    picks one (0 zero, 1 diag, 2 full)."""
+    B = BLOCK
+    xa, xb, ma, mb = ca.SX.sym("xa", 3 * B), ca.SX.sym("xb", 3 * B), ca.SX.sym("ma", B), ca.SX.sym("mb", B)
+    inputs = [xa, xb, ma, mb, t, p]
+    zero3 = ca.SX.zeros(3)
+
+    def masked(i, j, other, mother):
+        v, f = pair(xa[3 * i:3 * i + 3], other[3 * j:3 * j + 3], t, p)
+        w = ma[i] * mother[j] > 0  # padding places count nothing (even a NaN of theirs)
+        return ca.if_else(w, v, 0), ca.if_else(w, f, zero3)
+
+    V, Fa, Fb = ca.SX(0), [zero3] * B, [zero3] * B
+    Vd, Fd = ca.SX(0), [zero3] * B
+    for i in range(B):
+        for j in range(B):
+            v, f = masked(i, j, xb, mb)
+            V, Fa[i], Fb[j] = V + v, Fa[i] + f, Fb[j] - f
+            if j > i:
+                v, f = masked(i, j, xa, ma)
+                Vd, Fd[i], Fd[j] = Vd + v, Fd[i] + f, Fd[j] - f
+    zero = ca.SX.zeros(3 * B)
+    full = ca.Function("tile_full", inputs, [V, ca.vertcat(*Fa), ca.vertcat(*Fb)])
+    diag = ca.Function("tile_diag", inputs, [Vd, ca.vertcat(*Fd), zero])
+    nothing = ca.Function("tile_zero", inputs, [ca.SX(0), zero, zero])
+    return ca.Function.conditional("tile", [nothing, diag], full)
+
+
+def _case(a, b):
+    """The tile of blocks a, b: 1 (the same block: its pairs i < j), else 2 (every pair)."""
+    return ca.if_else(b == a, 1, 2)
+
+
+class PairTerm:
+    """One ``pairwise`` effect in a Structure: its kernels (built once), its graph
+    (``energy_and_forces``) and, with a cutoff, its neighbour list: ``size`` entries of p from
+    ``offset`` on (``data``, ``fresh``)."""
+
+    def __init__(self, spec: PairSpec, t: ca.SX, p: ca.SX, *, n_coordinates: int, offset: int,
+                 positions: np.ndarray):
+        self.spec, self.label = spec, spec.label
+        self.n = len(spec.particles)
+        self.n_blocks = -(-self.n // BLOCK)
+        self.n_coordinates = n_coordinates
+        self.cutoff, self.skin = spec.cutoff, spec.skin
+        phi = effective(spec.phi, spec.r, spec.cutoff)
+        self.time_dependent = bool(ca.depends_on(phi, t))
+        self._pair = _pair(phi, spec.r, t, p)
+        self._tile = _tiles(self._pair, t, p)
+        self._coordinates = (3 * spec.particles[:, None] + np.arange(3)).ravel()
+        mask = np.zeros(self.n_blocks * BLOCK)
+        mask[:self.n] = 1.0
+        self._mask = ca.DM(mask.reshape(self.n_blocks, BLOCK).T)
+        self.offset = offset
+        #: Capacities of the neighbour list: blocks and neighbour slots per block.
+        self.block_capacity = self.slot_capacity = 0
+        if self.cutoff is not None:
+            self.block_capacity = math.ceil(CAPACITY_FACTOR * self.n_blocks) + 1
+            order, slots = neighbour_data(self._listed(positions), self.reach, self.block_capacity, None)
+            self.slot_capacity = int(min(self.block_capacity, math.ceil(CAPACITY_FACTOR * slots.shape[0])
+                                         + CAPACITY_EXTRA))
+        #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
+        self.size = 0 if self.cutoff is None else \
+            4 * self.n + self.block_capacity * (BLOCK + self.slot_capacity)
+
+    @property
+    def reach(self) -> float:
+        """r_c + skin: the distance within which the neighbour list holds the pairs."""
+        return self.cutoff + self.skin
+
+    # --- the data: a neighbour list, outside the graph ------------------------------------
+    def _listed(self, x) -> np.ndarray:
+        """The effect's particles' positions (n, 3) from positions (N, 3) or a flat 3N x."""
+        return np.asarray(x, float).reshape(-1, 3)[self.spec.particles]
+
+    def data(self, x) -> np.ndarray:
+        """The neighbour list at positions ``x`` ((N, 3) or flat 3N), as the entries of p it
+        takes: [x_ref (3n), the places (block_capacity·BLOCK: the particle in each place, n
+        for an empty one), each particle's place (n), the neighbour slots (slot_capacity per
+        block: a neighbour block + 1, 0 empty)]. A list beyond the capacities has x_ref NaN
+        (the graph then sums every pair)."""
+        if self.cutoff is None:
+            return np.zeros(0)
+        y = self._listed(x)
+        places, slots = neighbour_data(y, self.reach, self.block_capacity, self.slot_capacity)
+        valid = places is not None and slots is not None
+        ref = y.ravel() if valid else np.full(3 * self.n, np.nan)
+        if not valid:
+            places = np.concatenate([np.arange(self.n), np.full(self.block_capacity * BLOCK - self.n, self.n)])
+            slots = np.zeros((self.slot_capacity, self.block_capacity))
+        where = np.empty(self.n)
+        real = places < self.n
+        where[places[real].astype(np.int64)] = np.flatnonzero(real)
+        return np.concatenate([ref, places, where, slots.ravel(order="F")])
+
+    def fresh(self, x, data) -> bool:
+        """Whether ``data`` still holds every pair within the cutoff at positions ``x`` (no
+        particle moved more than skin/2 since it was built; always, without a cutoff)."""
+        if self.cutoff is None:
+            return True
+        moved = self._listed(x) - np.asarray(data[:3 * self.n]).reshape(-1, 3)
+        with np.errstate(invalid="ignore"):
+            return bool(np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0) <= (self.skin / 2) ** 2)
+
+    # --- the graph -----------------------------------------------------------------------
+    def energy_and_forces(self, X: ca.MX, T, P: ca.MX, n_physical: int, *,
+                          lists: bool = True) -> tuple[ca.MX, ca.MX]:
+        """(V, F) as MX of the positions X (3N), t and the full p (the physical parameters are
+        its first ``n_physical`` entries, this term's data at ``offset``): F = −∂V/∂x (3N).
+        ``lists`` False: every pair, whatever the data (no neighbour list: the graph then
+        also evaluates with SX symbols, written out)."""
+        Pp = P[:n_physical] if n_physical else ca.MX(0, 1)
+        Xl = X[self._coordinates.tolist()]
+        if self.cutoff is None or not lists:
+            V, F = self._all_pairs(Xl, T, Pp)
+        else:
+            data = P[self.offset:self.offset + self.size]
+            fresh = self.fresh_graph(X, P)
+            listed = ca.vertcat(*self._listed_pairs(Xl, T, Pp, data))
+            every = ca.vertcat(*self._all_pairs(Xl, T, Pp))
+            both = ca.if_else(fresh, listed, every, True)  # the all-pairs branch only when stale
+            V, F = both[0], both[1:]
+        if len(self.spec.excluded):
+            V_ex, F_ex = self._excluded(Xl, T, Pp)
+            V, F = V - V_ex, F - F_ex
+        if np.array_equal(self._coordinates, np.arange(self.n_coordinates)):
+            return V, F
+        scatter = ca.DM(ca.Sparsity.triplet(self.n_coordinates, 3 * self.n, self._coordinates.tolist(),
+                                            list(range(3 * self.n))), 1.0)
+        return V, ca.mtimes(scatter, F)
+
+    def fresh_graph(self, X, P):
+        """MX: whether the neighbour list in P holds at positions X (``fresh``; false when
+        the list's x_ref is NaN: a list beyond the capacities)."""
+        ref = P[self.offset:self.offset + 3 * self.n]
+        moved = ca.reshape(X[self._coordinates.tolist()] - ref, 3, self.n)
+        return ca.mmax(ca.sum1(moved * moved)) <= (self.skin / 2) ** 2
+
+    def _symbols(self, n_p: int):
+        B = BLOCK
+        return (ca.MX.sym("xa", 3 * B), ca.MX.sym("ma", B), ca.MX.sym("a"), ca.MX.sym("xb", 3 * B),
+                ca.MX.sym("mb", B), ca.MX.sym("b"), ca.MX.sym("t"), ca.MX.sym("p", n_p))
+
+    def _all_pairs(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
+        """Every pair: outer map over blocks a, inner over blocks b (see the module)."""
+        B, nb = BLOCK, self.n_blocks
+        xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
+        case = ca.if_else(b < a, 0, _case(a, b))
+        inner = ca.Function("pairs_inner", [xa, ma, a, xb, mb, b, t, p], self._tile(case, xa, xb, ma, mb, t, p))
+        inner = inner.map("pairs_row", "serial", nb, [0, 1, 2, 6, 7], [0, 1])
+        XB, MB, IB = ca.MX.sym("XB", 3 * B, nb), ca.MX.sym("MB", B, nb), ca.MX.sym("IB", 1, nb)
+        outer = ca.Function("pairs_outer", [xa, ma, a, XB, MB, IB, t, p], inner(xa, ma, a, XB, MB, IB, t, p))
+        pad = nb * B - self.n
+        Xb = ca.reshape(ca.vertcat(Xl, ca.MX.zeros(3 * pad)) if pad else Xl, 3 * B, nb)
+        index = ca.DM(np.arange(nb, dtype=float)).T
+        V, FA, FB = 0, [], 0
+        for start in range(0, nb, GROUP):
+            k = min(GROUP, nb - start)
+            part = slice(start, start + k)
+            group = outer.map(f"pairs_group_{k}", "serial", k, [3, 4, 5, 6, 7], [0, 2])
+            Vg, FAg, FBg = group(Xb[:, part], self._mask[:, part], index[:, part], Xb, self._mask, index, T, Pp)
+            V, FB = V + Vg, FB + FBg
+            FA.append(FAg)
+        return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
+
+    def _listed_pairs(self, Xl, T, Pp, data) -> tuple[ca.MX, ca.MX]:
+        """The neighbour list's tiles: a map over the blocks a of a map over a's neighbour
+        slots (each tile once), a's forces summed by the inner map, the neighbours' added
+        back by the transposed gather."""
+        B, n, nbc, K = BLOCK, self.n, self.block_capacity, self.slot_capacity
+        places = data[3 * n:3 * n + nbc * B].T  # (1, places), after x_ref (3n)
+        where = data[3 * n + nbc * B:4 * n + nbc * B].T
+        slots = data[4 * n + nbc * B:].T  # (1, K·nbc): block a's K slots together
+        columns = ca.horzcat(ca.reshape(Xl, 3, n), ca.MX.zeros(3, 1))[:, places]  # empty: the zero column n
+        XS = ca.reshape(columns, 3 * B, nbc)
+        MS = ca.reshape(places < n, B, nbc)
+        neighbour = ca.fmax(slots - 1, 0)
+        XN, MN = XS[:, neighbour], MS[:, neighbour]
+        xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
+        slot = ca.MX.sym("slot")
+        case = ca.if_else(slot == 0, 0, _case(a, slot - 1))
+        inner = ca.Function("pairs_slot", [xa, ma, a, xb, mb, slot, t, p], self._tile(case, xa, xb, ma, mb, t, p))
+        inner = inner.map("pairs_slots", "serial", K, [0, 1, 2, 6, 7], [0, 1])
+        XK, MK, SK = ca.MX.sym("XK", 3 * B, K), ca.MX.sym("MK", B, K), ca.MX.sym("SK", 1, K)
+        outer = ca.Function("pairs_block", [xa, ma, a, XK, MK, SK, t, p], inner(xa, ma, a, XK, MK, SK, t, p))
+        outer = outer.map("pairs_listed", "serial", nbc, [6, 7], [0])
+        index = ca.DM(np.arange(nbc, dtype=float)).T
+        V, FA, FB = outer(XS, MS, index, XN, MN, slots, T, Pp)
+        Y, G = ca.MX.sym("Y", 3 * B, nbc), ca.MX.sym("G", 3 * B, K * nbc)
+        S = ca.MX.sym("S", 1, K * nbc)
+        back = ca.Function("pairs_reactions", [Y, S, G], [ca.gradient(ca.dot(Y[:, S], G), Y)])
+        F = FA + back(XS, neighbour, FB)  # (3B, nbc): the forces in the places
+        return V, ca.vec(ca.reshape(F, 3, nbc * B)[:, where])
+
+    def _excluded(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
+        """The excluded pairs' own energy and forces (subtracted from the sums)."""
+        i, j = self.spec.excluded[:, 0], self.spec.excluded[:, 1]
+        E = len(i)
+        Xm = ca.reshape(Xl, 3, self.n)
+        v, f = self._pair.map("pairs_excluded", "serial", E, [2, 3], [0])(
+            Xm[:, i.tolist()], Xm[:, j.tolist()], T, Pp)
+        rows = np.concatenate([(3 * i[None] + np.arange(3)[:, None]).ravel("F"),
+                               (3 * j[None] + np.arange(3)[:, None]).ravel("F")])
+        cols = np.concatenate([np.arange(3 * E), np.arange(3 * E)])
+        signs = np.concatenate([np.ones(3 * E), -np.ones(3 * E)])
+        scatter = ca.DM.triplet(rows.tolist(), cols.tolist(), ca.DM(signs), 3 * self.n, 3 * E)
+        return v, ca.mtimes(scatter, ca.vec(f))
+
+
+# --- neighbour lists (NumPy and SciPy, outside the graph) -------------------------------------
+def morton_codes(y: np.ndarray) -> np.ndarray:
+    """Morton (Z-order) codes of the points y (n, 3) on a 2^MORTON_BITS grid over their box."""
+    lo, extent = y.min(axis=0), np.ptp(y, axis=0)
+    top = 2 ** MORTON_BITS - 1e-3
+    cells = np.floor((y - lo) / np.where(extent > 0, extent, 1.0) * top).astype(np.uint64)
+    code = np.zeros(len(y), dtype=np.uint64)
+    for bit in range(MORTON_BITS):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return code
+
+
+def blocks(y: np.ndarray, capacity: int) -> np.ndarray:
+    """The places of the points y (n, 3) in blocks of BLOCK: (blocks·BLOCK,) point indices, n
+    for an empty place. Points go along the Morton curve; a block never holds points of two
+    cells of its grid at the finest level whose blocks fit in ``capacity`` (compact blocks)."""
+    n = len(y)
+    if n == 0:
+        return np.zeros(0)
+    code = morton_codes(y)
+    order = np.argsort(code, kind="stable")
+    code = code[order]
+    best = None
+    for level in range(MORTON_BITS + 1):
+        cell = code >> np.uint64(3 * (MORTON_BITS - level))
+        starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+        occupancy = np.diff(np.r_[starts, n])
+        if int(np.sum(-(-occupancy // BLOCK))) > capacity:
+            break
+        best = starts, occupancy
+    starts, occupancy = best
+    first_place = BLOCK * np.concatenate([[0], np.cumsum(-(-occupancy // BLOCK))[:-1]])
+    places = np.full(capacity * BLOCK, n, dtype=float)
+    within = np.arange(n) - np.repeat(starts, occupancy)
+    places[np.repeat(first_place, occupancy) + within] = order
+    used = -(-int(first_place[-1] + occupancy[-1]) // BLOCK) * BLOCK
+    return places[:max(used, BLOCK)]
+
+
+def _block_pairs(lo: np.ndarray, hi: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (a, b), a < b, of boxes whose gap is at most ``reach`` (cKDTree on the centres)."""
+    n_blocks = len(lo)
+    centre, radius = (lo + hi) / 2, np.linalg.norm(hi - lo, axis=1) / 2
+    if n_blocks <= 64:
+        a, b = np.triu_indices(n_blocks, 1)
+    else:
+        from scipy.spatial import cKDTree
+
+        candidates = cKDTree(centre).query_pairs(reach + 2 * radius.max(), output_type="ndarray")
+        a, b = (candidates[:, 0], candidates[:, 1]) if len(candidates) else (np.zeros(0, int),) * 2
+    gap = np.maximum(0.0, np.maximum(lo[b] - hi[a], lo[a] - hi[b]))
+    near = np.einsum("ij,ij->i", gap, gap) <= reach * reach
+    return a[near], b[near]
+
+
+def neighbour_data(y: np.ndarray, reach: float, block_capacity: int, slot_capacity: int | None):
+    """(places, slots) of the points y (n, 3): their places in blocks (``blocks``, padded to
+    ``block_capacity`` blocks), and for each block the blocks whose bounding boxes come within
+    ``reach`` of its own, itself first, each pair of blocks held by one of the two (the lower
+    when a + b is even, else the higher), as a (slot_capacity, block_capacity) array of
+    block + 1 (0: an empty slot). ``slot_capacity`` None: as many slots as the fullest block
+    needs. (None, None) when the blocks do not fit; (places, None) when the slots do not."""
+    n = len(y)
+    places = blocks(y, block_capacity)
+    n_blocks = len(places) // BLOCK
+    full = places.reshape(n_blocks, BLOCK)
+    real = full < n
+    points = y[np.where(real, full, 0).astype(np.int64)]
+    big = np.finfo(float).max
+    lo = np.where(real[..., None], points, big).min(axis=1)
+    hi = np.where(real[..., None], points, -big).max(axis=1)
+    a, b = _block_pairs(lo, hi, reach)
+    owner = np.where((a + b) % 2 == 0, a, b)
+    other = np.where(owner == a, b, a)
+    owner = np.concatenate([np.arange(n_blocks), owner])
+    other = np.concatenate([np.arange(n_blocks), other])
+    rank = np.argsort(owner, kind="stable")
+    owner, other = owner[rank], other[rank]
+    counts = np.bincount(owner, minlength=n_blocks)
+    capacity = int(counts.max()) if slot_capacity is None else slot_capacity
+    padded = np.full(block_capacity * BLOCK, float(n))
+    padded[:len(places)] = places
+    if counts.max() > capacity:
+        return padded, None
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slots = np.zeros((capacity, block_capacity))
+    slots[np.arange(len(owner)) - starts[owner], owner] = other + 1
+    return padded, slots
