@@ -148,6 +148,7 @@ class Pairwise(Effect):
     def __init__(self, expr: str, particles=None, *, cutoff=None, skin=None, exclude_bonded: bool = False,
                  name=None, where=None):
         self.expr, self.name, self.where = expr, name, where
+        self.particles = self.cutoff = None  # (the label, in messages, reads them)
         self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
         for key, value in (("cutoff", cutoff), ("skin", skin)):
             if value is not None and not (isinstance(value, int | float) and not isinstance(value, bool)

@@ -170,7 +170,7 @@ class PairTerm:
                                          + CAPACITY_EXTRA))
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
         self.size = 0 if self.cutoff is None else \
-            4 * self.n + self.block_capacity * (BLOCK + self.slot_capacity)
+            1 + 4 * self.n + self.block_capacity * (BLOCK + self.slot_capacity)
 
     @property
     def reach(self) -> float:
@@ -184,32 +184,34 @@ class PairTerm:
 
     def data(self, x) -> np.ndarray:
         """The neighbour list at positions ``x`` ((N, 3) or flat 3N), as the entries of p it
-        takes: [x_ref (3n), the places (block_capacity·BLOCK: the particle in each place, n
+        takes: [valid (1, or 0 for a list beyond the capacities: the graph then sums every
+        pair), x_ref (3n), the places (block_capacity·BLOCK: the particle in each place, n
         for an empty one), each particle's place (n), the neighbour slots (slot_capacity per
-        block: a neighbour block + 1, 0 empty)]. A list beyond the capacities has x_ref NaN
-        (the graph then sums every pair)."""
+        block: a neighbour block + 1, 0 empty)]. All finite (a run checks its state is)."""
         if self.cutoff is None:
             return np.zeros(0)
         y = self._listed(x)
         places, slots = neighbour_data(y, self.reach, self.block_capacity, self.slot_capacity)
         valid = places is not None and slots is not None
-        ref = y.ravel() if valid else np.full(3 * self.n, np.nan)
+        ref = y.ravel() if valid else np.zeros(3 * self.n)
         if not valid:
             places = np.concatenate([np.arange(self.n), np.full(self.block_capacity * BLOCK - self.n, self.n)])
             slots = np.zeros((self.slot_capacity, self.block_capacity))
+        places = np.asarray(places, dtype=float)
         where = np.empty(self.n)
         real = places < self.n
         where[places[real].astype(np.int64)] = np.flatnonzero(real)
-        return np.concatenate([ref, places, where, slots.ravel(order="F")])
+        return np.concatenate([[float(valid)], ref, places, where, slots.ravel(order="F")])
 
     def fresh(self, x, data) -> bool:
         """Whether ``data`` still holds every pair within the cutoff at positions ``x`` (no
         particle moved more than skin/2 since it was built; always, without a cutoff)."""
         if self.cutoff is None:
             return True
-        moved = self._listed(x) - np.asarray(data[:3 * self.n]).reshape(-1, 3)
+        moved = self._listed(x) - np.asarray(data[1:1 + 3 * self.n]).reshape(-1, 3)
         with np.errstate(invalid="ignore"):
-            return bool(np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0) <= (self.skin / 2) ** 2)
+            within = np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0) <= (self.skin / 2) ** 2
+        return bool(data[0] == 1 and within)
 
     # --- the graph -----------------------------------------------------------------------
     def energy_and_forces(self, X: ca.MX, T, P: ca.MX, n_physical: int, *,
@@ -239,11 +241,16 @@ class PairTerm:
         return V, ca.mtimes(scatter, F)
 
     def fresh_graph(self, X, P):
-        """MX: whether the neighbour list in P holds at positions X (``fresh``; false when
-        the list's x_ref is NaN: a list beyond the capacities)."""
-        ref = P[self.offset:self.offset + 3 * self.n]
+        """MX: whether the neighbour list in P holds at positions X (``fresh``; false for a
+        list beyond the capacities)."""
+        ref = P[self.offset + 1:self.offset + 1 + 3 * self.n]
         moved = ca.reshape(X[self._coordinates.tolist()] - ref, 3, self.n)
-        return ca.mmax(ca.sum1(moved * moved)) <= (self.skin / 2) ** 2
+        within = ca.sum1(moved * moved) <= (self.skin / 2) ** 2
+        return ca.logic_and(P[self.offset] == 1, ca.sum2(ca.logic_not(within)) == 0)
+
+    def valid_graph(self, P):
+        """MX: whether the data in P is a list (not one beyond the capacities)."""
+        return P[self.offset] == 1
 
     def _symbols(self, n_p: int):
         B = BLOCK
@@ -277,9 +284,10 @@ class PairTerm:
         slots (each tile once), a's forces summed by the inner map, the neighbours' added
         back by the transposed gather."""
         B, n, nbc, K = BLOCK, self.n, self.block_capacity, self.slot_capacity
-        places = data[3 * n:3 * n + nbc * B].T  # (1, places), after x_ref (3n)
-        where = data[3 * n + nbc * B:4 * n + nbc * B].T
-        slots = data[4 * n + nbc * B:].T  # (1, K·nbc): block a's K slots together
+        start = 1 + 3 * n  # after valid and x_ref
+        places = data[start:start + nbc * B].T
+        where = data[start + nbc * B:start + nbc * B + n].T
+        slots = data[start + nbc * B + n:].T  # (1, K·nbc): block a's K slots together
         columns = ca.horzcat(ca.reshape(Xl, 3, n), ca.MX.zeros(3, 1))[:, places]  # empty: the zero column n
         XS = ca.reshape(columns, 3 * B, nbc)
         MS = ca.reshape(places < n, B, nbc)

@@ -205,12 +205,13 @@ class Structure:
 
     def pairs_stale(self, X, P):
         """MX: 1 when a neighbour list in P no longer holds at positions X (a particle moved
-        more than skin/2 since it was built), else 0 (always 0 without one): step loops stop
-        there, for the run to refresh the list (``refreshed_pairs``)."""
+        more than skin/2 since it was built), else 0 (0 without one, and for a list beyond its
+        capacities, which is never used): step loops stop there, for the run to refresh the
+        list (``refreshed_pairs``)."""
         stale = ca.MX(0)
         for term in self.pairs:
             if term.size:
-                stale = ca.logic_or(stale, ca.logic_not(term.fresh_graph(X, P)))
+                stale = ca.logic_or(stale, ca.logic_and(term.valid_graph(P), ca.logic_not(term.fresh_graph(X, P))))
         return stale
 
     def refreshed_pairs(self, p: np.ndarray, x) -> np.ndarray | None:

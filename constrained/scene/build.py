@@ -237,6 +237,13 @@ class SceneBuilder(RunSections):
             return v
         if k == "restitution":
             return self.number(v, key, "a coefficient of restitution from 0 to 1")
+        if k in ("cutoff", "skin"):
+            return self.positive(v, key, "a positive length in m (a plain number)")
+        if k == "exclude_bonded":
+            if not isinstance(v, bool):
+                self.fail(key, f"must be true (leave out pairs joined by a distance constraint) or false, "
+                          f"got {_describe(v)}")
+            return v
         if k in ("a", "b", "particle"):
             return self.particle(v, key)
         if k == "particles":

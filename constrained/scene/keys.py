@@ -92,7 +92,7 @@ EFFECT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spring": (("a", "k"), ("b", "point", "rest")),
     "potential": (("expr",), ()),
     "central": (("a", "expr"), ("b", "point")),
-    "pairwise": (("expr",), ("particles",)),
+    "pairwise": (("expr",), ("particles", "cutoff", "skin", "exclude_bonded")),
     "damping": (("coefficient",), ("particles", "a", "b")),
     "force": (("particle", "expr"), ()),
     "electromagnetic": (("charges",), ("phi", "A")),

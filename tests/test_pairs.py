@@ -1,0 +1,293 @@
+"""Pair potentials as one mapped kernel (constrained.model.pairs, issue 28): the energy and the
+forces of the kernel, with and without a cutoff, against the sum over every pair written out
+in CasADi by hand here and differentiated by CasADi; the neighbour list rebuilt as particles
+cross its cells; momentum and energy conserved by a gas with a cutoff; the build does not grow
+with the pairs (CasADi instructions counted, not seconds)."""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import constrained as C
+from constrained.errors import InputError
+from constrained.manifold.manifold import Manifold
+from constrained.model import pairs
+from constrained.model.structure import Structure, assemble
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+
+
+def gas(n: int, *, expr="eps*(s/r)**12", cutoff=None, skin=None, spacing=1.1, jitter=0.08, speed=0.3,
+        particles=None, bonds=(), exclude_bonded=False, trap=0.05, seed=1) -> C.System:
+    """n particles of unequal masses near a cubic lattice (spacing m) with random velocities of
+    zero total momentum, a pairwise potential, and (``trap`` > 0) a weak harmonic trap on each."""
+    rng = np.random.default_rng(seed)
+    side = math.ceil(n ** (1 / 3))
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
+    x = (grid - (side - 1) / 2) * spacing + rng.normal(0, jitter, (n, 3))
+    m = 1.0 + 0.5 * rng.random(n)
+    v = rng.normal(0, speed, (n, 3))
+    v -= (m[:, None] * v).sum(0) / m.sum()
+    s = C.System(parameters={"eps": 0.7, "s": 0.9})
+    for i in range(n):
+        s.add_particle(f"p{i}", float(m[i]), x[i], v[i])
+    for i, j in bonds:
+        s.add(C.Distance(f"p{i}", f"p{j}", length=float(np.linalg.norm(x[i] - x[j]))))
+    names = None if particles is None else [f"p{i}" for i in particles]
+    s.add(C.Pairwise(expr, names, cutoff=cutoff, skin=skin, exclude_bonded=exclude_bonded))
+    if trap:  # V = trap |x_i|² on each
+        s.add(*[C.Spring(f"p{i}", point=[0, 0, 0], k=2 * trap) for i in range(n)])
+    return s
+
+
+def reference(system, phi, *, cutoff=None, particles=None, excluded=()):
+    """(V(x), F(x)) of the pair sum written out pair by pair in SX (φ a Python function of r),
+    F = −∂V/∂x by CasADi; with a cutoff, each pair's φ(r) − φ(rc) − (r − rc) φ'(rc)
+    − ½ (r − rc)² φ''(rc) below rc and 0 beyond (the documented shift)."""
+    n = system.n_particles
+    x = ca.SX.sym("x", 3 * n)
+    r = ca.SX.sym("r")
+    f = phi(r)
+    if cutoff is not None:
+        d1 = ca.jacobian(f, r)
+        at = [ca.substitute(e, r, ca.SX(cutoff)) for e in (f, d1, ca.jacobian(d1, r))]
+        f = ca.if_else(r < cutoff, f - at[0] - (r - cutoff) * at[1] - 0.5 * (r - cutoff) ** 2 * at[2], 0)
+    pair = ca.Function("pair", [r], [f])
+    listed = list(range(n)) if particles is None else list(particles)
+    V = ca.SX(0)
+    for a in range(len(listed)):
+        for b in range(a + 1, len(listed)):
+            i, j = listed[a], listed[b]
+            if (i, j) in excluded or (j, i) in excluded:
+                continue
+            V += pair(ca.norm_2(x[3 * i:3 * i + 3] - x[3 * j:3 * j + 3]))
+    return ca.Function("reference", [x], [V, -ca.gradient(V, x)])
+
+
+def pair_parts(model, x, p=None):
+    """(V, F) of the model's pair potentials alone at x: its potential and forces minus those
+    of the trap (a Model of the same system without the pairwise effect)."""
+    structure = model.structure
+    p = model.parameter_vector if p is None else p
+    zeros = np.zeros_like(x)
+    F = np.asarray(structure.function("dynamics")(x, zeros, 0.0, p)[0]).ravel()
+    V = float(structure.function("potential")(x, 0.0, p))
+    return V, F
+
+
+def trap_parts(system, x):
+    s = C.System()
+    for q in system.particles:
+        s.add_particle(q.name, q.mass, q.position)
+    s.add(*[e for e in system.effects if not isinstance(e, C.Pairwise)])
+    m = assemble(s, reuse=False)
+    return float(m.potential(x, 0.0)), np.asarray(m.dynamics(x, np.zeros_like(x), 0.0)[0]).ravel()
+
+
+def lj_soft(r):
+    return 0.7 * (0.9 / r) ** 12
+
+
+CASES = {
+    "all pairs, 45 particles (padded last block)": dict(n=45),
+    "all pairs, a subset of 37 with bonds excluded": dict(n=50, particles=range(5, 42),
+                                                          bonds=[(5, 6), (6, 7), (20, 30)], exclude_bonded=True),
+    "cutoff 1.8 m, 64 particles": dict(n=64, cutoff=1.8),
+    "cutoff 1.5 m, skin 0.4 m, 100 particles, bonds excluded": dict(n=100, cutoff=1.5, skin=0.4,
+                                                                     bonds=[(0, 1), (1, 2), (50, 51)],
+                                                                     exclude_bonded=True),
+}
+
+
+@pytest.mark.parametrize("case", CASES.values(), ids=CASES.keys())
+def test_kernel_energy_and_forces_are_the_pair_sum_and_its_gradient(case):
+    system = gas(**case)
+    model = assemble(system, reuse=False)
+    assert len(model.structure.pairs) == 1  # the mapped kernel, not the SX pair sum
+    excluded = set(case.get("bonds", ())) if case.get("exclude_bonded") else set()
+    ref = reference(system, lj_soft, cutoff=case.get("cutoff"), particles=case.get("particles"),
+                    excluded=excluded)
+    x = np.asarray(system.positions).ravel()
+    rng = np.random.default_rng(4)
+    V_trap, F_trap = trap_parts(system, x)
+    for sample in (x, x + rng.normal(0, 0.02, x.size)):
+        V, F = pair_parts(model, sample)
+        V_trap, F_trap = trap_parts(system, sample)
+        V_ref, F_ref = (np.asarray(v).ravel() for v in ref(sample))
+        assert V - V_trap == pytest.approx(float(V_ref[0]), rel=1e-12, abs=1e-13)
+        np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-10, atol=1e-11 * np.abs(F_ref).max())
+        # the bound Model (every pair, no neighbour list) gives the same numbers
+        np.testing.assert_allclose(np.asarray(model.dynamics(sample, 0 * sample, 0.0)[0]).ravel(), F,
+                                   rtol=1e-11, atol=1e-12 * np.abs(F).max())
+
+
+def test_a_cutoff_beyond_the_system_gives_the_all_pairs_sum():
+    """r^-12 at a cutoff 1000 × the system's size: the shift is ~1e-36 of a pair's energy."""
+    plain, cut = gas(60), gas(60, cutoff=1e4)
+    x = np.asarray(plain.positions).ravel()
+    V0, F0 = pair_parts(assemble(plain, reuse=False), x)
+    V1, F1 = pair_parts(assemble(cut, reuse=False), x)
+    assert V1 == pytest.approx(V0, rel=1e-13)
+    np.testing.assert_allclose(F1, F0, rtol=1e-12, atol=1e-13 * np.abs(F0).max())
+
+
+def test_parameters_of_the_pair_formula_are_inputs():
+    """eps and s are parameters: another value of them builds nothing and scales V as it should."""
+    system = gas(40, cutoff=2.0)
+    model = assemble(system, reuse=False)
+    builds = Structure.builds
+    other = model.with_parameters({"eps": 1.4})
+    assert Structure.builds == builds
+    x = np.asarray(system.positions).ravel()
+    V_trap = trap_parts(system, x)[0]
+    assert pair_parts(other, x)[0] - V_trap == pytest.approx(2 * (pair_parts(model, x)[0] - V_trap), rel=1e-12)
+
+
+def test_neighbour_list_is_rebuilt_when_particles_cross_cells():
+    """A list built at one configuration, the particles then moved by more than half the skin
+    (across cells of the Morton grid): the stale list is never used (the graph sums every
+    pair: exact), ``refreshed_pairs`` rebuilds it, and the rebuilt one is exact and fast."""
+    system = gas(80, cutoff=1.6, skin=0.2)
+    model = assemble(system, reuse=False)
+    structure = model.structure
+    (term,) = structure.pairs
+    x0 = np.asarray(system.positions).ravel()
+    p0 = model.parameter_vector
+    assert structure.refreshed_pairs(p0, x0) is None  # fresh where it was built
+    rng = np.random.default_rng(7)
+    step = rng.normal(size=(80, 3))
+    step *= 0.7 / np.linalg.norm(step, axis=1, keepdims=True)  # every particle moves 0.7 m
+    x1 = x0 + step.ravel()
+    assert not term.fresh(x1, p0[term.offset:])
+    start, end = term.offset + 1 + 3 * term.n, term.offset + 1 + 3 * term.n + term.block_capacity * pairs.BLOCK
+    places0 = p0[start:end]
+    p1 = structure.refreshed_pairs(p0, x1)
+    assert p1 is not None and term.fresh(x1, p1[term.offset:])
+    places1 = p1[start:end]
+    assert not np.array_equal(places0, places1)  # particles changed blocks
+    ref = reference(system, lj_soft, cutoff=1.6)
+    V_trap, F_trap = trap_parts(system, x1)
+    V_ref, F_ref = (np.asarray(v).ravel() for v in ref(x1))
+    for p in (p0, p1):  # stale (every pair) and rebuilt (the list): both exact
+        V, F = pair_parts(model, x1, p)
+        assert V - V_trap == pytest.approx(float(V_ref[0]), rel=1e-12)
+        np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-10, atol=1e-11 * np.abs(F_ref).max())
+    # the run's manifold rebuilds its list as it evaluates far from the start
+    manifold = Manifold(model)
+    manifold.accelerations(x1, np.zeros_like(x1), 0.0)
+    assert term.fresh(x1, manifold._p[term.offset:])
+
+
+def test_a_list_beyond_its_capacity_is_not_used():
+    """All particles crowded into one spot: more neighbour blocks than the room kept for them;
+    the data says so (its first entry 0) and the sum goes over every pair, still exact (the bound
+    Model's every-pair sum, checked against the written-out sum above)."""
+    system = gas(600, cutoff=1.2)
+    model = assemble(system, reuse=False)
+    (term,) = model.structure.pairs
+    x = 0.1 * np.asarray(system.positions).ravel()  # 1000x denser than at the start
+    data = term.data(x)
+    assert data[0] == 0 and np.isfinite(data).all() and not term.fresh(x, data)
+    p = model.parameter_vector.copy()
+    p[term.offset:term.offset + term.size] = data
+    V, F = pair_parts(model, x, p)
+    F_all = np.asarray(model.dynamics(x, 0 * x, 0.0)[0]).ravel()
+    assert V == pytest.approx(float(model.potential(x, 0.0)), rel=1e-12)
+    np.testing.assert_allclose(F, F_all, rtol=1e-10, atol=1e-11 * np.abs(F_all).max())
+
+
+def _momentum(traj, masses):
+    return np.einsum("n,tnk->tk", masses, traj.v)
+
+
+def test_gas_with_a_cutoff_keeps_momentum_and_energy():
+    """A free gas (no trap) of 90 particles of unequal masses with a cutoff, run long enough
+    for particles to leave their blocks (the list is rebuilt during the run): total momentum is
+    kept to round-off (the pair forces are equal and opposite) and the energy to the tolerance;
+    the run matches the same gas run with no neighbour list (every pair summed)."""
+    system = gas(90, cutoff=1.6, skin=0.16, trap=0, speed=1.0)
+    model = assemble(system, reuse=False)
+    (term,) = model.structure.pairs
+    traj = C.simulate(system, 3.0, model=model, rtol=1e-9, atol=1e-9, t_eval=np.linspace(0, 3, 31),
+                      outputs={"energy"})
+    masses = system.masses
+    P = _momentum(traj, masses)
+    scale = np.abs(masses[None, :, None] * traj.v).sum(axis=1).max()  # Σ|m v|: round-off's scale
+    assert np.max(np.abs(P - P[0])) < 1e-13 * scale
+    assert np.ptp(traj.energy) < 1e-7 * np.abs(traj.energy).max()
+    moved = np.linalg.norm(traj.x[-1] - traj.x[0], axis=1)
+    assert np.median(moved) > 10 * term.skin  # the list was rebuilt many times
+    with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
+        found = pairs.neighbour_data
+        patch.setattr(pairs, "neighbour_data", lambda y, reach, blocks, slots: (
+            found(y, reach, blocks, slots) if slots is None else (None, None)))
+        every = C.simulate(system, 3.0, model=assemble(system, reuse=False), rtol=1e-9, atol=1e-9,
+                           t_eval=np.linspace(0, 3, 31), outputs=set())
+    np.testing.assert_allclose(traj.x, every.x, atol=1e-6)
+
+
+def test_the_build_does_not_grow_with_the_pairs():
+    """The Functions carrying the pairs hold the same CasADi instructions for 41 and 250
+    particles (820 and 31,125 pairs); 2,001 particles add one call of the outer map per GROUP
+    blocks; the pair kernel is the same size throughout."""
+    def sizes(n, cutoff=None):
+        s = C.System()
+        for i in range(n):
+            s.add_particle(f"p{i}", 1.0, [i, 0.1 * i ** 1.5, 0.0])
+        s.add(C.Pairwise("1/r", cutoff=cutoff))
+        structure = Structure(s)
+        (term,) = structure.pairs
+        return structure.function("dynamics").n_instructions(), term._pair.n_instructions(), term.n_blocks
+
+    small, large, huge = sizes(41), sizes(250), sizes(2001)
+    assert small[0] == large[0]
+    groups = math.ceil(huge[2] / pairs.GROUP)
+    assert huge[0] <= small[0] + 12 * (groups - 1)
+    assert small[1] == large[1] == huge[1]
+    with_cutoff = sizes(41, cutoff=3.0), sizes(601, cutoff=3.0)
+    assert with_cutoff[1][0] <= with_cutoff[0][0] + 12 * (math.ceil(with_cutoff[1][2] / pairs.GROUP) - 1)
+
+
+def test_scene_keys_of_a_pairwise_effect(tmp_path):
+    text = """
+[[particles]]
+name = "a"
+mass = 1.0
+position = [0, 0, 0]
+[[particles]]
+name = "b"
+mass = 1.0
+position = [1, 0, 0]
+[[constraints]]
+type = "distance"
+a = "a"
+b = "b"
+length = 1.0
+[[effects]]
+type = "pairwise"
+expr = "1/r"
+cutoff = 2.0
+skin = 0.1
+exclude_bonded = true
+[simulate]
+t_end = 0.1
+"""
+    path = tmp_path / "pair.toml"
+    path.write_text(text)
+    scene = C.load_scene(path)
+    (effect,) = scene.system.effects
+    assert (effect.cutoff, effect.skin, effect.exclude_bonded) == (2.0, 0.1, True)
+    for bad, says in (("cutoff = -1.0", "positive length"), ('cutoff = "rc"', "positive length"),
+                      ("exclude_bonded = 1", "true")):
+        path.write_text(text.replace("cutoff = 2.0" if "cutoff" in bad else "exclude_bonded = true", bad))
+        with pytest.raises(InputError, match=says):
+            C.load_scene(path)
+    with pytest.raises(InputError, match="give a cutoff"):
+        C.Pairwise("1/r", skin=0.1)
