@@ -291,3 +291,17 @@ t_end = 0.1
             C.load_scene(path)
     with pytest.raises(InputError, match="give a cutoff"):
         C.Pairwise("1/r", skin=0.1)
+
+
+def test_two_particles_on_one_spot_are_refused_at_the_start(tmp_path):
+    """1/r with two of 40 particles at the same place: the scene's start check names the
+    pairwise effect (its mapped kernel's energy is not finite there)."""
+    lines = []
+    for i in range(40):
+        x = 0.0 if i == 39 else float(i)
+        lines.append(f'[[particles]]\nname = "p{i}"\nmass = 1.0\nposition = [{x}, 0, 0]\n')
+    lines.append('[[effects]]\ntype = "pairwise"\nexpr = "1/r"\n[simulate]\nt_end = 0.1\n')
+    path = tmp_path / "clash.toml"
+    path.write_text("\n".join(lines))
+    with pytest.raises(InputError, match=r"effects\[0\].*undefined at the initial state"):
+        C.load_scene(path)

@@ -289,15 +289,19 @@ def nonfinite_cause(model, x, v, t: float) -> str:
     v = np.asarray(v, float).ravel()
     found = []
     try:
+        mapped = _pair_values(model, x, t)
         for k, effect in enumerate(model.system.effects):
-            term = effect.term(s)
-            if isinstance(term, int | float):  # a constant formula (folded by the parser)
-                term = ca.SX(term)
-            parts = {"potential": [term, ca.gradient(term, s.x)],
-                     "generalized_potential": [term, ca.gradient(term, s.x), ca.gradient(term, s.v)],
-                     "dissipation": [term, ca.gradient(term, s.v)]}.get(effect.slot, [term])
-            f = ca.Function("term", [s.x, s.v, s.t], [ca.vertcat(*[ca.vec(p) for p in parts])])
-            values = np.asarray(f(x, v, t)).ravel()
+            if k in mapped:  # a pair potential's mapped kernel (no term per pair to build)
+                values = np.concatenate([[mapped[k][0]], mapped[k][1]])
+            else:
+                term = effect.term(s)
+                if isinstance(term, int | float):  # a constant formula (folded by the parser)
+                    term = ca.SX(term)
+                parts = {"potential": [term, ca.gradient(term, s.x)],
+                         "generalized_potential": [term, ca.gradient(term, s.x), ca.gradient(term, s.v)],
+                         "dissipation": [term, ca.gradient(term, s.v)]}.get(effect.slot, [term])
+                f = ca.Function("term", [s.x, s.v, s.t], [ca.vertcat(*[ca.vec(p) for p in parts])])
+                values = np.asarray(f(x, v, t)).ravel()
             if not np.all(np.isfinite(values)):
                 what = {"potential": "potential energy or its force", "applied_force": "force",
                         "dissipation": "damping force", "generalized_potential": "generalized potential"}
@@ -468,12 +472,30 @@ class StiffnessWatch:
                 'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
 
 
+def _pair_values(model, x, t) -> dict:
+    """effect index -> (V, F) of the model's pair potentials built as mapped kernels."""
+    structure = model.structure
+    if not getattr(structure, "pairs", ()):
+        return {}
+    values = structure.pair_values(x, t, model.parameter_vector)
+    return dict(zip(structure.pair_owner, values, strict=True))
+
+
 def _strongest_effect(model, s, x, v, t):
     """(index, label, particle, |F|) of the effect with the largest force on one particle."""
     import casadi as ca
 
     best = None
+    mapped = _pair_values(model, x, t)
     for k, effect in enumerate(model.system.effects):
+        if k in mapped:
+            F = mapped[k][1].reshape(-1, 3)
+            big = np.max(np.abs(F), axis=1, keepdims=True)
+            norms = big.ravel() * np.linalg.norm(F / np.where(big > 0, big, 1.0), axis=1)
+            i = int(np.argmax(norms))
+            if best is None or norms[i] > best[3]:
+                best = (k, effect.label, model.system.particles[i].name, float(norms[i]))
+            continue
         term = effect.term(s)
         if isinstance(term, int | float):
             continue

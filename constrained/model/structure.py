@@ -198,6 +198,19 @@ class Structure:
             out[i] = out[i] + (force if kind == "force" else energy)
         return ca.Function(name, [*inputs, P], out, rest.name_in(), rest.name_out())
 
+    def pair_values(self, x, t: float, p) -> list[tuple[float, np.ndarray]]:
+        """(V_k, F_k) of each pair potential k (``pairs``, from the effect ``pair_owner[k]``)
+        at (x, t) for p (its physical entries): every pair summed, no neighbour list."""
+        if "pair values" not in self._functions:
+            X, T, P = ca.MX.sym("x", self.n_coordinates), ca.MX.sym("t"), ca.MX.sym("p", self.n_p)
+            out = [e for term in self.pairs
+                   for e in term.energy_and_forces(X, T, P, self.n_physical, lists=False)]
+            self._functions["pair values"] = ca.Function("pair_values", [X, T, P], out)
+        p = np.concatenate([np.asarray(p, float)[:self.n_physical], np.zeros(self.n_p - self.n_physical)])
+        out = self._functions["pair values"](x, t, p)
+        out = out if isinstance(out, tuple | list) else [out]
+        return [(float(out[2 * k]), np.asarray(out[2 * k + 1], float).ravel()) for k in range(len(self.pairs))]
+
     def pair_data(self, x) -> np.ndarray:
         """The pairs' neighbour lists at positions ``x`` (the entries of p after the physical
         ones; empty without a cutoff)."""
