@@ -129,8 +129,8 @@ def _tiles(pair: ca.Function, t, p) -> dict[str, ca.Function]:
                 v, f = masked(i, j, xa, ma)
                 Vd, Fd[i], Fd[j] = Vd + v, Fd[i] + f, Fd[j] - f
     zero = ca.SX.zeros(3 * B)
-    full = ca.Function("tile_full", inputs, [V, ca.vertcat(*Fa), ca.vertcat(*Fb)])
-    diag = ca.Function("tile_diag", inputs, [Vd, ca.vertcat(*Fd), zero])
+    full = ca.Function("tile_full", inputs, [V, ca.vertcat(*Fa), ca.vertcat(*Fb)], {"cse": True})
+    diag = ca.Function("tile_diag", inputs, [Vd, ca.vertcat(*Fd), zero], {"cse": True})
     nothing = ca.Function("tile_zero", inputs, [ca.SX(0), zero, zero])
     return ca.Function.conditional("tile", [nothing, diag], full)
 
