@@ -100,8 +100,10 @@ class Dopri(Stepper):
         #: The tableau's order: the global error falls like h^order.
         self.order = BASES[base].order
         self.tableau = BASES[base]
+        # (pair potentials compile at any size: their O(N²) work is one kernel of fixed code)
         self.compiled = compiled_evaluation.enabled(self.compiled_setting) and (
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
+            or bool(model.structure.pairs)
         )
         self._chunks = self._functions()  # the one-time cost, outside the run's wall time
         self._longest = max(self._chunks)
