@@ -57,7 +57,8 @@ def gas_scene(n: int, *, cutoff: float | None, t_end: float, compiled: str = "au
                   f"position = [{float(x[i, 0])!r}, {float(x[i, 1])!r}, {float(x[i, 2])!r}]",
                   f"velocity = [{float(v[i, 0])!r}, {float(v[i, 1])!r}, {float(v[i, 2])!r}]", ""]
     for i in range(n):
-        lines += ["[[effects]]", 'type = "spring"', f'a = "g{i}"', "point = [0.0, 0.0, 0.0]", f"k = {K_TRAP}", ""]
+        lines += ["[[effects]]", 'type = "spring"', f'a = "g{i}"', "point = [0.0, 0.0, 0.0]",
+                  f"k = {K_TRAP}", ""]
     lines += ["[[effects]]", 'type = "pairwise"', 'expr = "eps*(sig/r)**12"']
     if cutoff:
         lines.append(f"cutoff = {cutoff}")
@@ -68,14 +69,16 @@ def gas_scene(n: int, *, cutoff: float | None, t_end: float, compiled: str = "au
 
 def run_once(scene: Path, out: Path) -> dict:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "constrained.cli", "run", str(scene), "--out", str(out)]
+    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "constrained.cli", "run", str(scene),
+           "--out", str(out)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     rss_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr).group(1))
-    cpu = sum(float(re.search(rf"{k} time \(seconds\): ([\d.]+)", proc.stderr).group(1)) for k in ("User", "System"))
+    cpu = sum(float(re.search(rf"{k} time \(seconds\): ([\d.]+)", proc.stderr).group(1))
+              for k in ("User", "System"))
     stats = _stats(out / "trajectory.npz")
     return dict(wall_s=wall, cpu_s=cpu, peak_rss_mb=rss_kb / 1024, **stats)
 

@@ -126,7 +126,8 @@ class OpenMM:
         integrator = openmm.VerletIntegrator(T_END / steps)
         integrator.setConstraintTolerance(1e-10)
         properties = {"Threads": "1"} if platform == "CPU" else {}
-        self.context = openmm.Context(system, integrator, openmm.Platform.getPlatformByName(platform), properties)
+        self.context = openmm.Context(system, integrator, openmm.Platform.getPlatformByName(platform),
+                                      properties)
         self.integrator = integrator
 
     def run(self, x0, v0, a0):
@@ -148,7 +149,8 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, default=100)
     parser.add_argument("--target", type=float, default=1e-3, help="error goal, in bond lengths")
     parser.add_argument("--rtols", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5, 1e-6, 1e-7])
-    parser.add_argument("--steps", type=int, nargs="+", default=[100, 200, 300, 400, 600, 800, 1200, 1600, 3200])
+    parser.add_argument("--steps", type=int, nargs="+",
+                        default=[100, 200, 300, 400, 600, 800, 1200, 1600, 3200])
     parser.add_argument("--peers", default="constrained,openmm-cpu,openmm-reference")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
@@ -185,7 +187,8 @@ def main(argv=None) -> int:
             runner = OpenMM(args.n, platform, steps)
             built = time.perf_counter() - built
             runner.run(x0, v0, a0)  # warm
-            settings.append((peer, f"{steps} steps (build {built:.2f} s)", lambda r=runner: r.run(x0, v0, a0)))
+            settings.append((peer, f"{steps} steps (build {built:.2f} s)",
+                             lambda r=runner: r.run(x0, v0, a0)))
     results = {k: [] for k in range(len(settings))}
     for _ in range(args.repeats):  # alternating passes: load drifts hit every peer alike
         for k, (_, _, call) in enumerate(settings):
@@ -200,8 +203,8 @@ def main(argv=None) -> int:
         if error <= args.target and (peer not in best or cpu < best[peer][0]):
             best[peer] = (cpu, setting, error)
         if peer == "openmm-reference" and setting.startswith(f"{max(args.steps)} "):
-            print(f"# reference check: OpenMM Reference at {max(args.steps)} steps differs from constrained's "
-                  f"reference by {error:.2e} bond lengths", file=sys.stderr)
+            print(f"# reference check: OpenMM Reference at {max(args.steps)} steps differs from "
+                  f"constrained's reference by {error:.2e} bond lengths", file=sys.stderr)
     print(f"\ncheapest run with error <= {args.target:g} bond lengths:\n")
     print("| peer | setting | error | CPU s | CPU / OpenMM CPU |\n|---|---|---|---|---|")
     base = best.get("openmm-cpu", (None,))[0]

@@ -104,7 +104,7 @@ def test_every_method_returns_the_requested_output_times(method):
 
 
 SINGULAR_METHODS = {"projection": {}, "dopri": dict(compiled=False), "baumgarte": {},
-                    "rattle": dict(dt=1e-3, compiled=False), "idas": {}, "ggl": {}}
+                    "rattle": dict(dt=1e-3, compiled=False), "idas": {}, "ggl": {}, "rodas": {}}
 
 
 @pytest.mark.parametrize("method", sorted(SINGULAR_METHODS))

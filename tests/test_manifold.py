@@ -68,7 +68,7 @@ plots = []
 """
 
 METHODS = {"projection": [], "dopri": [], "baumgarte": [], "idas": [], "ggl": [], "pantelides": [],
-           "rattle": ["--set", "simulate.dt=0.001"]}
+           "rattle": ["--set", "simulate.dt=0.001"], "rodas": []}
 
 
 def mass_ratio_system() -> C.System:

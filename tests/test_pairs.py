@@ -97,8 +97,8 @@ def lj_soft(r):
 
 CASES = {
     "all pairs, 45 particles (padded last block)": dict(n=45),
-    "all pairs, a subset of 37 with bonds excluded": dict(n=50, particles=range(5, 42),
-                                                          bonds=[(5, 6), (6, 7), (20, 30)], exclude_bonded=True),
+    "all pairs, a subset of 37 with bonds excluded": dict(
+        n=50, particles=range(5, 42), bonds=[(5, 6), (6, 7), (20, 30)], exclude_bonded=True),
     "cutoff 1.8 m, 64 particles": dict(n=64, cutoff=1.8),
     "cutoff 1.5 m, skin 0.4 m, 100 particles, bonds excluded": dict(n=100, cutoff=1.5, skin=0.4,
                                                                      bonds=[(0, 1), (1, 2), (50, 51)],
@@ -147,28 +147,30 @@ def test_parameters_of_the_pair_formula_are_inputs():
     assert Structure.builds == builds
     x = np.asarray(system.positions).ravel()
     V_trap = trap_parts(system, x)[0]
-    assert pair_parts(other, x)[0] - V_trap == pytest.approx(2 * (pair_parts(model, x)[0] - V_trap), rel=1e-12)
+    doubled = 2 * (pair_parts(model, x)[0] - V_trap)
+    assert pair_parts(other, x)[0] - V_trap == pytest.approx(doubled, rel=1e-12)
 
 
 def test_neighbour_list_is_rebuilt_when_particles_cross_cells():
     """A list built at one configuration, the particles then moved by more than half the skin
     (across cells of the Morton grid): the stale list is never used (the graph sums every
-    pair: exact), ``refreshed_pairs`` rebuilds it, and the rebuilt one is exact and fast."""
+    pair: exact), ``PairPotentials.refreshed`` rebuilds it, and the rebuilt one is exact and fast."""
     system = gas(80, cutoff=1.6, skin=0.2)
     model = assemble(system, reuse=False)
     structure = model.structure
     (term,) = structure.pairs
     x0 = np.asarray(system.positions).ravel()
     p0 = model.parameter_vector
-    assert structure.refreshed_pairs(p0, x0) is None  # fresh where it was built
+    assert structure.pair_potentials.refreshed(p0, x0) is None  # fresh where it was built
     rng = np.random.default_rng(7)
     step = rng.normal(size=(80, 3))
     step *= 0.7 / np.linalg.norm(step, axis=1, keepdims=True)  # every particle moves 0.7 m
     x1 = x0 + step.ravel()
     assert not term.fresh(x1, p0[term.offset:])
-    start, end = term.offset + 1 + 3 * term.n, term.offset + 1 + 3 * term.n + term.block_capacity * pairs.BLOCK
+    start = term.offset + 1 + 3 * term.n  # the places: after valid and x_ref
+    end = start + term.block_capacity * pairs.BLOCK
     places0 = p0[start:end]
-    p1 = structure.refreshed_pairs(p0, x1)
+    p1 = structure.pair_potentials.refreshed(p0, x1)
     assert p1 is not None and term.fresh(x1, p1[term.offset:])
     places1 = p1[start:end]
     assert not np.array_equal(places0, places1)  # particles changed blocks
@@ -226,7 +228,7 @@ def test_gas_with_a_cutoff_keeps_momentum_and_energy():
     assert np.median(moved) > 10 * term.skin  # the list was rebuilt many times
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
         found = pairs.neighbour_data
-        patch.setattr(pairs, "neighbour_data", lambda y, reach, blocks, slots: (
+        patch.setattr(pairs.neighbours, "neighbour_data", lambda y, reach, blocks, slots: (
             found(y, reach, blocks, slots) if slots is None else (None, None)))
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), rtol=1e-9, atol=1e-9,
                            t_eval=np.linspace(0, 3, 31), outputs=set())

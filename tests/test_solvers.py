@@ -102,7 +102,7 @@ def test_every_method_has_counters_and_refuses_bad_arguments():
         C.simulate(double_pendulum(), 0.1, method="projection", alpha=3.0)
 
 
-@pytest.mark.parametrize("method", ["dopri", "rattle", "baumgarte", "idas", "ggl", "pantelides"])
+@pytest.mark.parametrize("method", ["dopri", "rattle", "baumgarte", "idas", "ggl", "pantelides", "rodas"])
 def test_every_method_takes_the_redundant_cube(method):
     """28 distances, 18 independent: each method solves with an independent subset (the
     manifold's rows), keeps the cube rigid and its angular momentum, and follows projection."""
@@ -112,7 +112,7 @@ def test_every_method_takes_the_redundant_cube(method):
     t = np.linspace(0, 0.5, 6)
     ref = C.simulate(cube, 0.5, rtol=1e-10, atol=1e-12, t_eval=t)
     opts = {"dt": 1e-4, "t_eval": None} if method == "rattle" else {"t_eval": t}
-    # GGL's index-2 corrector fails below atol 1e-10 (see solvers.idas.GGL)
+    # GGL's index-2 corrector fails below atol 1e-10 (see solvers.sundials.idas.GGL)
     atol = 1e-10 if method == "ggl" else 1e-12
     tr = C.simulate(cube, 0.5, method=method, rtol=1e-10, atol=atol, **opts)
     if method == "rattle":

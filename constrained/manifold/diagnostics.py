@@ -477,7 +477,7 @@ def _pair_values(model, x, t) -> dict:
     structure = model.structure
     if not getattr(structure, "pairs", ()):
         return {}
-    values = structure.pair_values(x, t, model.parameter_vector)
+    values = structure.pair_potentials.values(x, t, model.parameter_vector)
     return dict(zip(structure.pair_owner, values, strict=True))
 
 

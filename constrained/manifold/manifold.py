@@ -284,7 +284,7 @@ class Manifold:
         m = self.model
         self.counters.nfev += 1
         if m.structure.pairs:  # pair potentials' neighbour lists, rebuilt where particles moved far
-            p = m.structure.refreshed_pairs(self._p, x)
+            p = m.structure.pair_potentials.refreshed(self._p, x)
             self._p = self._p if p is None else p
         if not self.redundant:
             a, lam = _fast_or_nan(self._fast.acceleration, (m.n_coordinates, len(m.constraint_labels)),

@@ -318,7 +318,8 @@ class MappedBuild:
             for term in structure.pairs:  # each pair potential: its own mapped kernel
                 F = F + term.energy_and_forces(X, T, P_full, structure.n_physical)[1]
             outs, out_names = [ca.densify(F), *outs], ["F", *out_names]
-        inputs, in_names = ([X, V, T, P_full], ["x", "v", "t", "p"]) if with_v else ([X, T, P_full], ["x", "t", "p"])
+        inputs, in_names = (([X, V, T, P_full], ["x", "v", "t", "p"]) if with_v
+                            else ([X, T, P_full], ["x", "t", "p"]))
         return ca.Function(name, inputs, outs, in_names, out_names)
 
     def _rows(self, pieces: list) -> ca.MX:

@@ -212,7 +212,8 @@ class Pairwise(Effect):
         names, r, phi = self._parsed(s)
         positions = [s.position(p, where) for p in names]
         excluded = {tuple(e) for e in self._excluded(s, names).tolist()}
-        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names)) if (i, j) not in excluded]
+        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))
+                 if (i, j) not in excluded]
         if not pairs:
             return ca.SX(0)
         # φ may also use t, coordinates and (symbolic) parameters p
@@ -307,6 +308,44 @@ class Electromagnetic(Effect):
             A = ca.vertcat(*[s.parse_field(a, f"{where}.A[{k}]", x) for k, a in enumerate(self.A)])
             U = U + q * (phi - ca.dot(v, A))
         return U
+
+
+def forces(slots: dict, x, v, t) -> tuple:
+    """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
+
+        F = −∂V/∂x − ∂U/∂x + d/dt ∂U/∂v − ∂R/∂v + Σ applied,   V = Σ potentials, U = Σ
+        generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
+        dissipations."""
+    active = set()
+    F = ca.SX.zeros(x.numel())
+    V = U = ca.SX(0)
+    dU_dv = ca.SX.zeros(x.numel())
+    if slots["potential"]:
+        active.add("potential")
+        V = sum(slots["potential"], ca.SX(0))
+        F -= ca.gradient(V, x)
+    if slots["generalized_potential"]:
+        active.add("generalized_potential")
+        U = sum(slots["generalized_potential"], ca.SX(0))
+        dU_dv = ca.gradient(U, v)
+        if ca.depends_on(dU_dv, v):
+            raise InputError(
+                "a generalized potential must be linear in the velocities "
+                "(U = U0(x, t) + v·W(x, t)); this one is not"
+            )
+        # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
+        F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
+    if slots["dissipation"]:
+        active.add("dissipation")
+        R = sum(slots["dissipation"], ca.SX(0))
+        F -= ca.gradient(R, v)
+    if slots["applied_force"]:
+        active.add("applied_force")
+        for term in slots["applied_force"]:
+            F += term
+    if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
+        active.add("time_dependent_forces")
+    return F, V, U, dU_dv, active
 
 
 EFFECT_TYPES = {

@@ -118,7 +118,8 @@ def _undefined_in(system: System, t0: float, structure: Structure, numbers) -> l
             ve, jex, jev = effects(x0, v0, t0, p)
             rows = np.concatenate([_bad_rows(ve), _bad_rows(jex), _bad_rows(jev)])
             bad |= {("effects", int(k)) for k in owner_e[rows]}
-        for (V, F), owner in zip(structure.pair_values(x0, t0, p), structure.pair_owner, strict=True):
+        values = structure.pair_potentials.values(x0, t0, p)
+        for (V, F), owner in zip(values, structure.pair_owner, strict=True):
             if not (np.isfinite(V) and np.all(np.isfinite(F))):  # a pair at r = 0 under 1/r, say
                 bad.add(("effects", owner))
     items = {"constraints": system.constraints, "effects": system.effects}

@@ -21,7 +21,9 @@ import numpy as np
 
 from ..errors import InputError
 from . import lifting
-from .pairs import PairTerm
+from .effects import forces  # noqa: F401 (the slots' sum; mapped builds import it from here)
+from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
+from .pairs.potentials import PairPotentials
 from .symbols import Symbols
 
 #: Functions bound to parameter values that a Structure keeps (the most recent), so that
@@ -89,32 +91,18 @@ class Structure:
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
         terms = []
         #: Pair potentials built as one mapped kernel each (constrained.model.pairs), apart from
-        #: the SX graph; their neighbour lists are entries of p after the physical ones.
-        self.pairs: tuple[PairTerm, ...] = ()
-        #: The effect each of ``pairs`` comes from (its index in system.effects).
-        self.pair_owner: tuple[int, ...] = ()
-        #: How many entries of p are physical (the named parameters and the plain numbers); the
-        #: pairs' neighbour lists follow.
-        self.n_physical = p.numel()
-        for k, effect in enumerate(system.effects):
-            spec = effect.pair_spec(s) if hasattr(effect, "pair_spec") else None
-            if spec is not None:
-                offset = self.n_physical + sum(term.size for term in self.pairs)
-                self.pairs += (PairTerm(spec, t, p, n_coordinates=n3, offset=offset,
-                                        positions=np.asarray(system.positions, float)),)
-                self.pair_owner += (k,)
-                terms.append(ca.SX(0))  # (the term is the PairTerm's)
-                continue
-            terms.append(effect.term(s))
-            slots[effect.slot].append(terms[-1])
+        #: the SX graph: ``pairs`` (PairTerms), from the effects ``pair_owner``; p is the
+        #: ``n_physical`` parameters and numbers, then their neighbour lists (``n_p`` in all).
+        self.pair_potentials = PairPotentials(system, s, n3)
+        self.pairs, self.pair_owner = self.pair_potentials.terms, self.pair_potentials.owners
+        self.n_physical, self.n_p = self.pair_potentials.n_physical, self.pair_potentials.n_p
+        for k, effect in enumerate(system.effects):  # (a pair kernel's term is its own: 0 here)
+            terms.append(ca.SX(0) if k in self.pair_owner else effect.term(s))
+            slots[effect.slot] += [] if k in self.pair_owner else [terms[-1]]
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
         if self.pairs:
-            active.add("potential")
-            if any(term.time_dependent for term in self.pairs):
-                active.add("time_dependent_forces")
-        #: The length of p: the physical entries, then the pairs' neighbour lists.
-        self.n_p = self.n_physical + sum(term.size for term in self.pairs)
+            active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)
         #: The expressions the Functions are made of: the constraint rows (in order) and the
         #: effects' terms by slot (constrained.mapped cuts them into repeated kernels).
@@ -159,86 +147,18 @@ class Structure:
         function("masses", [], [], [ca.SX(m3)], ["m"])  # (3N,): formulas of p, or numbers
         Structure.builds += 1
 
-    def function(self, name: str) -> ca.Function:
-        """The parametric Function ``name``: the Model's inputs, then ``p``."""
-        if name not in self._functions:
-            inputs, in_names, outputs, out_names = self._parts[name]
-            function = ca.Function(name, [*inputs, self._p], outputs, [*in_names, "p"], out_names)
-            if self.pairs and name in _PAIR_OUTPUTS:
-                function = self._with_pairs(name, function)
-            self._functions[name] = function
-        return self._functions[name]
-
-    def _every_pair(self, name: str) -> ca.Function:
-        """``function(name)`` summing every pair, the neighbour lists unused: what a Model
-        binds (its p fixed, a list in it would be stale wherever the particles have moved),
-        and what calls with SX symbols can write out."""
-        if not (self.pairs and name in _PAIR_OUTPUTS):
-            return self.function(name)
-        key = (name, "every pair")
+    def function(self, name: str, *, lists: bool = True) -> ca.Function:
+        """The parametric Function ``name``: the Model's inputs, then ``p``. ``lists`` False: the
+        pair potentials summed over every pair, their neighbour lists unused (what a Model binds:
+        a list fixed in it would be stale wherever the particles move; SX symbols write it out)."""
+        pairs = bool(self.pairs) and name in _PAIR_OUTPUTS
+        key = name if lists or not pairs else (name, "every pair")
         if key not in self._functions:
             inputs, in_names, outputs, out_names = self._parts[name]
-            rest = ca.Function(name, [*inputs, self._p], outputs, [*in_names, "p"], out_names)
-            self._functions[key] = self._with_pairs(name, rest, lists=False)
+            function = ca.Function(name, [*inputs, self._p], outputs, [*in_names, "p"], out_names)
+            self._functions[key] = (self.pair_potentials.with_pairs(name, function, lists=lists) if pairs
+                                    else function)
         return self._functions[key]
-
-    def _with_pairs(self, name: str, rest: ca.Function, lists: bool = True) -> ca.Function:
-        """The Function ``name`` (an MX Function of the full p) with the pair potentials'
-        energy and forces added to its outputs: ``rest`` (the SX graph's, of the physical p)
-        plus each PairTerm's mapped graph (``lists``: through its neighbour list)."""
-        inputs = [ca.MX.sym(rest.name_in(i), rest.sparsity_in(i)) for i in range(rest.n_in() - 1)]
-        P = ca.MX.sym("p", self.n_p)
-        out = rest.call([*inputs, P[:self.n_physical]])
-        x, t = inputs[0], inputs[-1]
-        energy, force = 0, 0
-        for term in self.pairs:
-            e, f = term.energy_and_forces(x, t, P, self.n_physical, lists=lists)
-            energy, force = energy + e, force + f
-        for i, kind in _PAIR_OUTPUTS[name].items():
-            out[i] = out[i] + (force if kind == "force" else energy)
-        return ca.Function(name, [*inputs, P], out, rest.name_in(), rest.name_out())
-
-    def pair_values(self, x, t: float, p) -> list[tuple[float, np.ndarray]]:
-        """(V_k, F_k) of each pair potential k (``pairs``, from the effect ``pair_owner[k]``)
-        at (x, t) for p (its physical entries): every pair summed, no neighbour list."""
-        if "pair values" not in self._functions:
-            X, T, P = ca.MX.sym("x", self.n_coordinates), ca.MX.sym("t"), ca.MX.sym("p", self.n_p)
-            out = [e for term in self.pairs
-                   for e in term.energy_and_forces(X, T, P, self.n_physical, lists=False)]
-            self._functions["pair values"] = ca.Function("pair_values", [X, T, P], out)
-        p = np.concatenate([np.asarray(p, float)[:self.n_physical], np.zeros(self.n_p - self.n_physical)])
-        out = self._functions["pair values"](x, t, p)
-        out = out if isinstance(out, tuple | list) else [out]
-        return [(float(out[2 * k]), np.asarray(out[2 * k + 1], float).ravel()) for k in range(len(self.pairs))]
-
-    def pair_data(self, x) -> np.ndarray:
-        """The pairs' neighbour lists at positions ``x`` (the entries of p after the physical
-        ones; empty without a cutoff)."""
-        return np.concatenate([np.zeros(0), *[term.data(x) for term in self.pairs]])
-
-    def pairs_stale(self, X, P):
-        """MX: 1 when a neighbour list in P no longer holds at positions X (a particle moved
-        more than skin/2 since it was built), else 0 (0 without one, and for a list beyond its
-        capacities, which is never used): step loops stop there, for the run to refresh the
-        list (``refreshed_pairs``)."""
-        stale = ca.MX(0)
-        for term in self.pairs:
-            if term.size:
-                stale = ca.logic_or(stale, ca.logic_and(term.valid_graph(P), ca.logic_not(term.fresh_graph(X, P))))
-        return stale
-
-    def refreshed_pairs(self, p: np.ndarray, x) -> np.ndarray | None:
-        """p with the neighbour lists rebuilt at positions ``x`` where a particle has moved
-        more than skin/2 since they were built, or None when every list still holds (the
-        graph is exact either way: a stale list is only slower)."""
-        stale = [term for term in self.pairs if term.size
-                 and not term.fresh(x, p[term.offset:term.offset + term.size])]
-        if not stale:
-            return None
-        p = np.array(p, dtype=float)
-        for term in stale:
-            p[term.offset:term.offset + term.size] = term.data(x)
-        return p
 
     @property
     def functions(self) -> dict[str, ca.Function]:
@@ -252,9 +172,7 @@ class Structure:
             inputs, in_names, outputs, out_names = self._parts[name]
             p = self._p
             free = not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs)
-            if self.pairs and name in _PAIR_OUTPUTS:  # an MX Function of the full p
-                self._fixed[name] = None
-                return None
+            free = free and not (self.pairs and name in _PAIR_OUTPUTS)  # (those: MX of the full p)
             self._fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names) if free else None
         return self._fixed[name]
 
@@ -262,16 +180,13 @@ class Structure:
         """Indices of the entries of p that the outputs of Function ``name`` depend on."""
         uses = self._used
         if name not in uses:
-            fun = self.function(name)
+            inputs, _, outputs, _ = self._parts[name]  # (the SX graph's; the pairs' below)
+            fun = ca.Function(name, [*inputs, self._p], outputs)
             last = fun.n_in() - 1
-            if self.pairs and name in _PAIR_OUTPUTS:  # the SX graph's entries, the pairs' all
-                rest = ca.Function(name, [*self._parts[name][0], self._p], self._parts[name][2])
-                fun, last = rest, rest.n_in() - 1
             used = {int(c) for i in range(fun.n_out()) if fun.nnz_out(i) and fun.nnz_in(last)
                     for c in fun.jac_sparsity(i, last, True).get_col()}  # sparsity only: O(nnz)
-            if self.pairs and name in _PAIR_OUTPUTS:  # (bound: every pair, no neighbour list)
-                if any(ca.depends_on(term.spec.phi, self._p) for term in self.pairs):
-                    used |= set(range(self.n_physical))
+            if self.pairs and name in _PAIR_OUTPUTS and self.pair_potentials.parametric:
+                used |= set(range(self.n_physical))  # (bound: every pair, no neighbour list)
             uses[name] = np.array(sorted(used), dtype=np.int64)
         return uses[name]
 
@@ -285,7 +200,7 @@ class Structure:
         key = (name, np.asarray(values, float)[self._uses(name)].tobytes())
         bound = self._bound.get(key)
         if bound is None:  # Models with equal values share the Function objects
-            fun = self._every_pair(name)
+            fun = self.function(name, lists=False)
             kind = ca.MX if fun.is_a("MXFunction") else ca.SX
             inputs = [kind.sym(fun.name_in(i), fun.sparsity_in(i)) for i in range(fun.n_in() - 1)]
             outputs = fun.call([*inputs, ca.DM(values)])
@@ -295,10 +210,6 @@ class Structure:
                 while len(self._bound) > BOUND_FUNCTIONS_KEPT:
                     self._bound.popitem(last=False)
         return bound
-
-
-#: The Functions that carry the pair potentials, and where: output index -> "force" or "energy".
-_PAIR_OUTPUTS = {"dynamics": {0: "force"}, "energy": {0: "energy"}, "potential": {0: "energy"}}
 
 
 def _entries_of(values: list, p: ca.SX) -> np.ndarray | None:
@@ -326,44 +237,6 @@ class Expressions:
     rows: list
     slots: dict
     terms: list
-
-
-def forces(slots: dict, x, v, t) -> tuple:
-    """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
-
-        F = −∂V/∂x − ∂U/∂x + d/dt ∂U/∂v − ∂R/∂v + Σ applied,   V = Σ potentials, U = Σ
-        generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
-        dissipations."""
-    active = set()
-    F = ca.SX.zeros(x.numel())
-    V = U = ca.SX(0)
-    dU_dv = ca.SX.zeros(x.numel())
-    if slots["potential"]:
-        active.add("potential")
-        V = sum(slots["potential"], ca.SX(0))
-        F -= ca.gradient(V, x)
-    if slots["generalized_potential"]:
-        active.add("generalized_potential")
-        U = sum(slots["generalized_potential"], ca.SX(0))
-        dU_dv = ca.gradient(U, v)
-        if ca.depends_on(dU_dv, v):
-            raise InputError(
-                "a generalized potential must be linear in the velocities "
-                "(U = U0(x, t) + v·W(x, t)); this one is not"
-            )
-        # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
-        F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
-    if slots["dissipation"]:
-        active.add("dissipation")
-        R = sum(slots["dissipation"], ca.SX(0))
-        F -= ca.gradient(R, v)
-    if slots["applied_force"]:
-        active.add("applied_force")
-        for term in slots["applied_force"]:
-            F += term
-    if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
-        active.add("time_dependent_forces")
-    return F, V, U, dU_dv, active
 
 
 class Model:
@@ -408,9 +281,9 @@ class Model:
         self.numbers = numbers
         #: The values of the parametric Functions' last input p: the parameters, then the
         #: numbers, then the pair potentials' neighbour lists at the system's positions
-        #: (``Structure.pair_data``: run data, refreshed by the runs that move far).
+        #: (``PairPotentials.data``: run data, refreshed by the runs that move far).
         self.parameter_vector = np.concatenate([self.parameter_values, numbers,
-                                                structure.pair_data(system.positions)])
+                                                structure.pair_potentials.data(system.positions)])
         self.n_particles = structure.n_particles
         self.n_coordinates = structure.n_coordinates
         self.masses = np.repeat(system.masses, 3)

@@ -4,15 +4,15 @@ from ..defaults import DEFAULT_METHOD
 from .base import Solution, Solver
 from .baumgarte import Baumgarte
 from .dopri import Dopri
-from .idas import GGL, Idas
-from .pantelides import Pantelides
 from .projection import Projection
 from .rattle import Rattle
 from .reduced import Reduced
+from .rodas import Rodas
+from .sundials import GGL, Idas, Pantelides
 
 METHODS: dict[str, type[Solver]] = {
-    cls.name: cls for cls in (Projection, Baumgarte, Dopri, Rattle, Idas, GGL, Pantelides, Reduced)
+    cls.name: cls for cls in (Projection, Baumgarte, Dopri, Rodas, Rattle, Idas, GGL, Pantelides, Reduced)
 }
 
 __all__ = ["DEFAULT_METHOD", "GGL", "METHODS", "Baumgarte", "Dopri", "Idas", "Pantelides", "Projection",
-           "Rattle", "Reduced", "Solution", "Solver"]
+           "Rattle", "Reduced", "Rodas", "Solution", "Solver"]

@@ -197,7 +197,8 @@ class Dopri(Stepper):
         S2 = ca.MX.sym("state", S.numel())
         done = S2[_slot(n, "t")] >= S2[_slot(n, "t_target")]
         if self.model.structure.pairs:  # a neighbour list gone stale: stop for ``step`` to refresh it
-            done = ca.logic_or(done, self.model.structure.pairs_stale(S2[:n], S2[3 * n + len(SCALARS):]))
+            stale = self.model.structure.pair_potentials.stale(S2[:n], S2[3 * n + len(SCALARS):])
+            done = ca.logic_or(done, stale)
         return ca.Function(f"{name}_step", [S2], [ca.if_else(done, S2, attempt(S2), True)])
 
     def _functions(self) -> dict[int, FastCall]:
@@ -294,7 +295,7 @@ class Dopri(Stepper):
         state = state.copy()
         state[TARGET] = t_stop
         if self.model.structure.pairs:  # neighbour lists rebuilt where particles moved far
-            p = self.model.structure.refreshed_pairs(state[3 * n + len(SCALARS):], state[:n])
+            p = self.model.structure.pair_potentials.refreshed(state[3 * n + len(SCALARS):], state[:n])
             if p is not None:
                 state[3 * n + len(SCALARS):] = p
         expected = (t_stop - state[T]) / max(state[H], 1e-300) + 1

@@ -37,7 +37,7 @@ is valid while no particle has moved more than skin/2 since it was built (the po
 then, ``x_ref``, are in the data): every pair closer than r_c now was closer than r_c + skin
 then. The graph checks that itself and takes the all-pairs branch when it does not hold (a
 short-circuit conditional), so a stale list costs time, never accuracy; runs refresh it
-(``PairTerm.fresh``, ``Structure.refreshed_pairs``).
+(``PairTerm.fresh``, ``PairPotentials.refreshed``).
 
 Excluded pairs (``exclude_bonded``: joined by a distance constraint) are subtracted after
 the sums, from a constant list (a few per particle).
@@ -51,21 +51,17 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-#: Particles per block: a tile is BLOCK² pairs written out once (64 pairs, ~1.7k operations);
-#: larger tiles amortize the map's call more but waste more pairs at a cutoff's edge.
-BLOCK = 8
+from . import neighbours
+from .neighbours import BLOCK
+
 #: Blocks a of the all-pairs sum per call of its outer map (whose shared inputs CasADi copies
 #: once per block: GROUP copies of the positions at a time).
 GROUP = 32
-#: Fewer pairs than this (about 25 particles) are written out pair by pair in the Structure's
-#: one SX graph (``Pairwise.term``): small enough that the SX graph is the faster.
-MAPPED_PAIRS_FROM = 300
 #: Capacities of a neighbour list: blocks (the particles' blocks at the first list, which
 #: do not fill every place) and neighbour slots per block, this factor times the count at
 #: the first list plus CAPACITY_EXTRA; a list that needs more is not used (all pairs are).
 CAPACITY_FACTOR = 1.5
 CAPACITY_EXTRA = 4
-MORTON_BITS = 10
 
 
 @dataclass(frozen=True)
@@ -165,7 +161,8 @@ class PairTerm:
         self.block_capacity = self.slot_capacity = 0
         if self.cutoff is not None:
             self.block_capacity = math.ceil(CAPACITY_FACTOR * self.n_blocks) + 1
-            order, slots = neighbour_data(self._listed(positions), self.reach, self.block_capacity, None)
+            _, slots = neighbours.neighbour_data(self._listed(positions), self.reach, self.block_capacity,
+                                                 None)
             self.slot_capacity = int(min(self.block_capacity, math.ceil(CAPACITY_FACTOR * slots.shape[0])
                                          + CAPACITY_EXTRA))
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
@@ -191,11 +188,12 @@ class PairTerm:
         if self.cutoff is None:
             return np.zeros(0)
         y = self._listed(x)
-        places, slots = neighbour_data(y, self.reach, self.block_capacity, self.slot_capacity)
+        places, slots = neighbours.neighbour_data(y, self.reach, self.block_capacity, self.slot_capacity)
         valid = places is not None and slots is not None
         ref = y.ravel() if valid else np.zeros(3 * self.n)
         if not valid:
-            places = np.concatenate([np.arange(self.n), np.full(self.block_capacity * BLOCK - self.n, self.n)])
+            places = np.concatenate([np.arange(self.n),
+                                     np.full(self.block_capacity * BLOCK - self.n, self.n)])
             slots = np.zeros((self.slot_capacity, self.block_capacity))
         places = np.asarray(places, dtype=float)
         where = np.empty(self.n)
@@ -262,7 +260,8 @@ class PairTerm:
         B, nb = BLOCK, self.n_blocks
         xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
         case = ca.if_else(b < a, 0, _case(a, b))
-        inner = ca.Function("pairs_inner", [xa, ma, a, xb, mb, b, t, p], self._tile(case, xa, xb, ma, mb, t, p))
+        inner = ca.Function("pairs_inner", [xa, ma, a, xb, mb, b, t, p],
+                            self._tile(case, xa, xb, ma, mb, t, p))
         inner = inner.map("pairs_row", "serial", nb, [0, 1, 2, 6, 7], [0, 1])
         XB, MB, IB = ca.MX.sym("XB", 3 * B, nb), ca.MX.sym("MB", B, nb), ca.MX.sym("IB", 1, nb)
         outer = ca.Function("pairs_outer", [xa, ma, a, XB, MB, IB, t, p], inner(xa, ma, a, XB, MB, IB, t, p))
@@ -274,7 +273,8 @@ class PairTerm:
             k = min(GROUP, nb - start)
             part = slice(start, start + k)
             group = outer.map(f"pairs_group_{k}", "serial", k, [3, 4, 5, 6, 7], [0, 2])
-            Vg, FAg, FBg = group(Xb[:, part], self._mask[:, part], index[:, part], Xb, self._mask, index, T, Pp)
+            Vg, FAg, FBg = group(Xb[:, part], self._mask[:, part], index[:, part], Xb, self._mask, index,
+                                 T, Pp)
             V, FB = V + Vg, FB + FBg
             FA.append(FAg)
         return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
@@ -296,7 +296,8 @@ class PairTerm:
         xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
         slot = ca.MX.sym("slot")
         case = ca.if_else(slot == 0, 0, _case(a, slot - 1))
-        inner = ca.Function("pairs_slot", [xa, ma, a, xb, mb, slot, t, p], self._tile(case, xa, xb, ma, mb, t, p))
+        inner = ca.Function("pairs_slot", [xa, ma, a, xb, mb, slot, t, p],
+                            self._tile(case, xa, xb, ma, mb, t, p))
         inner = inner.map("pairs_slots", "serial", K, [0, 1, 2, 6, 7], [0, 1])
         XK, MK, SK = ca.MX.sym("XK", 3 * B, K), ca.MX.sym("MK", B, K), ca.MX.sym("SK", 1, K)
         outer = ca.Function("pairs_block", [xa, ma, a, XK, MK, SK, t, p], inner(xa, ma, a, XK, MK, SK, t, p))
@@ -322,94 +323,3 @@ class PairTerm:
         signs = np.concatenate([np.ones(3 * E), -np.ones(3 * E)])
         scatter = ca.DM.triplet(rows.tolist(), cols.tolist(), ca.DM(signs), 3 * self.n, 3 * E)
         return v, ca.mtimes(scatter, ca.vec(f))
-
-
-# --- neighbour lists (NumPy and SciPy, outside the graph) -------------------------------------
-def morton_codes(y: np.ndarray) -> np.ndarray:
-    """Morton (Z-order) codes of the points y (n, 3) on a 2^MORTON_BITS grid over their box."""
-    lo, extent = y.min(axis=0), np.ptp(y, axis=0)
-    top = 2 ** MORTON_BITS - 1e-3
-    cells = np.floor((y - lo) / np.where(extent > 0, extent, 1.0) * top).astype(np.uint64)
-    code = np.zeros(len(y), dtype=np.uint64)
-    for bit in range(MORTON_BITS):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return code
-
-
-def blocks(y: np.ndarray, capacity: int) -> np.ndarray:
-    """The places of the points y (n, 3) in blocks of BLOCK: (blocks·BLOCK,) point indices, n
-    for an empty place. Points go along the Morton curve; a block never holds points of two
-    cells of its grid at the finest level whose blocks fit in ``capacity`` (compact blocks)."""
-    n = len(y)
-    if n == 0:
-        return np.zeros(0)
-    code = morton_codes(y)
-    order = np.argsort(code, kind="stable")
-    code = code[order]
-    best = None
-    for level in range(MORTON_BITS + 1):
-        cell = code >> np.uint64(3 * (MORTON_BITS - level))
-        starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
-        occupancy = np.diff(np.r_[starts, n])
-        if int(np.sum(-(-occupancy // BLOCK))) > capacity:
-            break
-        best = starts, occupancy
-    starts, occupancy = best
-    first_place = BLOCK * np.concatenate([[0], np.cumsum(-(-occupancy // BLOCK))[:-1]])
-    places = np.full(capacity * BLOCK, n, dtype=float)
-    within = np.arange(n) - np.repeat(starts, occupancy)
-    places[np.repeat(first_place, occupancy) + within] = order
-    used = -(-int(first_place[-1] + occupancy[-1]) // BLOCK) * BLOCK
-    return places[:max(used, BLOCK)]
-
-
-def _block_pairs(lo: np.ndarray, hi: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (a, b), a < b, of boxes whose gap is at most ``reach`` (cKDTree on the centres)."""
-    n_blocks = len(lo)
-    centre, radius = (lo + hi) / 2, np.linalg.norm(hi - lo, axis=1) / 2
-    if n_blocks <= 64:
-        a, b = np.triu_indices(n_blocks, 1)
-    else:
-        from scipy.spatial import cKDTree
-
-        candidates = cKDTree(centre).query_pairs(reach + 2 * radius.max(), output_type="ndarray")
-        a, b = (candidates[:, 0], candidates[:, 1]) if len(candidates) else (np.zeros(0, int),) * 2
-    gap = np.maximum(0.0, np.maximum(lo[b] - hi[a], lo[a] - hi[b]))
-    near = np.einsum("ij,ij->i", gap, gap) <= reach * reach
-    return a[near], b[near]
-
-
-def neighbour_data(y: np.ndarray, reach: float, block_capacity: int, slot_capacity: int | None):
-    """(places, slots) of the points y (n, 3): their places in blocks (``blocks``, padded to
-    ``block_capacity`` blocks), and for each block the blocks whose bounding boxes come within
-    ``reach`` of its own, itself first, each pair of blocks held by one of the two (the lower
-    when a + b is even, else the higher), as a (slot_capacity, block_capacity) array of
-    block + 1 (0: an empty slot). ``slot_capacity`` None: as many slots as the fullest block
-    needs. (None, None) when the blocks do not fit; (places, None) when the slots do not."""
-    n = len(y)
-    places = blocks(y, block_capacity)
-    n_blocks = len(places) // BLOCK
-    full = places.reshape(n_blocks, BLOCK)
-    real = full < n
-    points = y[np.where(real, full, 0).astype(np.int64)]
-    big = np.finfo(float).max
-    lo = np.where(real[..., None], points, big).min(axis=1)
-    hi = np.where(real[..., None], points, -big).max(axis=1)
-    a, b = _block_pairs(lo, hi, reach)
-    owner = np.where((a + b) % 2 == 0, a, b)
-    other = np.where(owner == a, b, a)
-    owner = np.concatenate([np.arange(n_blocks), owner])
-    other = np.concatenate([np.arange(n_blocks), other])
-    rank = np.argsort(owner, kind="stable")
-    owner, other = owner[rank], other[rank]
-    counts = np.bincount(owner, minlength=n_blocks)
-    capacity = int(counts.max()) if slot_capacity is None else slot_capacity
-    padded = np.full(block_capacity * BLOCK, float(n))
-    padded[:len(places)] = places
-    if counts.max() > capacity:
-        return padded, None
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    slots = np.zeros((capacity, block_capacity))
-    slots[np.arange(len(owner)) - starts[owner], owner] = other + 1
-    return padded, slots

@@ -21,10 +21,10 @@ import time
 import casadi as ca
 import numpy as np
 
-from .. import interrupt
-from ..errors import InputError
-from .base import DRIVER_OPTIONS, Advance, Status
-from .driver import Stepper
+from ... import interrupt
+from ...errors import InputError
+from ..base import DRIVER_OPTIONS, Advance, Status
+from ..driver import Stepper
 from .idas import CallSize
 
 #: Output times of pantelides' first IDAS call (see idas.CallSize).

@@ -25,12 +25,12 @@ from collections import OrderedDict
 import casadi as ca
 import numpy as np
 
-from .. import interrupt
-from ..errors import InputError
-from ..manifold import residual
-from ..model.cache import ParametricView, structure_cache
-from .base import DRIVER_OPTIONS, Advance, Status
-from .driver import Stepper
+from ... import interrupt
+from ...errors import InputError
+from ...manifold import residual
+from ...model.cache import ParametricView, structure_cache
+from ..base import DRIVER_OPTIONS, Advance, Status
+from ..driver import Stepper
 
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
