@@ -339,7 +339,8 @@ class Dopri(Stepper):
 
     def stiffness_advice(self) -> tuple[str, str]:
         return (f"dopri's explicit {self.tableau.name}",
-                'use method = "projection" with base = "Radau" or base = "CVODES_BDF"')
+                'use method = "rodas" (linearly implicit, steps set by accuracy), or method = "projection" '
+                'with base = "Radau" or base = "CVODES_BDF"')
 
     def finish(self) -> None:
         accepted, rejected = self.stats["steps"], self.stats.get("rejected", 0)
