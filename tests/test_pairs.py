@@ -307,3 +307,19 @@ def test_two_particles_on_one_spot_are_refused_at_the_start(tmp_path):
     path.write_text("\n".join(lines))
     with pytest.raises(InputError, match=r"effects\[0\].*undefined at the initial state"):
         C.load_scene(path)
+
+
+def test_the_energy_along_a_run_uses_each_samples_list():
+    """quantities.energy_along with a cutoff: sample by sample through each sample's neighbour
+    list, the same numbers as the bound Model's every-pair sum."""
+    from constrained.run.quantities import energy_along
+
+    system = gas(70, cutoff=1.5, skin=0.15)
+    model = assemble(system, reuse=False)
+    rng = np.random.default_rng(2)
+    x0 = np.asarray(system.positions).ravel()
+    X = np.array([x0 + rng.normal(0, s, x0.size) for s in (0.0, 0.1, 0.3, 0.6)])
+    V = rng.normal(size=X.shape)
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    every = model.evaluate(model.energy, X, V, t)[0].ravel()
+    np.testing.assert_allclose(energy_along(model, X, V, t), every, rtol=1e-12)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from ..codegen.fast_call import FastCall
 from ..manifold import residual
 from ..manifold.algebra import algebra_for
 from ..manifold.manifold import RANK, RankPolicy, acceleration_function, redundant_rows
@@ -45,7 +46,7 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
         if "constraint_forces" in wanted:
             traj.constraint_forces = constraint_forces_along(model, X, t, lam)
     if "energy" in wanted:
-        traj.energy = model.evaluate(model.energy, X, V, t)[0].ravel()
+        traj.energy = energy_along(model, X.reshape(n, -1), V.reshape(n, -1), t)
     if "constraint_residual" in wanted:  # in metres, whatever the scale of the formulas
         traj.constraint_residual = residual.position_residual_along(model, X, t)
     if "velocity_residual" in wanted:  # in m/s
@@ -63,6 +64,23 @@ def _blocks(n: int, per_sample: int):
     size = max(1, BLOCK_FLOATS // max(per_sample, 1))
     for start in range(0, n, size):
         yield slice(start, min(n, start + size))
+
+
+def energy_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The energy at each sample (T,): the Model's Function mapped over the samples; with pair
+    potentials that keep neighbour lists (a cutoff), sample by sample through the parametric
+    Function with each sample's list (rebuilt where the particles have moved: O(N) a sample
+    where the bound Function, which holds no list, would sum every pair)."""
+    potentials = getattr(model.structure, "pair_potentials", None)
+    if potentials is None or not any(term.size for term in potentials.terms):
+        return model.evaluate(model.energy, X, V, t)[0].ravel()
+    energy = built_once(model.structure, "energy with lists", lambda: FastCall(model.parametric("energy")))
+    p, out = model.parameter_vector, np.empty(len(t))
+    for k in range(len(t)):
+        fresh = potentials.refreshed(p, X[k])
+        p = p if fresh is None else fresh
+        out[k] = energy(X[k], V[k], float(t[k]), p)[0][0]
+    return out
 
 
 def _checked_multipliers(model: Model) -> ca.Function:
