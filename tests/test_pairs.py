@@ -323,3 +323,14 @@ def test_the_energy_along_a_run_uses_each_samples_list():
     t = np.array([0.0, 0.1, 0.2, 0.3])
     every = model.evaluate(model.energy, X, V, t)[0].ravel()
     np.testing.assert_allclose(energy_along(model, X, V, t), every, rtol=1e-12)
+
+
+def test_an_ensemble_runs_a_gas_with_a_cutoff():
+    """simulate_many over values of the pair formula's parameter: each variant carries its own
+    neighbour list in p (the every-pair sum where it goes stale) and equals its own run."""
+    system = gas(30, cutoff=1.6)
+    ens = C.simulate_many(system, 0.5, {"eps": [0.5, 1.0]}, rtol=1e-9, atol=1e-11)
+    assert all(status == "completed" for status in ens.status)
+    one = C.simulate(system, 0.5, parameters={"eps": 1.0}, rtol=1e-9, atol=1e-11, outputs=set(),
+                     t_eval=[0.0, 0.5])
+    np.testing.assert_allclose(ens.x[1, -1], one.x[-1], atol=1e-8)

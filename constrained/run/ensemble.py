@@ -124,7 +124,8 @@ def _start_function(model: Model, system) -> ca.Function:
                                       if isinstance(entry, str) else ca.SX(float(entry)))
         x0 = ca.vertcat(*parts["position"]) if parts["position"] else ca.SX(0, 1)
         v0 = ca.vertcat(*parts["velocity"]) if parts["velocity"] else ca.SX(0, 1)
-        numbers = ca.SX.sym("number", model.structure.n_numbers)  # the rest of p: unused here
+        # the rest of p (plain numbers, pair potentials' neighbour lists): unused here
+        numbers = ca.SX.sym("number", len(model.parameter_vector) - p.numel())
         return ca.Function("start", [ca.vertcat(p, numbers)], [x0, v0])
 
     cache, prefix = structure_cache(model)
@@ -211,7 +212,7 @@ def _mapped_chunk(dopri: Dopri, block: int, threads: int) -> tuple[FastCall, str
     cache, prefix = structure_cache(dopri.model)
     key = (*prefix, "ensemble fold", dopri.tableau.name, dopri.compiled, dopri.manifold.rows)
     if key not in cache:
-        folded = dopri._step_function().fold(CHUNK)
+        folded = dopri._step_function(stale_stops=False).fold(CHUNK)  # (no list refresh per column)
         evaluation = "virtual machine"
         if dopri.compiled:
             machine = compiled_evaluation.compile_function(folded)

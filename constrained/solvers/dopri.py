@@ -116,9 +116,11 @@ class Dopri(Stepper):
     def _state_size(self) -> int:
         return 3 * self.model.n_coordinates + len(SCALARS) + len(self.model.parameter_vector)
 
-    def _step_function(self) -> ca.Function:
+    def _step_function(self, stale_stops: bool = True) -> ca.Function:
         """One attempted step on the state [x, v, a, *SCALARS, *p]: the parameters are part of
-        the state (carried along unchanged), so one step loop serves every parameter value."""
+        the state (carried along unchanged), so one step loop serves every parameter value.
+        ``stale_stops``: an attempt is skipped where a pair potential's neighbour list in p has
+        gone stale, for ``step`` to refresh it (else the step sums every pair there: exact)."""
         tab = self.tableau
         n = self.model.n_coordinates
         S = ca.MX.sym("state", self._state_size())
@@ -196,7 +198,7 @@ class Dopri(Stepper):
         # at the output time the attempt is skipped (short-circuit), so no-ops in a chain are free
         S2 = ca.MX.sym("state", S.numel())
         done = S2[_slot(n, "t")] >= S2[_slot(n, "t_target")]
-        if self.model.structure.pairs:  # a neighbour list gone stale: stop for ``step`` to refresh it
+        if stale_stops and self.model.structure.pairs:  # a stale neighbour list: stop, ``step`` refreshes it
             stale = self.model.structure.pair_potentials.stale(S2[:n], S2[3 * n + len(SCALARS):])
             done = ca.logic_or(done, stale)
         return ca.Function(f"{name}_step", [S2], [ca.if_else(done, S2, attempt(S2), True)])
