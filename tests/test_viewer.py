@@ -26,7 +26,7 @@ import pytest
 
 import constrained as C
 from constrained.cli.main import main
-from constrained.output import viewer
+from constrained.output import shapes, viewer
 from constrained.run.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -212,7 +212,7 @@ def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
     # the growing cylinder: a cloud per key time, on the cylinder of that time
     keys = np.array(cylinder["keys"])
     cloud = _f32(cylinder["moving"]).reshape(len(keys), cylinder["count"], 3)
-    assert 2 < len(keys) <= viewer.CLOUD_KEYS
+    assert 2 < len(keys) <= shapes.CLOUD_KEYS
     for k, frame in enumerate(keys):
         p = cloud[k][np.isfinite(cloud[k, :, 0])]
         assert len(p) > 10
