@@ -300,7 +300,8 @@ def test_animation_says_its_speed_and_plays_in_real_time_when_it_can():
     fast = pendulum()
     fast.t = fast.t / 10  # 0.6 s in 300 steps of 2 ms: 120 frames of 20 ms are longer than that
     fig, draw, n = animation_parts(fast, None, True, 120)
-    assert [t.get_text() for t in fig.texts] == [f"GIF plays at {0.6 / (0.02 * (n - 1)):.3g}× real time (slowed)"]
+    speed = 0.6 / (0.02 * (n - 1))
+    assert [t.get_text() for t in fig.texts] == [f"GIF plays at {speed:.3g}× real time (slowed)"]
 
 
 def test_force_arrows_are_scaled_per_frame_and_drawn_above_the_particles():
