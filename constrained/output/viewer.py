@@ -175,6 +175,68 @@ def view_basis(x: np.ndarray, up=None) -> tuple[np.ndarray, list[str], bool]:
     return basis, names, planar
 
 
+def _nice(x: float) -> float:
+    """1, 2 or 5 times a power of ten, near ``x`` from below."""
+    e = 10.0 ** math.floor(math.log10(x))
+    m = x / e
+    return (5.0 if m >= 5 else 2.0 if m >= 2 else 1.0) * e
+
+
+def floor_grid(x: np.ndarray, basis: np.ndarray, planar: bool, up=None) -> dict:
+    """The picture's grid and axes, in world coordinates (the page projects them like the rest).
+
+    Planar motion: graph paper in the plane of the motion (``basis`` rows 0 and 1). 3-D
+    motion: a floor, the level plane (perpendicular to ``up``, default +z) at the lowest point
+    of the motion. Lines every ``step`` metres (1, 2 or 5 × 10^k, about six across) over the
+    motion's extent, rounded out to whole steps; ``axes``: the grid's lines through the origin, named
+    after the coordinate they measure; ``ticks``: the coordinate values along two edges.
+    """
+    p = x.reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    p = p[:: max(1, len(p) // 20000)] if len(p) else np.zeros((1, 3))
+    if planar:
+        e1, e2, normal = basis[0], basis[1], basis[2]
+        level = float(np.median(p @ normal))
+    else:
+        normal = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float) / np.linalg.norm(up)
+        k = int(np.argmax(np.abs(normal)))
+        if abs(normal[k]) > 1 - 1e-9:  # level with two coordinate axes
+            e1, e2 = np.eye(3)[(k + 1) % 3], np.eye(3)[(k + 2) % 3]
+        else:
+            e1 = np.cross(normal, basis[2])
+            e1 = e1 / np.linalg.norm(e1) if np.linalg.norm(e1) > 1e-9 else basis[0]
+            e2 = np.cross(normal, e1)
+        level = float(np.min(p @ normal))
+    a, b = p @ e1, p @ e2
+    size = max(float(np.ptp(a)), float(np.ptp(b)), float(np.ptp(p @ normal)), 1e-3)
+    step = _nice(size / 5)
+    lo_a, hi_a = math.floor(a.min() / step - 1e-9), math.ceil(a.max() / step + 1e-9)
+    lo_b, hi_b = math.floor(b.min() / step - 1e-9), math.ceil(b.max() / step + 1e-9)
+
+    def at(u, v):
+        return [round(float(c), 9) for c in u * e1 + v * e2 + level * normal]
+
+    def name(e):  # the coordinate a direction measures, and its sign
+        j = int(np.argmax(np.abs(e)))
+        return ("xyz"[j], float(np.sign(e[j]))) if abs(e[j]) > 1 - 1e-9 else (None, 1.0)
+
+    (n1, s1), (n2, s2) = name(e1), name(e2)
+    us, vs = np.arange(lo_a, hi_a + 1) * step, np.arange(lo_b, hi_b + 1) * step
+    lines = [[at(u, vs[0]), at(u, vs[-1])] for u in us] + [[at(us[0], v), at(us[-1], v)] for v in vs]
+    axes = []
+    if us[0] < 0 < us[-1] and n2:
+        axes.append([at(0.0, vs[0]), at(0.0, vs[-1]), n2 if s2 > 0 else f"−{n2}"])
+    if vs[0] < 0 < vs[-1] and n1:
+        axes.append([at(us[0], 0.0), at(us[-1], 0.0), n1 if s1 > 0 else f"−{n1}"])
+    every = max(1, len(us) // 6)
+    ticks = [[at(u, vs[0] - 0.35 * step), f"{s1 * u + 0.0:.6g}"] for u in us[::every]]
+    ticks += [[at(us[0] - 0.35 * step, v), f"{s2 * v + 0.0:.6g}"] for v in vs[1::max(1, len(vs) // 6)]]
+    names = [[at(us[-1] + 0.5 * step, vs[0]), f"{n1 or 'u'} [m]"],
+             [at(us[0], vs[-1] + 0.5 * step), f"{n2 or 'v'} [m]"]]
+    return {"lines": lines, "axes": axes, "ticks": ticks, "names": names, "step": step,
+            "normal": [float(c) for c in normal]}
+
+
 def up_direction(system) -> np.ndarray | None:
     """Against the scene's uniform gravity, when it has one with constant numbers."""
     for e in getattr(system, "effects", ()):
@@ -217,7 +279,8 @@ def page_data(traj: Trajectory, *, system=None, title: str = "",
     names = names if len(names) == n else [f"particle {i}" for i in range(n)]
     idx = frame_indices(t, n, point_frames)
     times, xf = t[idx], np.asarray(x[idx], dtype=float)
-    basis, axes, planar = view_basis(xf, up_direction(system) if system is not None else None)
+    up = up_direction(system) if system is not None else None
+    basis, axes, planar = view_basis(xf, up)
     with warnings.catch_warnings():  # an axis that is NaN throughout: drawn nowhere
         warnings.simplefilter("ignore", RuntimeWarning)
         lo, hi = np.nanmin(xf, axis=(0, 1)), np.nanmax(xf, axis=(0, 1))
@@ -228,15 +291,11 @@ def page_data(traj: Trajectory, *, system=None, title: str = "",
         "t": _f32(times), "t0": float(t[0]), "t1": float(t[-1]),
         "x": {"lo": lo.tolist(), "step": step.tolist(), "q": _quantize(xf, lo, step)},
         "view": {"basis": basis.tolist(), "axes": axes, "planar": planar},
+        "grid": floor_grid(xf, basis, planar, up),
         "series": {},
     }
     if traj.constraint_forces is not None:
-        f = np.asarray(np.asarray(traj.constraint_forces)[idx], dtype=float)
-        big = float(np.nanmax(np.abs(f))) if np.isfinite(f).any() else 0.0
-        if big > 0 and np.isfinite(big):
-            fstep = big / 32767.0
-            data["forces"] = {"lo": [-big] * 3, "step": [fstep] * 3, "q": _quantize(f, -big, fstep),
-                              "max": float(np.nanmax(np.linalg.norm(f, axis=-1)))}
+        data.update(_forces(np.asarray(np.asarray(traj.constraint_forces)[idx], dtype=float)))
     for name in ("energy", "constraint_residual"):
         y = getattr(traj, name)
         if y is not None and len(y) == len(t):
@@ -263,8 +322,26 @@ def page_data(traj: Trajectory, *, system=None, title: str = "",
                           for e in events[:MAX_EVENTS]]
         data["events_total"] = len(events)
     if system is not None:
-        data["constraints"] = shapes(system, names, times, xf)
+        data["constraints"] = _encoded(shapes(system, names, times, xf))
     return data
+
+
+def _forces(f: np.ndarray) -> dict:
+    """The constraint forces of the frames (F, N, 3), quantized per frame: int16 codes of
+    f / (frame's largest component) and that scale, so that a frame of small forces keeps its
+    digits beside a run's one large force; ``norm``: each frame's largest |F| (the page scales
+    the arrows of a frame by it). Empty when there are none."""
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a frame that is NaN throughout
+        frame = np.nan_to_num(np.nanmax(np.abs(f), axis=(1, 2)), nan=0.0, posinf=0.0)
+        norm = np.nan_to_num(np.nanmax(np.linalg.norm(f, axis=-1), axis=1), nan=0.0, posinf=0.0)
+    if not np.any(frame > 0):
+        return {}
+    unit = np.where(frame > 0, frame, 1.0) / 32767.0  # newtons per code, per frame
+    codes = np.round(f / unit[:, None, None])
+    codes = np.where(np.isfinite(codes), np.clip(codes, -32767, 32767), -32768)
+    return {"forces": {"unit": _f32(unit), "q": _b64(codes, np.int16), "norm": _f32(norm),
+                       "max": float(norm.max())}}
 
 
 def viewer_page(traj: Trajectory, *, system=None, title: str = "",
@@ -290,9 +367,16 @@ def _finite(value):
     return value
 
 
+def _encoded(value):
+    """The arrays of what moves with t (shapes.py) as base64 float32, the rest as it is."""
+    if isinstance(value, dict):
+        return {k: _encoded(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_encoded(v) for v in value]
+    return _f32(value) if isinstance(value, np.ndarray) else value
+
+
 def _plain(value):
-    if isinstance(value, np.ndarray):  # what moves with t (shapes.py): base64 float32
-        return _f32(value)
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"not JSON: {type(value).__name__}")
