@@ -329,7 +329,7 @@ def test_floor_grid_lies_under_the_motion_and_names_its_axes():
     assert sorted(a[2] for a in grid["axes"]) == ["x", "z"]
     assert {n[1] for n in grid["names"]} == {"x [m]", "z [m]"}
     for point, text in grid["ticks"]:  # each number is the coordinate (x or z) where it stands
-        assert float(text) == pytest.approx(point[0], abs=1e-9) or float(text) == pytest.approx(point[2], abs=1e-9)
+        assert np.isclose(float(text), point[0], atol=1e-9) or np.isclose(float(text), point[2], atol=1e-9)
     # planar, in the vertical plane z = 0.5: graph paper in that plane
     circle = np.stack([np.cos(s), np.sin(s), np.full_like(s, 0.5)], axis=1)[:, None, :]
     basis, _, planar = viewer.view_basis(circle)
