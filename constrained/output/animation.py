@@ -254,11 +254,18 @@ def _draw_clouds(ax, system, names, times, x, plane, project, dim, size):
     """The curves and surfaces the scene's constraints hold particles on (output/shapes.py: points
     on them near the motion), as small dots; in a planar picture only the points in its plane
     (where a surface meets it). Returns the moving ones (redrawn each frame) and every artist."""
-    from .shapes import shapes
+    from ..model.constraints import Curve, Surface
+    from .shapes import Shapes
 
     moving, artists = [], []
+    wanted = [c for c in system.constraints if isinstance(c, Curve | Surface)]
+    if not wanted:  # (a big chain of rods: nothing to evaluate)
+        return moving, artists
+    found = Shapes(system, names, times, x)
+    for c in wanted:
+        found.add(c)
     seen = 0
-    for item in shapes(system, names, times, x):
+    for item in found.items:
         if item.get("kind") not in ("curve", "surface") or "same_as" in item:
             continue
         style = dict(ls="none", marker=".", ms=2.5 if item["kind"] == "curve" else 1.5,
