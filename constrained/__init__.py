@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 
+from . import notebook
 from ._version import __version__
 
 #: public name -> the submodule defining it
@@ -58,10 +59,35 @@ def __dir__():
 
 
 def load_scene(path, overrides=None):
-    """Load a TOML scene: a Scene with ``.system``, ``.settings``, ``.outputs`` (and ``.run()``)."""
+    """Load a TOML scene: a Scene with ``.system``, ``.settings``, ``.outputs`` (and ``.run()``).
+
+    ``overrides`` are ``"KEY=VALUE"`` strings as the command line's ``--set``. A scene that
+    cannot be used raises an InputError naming the file, the key and what is wrong. Example::
+
+        import constrained as C
+
+        scene = C.load_scene("scenarios/double_pendulum.toml", ["simulate.t_end=2"])
+        run = scene.run()                  # the scene's own [simulate] settings
+        print(run.ok, run.report())        # its [expect] checks
+        traj = run.trajectory              # t, x, v, multipliers, constraint forces, energy ...
+        print(traj.success, traj["x"].shape)
+        df = traj.to_pandas()              # columns x_p1, y_p1, ..., lambda[...] (needs pandas)
+
+    The same scene without a file: ``C.System`` (see ``help(C.System)``).
+    """
     from .scene.load import load_scene as _load
 
     return _load(path, overrides)
+
+
+def _inline_viewer(trajectory, *, system=None, title: str = "") -> str:
+    """The interactive viewer of a trajectory inside a notebook cell (constrained.output.viewer)."""
+    from .output.viewer import inline_viewer
+
+    return inline_viewer(trajectory, system=system, title=title)
+
+
+notebook.register("viewer", _inline_viewer)
 
 
 __all__ = [

@@ -109,14 +109,15 @@ def build_parser() -> argparse.ArgumentParser:
           "statics scenarios/lever.toml --out out/lever", out=OUT, quiet=True)
     bench = _verb(
         verbs, "bench", "work-precision table and figure: error and drift against wall time per method",
-        "Simulate SCENE with each method at each tolerance; write DIR/bench.csv "
-        "(method, rtol, dt, error, constraint_residual, velocity_residual, energy_drift, "
-        "wall_time_s, steps, nfev, status), DIR/bench.md and DIR/bench.png.",
+        "Simulate SCENE with each method at each tolerance, once to warm up, then timed; write "
+        "DIR/bench.csv (method, rtol, dt, error, constraint_residual, velocity_residual, energy_drift, "
+        "wall_time_s, compile_time_s (the first run's one-time cost, not in wall_time_s), steps, nfev, "
+        "status), DIR/bench.md and DIR/bench.png.",
         "bench scenarios/double_pendulum.toml --set simulate.t_end=2 "
         "--methods projection,rattle --tolerances 1e-8,1e-10", out=OUT, quiet=True)
     bench.add_argument("--methods", help="comma-separated methods (default: all)")
     bench.add_argument("--tolerances", help="comma-separated rtol values (default: 1e-6,1e-8,1e-10,1e-12)")
-    bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row (median)")
+    bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row, after a warm-up")
     derive = _verb(
         verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
         "Without options print T, V, L, the momenta and Lagrange's equations of "
@@ -193,7 +194,7 @@ def _add_sweep(verbs) -> None:
         "sweep scenarios/kapitza_sweep.toml --vary 'parameters.a=lin(0.002, 0.02, 12)' "
         "--vary 'parameters.nu=lin(20, 240, 12)' \\\n    --summary 'min:up=y_bob - a*cos(nu*t)' "
         "--boundary 'a**2*nu**2 - 2*g*l' --out out/kapitza",
-        out="output directory (default: out/<scene file stem>_sweep)", quiet=True)
+        out="output directory (default: out/<scene file stem>_sweep, the word not doubled)", quiet=True)
     sw.add_argument("--vary", action="append", default=[], metavar="KEY=SPEC",
                     help="a scene key (--set syntax) and its values (repeatable: a grid)")
     sw.add_argument("--design", metavar="FILE",
@@ -214,7 +215,8 @@ def _add_sweep(verbs) -> None:
                     help="a summary column: a formula in t, x_P, vx_P, ..., parameters, at t_end or "
                     "reduced over the run with max:, min:, max_abs:, mean: (repeatable)")
     sw.add_argument("--trajectories", action="store_true", help="also write DIR/runs/<id>.npz")
-    sw.add_argument("--plot", metavar="COLUMN", help="the column the figure shows")
+    sw.add_argument("--plot", metavar="COLUMN", help="the column the figure shows (default: the first "
+                    "--summary, else the position coordinate that varies most across the runs)")
     sw.add_argument("--boundary", metavar="FORMULA",
                     help="2-D map: draw the zero contour of a formula in the varied keys' last names "
                     "and the parameters, e.g. 'a**2*nu**2 - 2*g*l'")
