@@ -15,11 +15,10 @@ variation and leaves, with ``r(y, ẏ)`` the right-hand side above at the fixed 
     q̈ + (G + D) q̇ + K q = 0,   K = −Tᵀ (∂r/∂y) T,   G + D = −Tᵀ (∂r/∂ẏ) T   (M = I),
 
 both Jacobians by CasADi AD (constrained.modes solves it). ``K`` holds the stiffness of the
-forces and the constraints' curvature weighted by the multipliers (``−Σ λ_k ∇²f_k``: a
-hanging chain's tension), and in a frame the centrifugal softening; ``D`` (symmetric part) the Rayleigh damping; ``G`` (skew part)
-the gyroscopic terms: Coriolis ``2 Tᵀ M [Ω]× T``, magnetic forces. The modes are the roots
-``s`` of ``det(s² I + s (G + D) + K) = 0``: frequency ``|Im s|``, natural frequency ``|s|``,
-damping ratio ``−Re s / |s|``; shapes are particle displacements ``δx = T q̂``.
+forces, the constraints' curvature weighted by the multipliers (``−Σ λ_k ∇²f_k``: a hanging
+chain's tension) and, in a frame, the centrifugal softening; ``D`` (the symmetric part of the
+velocity term) the Rayleigh damping; ``G`` (its skew part) the gyroscopic terms: Coriolis
+``2 Tᵀ M [Ω]× T``, magnetic forces.
 
 The reduced route cross-checks it (``Modes.cross_check``): ``M(q) q̈ = rhs(q, q̇, t)``
 linearized at the same state (``M0 δq̈ = rhs_q δq + rhs_q̇ δq̇``) has the same roots ``s``.
