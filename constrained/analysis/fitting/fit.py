@@ -83,10 +83,12 @@ class FitResult:
 
     def table(self) -> str:
         lines = [f"{'parameter':<14} {'estimate':>14} {'std. error':>12} {'start':>12}"]
-        for name, est, se, s0 in zip(self.names, self.estimates, self.standard_errors, self.start, strict=True):
+        rows = zip(self.names, self.estimates, self.standard_errors, self.start, strict=True)
+        for name, est, se, s0 in rows:
             lines.append(f"{name:<14} {est:>14.8g} {se:>12.3g} {s0:>12.6g}")
         fit = "σ given: χ²" if self.sigma_given else "no σ given: residual sum of squares"
-        lines.append(f"{fit} = {self.chi2:.6g} over {self.dof} degrees of freedom (reduced {self.reduced_chi2:.4g}); "
+        lines.append(f"{fit} = {self.chi2:.6g} over {self.dof} degrees of freedom "
+                     f"(reduced {self.reduced_chi2:.4g}); "
                      f"{'converged' if self.success else 'NOT converged'}: {self.message} "
                      f"({self.nfev} runs, {self.njev} Jacobians)")
         for name, rms in zip(self.outputs, self.rms, strict=True):
@@ -102,7 +104,8 @@ class FitResult:
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
-        return {"parameters": [{"name": n, "estimate": float(e), "standard_error": _finite(s), "start": float(s0)}
+        return {"parameters": [{"name": n, "estimate": float(e), "standard_error": _finite(s),
+                                "start": float(s0)}
                                for n, e, s, s0 in zip(self.names, self.estimates, self.standard_errors,
                                                       self.start, strict=True)],
                 "covariance": [[_finite(c) for c in row] for row in self.covariance],
@@ -130,7 +133,8 @@ def _bounds(names, bounds: Mapping | None) -> tuple[np.ndarray, np.ndarray]:
             raise InputError(f"the bounds of '{key}' must be two numbers (low, high), got {pair!r}",
                              where="bounds") from None
         if not a < b:
-            raise InputError(f"the bounds of '{key}' must have low < high, got ({a:g}, {b:g})", where="bounds")
+            raise InputError(f"the bounds of '{key}' must have low < high, got ({a:g}, {b:g})",
+                             where="bounds")
         lo[names.index(key)], hi[names.index(key)] = a, b
     return lo, hi
 
@@ -138,7 +142,8 @@ def _bounds(names, bounds: Mapping | None) -> tuple[np.ndarray, np.ndarray]:
 def _weights(data: Measurements, sigma: float | None) -> tuple[np.ndarray, bool]:
     measured = np.isfinite(data.values)
     if sigma is not None:
-        if isinstance(sigma, bool) or not isinstance(sigma, int | float) or not (math.isfinite(sigma) and sigma > 0):
+        number = isinstance(sigma, int | float) and not isinstance(sigma, bool)
+        if not (number and math.isfinite(sigma) and sigma > 0):
             raise InputError(f"sigma must be a positive number, got {sigma!r}", where="sigma")
         s = np.full(data.values.shape, float(sigma)) if data.sigma is None else \
             np.where(np.isfinite(data.sigma), data.sigma, float(sigma))
@@ -167,7 +172,7 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
     from scipy.optimize import least_squares
 
     if not isinstance(data, Measurements):
-        raise InputError("data must be Measurements (constrained.fitting.read_csv reads a CSV file)", where="data")
+        raise InputError("data must be Measurements (read_measurements reads a CSV file)", where="data")
     names = [parameters] if isinstance(parameters, str) else list(parameters)
     if not names:
         raise InputError("name at least one [parameter] to fit", where="parameters")
@@ -241,7 +246,8 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
     with np.errstate(invalid="ignore"):
         se = np.sqrt(np.diag(cov))
         corr = cov / np.outer(se, se)
+    residuals = np.where(np.isfinite(data.values), data.values - fitted, np.nan)
     return FitResult(tuple(names), sol.x.copy(), se, theta0, cov, corr, data.t.copy(), data.names,
-                     data.values.copy(), fitted, np.where(np.isfinite(data.values), data.values - fitted, np.nan),
+                     data.values.copy(), fitted, residuals,
                      chi2, dof, sigma_given, bool(sol.success), str(sol.message), int(sol.nfev), njev[0],
                      unidentified, tuple(formulas[k] for k in data.names))

@@ -76,7 +76,8 @@ def _cell(text: str, path, line: int, column: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise InputError(f"line {line}, column '{column}': {text!r} is not a number", where=str(path)) from None
+        raise InputError(f"line {line}, column '{column}': {text!r} is not a number",
+                         where=str(path)) from None
     if math.isinf(value):
         raise InputError(f"line {line}, column '{column}': the value is infinite", where=str(path))
     return value

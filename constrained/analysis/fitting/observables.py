@@ -52,13 +52,14 @@ def _named(formulas) -> list[tuple[str, str]]:
     elif isinstance(formulas, Sequence):
         pairs = [(f, f) for f in formulas]
     else:
-        raise InputError(f"observables must be formulas (a list, or a table name -> formula), got {formulas!r}",
-                         where="observables")
+        raise InputError("observables must be formulas (a list, or a table name -> formula), got "
+                         f"{formulas!r}", where="observables")
     if not pairs:
         raise InputError("no observable given", where="observables")
     for name, text in pairs:
         if not isinstance(text, str) or not text.strip():
-            raise InputError(f"observable {name!r} must be a formula string, got {text!r}", where="observables")
+            raise InputError(f"observable {name!r} must be a formula string, got {text!r}",
+                             where="observables")
     names = [n for n, _ in pairs]
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:
@@ -92,8 +93,9 @@ def _build(model: Model, pairs) -> ca.Function:
             extra[f"F{axis}_{name}"] = constraint_force[3 * i + k]
     clash = sorted(set(extra) & set(s.state_names))
     if clash:
-        raise InputError(f"the name(s) {', '.join(clash)} are taken by the scene (a parameter or definition): "
-                         "observables use them for accelerations and constraint forces", where="observables")
+        raise InputError(f"the name(s) {', '.join(clash)} are taken by the scene (a parameter or "
+                         "definition): observables use them for accelerations and constraint forces",
+                         where="observables")
     rows = [ca.SX(s.parse(text, f"observables.{name}", velocities=True, extra=extra)) for name, text in pairs]
     return ca.Function("observables", [s.x, s.v, a, s.t, s.p], [ca.vertcat(*rows)],
                        ["x", "v", "a", "t", "p"], ["y"])

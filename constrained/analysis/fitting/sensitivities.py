@@ -301,5 +301,5 @@ def sensitivities(system, t_eval, *, outputs=None, parameters: Sequence[str] | N
         d_v0 = J[:, :, n_par + 3 * N:].reshape(T, k, N, 3)
     return Sensitivities(t=seq.t_out, outputs=obs.names, values=y.T, parameters=tuple(names),
                          d_parameters=J[:, :, :n_par], d_x0=d_x0, d_v0=d_v0, steps=seq.steps,
-                         stats={"mode": mode, "rejected": seq.rejected, "rtol": rtol, "atol": atol, "base": base,
-                                "padded_width": width})
+                         stats={"mode": mode, "rejected": seq.rejected, "rtol": rtol, "atol": atol,
+                                "base": base, "padded_width": width})
