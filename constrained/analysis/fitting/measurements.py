@@ -19,7 +19,7 @@ import numpy as np
 
 from ...errors import InputError
 
-__all__ = ["Measurements", "read_csv"]
+__all__ = ["Measurements", "read_measurements"]
 
 MISSING = {"", "nan", "na", "n/a", "none", "null"}
 
@@ -83,7 +83,7 @@ def _cell(text: str, path, line: int, column: str) -> float:
     return value
 
 
-def read_csv(path) -> Measurements:
+def read_measurements(path) -> Measurements:
     """Measurements from a CSV file (see the module)."""
     path = Path(path)
     try:
