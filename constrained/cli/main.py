@@ -160,8 +160,8 @@ def _add_modes_and_fit(verbs) -> None:
         "particle displacements. Write DIR/modes.json, DIR/modes.png (the shapes) and the chosen mode as "
         "DIR/mode<K>.gif and the viewer page DIR/mode<K>.html. With a [reduced] section the roots are "
         "compared with those of Lagrange's equations linearized at the same state.",
-        "modes scenarios/bead_on_rotating_hoop.toml --at start --rotating 0,0,4 "
-        "--set 'particles.bead.position=[0.7899859,0,-0.6131250]' --set 'particles.bead.velocity=[0,0,0]'",
+        "modes scenarios/bead_on_rotating_hoop.toml --rotating 0,0,4 "
+        "--set 'particles.bead.position=[0.8,0,-0.6]'",
         out="output directory (default: out/<scene file stem>_modes)", quiet=True)
     m.add_argument("--at", choices=("equilibrium", "start"), default="equilibrium",
                    help="about the equilibrium near the scene's positions (default), or its initial state")

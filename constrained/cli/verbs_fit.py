@@ -58,6 +58,8 @@ def _modes(args) -> int:
             result = modes(system, x=system.positions if at_start else None,
                            v=system.velocities if at_start else None, t=t0, frame=frame)
     except InputError as exc:
+        if exc.where in ("x", "v"):  # the state of the scene: its particles
+            exc = InputError(exc.reason, where="particles")
         raise _scene_error(exc, file) from None
     k = (args.mode or _first_oscillation(result)) - 1
     if not 0 <= k < max(len(result.modes), 1):
