@@ -172,7 +172,7 @@ class Modes:
                 "modes": [m.to_dict() for m in self.modes]}
 
     def trajectory(self, k: int = 0, *, amplitude: float | None = None, periods: float = 2.0,
-                   frames: int = 120, system=None) -> Trajectory:
+                   frames: int = 60, system=None) -> Trajectory:
         """Mode ``k`` (0-based) as a Trajectory for the animation and the viewer:
         x(τ) = x0 + A Re(shape e^{sτ}), projected onto the constraints at t0 (so rods keep their
         lengths at a visible amplitude), over ``periods`` periods (a real root: over 2/|s|;

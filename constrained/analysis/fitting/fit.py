@@ -242,7 +242,7 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
     cov = (Vt[ok].T / sv[ok] ** 2) @ Vt[ok] * scale
     unidentified = [dict(zip(names, np.round(v, 6).tolist(), strict=True)) for v in Vt[~ok]]
     for v in Vt[~ok]:  # an undetermined direction: infinite variance along it
-        cov = cov + np.inf * np.outer(np.abs(v) > 1e-12, np.abs(v) > 1e-12)
+        cov = np.where(np.outer(np.abs(v) > 1e-12, np.abs(v) > 1e-12), np.inf, cov)
     with np.errstate(invalid="ignore"):
         se = np.sqrt(np.diag(cov))
         corr = cov / np.outer(se, se)
