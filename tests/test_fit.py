@@ -43,7 +43,8 @@ def test_sensitivities_to_parameters_equal_a_high_order_finite_difference():
     assert sens.values.shape == (3, 4) and sens.d_parameters.shape == (3, 4, 4)
 
     def outputs_of(run):  # the same observables from a run: forces from the run's KKT solve
-        return np.column_stack([run.x[:, 1, 0], run.x[:, 0, 1], run.constraint_forces[:, 0, 0], run.v[:, 1, 1]])
+        return np.column_stack([run.x[:, 1, 0], run.x[:, 0, 1], run.constraint_forces[:, 0, 0],
+                                run.v[:, 1, 1]])
 
     np.testing.assert_allclose(sens.values, run_values(system, t, outputs_of), atol=1e-9)
     for j, name in enumerate(sens.parameters):
@@ -130,7 +131,7 @@ def test_an_angle_with_its_sigma_fits_three_parameters_with_chi2_per_dof_near_on
         assert abs(result.estimates[k] - TRUE[name]) < 3.5 * result.standard_errors[k], result.table()
 
 
-@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="Dask (distributed) not installed")
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="Dask is not installed")
 def test_a_sweep_of_fits_on_dask_scatters_as_its_standard_errors_say(tmp_path):
     import distributed
 
