@@ -283,10 +283,13 @@ def sensitivities(system, t_eval, *, outputs=None, parameters: Sequence[str] | N
     if initial_state:
         n = model.n_coordinates
         args += [np.zeros(n), np.zeros(n)]
-    with interrupt.watch():
-        y, J = fun(*args)
-        if interrupt.requested():
-            raise RunInterrupted("the sensitivity computation was stopped (Ctrl-C)")
+    try:
+        with interrupt.watch(), interrupt.external():  # one CasADi call: Ctrl-C ends it
+            y, J = fun(*args)
+    except (KeyboardInterrupt, RuntimeError):
+        if not interrupt.requested():
+            raise
+        raise RunInterrupted("the sensitivity computation was stopped (Ctrl-C)") from None
     y, J = np.asarray(y, float), np.asarray(J, float)
     T, k = len(seq.t_out), len(obs.names)
     if not (np.all(np.isfinite(y)) and np.all(np.isfinite(J))):
