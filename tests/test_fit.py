@@ -12,6 +12,7 @@ import importlib.util
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,8 +20,9 @@ import pytest
 import constrained as C
 from constrained.cli.main import main
 
-SCENE = "scenarios/pendulum_fit.toml"
-CAMERA = "scenarios/data/pendulum_camera.csv"
+ROOT = Path(__file__).resolve().parents[1]
+SCENE = str(ROOT / "scenarios" / "pendulum_fit.toml")
+CAMERA = str(ROOT / "scenarios" / "data" / "pendulum_camera.csv")
 TRUE = {"l": 0.75, "b": 0.03, "th0": 0.35}
 
 
@@ -35,7 +37,7 @@ def run_values(system, t, outputs_of, **kw):
 
 
 def test_sensitivities_to_parameters_equal_a_high_order_finite_difference():
-    scene = C.load_scene("scenarios/double_pendulum_parametric.toml")
+    scene = C.load_scene(ROOT / "scenarios" / "double_pendulum_parametric.toml")
     system = scene.system
     t = np.array([0.0, 0.4, 1.3])
     sens = C.sensitivities(system, t, outputs=["x_p2", "y_p1", "Fx_p1", "vy_p2"],
@@ -105,8 +107,8 @@ def test_the_shipped_camera_data_gives_back_the_true_length_and_damping():
 
 def test_the_data_script_writes_the_shipped_file(tmp_path):
     out = tmp_path / "camera.csv"
-    done = subprocess.run([sys.executable, "scenarios/data/make_pendulum_camera.py", str(out)],
-                          capture_output=True, text=True)
+    script = ROOT / "scenarios" / "data" / "make_pendulum_camera.py"
+    done = subprocess.run([sys.executable, str(script), str(out)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     shipped = np.loadtxt(CAMERA, delimiter=",", skiprows=1)
     np.testing.assert_allclose(np.loadtxt(out, delimiter=",", skiprows=1), shipped, atol=2e-6)
@@ -204,3 +206,39 @@ def test_cli_fit_writes_estimates_figures_and_the_fitted_run(tmp_path, capsys):
     assert "nope" in capsys.readouterr().err
     assert main(["fit", SCENE, str(tmp_path / "missing.csv"), "--params", "l", "--out", str(out)]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_fit_promptly_with_status_130(tmp_path):
+    import time
+
+    from interrupting import interrupt_when
+
+    t = np.linspace(0.0, 60.0, 3001)
+    rows = "\n".join(f"{ti:.6f},{0.3 * np.cos(3.6 * ti):.6f}" for ti in t)  # far from the model
+    (tmp_path / "long.csv").write_text("t,x_bob\n" + rows + "\n")
+    began = time.monotonic()
+    args = ["fit", SCENE,
+            str(tmp_path / "long.csv"), "--params", "l,b,th0", "--out", str(tmp_path / "out"), "--quiet"]
+    code, seconds, err = interrupt_when(args, lambda: time.monotonic() - began > 3.0, cwd=tmp_path.parent,
+                                        settle=0.0)
+    assert code == 130, err
+    assert seconds < 5.0 and "Traceback" not in err
+    assert not (tmp_path / "out" / "fit.json").exists()
+
+
+def test_a_load_cell_on_the_rod_is_an_observable_too():
+    """The rod's tension, sqrt(Fx² + Fy²) of the constraint force on the bob, measured alone,
+    gives back the length and the damping."""
+    system = C.load_scene(SCENE).system
+    t = np.linspace(0.0, 3.0, 61)
+    run = C.simulate(system, 3.0, t_eval=t, rtol=1e-11, atol=1e-13, parameters=TRUE)
+    tension = np.linalg.norm(run.constraint_forces[:, 0, :2], axis=1)
+    noise = 1e-4  # newtons
+    measured = tension[:, None] + noise * np.random.default_rng(4).standard_normal((61, 1))
+    data = C.Measurements(t, ("tension",), measured)
+    result = C.fit(system, data, ["l", "b"], observables={"tension": "sqrt(Fx_bob**2 + Fy_bob**2)"},
+                   sigma=noise)
+    assert result.success
+    for k, name in enumerate(result.names):
+        assert abs(result.estimates[k] - TRUE[name]) < 3.5 * result.standard_errors[k], result.table()

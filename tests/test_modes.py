@@ -8,6 +8,7 @@ the bead on a spinning hoop, the Foucault and Larmor splittings, a damped pendul
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from scipy.special import jn_zeros
 import constrained as C
 from constrained.cli.main import main
 
+ROOT = Path(__file__).resolve().parents[1]
 G = 9.81
 
 
@@ -67,7 +69,7 @@ def test_spatial_double_pendulum_has_each_frequency_twice_and_redundant_rows_cha
 
 
 def test_the_reduced_route_linearized_at_the_same_state_has_the_same_roots():
-    scene = C.load_scene("scenarios/double_pendulum_parametric.toml")
+    scene = C.load_scene(ROOT / "scenarios" / "double_pendulum_parametric.toml")
     modes = C.modes(scene.system, x=[[0, -1, 0], [0, -2, 0]])
     check = modes.cross_check(C.ReducedModel.from_scene(scene))
     assert check.difference < 1e-12
@@ -157,7 +159,7 @@ def test_bead_on_a_spinning_hoop_above_the_critical_speed_oscillates_at_omega_si
 
 
 def test_the_hoop_scene_agrees_with_its_reduced_coordinate():
-    scene = C.load_scene("scenarios/bead_on_rotating_hoop.toml")
+    scene = C.load_scene(ROOT / "scenarios" / "bead_on_rotating_hoop.toml")
     w = scene.system.parameters["w"]
     th = np.arccos(G / w**2)
     modes = C.modes(scene.system, x=[[np.sin(th), 0, -np.cos(th)]], frame=C.RotatingFrame([0, 0, w]))
@@ -303,7 +305,9 @@ def test_bad_input_is_named():
 
 def test_cli_modes_writes_the_report_the_figure_and_the_animation(tmp_path, capsys):
     out = tmp_path / "modes"
-    code = main(["modes", "scenarios/pendulum_fit.toml", "--out", str(out), "--set", "parameters.b=0.0"])
+    pendulum = str(ROOT / "scenarios" / "pendulum_fit.toml")
+    hoop_scene = str(ROOT / "scenarios" / "bead_on_rotating_hoop.toml")
+    code = main(["modes", pendulum, "--out", str(out), "--set", "parameters.b=0.0"])
     text = capsys.readouterr().out
     assert code == 0, text
     assert "reduced route" in text and "agree" in text
@@ -312,8 +316,7 @@ def test_cli_modes_writes_the_report_the_figure_and_the_animation(tmp_path, caps
     assert data["modes"][0]["frequency_rad_s"] == pytest.approx(np.sqrt(G / l), rel=1e-12)
     for name in ("modes.png", "mode1.gif", "mode1.html"):
         assert (out / name).stat().st_size > 1000
-    assert main(["modes", "scenarios/pendulum_fit.toml", "--rotating", "0,1", "--out", str(out)]) == 2
+    assert main(["modes", pendulum, "--rotating", "0,1", "--out", str(out)]) == 2
     assert "--rotating" in capsys.readouterr().err
-    code = main(["modes", "scenarios/bead_on_rotating_hoop.toml", "--at", "start", "--rotating", "0,0,3",
-                 "--out", str(out)])
+    code = main(["modes", hoop_scene, "--at", "start", "--rotating", "0,0,3", "--out", str(out)])
     assert code == 2 and "not at rest" in capsys.readouterr().err
