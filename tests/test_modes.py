@@ -301,6 +301,19 @@ def test_bad_input_is_named():
         C.modes(s, x=[[0.6, -0.8, 0], [0.6, -1.8, 0]])
     with pytest.raises(C.InputError, match="no mode 5"):
         C.modes(s).trajectory(4)
+    string = C.System(name="bob on a string")
+    string.add_particle("bob", 0.1, [0.0, -1.0, 0.0])
+    string.add(C.Distance("bob", point=[0, 0, 0], length=1.0, unilateral=True), C.Gravity([0, -G, 0]))
+    with pytest.raises(C.InputError, match="one-sided"):
+        C.modes(string)
+
+
+def test_modes_for_other_parameter_values_animate_with_those_values():
+    scene = C.load_scene(ROOT / "scenarios" / "pendulum_fit.toml")
+    modes = C.modes(scene.system, parameters={"l": 0.5, "b": 0.0})
+    assert modes.frequencies[0] == pytest.approx(np.sqrt(G / 0.5), rel=1e-12)
+    swing = modes.trajectory(0, amplitude=0.1, system=scene.system)
+    np.testing.assert_allclose(np.linalg.norm(swing.x[:, 0], axis=1), 0.5, atol=1e-12)  # the rod of l = 0.5
 
 
 def test_cli_modes_writes_the_report_the_figure_and_the_animation(tmp_path, capsys):

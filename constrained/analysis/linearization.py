@@ -34,6 +34,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ..errors import InputError
+from ..manifold import residual
 from ..manifold.dense import tangent_basis
 from ..manifold.manifold import Manifold
 from ..model.structure import Model
@@ -45,8 +46,10 @@ __all__ = ["RotatingFrame", "frame_arrays", "linearize", "omega_velocity", "quad
 #: The state must be at rest in the frame: tangential acceleration and frame velocity within
 #: this fraction of the system's acceleration and velocity scales.
 STATIONARY_RTOL = 1e-6
-#: Newton on the relative equilibrium: force balance within this × the force scale.
+#: Newton on the relative equilibrium: force balance within FORCE_RTOL × the force scale, the
+#: constraints within LENGTH_RTOL × the system's size (statics' tolerances).
 FORCE_RTOL = 1e-10
+LENGTH_RTOL = 1e-12
 
 
 @dataclass(frozen=True)
@@ -138,7 +141,9 @@ def relative_equilibrium(model: Model, x0: np.ndarray, t: float, omega, centre, 
     x0 = restore(np.concatenate([x0, np.zeros(C)]))[:n3]
     _, lam = manifold.accelerations(x0, omega_velocity(omega, centre, x0), t)
     scale = _force_scale(model, *fun(x0, np.zeros(n3), lam)[3:], lam, omega, x0)
-    w = np.concatenate([np.full(n3, 1.0 / (FORCE_RTOL * scale)), np.full(C, 1e12 / size)])
+    # one unit of the weighted residual is the tolerance: forces in N, constraint rows in metres
+    w = np.concatenate([np.full(n3, 1.0 / (FORCE_RTOL * scale)),
+                        1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t))])
     z, iterations, converged = _newton(Kkt, np.concatenate([x0, lam]), w, 100, restore)
     if not converged:
         raise InputError(f"no state at rest in the frame found near the given positions after {iterations} "

@@ -24,6 +24,7 @@ from ..errors import InputError
 from ..manifold.manifold import Manifold
 from ..model.structure import Model, assemble
 from ..run.trajectory import Trajectory
+from ..run.unilateral import has_one_sided
 from .linearization import (
     RotatingFrame,
     frame_arrays,
@@ -120,6 +121,8 @@ class Modes:
     particle_names: list[str] = field(default_factory=list)
     conservative: bool = True
     residual: float = 0.0
+    #: The parameter values the modes are for (``modes(..., parameters=...)`` included).
+    parameters: dict = field(default_factory=dict)
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -199,7 +202,7 @@ class Modes:
         X = self.x[None] + A * wave
         V = A * rate
         if system is not None:
-            model = assemble(system)
+            model = assemble(system).with_parameters(self.parameters)
             manifold = Manifold.at(model, self.x.ravel(), self.t)
             for i in range(len(tau)):
                 X[i] = manifold.project_positions(X[i].ravel(), self.t, tol=1e-12 * size, max_iter=20).x \
@@ -305,6 +308,10 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         raise InputError("the system has no particles")
     model = (model or assemble(system)).with_parameters(parameters)
     system = system.with_parameters(parameters)
+    if has_one_sided(model):
+        raise InputError("normal modes of a system with one-sided constraints are not defined (their "
+                         "force switches off or on at rest); make them two-sided for the modes about a "
+                         "state where they hold", where="constraints")
     omega, centre = frame_arrays(frame, model.n_particles)
     size = system.size()
     if x is None and frame is None:
@@ -330,6 +337,7 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=float(t), frame=frame, multipliers=lam,
                  basis=T, M=M, G=0.5 * (C - C.T), D=0.5 * (C + C.T), K=K, eigenvalues=s, modes=mode_list,
                  stable=stable, stability=stability, particle_names=list(system.names),
-                 conservative=bool(np.linalg.norm(K - K.T) <= 1e-9 * knorm), residual=residual)
+                 conservative=bool(np.linalg.norm(K - K.T) <= 1e-9 * knorm), residual=residual,
+                 parameters=model.parameters)
 
 

@@ -198,6 +198,10 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
     m, n = int(measured.sum()), len(names)
     if m < n:
         raise InputError(f"{m} measured value(s) cannot determine {n} parameters", where=data.source)
+    for key in start or {}:
+        if key not in names:
+            raise InputError(f"a start value for '{key}', which is not fitted ({', '.join(names)})",
+                             where="start")
     values0 = {**model.parameters, **dict(start or {})}
     theta0 = np.array([float(values0[k]) for k in names])
     lo, hi = _bounds(names, bounds)
