@@ -33,9 +33,11 @@ from ... import interrupt
 from ...errors import InputError, RunInterrupted, SimulationError
 from ...manifold.graph import projection_graph
 from ...manifold.manifold import acceleration_function
+from ...model import expressions
 from ...model.cache import ParametricView, structure_cache
+from ...model.parameters import symbolic as symbolic_parameters
 from ...model.structure import Model, assemble
-from ...run.ensemble import _projector, _start_function
+from ...run.ensemble import _projector
 from ...run.start import consistent_start
 from ...run.unilateral import has_one_sided
 from ...solvers.base import Status
@@ -136,6 +138,35 @@ def step_sequence(model: Model, system, t_eval, t0: float = 0.0, *, rtol: float 
 # --- the replay graph ----------------------------------------------------------------------------
 
 
+def _start(model: Model, system) -> tuple[ca.Function, tuple, np.ndarray, np.ndarray]:
+    """(start, signature, x_plain, v_plain): ``start(p, x_plain, v_plain) -> (x0, v0)`` takes the
+    entries given by formulas of the parameters from p and the plain numbers from its inputs
+    (so one Function serves every start of the same formulas); ``signature`` the formulas."""
+    entries = {key: [e for q in system.particles for e in q.formulas.get(key, getattr(q, key))]
+               for key in ("position", "velocity")}
+    signature = tuple(e if isinstance(e, str) else None for key in entries for e in entries[key])
+    plain = {key: np.array([0.0 if isinstance(e, str) else float(e) for e in values])
+             for key, values in entries.items()}
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "sensitivity start", signature)
+    if key not in cache:
+        p, names = symbolic_parameters(system.parameters, system.definitions)
+        P = ca.vertcat(p, ca.SX.sym("number", model.structure.n_numbers))
+        n = model.n_coordinates
+        given = {"position": ca.SX.sym("x_plain", n), "velocity": ca.SX.sym("v_plain", n)}
+        out = {}
+        for kind, column in given.items():
+            rows = []
+            for j, entry in enumerate(entries[kind]):
+                where = f"particle '{system.particles[j // 3].name}'.{kind}[{j % 3}]"
+                rows.append(column[j] if not isinstance(entry, str) else
+                            ca.SX(expressions.parse(entry, names, where=where)))
+            out[kind] = ca.vertcat(*rows) if rows else ca.SX(0, 1)
+        cache[key] = ca.Function("start", [P, given["position"], given["velocity"]],
+                                 [out["position"], out["velocity"]])
+    return cache[key], signature, plain["position"], plain["velocity"]
+
+
 def _step_function(model: Model, rows, tableau) -> ca.Function:
     """One accepted step with its size frozen: (s, [t; t_next]) -> s_next, s = [x; v; a; p];
     a step of zero length is skipped (short-circuit). dopri's stages and projection."""
@@ -169,13 +200,14 @@ def _step_function(model: Model, rows, tableau) -> ca.Function:
     return ca.Function("replay_step", [S2, ts2], [ca.if_else(ts2[1] > ts2[0], step(S2, ts2), S2, True)])
 
 
-def _replay(model: Model, system, rows, tableau, width: int, n_out: int, obs, chosen: tuple[int, ...],
-            wrt_state: bool, mode: str) -> ca.Function:
-    """(p, steps table, t0, t_out) -> (y (k, n_out), ∂vec(y)/∂z) with z = [p[chosen]; δx0; δv0]
-    (the initial-state part when ``wrt_state``), built once per structure and shape."""
+def _replay(model: Model, start, signature, rows, tableau, width: int, n_out: int, obs,
+            chosen: tuple[int, ...], wrt_state: bool, mode: str) -> ca.Function:
+    """(p, steps table, t0, t_out, p[chosen], x_plain, v_plain[, δx0, δv0]) -> (y (k, n_out),
+    ∂vec(y)/∂z) with z = [p[chosen]; δx0; δv0] (the initial-state part when ``wrt_state``),
+    built once per structure, start formulas and shape."""
     cache, prefix = structure_cache(model)
-    key = (*prefix, "sensitivity replay", rows, tableau.name, width, n_out, obs.names, obs.formulas, chosen,
-           wrt_state, mode)
+    key = (*prefix, "sensitivity replay", signature, rows, tableau.name, width, n_out, obs.names,
+           obs.formulas, chosen, wrt_state, mode)
     if key in cache:
         return cache[key]
     n, n_p = model.n_coordinates, len(model.parameter_vector)
@@ -186,7 +218,8 @@ def _replay(model: Model, system, rows, tableau, width: int, n_out: int, obs, ch
     keep = ca.DM.eye(n_p) - ca.mtimes(pick, pick.T)
     P = ca.mtimes(keep, P_in) + ca.mtimes(pick, theta)
     dx, dv = ca.MX.sym("dx0", n), ca.MX.sym("dv0", n)
-    x0, v0 = _start_function(model, system)(P)
+    x_plain, v_plain = ca.MX.sym("x_plain", n), ca.MX.sym("v_plain", n)
+    x0, v0 = start(P, x_plain, v_plain)
     if wrt_state:
         x0, v0 = x0 + dx, v0 + dv
     x, v, _ = _projector(model, rows)(x0, v0, T0, P)
@@ -207,7 +240,7 @@ def _replay(model: Model, system, rows, tableau, width: int, n_out: int, obs, ch
         J = ca.jtimes(yv, z, ca.DM.eye(z.numel()))
     else:
         J = ca.jtimes(yv, z, ca.DM.eye(yv.numel()), True).T
-    inputs = [P_in, table, T0, T_out, theta] + ([dx, dv] if wrt_state else [])
+    inputs = [P_in, table, T0, T_out, theta, x_plain, v_plain] + ([dx, dv] if wrt_state else [])
     fun = ca.Function("sensitivity_replay", inputs, [y, J])
     cache[key] = fun
     return fun
@@ -276,10 +309,11 @@ def sensitivities(system, t_eval, *, outputs=None, parameters: Sequence[str] | N
     longest = max((len(i) for i in seq.intervals), default=0)
     width = 1 << max(0, math.ceil(math.log2(max(longest, 1))))
     chosen = tuple(model.parameter_names.index(p) for p in names)
-    fun = _replay(model, system, seq.start.manifold.rows, TABLEAUS[base], width, len(seq.t_out), obs, chosen,
-                  initial_state, mode)
+    start, signature, x_plain, v_plain = _start(model, system)
+    fun = _replay(model, start, signature, seq.start.manifold.rows, TABLEAUS[base], width, len(seq.t_out),
+                  obs, chosen, initial_state, mode)
     p = model.parameter_vector
-    args = [p, seq.table(width), float(t_start), seq.t_out[None, :], p[list(chosen)]]
+    args = [p, seq.table(width), float(t_start), seq.t_out[None, :], p[list(chosen)], x_plain, v_plain]
     if initial_state:
         n = model.n_coordinates
         args += [np.zeros(n), np.zeros(n)]
