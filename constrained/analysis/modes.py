@@ -277,6 +277,8 @@ def _modes_from_roots(s, Z, symmetric: bool, T: np.ndarray, K: np.ndarray, n_par
         size = float(np.max(np.linalg.norm(np.abs(shape), axis=1), initial=0.0))
         modes.append(Mode(root, shape / size if size > 0 else shape, kind))
     modes.sort(key=lambda m: (m.frequency, m.eigenvalue.real))
+    if n == 0:
+        return modes, True, "no degrees of freedom: the constraints fix every particle"
     growing = [m for m in modes if m.growth_rate > GROWTH_RTOL * scale]
     soft = [m for m in modes if m.kind == "soft"]
     if growing:
