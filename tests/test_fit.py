@@ -187,6 +187,10 @@ def test_measurement_files_are_checked_line_by_line(tmp_path):
         C.fit(system, data, ["length"])
     with pytest.raises(C.InputError, match="cannot determine"):
         C.fit(system, data, ["l", "b", "th0"])
+    with pytest.raises(C.InputError, match="observables.x_bob.*y_ball"):
+        C.fit(system, data, ["l"], observables={"x_bob": "x_bob + y_ball"})
+    with pytest.raises(C.InputError, match="scene.system"):
+        C.fit(C.load_scene(SCENE), data, ["l"])
 
 
 def test_cli_fit_writes_estimates_figures_and_the_fitted_run(tmp_path, capsys):

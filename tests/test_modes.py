@@ -306,6 +306,8 @@ def test_bad_input_is_named():
     string.add(C.Distance("bob", point=[0, 0, 0], length=1.0, unilateral=True), C.Gravity([0, -G, 0]))
     with pytest.raises(C.InputError, match="one-sided"):
         C.modes(string)
+    with pytest.raises(C.InputError, match="scene.system"):
+        C.modes(C.load_scene(ROOT / "scenarios" / "pendulum_fit.toml"))
 
 
 def test_modes_for_other_parameter_values_animate_with_those_values():

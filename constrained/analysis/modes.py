@@ -306,6 +306,9 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         raise InputError(f"t must be a finite number of seconds, got {t!r}", where="t")
     if frame is not None and not isinstance(frame, RotatingFrame):
         raise InputError("frame must be a RotatingFrame(omega, point)", where="frame")
+    if not hasattr(system, "particles"):
+        raise InputError(f"expected a System, got {type(system).__name__} (for a Scene, pass scene.system)",
+                         where="system")
     if system.n_particles == 0:
         raise InputError("the system has no particles")
     model = (model or assemble(system)).with_parameters(parameters)

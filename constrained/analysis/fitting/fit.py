@@ -28,6 +28,7 @@ import numpy as np
 from ...errors import ConstrainedError, InputError
 from ...model.structure import Model, assemble
 from .measurements import Measurements
+from .observables import observables as observable_function
 from .sensitivities import MAX_STEPS, sensitivities
 
 __all__ = ["FitResult", "fit"]
@@ -173,6 +174,9 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
 
     if not isinstance(data, Measurements):
         raise InputError("data must be Measurements (read_measurements reads a CSV file)", where="data")
+    if not hasattr(system, "particles"):
+        raise InputError(f"expected a System, got {type(system).__name__} (for a Scene, pass scene.system)",
+                         where="system")
     names = [parameters] if isinstance(parameters, str) else list(parameters)
     if not names:
         raise InputError("name at least one [parameter] to fit", where="parameters")
@@ -190,6 +194,7 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
             raise InputError(f"observable '{key}' names no column of the data ({', '.join(data.names)})",
                              where="observables")
     formulas = {n: extra.get(n, n) for n in data.names}
+    observable_function(model, formulas)  # a formula that does not parse is refused here, named
     if data.t[0] < t_start:
         raise InputError(f"the first measurement (t = {data.t[0]:g} s) is before the start t = {t_start:g} s",
                          where=data.source)

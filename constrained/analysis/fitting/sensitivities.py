@@ -293,6 +293,9 @@ def sensitivities(system, t_eval, *, outputs=None, parameters: Sequence[str] | N
         raise InputError(f"unknown base tableau {base!r} (choose from {', '.join(TABLEAUS)})", where="base")
     if isinstance(t_start, bool) or not isinstance(t_start, int | float) or not math.isfinite(t_start):
         raise InputError(f"t_start must be a finite number of seconds, got {t_start!r}", where="t_start")
+    if not hasattr(system, "particles"):
+        raise InputError(f"expected a System, got {type(system).__name__} (for a Scene, pass scene.system)",
+                         where="system")
     model = (model or assemble(system)).with_parameters(values)
     system = system.with_parameters(values)
     names = list(model.parameter_names) if parameters is None else list(parameters)
