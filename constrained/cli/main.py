@@ -47,7 +47,7 @@ verbs:
               --vary "parameters.nu=lin(20, 240, 12)" --summary "min:up=y_bob - a*cos(nu*t)"
   modes   normal modes about the equilibrium (or a steady motion in a rotating frame): frequencies,
           damping, stability, shapes; modes.json, modes.png, one mode as GIF and viewer page
-            constrained modes scenarios/double_pendulum.toml --set "particles.p1.position=[0,-1,0]"
+            constrained modes scenarios/hanging_chain.toml --out out/chain_modes
   fit     fit [parameters] to measured data (CSV: t and observed columns) with exact Jacobians;
           estimates, standard errors, residual plots, the fitted run
             constrained fit scenarios/pendulum_fit.toml scenarios/data/pendulum_camera.csv --params l,b
