@@ -297,6 +297,10 @@ def test_bad_input_is_named():
         C.RotatingFrame(omega=[0, 1])
     with pytest.raises(C.InputError, match="x"):
         C.modes(s, x=[[0, -1, 0]])
+    with pytest.raises(C.InputError, match="off the constraints"):
+        C.modes(s, x=[[0, -1.1, 0], [0, -2, 0]])
+    near = C.modes(s, x=[[0.01, -1.1, 0], [0.01, -2, 0]], refine=True)  # a guess: Newton finds the rest
+    np.testing.assert_allclose(near.x, [[0, -1, 0], [0, -2, 0]], atol=1e-12)
     with pytest.raises(C.InputError, match="not at rest"):
         C.modes(s, x=[[0.6, -0.8, 0], [0.6, -1.8, 0]])
     with pytest.raises(C.InputError, match="no mode 5"):

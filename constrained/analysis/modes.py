@@ -40,6 +40,9 @@ __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 
 #: ω² (undamped, symmetric) with |ω²| <= SOFT_RTOL × ‖K‖ count as zero: a soft (neutral) mode.
 SOFT_RTOL = 1e-8
+#: A given state may be off the constraints by this × the system's size (rounded input); it is
+#: projected onto them.
+ON_CONSTRAINTS_RTOL = 1e-6
 #: Roots with Re s > GROWTH_RTOL × max|s| grow (unstable); within it they count as undamped.
 GROWTH_RTOL = 1e-7
 
@@ -329,6 +332,10 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
             if not projected.converged and projected.residual > 1e-9 * size:
                 raise InputError(f"the positions are not on the constraints (off by {projected.residual:.3g} "
                                  "after projection)", where="x")
+            moved = float(np.max(np.abs(projected.x - guess)))
+            if x is not None and not refine and moved > ON_CONSTRAINTS_RTOL * size:
+                raise InputError(f"the positions are {moved:.3g} m off the constraints: give the state on "
+                                 "them (or refine=True to start Newton there)", where="x")
             guess = projected.x
         refine = x is None if refine is None else refine
         x_flat = relative_equilibrium(model, guess, t, omega, centre, size) if refine else guess
