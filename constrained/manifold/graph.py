@@ -84,7 +84,9 @@ UNDERFLOW = 1e-150
 
 
 def _flush_underflow(J):
-    return ca.if_else(ca.fabs(J) < UNDERFLOW, 0, J)
+    """J with its entries below UNDERFLOW set to 0, its sparsity kept (a comparison of a
+    structural zero is a structural zero)."""
+    return J * (ca.fabs(J) >= UNDERFLOW)
 
 
 def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl", feedback=None):
