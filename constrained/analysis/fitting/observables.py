@@ -83,7 +83,9 @@ def _build(model: Model, pairs) -> ca.Function:
     s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
     n3 = model.n_coordinates
     a = ca.SX.sym("a", n3)
-    F, _, _ = model.parametric("dynamics")(s.x, s.v, s.t, s.p)
+    # (pair potentials: every pair, their neighbour lists, which SX cannot write out, unused)
+    lists = ca.DM.zeros(len(model.parameter_vector) - s.p.numel())
+    F, _, _ = model.structure.function("dynamics", lists=False)(s.x, s.v, s.t, ca.vertcat(s.p, lists))
     masses = ca.repmat(ca.SX(s.mass_column()).T, 3, 1).reshape((n3, 1))
     constraint_force = masses * a - F
     extra = {}

@@ -151,7 +151,8 @@ def _start(model: Model, system) -> tuple[ca.Function, tuple, np.ndarray, np.nda
     key = (*prefix, "sensitivity start", signature)
     if key not in cache:
         p, names = symbolic_parameters(system.parameters, system.definitions)
-        P = ca.vertcat(p, ca.SX.sym("number", model.structure.n_numbers))
+        # the rest of p (plain numbers, pair potentials' neighbour lists): unused by the start
+        P = ca.vertcat(p, ca.SX.sym("number", len(model.parameter_vector) - p.numel()))
         n = model.n_coordinates
         given = {"position": ca.SX.sym("x_plain", n), "velocity": ca.SX.sym("v_plain", n)}
         out = {}
