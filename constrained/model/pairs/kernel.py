@@ -57,11 +57,11 @@ from .neighbours import BLOCK
 #: Blocks a of the all-pairs sum per call of its outer map (whose shared inputs CasADi copies
 #: once per block: GROUP copies of the positions at a time).
 GROUP = 32
-#: Capacities of a neighbour list: blocks (the particles' blocks at the first list, which
-#: do not fill every place) and neighbour slots per block, this factor times the count at
-#: the first list plus CAPACITY_EXTRA; a list that needs more is not used (all pairs are).
-CAPACITY_FACTOR = 1.5
-CAPACITY_EXTRA = 4
+#: Capacities of a neighbour list: blocks (compact blocks do not fill every place) and
+#: neighbour slots per block, this factor times the count at the first list (slots: plus
+#: CAPACITY_EXTRA); a list that needs more is not used (all pairs are summed instead).
+CAPACITY_FACTOR = 1.25
+CAPACITY_EXTRA = 2
 
 
 @dataclass(frozen=True)
@@ -150,8 +150,13 @@ class PairTerm:
         self.cutoff, self.skin = spec.cutoff, spec.skin
         phi = effective(spec.phi, spec.r, spec.cutoff)
         self.time_dependent = bool(ca.depends_on(phi, t))
-        self._pair = _pair(phi, spec.r, t, p)
-        self._tile = _tiles(self._pair, t, p)
+        # the kernels take only the entries of p that φ reads (the maps copy their shared
+        # inputs once per call: all of p, thousands of plain numbers, would swamp the pairs)
+        self._p_used = sorted(set(ca.jacobian_sparsity(phi, p).get_col())) if p.numel() else []
+        q = ca.SX.sym("q", len(self._p_used))
+        phi = ca.substitute(phi, p[self._p_used], q) if self._p_used else phi
+        self._pair = _pair(phi, spec.r, t, q)
+        self._tile = _tiles(self._pair, t, q)
         self._coordinates = (3 * spec.particles[:, None] + np.arange(3)).ravel()
         mask = np.zeros(self.n_blocks * BLOCK)
         mask[:self.n] = 1.0
@@ -159,10 +164,11 @@ class PairTerm:
         self.offset = offset
         #: Capacities of the neighbour list: blocks and neighbour slots per block.
         self.block_capacity = self.slot_capacity = 0
-        if self.cutoff is not None:
-            self.block_capacity = math.ceil(CAPACITY_FACTOR * self.n_blocks) + 1
-            _, slots = neighbours.neighbour_data(self._listed(positions), self.reach, self.block_capacity,
-                                                 None)
+        if self.cutoff is not None:  # room for the blocks and slots the start needs, and more
+            y = self._listed(positions)
+            used = len(neighbours.blocks(y, 2 * self.n_blocks)) // BLOCK
+            self.block_capacity = min(self.n, math.ceil(CAPACITY_FACTOR * used) + 1)
+            _, slots = neighbours.neighbour_data(y, self.reach, self.block_capacity, None)
             self.slot_capacity = int(min(self.block_capacity, math.ceil(CAPACITY_FACTOR * slots.shape[0])
                                          + CAPACITY_EXTRA))
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
@@ -218,7 +224,7 @@ class PairTerm:
         its first ``n_physical`` entries, this term's data at ``offset``): F = −∂V/∂x (3N).
         ``lists`` False: every pair, whatever the data (no neighbour list: the graph then
         also evaluates with SX symbols, written out)."""
-        Pp = P[:n_physical] if n_physical else ca.MX(0, 1)
+        Pp = P[self._p_used] if self._p_used else ca.MX(0, 1)  # (the entries φ reads)
         Xl = X[self._coordinates.tolist()]
         if self.cutoff is None or not lists:
             V, F = self._all_pairs(Xl, T, Pp)

@@ -69,11 +69,23 @@ def _block_pairs(lo: np.ndarray, hi: np.ndarray, reach: float) -> tuple[np.ndarr
     return a[near], b[near]
 
 
+def _balanced_owners(a: np.ndarray, b: np.ndarray, n_blocks: int) -> np.ndarray:
+    """For each pair of blocks (a, b) the one that holds it: greedily the one holding fewer so
+    far (every block's slots are one map's length: the fullest block sets it for all)."""
+    load = [1] * n_blocks  # (each block holds its own pairs first)
+    owner = []
+    for i, j in zip(a.tolist(), b.tolist(), strict=True):
+        k = i if load[i] <= load[j] else j
+        load[k] += 1
+        owner.append(k)
+    return np.array(owner, dtype=np.int64)
+
+
 def neighbour_data(y: np.ndarray, reach: float, block_capacity: int, slot_capacity: int | None):
     """(places, slots) of the points y (n, 3): their places in blocks (``blocks``, padded to
     ``block_capacity`` blocks), and for each block the blocks whose bounding boxes come within
-    ``reach`` of its own, itself first, each pair of blocks held by one of the two (the lower
-    when a + b is even, else the higher), as a (slot_capacity, block_capacity) array of
+    ``reach`` of its own, itself first, each pair of blocks held by one of the two (the one
+    holding fewer so far), as a (slot_capacity, block_capacity) array of
     block + 1 (0: an empty slot). ``slot_capacity`` None: as many slots as the fullest block
     needs. (None, None) when the blocks do not fit; (places, None) when the slots do not."""
     n = len(y)
@@ -86,7 +98,7 @@ def neighbour_data(y: np.ndarray, reach: float, block_capacity: int, slot_capaci
     lo = np.where(real[..., None], points, big).min(axis=1)
     hi = np.where(real[..., None], points, -big).max(axis=1)
     a, b = _block_pairs(lo, hi, reach)
-    owner = np.where((a + b) % 2 == 0, a, b)
+    owner = _balanced_owners(a, b, n_blocks)
     other = np.where(owner == a, b, a)
     owner = np.concatenate([np.arange(n_blocks), owner])
     other = np.concatenate([np.arange(n_blocks), other])
