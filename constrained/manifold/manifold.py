@@ -125,7 +125,16 @@ def structural_call(model: Model, key, build, *inputs: str):
         P = kind.sym("p", len(model.parameter_vector))
         fast = cache[full_key] = FastCall(build(ParametricView(model, P), *symbols, P))
     p = model.parameter_vector
-    return lambda *args: fast(*args, p)
+    potentials = getattr(model.structure, "pair_potentials", None)
+    if "x" not in inputs or potentials is None or not any(term.size for term in potentials.terms):
+        return lambda *args: fast(*args, p)
+    at = inputs.index("x")
+
+    def call(*args):  # a pair potential's neighbour list rebuilt where the particles have moved far
+        fresh = potentials.refreshed(p, args[at])
+        return fast(*args, p if fresh is None else fresh)
+
+    return call
 
 
 def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:

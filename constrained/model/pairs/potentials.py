@@ -60,14 +60,13 @@ class PairPotentials:
         return ca.Function(name, [*inputs, P], out, rest.name_in(), rest.name_out())
 
     def values(self, x, t: float, p) -> list[tuple[float, np.ndarray]]:
-        """(V_k, F_k) of each pair potential at (x, t) for p (its physical entries): every pair
-        summed, no neighbour list."""
+        """(V_k, F_k) of each pair potential at (x, t) for p (its physical entries), through
+        neighbour lists built at x (no sum over every pair where a cutoff allows less)."""
         if self._values is None:
             X, T, P = ca.MX.sym("x", self.n_coordinates), ca.MX.sym("t"), ca.MX.sym("p", self.n_p)
-            out = [e for term in self.terms
-                   for e in term.energy_and_forces(X, T, P, self.n_physical, lists=False)]
+            out = [e for term in self.terms for e in term.energy_and_forces(X, T, P, self.n_physical)]
             self._values = ca.Function("pair_values", [X, T, P], out)
-        p = np.concatenate([np.asarray(p, float)[:self.n_physical], np.zeros(self.n_p - self.n_physical)])
+        p = np.concatenate([np.asarray(p, float)[:self.n_physical], self.data(x)])
         out = self._values(x, t, p)
         out = out if isinstance(out, tuple | list) else [out]
         return [(float(out[2 * k]), np.asarray(out[2 * k + 1], float).ravel())
