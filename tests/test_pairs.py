@@ -334,3 +334,19 @@ def test_an_ensemble_runs_a_gas_with_a_cutoff():
     one = C.simulate(system, 0.5, parameters={"eps": 1.0}, rtol=1e-9, atol=1e-11, outputs=set(),
                      t_eval=[0.0, 0.5])
     np.testing.assert_allclose(ens.x[1, -1], one.x[-1], atol=1e-8)
+
+
+def test_a_few_pairs_are_written_out_with_the_same_cutoff_and_exclusions():
+    """20 particles (190 pairs, below MAPPED_PAIRS_FROM): the pair sum is the SX graph's, one
+    term per pair, with the same shift at the cutoff and the same bonded pairs left out."""
+    case = dict(n=20, cutoff=1.5, bonds=[(0, 1), (3, 4)], exclude_bonded=True)
+    system = gas(**case)
+    model = assemble(system, reuse=False)
+    assert model.structure.pairs == ()
+    x = np.asarray(system.positions).ravel() + np.random.default_rng(5).normal(0, 0.05, 60)
+    V_ref, F_ref = (np.asarray(v).ravel() for v in reference(system, lj_soft, cutoff=1.5,
+                                                             excluded={(0, 1), (3, 4)})(x))
+    V_trap, F_trap = trap_parts(system, x)
+    V, F = pair_parts(model, x)
+    assert V - V_trap == pytest.approx(float(V_ref[0]), rel=1e-12)
+    np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-10, atol=1e-11 * np.abs(F_ref).max())
