@@ -158,6 +158,7 @@ class PairTerm:
         self._pair = _pair(phi, spec.r, t, q)
         self._tile = _tiles(self._pair, t, q)
         self._coordinates = (3 * spec.particles[:, None] + np.arange(3)).ravel()
+        self._functions = None
         mask = np.zeros(self.n_blocks * BLOCK)
         mask[:self.n] = 1.0
         self._mask = ca.DM(mask.reshape(self.n_blocks, BLOCK).T)
@@ -226,14 +227,13 @@ class PairTerm:
         also evaluates with SX symbols, written out)."""
         Pp = P[self._p_used] if self._p_used else ca.MX(0, 1)  # (the entries φ reads)
         Xl = X[self._coordinates.tolist()]
+        every, listed = self._sums()
         if self.cutoff is None or not lists:
-            V, F = self._all_pairs(Xl, T, Pp)
+            V, F = every(Xl, T, Pp)
         else:
             data = P[self.offset:self.offset + self.size]
-            fresh = self.fresh_graph(X, P)
-            listed = ca.vertcat(*self._listed_pairs(Xl, T, Pp, data))
-            every = ca.vertcat(*self._all_pairs(Xl, T, Pp))
-            both = ca.if_else(fresh, listed, every, True)  # the all-pairs branch only when stale
+            both = ca.if_else(self.fresh_graph(X, P), ca.vertcat(*listed(Xl, T, Pp, data)),
+                              ca.vertcat(*every(Xl, T, Pp)), True)  # every pair only when stale
             V, F = both[0], both[1:]
         if len(self.spec.excluded):
             V_ex, F_ex = self._excluded(Xl, T, Pp)
@@ -243,6 +243,21 @@ class PairTerm:
         scatter = ca.DM(ca.Sparsity.triplet(self.n_coordinates, 3 * self.n, self._coordinates.tolist(),
                                             list(range(3 * self.n))), 1.0)
         return V, ca.mtimes(scatter, F)
+
+    def _sums(self) -> tuple[ca.Function, ca.Function | None]:
+        """(every, listed): the pair sums as Functions, built once and called by every Function
+        of the Structure that holds them: ``every(x_l, t, p_φ) -> (V, F)`` over every pair and
+        (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list."""
+        if self._functions is None:
+            Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
+            every = ca.Function("pairs_every", [Xl, T, Pp], list(self._all_pairs(Xl, T, Pp)))
+            listed = None
+            if self.cutoff is not None:
+                data = ca.MX.sym("data", self.size)
+                listed = ca.Function("pairs_listed", [Xl, T, Pp, data],
+                                     list(self._listed_pairs(Xl, T, Pp, data)))
+            self._functions = (every, listed)
+        return self._functions
 
     def fresh_graph(self, X, P):
         """MX: whether the neighbour list in P holds at positions X (``fresh``; false for a
@@ -274,11 +289,13 @@ class PairTerm:
         pad = nb * B - self.n
         Xb = ca.reshape(ca.vertcat(Xl, ca.MX.zeros(3 * pad)) if pad else Xl, 3 * B, nb)
         index = ca.DM(np.arange(nb, dtype=float)).T
-        V, FA, FB = 0, [], 0
+        V, FA, FB, groups = 0, [], 0, {}
         for start in range(0, nb, GROUP):
             k = min(GROUP, nb - start)
             part = slice(start, start + k)
-            group = outer.map(f"pairs_group_{k}", "serial", k, [3, 4, 5, 6, 7], [0, 2])
+            if k not in groups:  # (one map per size: at most two)
+                groups[k] = outer.map(f"pairs_group_{k}", "serial", k, [3, 4, 5, 6, 7], [0, 2])
+            group = groups[k]
             Vg, FAg, FBg = group(Xb[:, part], self._mask[:, part], index[:, part], Xb, self._mask, index,
                                  T, Pp)
             V, FB = V + Vg, FB + FBg
