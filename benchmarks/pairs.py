@@ -2,7 +2,7 @@
 all pairs and with a cutoff.
 
 The scene (written by this script as TOML; physical units): N beads of 1 g on a cubic lattice
-at the pair potential's minimum distance 2^(1/6) σ (jittered by 0.1 σ), moving at about
+at the pair potential's minimum distance 2^(1/6) σ (jittered by 0.02 σ), moving at about
 2 cm/s (zero total momentum: a warm, self-bound droplet, no container), with
 V(r) = 4ε((σ/r)¹² − (σ/r)⁶), σ = 1 cm, ε = 1e-6 J, ``pairwise`` over every pair (``--cutoff``
 none) or with a cutoff (shifted to second order at r_c, a neighbour list of skin 0.1 r_c).
@@ -47,7 +47,7 @@ def cluster_scene(n: int, *, cutoff: float | None, t_end: float, compiled: str =
     rng = np.random.default_rng(seed)
     side = math.ceil(n ** (1 / 3))
     grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
-    x = (grid - (side - 1) / 2) * SPACING + rng.normal(0, 0.1 * SPACING, (n, 3))
+    x = (grid - (side - 1) / 2) * SPACING + rng.normal(0, 0.02 * SPACING, (n, 3))
     v = rng.normal(0, SPEED / math.sqrt(3), (n, 3))
     v -= v.mean(axis=0)
     cut = f", cutoff {cutoff} m" if cutoff else ", all pairs"

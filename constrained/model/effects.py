@@ -137,7 +137,7 @@ class Pairwise(Effect):
     φ_c(r) = φ(r) − φ(r_c) − (r − r_c) φ'(r_c) − ½ (r − r_c)² φ''(r_c) (0 beyond r_c: energy,
     force and its derivative continuous, so the energy is conserved and error-controlled
     steps cross r_c smoothly), found by a neighbour list kept ``skin`` beyond r_c (default
-    0.1 r_c) and rebuilt when a particle has moved more than skin/2.
+    0.1 r_c), valid while no particle has moved more than skin/2 and rebuilt by runs at skin/4.
     ``exclude_bonded``: leave out the pairs joined by a distance constraint.
 
     From model.pairs.MAPPED_PAIRS_FROM pairs the Structure builds φ once as a mapped kernel

@@ -36,8 +36,9 @@ neighbours' reactions are added back by the transposed gather (CasADi's AD of it
 is valid while no particle has moved more than skin/2 since it was built (the positions
 then, ``x_ref``, are in the data): every pair closer than r_c now was closer than r_c + skin
 then. The graph checks that itself and takes the all-pairs branch when it does not hold (a
-short-circuit conditional), so a stale list costs time, never accuracy; runs refresh it
-(``PairTerm.fresh``, ``PairPotentials.refreshed``).
+short-circuit conditional), so a stale list costs time, never accuracy; runs refresh it at
+half that distance, so the steps taken from a fresh list stay within it (``PairTerm.fresh``,
+``PairPotentials.refreshed``, ``REFRESH_SHARE``).
 
 Excluded pairs (``exclude_bonded``: joined by a distance constraint) are subtracted after
 the sums, from a constant list (a few per particle).
@@ -208,14 +209,17 @@ class PairTerm:
         where[places[real].astype(np.int64)] = np.flatnonzero(real)
         return np.concatenate([[float(valid)], ref, places, where, slots.ravel(order="F")])
 
-    def fresh(self, x, data) -> bool:
+    def fresh(self, x, data, share: float = 1.0) -> bool:
         """Whether ``data`` still holds every pair within the cutoff at positions ``x`` (no
-        particle moved more than skin/2 since it was built; always, without a cutoff)."""
+        particle moved more than skin/2 since it was built; always, without a cutoff);
+        ``share`` < 1: more than share · skin/2 counts as moved (a run refreshes its list
+        at half of that, so that a step taken from there still finds it valid)."""
         if self.cutoff is None:
             return True
         moved = self._listed(x) - np.asarray(data[1:1 + 3 * self.n]).reshape(-1, 3)
         with np.errstate(invalid="ignore"):
-            within = np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0) <= (self.skin / 2) ** 2
+            limit = (share * self.skin / 2) ** 2
+            within = np.max(np.einsum("ij,ij->i", moved, moved), initial=0.0) <= limit
         return bool(data[0] == 1 and within)
 
     # --- the graph -----------------------------------------------------------------------
@@ -259,12 +263,12 @@ class PairTerm:
             self._functions = (every, listed)
         return self._functions
 
-    def fresh_graph(self, X, P):
+    def fresh_graph(self, X, P, share: float = 1.0):
         """MX: whether the neighbour list in P holds at positions X (``fresh``; false for a
         list beyond the capacities)."""
         ref = P[self.offset + 1:self.offset + 1 + 3 * self.n]
         moved = ca.reshape(X[self._coordinates.tolist()] - ref, 3, self.n)
-        within = ca.sum1(moved * moved) <= (self.skin / 2) ** 2
+        within = ca.sum1(moved * moved) <= (share * self.skin / 2) ** 2
         return ca.logic_and(P[self.offset] == 1, ca.sum2(ca.logic_not(within)) == 0)
 
     def valid_graph(self, P):

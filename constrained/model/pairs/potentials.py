@@ -16,6 +16,10 @@ from .kernel import PairTerm
 #: Fewer pairs than this (about 25 particles) are written out pair by pair in the Structure's
 #: one SX graph (``Pairwise.term``): small enough that the SX graph is the faster.
 MAPPED_PAIRS_FROM = 300
+#: A run rebuilds a neighbour list (and a step loop stops for it) once a particle has moved
+#: this share of the skin/2 the list allows: a step taken from there still finds it valid
+#: (beyond skin/2 the graph sums every pair: exact, but O(N²)).
+REFRESH_SHARE = 0.5
 #: The Functions that carry the pair potentials, and where: output index -> "force" or "energy".
 OUTPUTS = {"dynamics": {0: "force"}, "energy": {0: "energy"}, "potential": {0: "energy"}}
 
@@ -77,22 +81,22 @@ class PairPotentials:
         return np.concatenate([np.zeros(0), *[term.data(x) for term in self.terms]])
 
     def stale(self, X, P):
-        """MX: 1 when a neighbour list in P no longer holds at positions X (a particle moved more
-        than skin/2 since it was built), else 0 (0 without one, and for a list beyond its
+        """MX: 1 when a neighbour list in P is due (a particle moved more than REFRESH_SHARE ·
+        skin/2 since it was built), else 0 (0 without one, and for a list beyond its
         capacities, which is never used): step loops stop there for the run to refresh it."""
         stale = ca.MX(0)
         for term in self.terms:
             if term.size:
-                gone = ca.logic_and(term.valid_graph(P), ca.logic_not(term.fresh_graph(X, P)))
+                gone = ca.logic_and(term.valid_graph(P), ca.logic_not(term.fresh_graph(X, P, REFRESH_SHARE)))
                 stale = ca.logic_or(stale, gone)
         return stale
 
     def refreshed(self, p: np.ndarray, x) -> np.ndarray | None:
         """p with the neighbour lists rebuilt at positions ``x`` where a particle has moved more
-        than skin/2 since they were built, or None when every list still holds (the graph is
-        exact either way: a stale list is only slower)."""
+        than REFRESH_SHARE · skin/2 since they were built, or None when every list is good
+        (the graph is exact either way: a stale list is only slower)."""
         stale = [term for term in self.terms
-                 if term.size and not term.fresh(x, p[term.offset:term.offset + term.size])]
+                 if term.size and not term.fresh(x, p[term.offset:term.offset + term.size], REFRESH_SHARE)]
         if not stale:
             return None
         p = np.array(p, dtype=float)
