@@ -38,6 +38,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -390,15 +391,19 @@ def _compile(command: list[str]) -> str | None:
     """Run the C compiler; None on success, else why not. Ctrl-C (a stop request inside a run,
     KeyboardInterrupt outside one) ends the compiler at once instead of waiting for it."""
     with tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
+        # its own session: the compiler and the programs it runs (cc1, as, ld) end together
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
         try:
             while proc.poll() is None:
-                if interrupt.requested():
+                if interrupt.pending():
                     return "the compilation was interrupted (Ctrl-C)"
                 time.sleep(0.02)
         finally:
             if proc.poll() is None:
-                proc.kill()
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except OSError:
+                    proc.kill()
                 proc.wait()
         if proc.returncode != 0:
             err.seek(0)

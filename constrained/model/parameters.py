@@ -53,10 +53,16 @@ def check_name(name, where: str, *, taken: Mapping | set = frozenset(), what: st
     return name
 
 
+#: The longest chain of definitions each using the next (as ``expressions.MAX_DEPTH`` for the
+#: nesting inside one formula): a model's expressions, and the time to build them, grow with it.
+MAX_DEFINITION_DEPTH = 1000
+
+
 def order(definitions: Mapping[str, object], where: str = "definitions") -> list[str]:
     """The definitions' names ordered so that each comes after the definitions it uses.
 
-    Raises InputError naming the cycle (``a -> b -> a``) when a definition depends on itself.
+    Raises InputError naming the cycle (``a -> b -> a``) when a definition depends on itself,
+    or the definition at the end of a chain more than MAX_DEFINITION_DEPTH deep.
     """
     try:
         return list(_order(tuple(definitions.items()), where))
@@ -67,28 +73,40 @@ def order(definitions: Mapping[str, object], where: str = "definitions") -> list
 @functools.lru_cache(maxsize=256)
 def _order(items: tuple, where: str) -> tuple[str, ...]:
     definitions = dict(items)
-    uses = {name: (expressions.free_names(text) & set(definitions)) if isinstance(text, str) else set()
+    names = set(definitions)
+    uses = {name: (expressions.free_names(text) & names) if isinstance(text, str) else set()
             for name, text in definitions.items()}
     done: list[str] = []
     state: dict[str, int] = {}  # 1: being visited, 2: done
+    depth: dict[str, int] = {}  # the longest chain of definitions below each, itself included
 
-    def visit(name: str, path: list[str]) -> None:
-        if state.get(name) == 2:
-            return
-        if state.get(name) == 1:
-            cycle = path[path.index(name):] + [name]
-            raise InputError(
-                f"the definitions form a cycle: {' -> '.join(cycle)}; a definition may use "
-                "parameters and other definitions, but never (through others) itself",
-                where=f"{where}.{cycle[0]}")
-        state[name] = 1
-        for other in sorted(uses[name]):
-            visit(other, [*path, name])
-        state[name] = 2
-        done.append(name)
-
-    for name in definitions:
-        visit(name, [])
+    for root in definitions:  # depth first, with a stack of its own: a chain may be thousands long
+        if state.get(root) == 2:
+            continue
+        state[root], path, stack = 1, [root], [iter(sorted(uses[root]))]
+        while stack:
+            other = next(stack[-1], None)
+            if other is None:  # every definition it uses is placed: place it
+                stack.pop()
+                name = path.pop()
+                state[name] = 2
+                depth[name] = 1 + max((depth[u] for u in uses[name]), default=0)
+                if depth[name] > MAX_DEFINITION_DEPTH:
+                    raise InputError(
+                        f"the definitions nest more than {MAX_DEFINITION_DEPTH} deep: {name} heads a chain "
+                        f"of {depth[name]} definitions, each using the next; write some of them as "
+                        "formulas of the parameters", where=f"{where}.{name}")
+                done.append(name)
+            elif state.get(other) == 1:
+                cycle = path[path.index(other):] + [other]
+                raise InputError(
+                    f"the definitions form a cycle: {' -> '.join(cycle)}; a definition may use "
+                    "parameters and other definitions, but never (through others) itself",
+                    where=f"{where}.{cycle[0]}")
+            elif state.get(other) != 2:
+                state[other] = 1
+                path.append(other)
+                stack.append(iter(sorted(uses[other])))
     return tuple(done)
 
 

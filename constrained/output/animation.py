@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
 
-from ..run.trajectory import Trajectory
+from ..run.trajectory import Trajectory, _umask
 from .figure_style import MAX_LEGEND, colour, legend, motion_plane, particle_names
 
 #: Most frames an animation gets (the trajectory is resampled uniformly in time).
@@ -220,10 +220,13 @@ def _gif(fig, draw, n_frames: int, path: Path, fps: int, progress=None) -> None:
     try:
         frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
                        duration=int(round(1000 / fps)), loop=0)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the mode open() would
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and str(exc.filename or "") != str(path):  # name the user's file
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
         raise
 
 
@@ -257,10 +260,15 @@ def save_animation(traj: Trajectory, path, *, system=None, forces: bool = True, 
         os.close(fd)
         try:
             anim.save(tmp, writer=FFMpegWriter(fps=fps), dpi=dpi, progress_callback=callback)
+            os.chmod(tmp, 0o666 & ~_umask())
             os.replace(tmp, target)
-        except BaseException:
+        except BaseException as exc:
             if os.path.exists(tmp):
                 os.unlink(tmp)
+            if isinstance(exc.__context__, KeyboardInterrupt):  # Ctrl-C ended ffmpeg too: matplotlib
+                raise KeyboardInterrupt from None  # reports its exit status instead of the interrupt
+            if isinstance(exc, OSError) and str(exc.filename or "") != str(target):
+                raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from None
             raise
         written.append(target)
     return written

@@ -323,6 +323,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)
                 X[running, j], V[running, j] = S[:n3, running].T, S[n3:2 * n3, running].T
+        # Ctrl-C in the last chunk: every variant finished, and the caller must stop all the same
+        stopped = interrupt.requested()
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - started
@@ -331,7 +333,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                     S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int),
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
                      "evaluation": evaluation, "block": width, "threads": threads, "method": "dopri",
-                     "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol})
+                     "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol, "interrupted": stopped})
 
 
 def _progress(progress, n_var: int):

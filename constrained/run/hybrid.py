@@ -348,6 +348,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
                      options=options,
                      user_events=events, rest_speed=rest_speed, max_events=max_events, size=size,
                      max_correction=max_initial_correction)
+        if not result.failure and interrupt.requested():  # Ctrl-C in the last step: a stop too
+            result.failure = "interrupted"
     wall = time.perf_counter() - started
     correction = float(np.max(np.linalg.norm((result.x[0] - x0).reshape(-1, 3), axis=1), initial=0.0)) \
         if len(result.t) else 0.0
@@ -376,8 +378,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
     if result.stopped_by:
         traj.info["stopped_by_event"] = result.stopped_by
     if result.failure == "interrupted":
-        raise RunInterrupted(f"the run was interrupted (Ctrl-C) before t_end = {t_end:g} s; what was "
-                             "computed is kept", trajectory=traj)
+        raise RunInterrupted(f"the run was interrupted (Ctrl-C) at t = {reached:.6g} s of t_end = "
+                             f"{t_end:g} s; what was computed is kept", trajectory=traj)
     if result.failure:
         raise SimulationError(f"the run stopped early: {result.failure}; the last good state is at "
                               f"t = {reached:.6g} s", trajectory=traj)

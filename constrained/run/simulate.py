@@ -26,9 +26,6 @@ from .trajectory import QUANTITIES, Trajectory
 from .unilateral import has_one_sided
 from .user_events import user_events
 
-#: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
-INTERRUPTED_QUANTITY_SAMPLES = 5000
-
 
 def simulate(
     system,
@@ -111,18 +108,21 @@ def simulate(
         # Ctrl-C becomes a request the solver honours after its current step or chunk
         with interrupt.watch():
             solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval, events=events)
+            # Ctrl-C in the run's last step (or while its step loop was compiled) stops it too
+            interrupted = solution.status is Status.INTERRUPTED or interrupt.requested()
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
-        interrupted = solution.status is Status.INTERRUPTED
         ended_by_event = solution.status is Status.EVENT
-        if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
-            # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
-            # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
+        skipped = []
+        try:
+            traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
+        except KeyboardInterrupt:
+            if not interrupted:
+                raise
+            # a second Ctrl-C while the stopped run's quantities are computed: keep t, x, v
             skipped, wanted = sorted(wanted & set(QUANTITIES)), set()
-        else:
-            skipped = []
-        traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
+            traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
         if "action" in wanted and len(traj.t) >= 2:
             traj.action = action(model, traj).cumulative
     reached = float(traj.t[-1]) if len(traj.t) else float(t_start)
@@ -136,7 +136,8 @@ def simulate(
             "active_terms": sorted(model.active_terms),
             "status": "interrupted" if interrupted else ("stopped" if solution.failure and not ended_by_event
                                                          else "completed"),
-            "stop": solution.status.value,  # solvers.base.Status: how the run ended
+            # solvers.base.Status: how the run ended
+            "stop": Status.INTERRUPTED.value if interrupted else solution.status.value,
             "t_end": float(t_end),
             "t_end_reached": reached,
             "events": [{"t": hit.t, "name": hit.event.name, "x": hit.x, "v": hit.v}
@@ -148,12 +149,12 @@ def simulate(
     traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
                                np.reshape(hit.v, (-1, 3))) for hit in solution.events]
     if interrupted:
-        note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
-                f"{len(traj.t)} samples)" if skipped else "")
+        note = (f" (a second Ctrl-C: the derived quantities {', '.join(skipped)} were not computed)"
+                if skipped else "")
         if skipped:
             traj.info["quantities_skipped"] = skipped
-        raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
-                             f"what was computed is kept{note}", trajectory=traj)
+        raise RunInterrupted(f"the run was interrupted (Ctrl-C) at t = {reached:.6g} s of t_end = "
+                             f"{t_end:g} s; what was computed is kept{note}", trajectory=traj)
     failure = None if ended_by_event else solution.failure
     bad = None if failure else _first_nonfinite(model, traj, wanted)
     if bad is not None:

@@ -222,6 +222,8 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
     return _copied(scene)
 
 
+#: What a TOML nested beyond what the reader (recursive) takes is told.
+NESTED_TOO_DEEPLY = "its arrays or tables are nested too deeply"
 #: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
 #: again (a sweep, a fresh call) skips the validation and formula checks (about 1 ms). Each
 #: caller gets its own copies of the mutable parts.
@@ -245,6 +247,8 @@ def _parsed(data: bytes, digest: tuple, file: str) -> dict:
             raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
         except tomllib.TOMLDecodeError as exc:
             raise SceneError(f"not valid TOML: {exc}", file=file) from None
+        except RecursionError:  # (Python's TOML reader recurses once per level)
+            raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
         with _LOADED_LOCK:
             _PARSED[digest] = raw
             while len(_PARSED) > SCENES_KEPT:

@@ -149,7 +149,7 @@ def parse_spec(key: str, text: str) -> Spec:
         return Spec(key, text, fn, (a, b))
     try:
         value = tomllib.loads(f"value = {text}")["value"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):
         raise InputError(
             f"cannot read the spec {text!r}: give a list [1, 2, 3], lin(start, stop, n), "
             "log(start, stop, n), "
@@ -395,3 +395,5 @@ def load_raw(scene_text: str, file: str) -> dict:
         return tomllib.loads(scene_text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
+    except RecursionError:
+        raise SceneError("not valid TOML: its arrays or tables are nested too deeply", file=file) from None
