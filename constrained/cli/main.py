@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import errno
 import sys
+import warnings
 from collections.abc import Sequence
 
 from .._version import __version__
@@ -289,6 +290,7 @@ def _dispatch(args) -> int:
     """The verb's exit status; bad input, an unwritable output and Ctrl-C as the epilog says."""
     discard_uncommitted = user_path = None
     try:
+        from ..errors import InitialStateWarning
         from ..output.output_set import discard_uncommitted, user_path
         from . import run as cli_run  # the verbs' imports (NumPy, CasADi, ...) only when one runs
         from . import verbs as cli_verbs
@@ -297,7 +299,9 @@ def _dispatch(args) -> int:
                     "bench": cli_verbs._bench, "statics": cli_verbs._statics, "derive": cli_verbs._derive,
                     "sweep": cli_verbs._sweep, "path": cli_verbs._path, "plot": cli_verbs._plot,
                     "view": cli_verbs._view}
-        return handlers[args.verb](args)
+        with warnings.catch_warnings():  # every verb reports a corrected start in its own words
+            warnings.simplefilter("ignore", InitialStateWarning)
+            return handlers[args.verb](args)
     except InputError as exc:
         _say_error(str(exc))
         return 2

@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 import casadi as ca
 
 from ..errors import InputError
-from .constraints import Labelled, _as_list, _fmt
+from .constraints import Labelled, _as_list, _fmt, _three
 
 
 class Effect(Labelled):
@@ -45,6 +45,7 @@ class Gravity(Effect):
 
     def __init__(self, g, particles=None, *, name=None, where=None):
         self.g, self.name, self.where, self.particles = g, name, where, None
+        _three(g, f"{self.where or 'effect gravity'}.g", "Gravity([0, -9.81, 0]) for g = 9.81 m/s² along −y")
         self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
 
     @property

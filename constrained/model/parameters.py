@@ -16,6 +16,7 @@ depends on itself (a cycle is refused, naming it). Each is read in two ways:
 from __future__ import annotations
 
 import functools
+import keyword
 import math
 from collections.abc import Mapping
 
@@ -44,6 +45,14 @@ def check_name(name, where: str, *, taken: Mapping | set = frozenset(), what: st
     if not isinstance(name, str) or not name.isidentifier():
         raise InputError(f"{what} name {name!r} must be a plain identifier (letters, digits, "
                          "underscore; not starting with a digit)", where=where)
+    if keyword.iskeyword(name):  # formulas are read with Python's syntax: 'lambda' cannot be a name there
+        raise InputError(f"the {what} name '{name}' is a keyword of the formula syntax (Python's), so no "
+                         f"formula could use it; choose another, e.g. '{name}_' or '{name}1'", where=where)
+    if name == "e":
+        raise InputError(f"the {what} name 'e' is taken: in formulas e is Euler's number 2.718...; a "
+                         "coefficient of restitution can be a parameter named e.g. 'e_r' (then "
+                         "restitution = \"e_r\" in the one-sided constraint), or be written there as a "
+                         "number", where=where)
     if name in RESERVED_NAMES:
         raise InputError(f"the {what} name '{name}' is taken (it already means something in "
                          "formulas); choose another", where=where)

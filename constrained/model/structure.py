@@ -47,6 +47,10 @@ class Structure:
 
     def __init__(self, system, *, lift: bool = True):
         system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+        with lifting.shown(numbers):  # a refusal names the scene's numbers, never their tokens
+            self._assemble(system, numbers)
+
+    def _assemble(self, system, numbers: np.ndarray) -> None:
         s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
         x, v, t, p = s.x, s.v, s.t, s.p
         n3 = 3 * system.n_particles

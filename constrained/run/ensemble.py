@@ -33,6 +33,7 @@ from ..model import expressions
 from ..model.cache import ParametricView, structure_cache
 from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
+from ..model.system import require_system
 from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from ..threads import available_cores, one_blas_thread
 
@@ -245,6 +246,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     ``progress(fraction)`` is told how far the slowest running variant is (``True``: a tqdm
     bar on stderr).
     """
+    require_system(system, "simulate_many")
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")

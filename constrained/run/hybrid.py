@@ -311,6 +311,7 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
             record(t, labels[k], "impact", x, v, impulse=result.impulse[k],
                    energy_lost=result.energy_lost if k == hit[0] else 0.0,
                    extra={"approach_speed": approach[k], "restitution": float(e[k]),
+                          **({"kinetic_energy_change": result.kinetic_energy_change} if k == hit[0] else {}),
                           **({"note": note} if note else {})})
         joining = [k for k in joining if k not in hit or k in settles or e[k] == 0]
     candidates = sorted(set(held) | set(joining))

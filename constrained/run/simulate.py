@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import difflib
+import inspect
 import math
 import time
+import warnings
 from collections.abc import Iterable
 
 import casadi as ca
 import numpy as np
 
 from .. import interrupt
-from ..errors import InputError, RunInterrupted, SimulationError
+from ..errors import InitialStateWarning, InputError, RunInterrupted, SimulationError
 from ..manifold import diagnostics
 from ..manifold.manifold import structural_call
 from ..model.structure import Model, assemble
+from ..model.system import require_system
 from ..solvers import DEFAULT_METHOD, METHODS
 from ..solvers.base import Event, Status
 from ..threads import one_blas_thread
@@ -58,8 +62,12 @@ def simulate(
     is then "terminal event"). A system with one-sided constraints runs in segments between
     releases, contacts and impacts (constrained.hybrid).
     """
+    require_system(system, "simulate")
     if method not in METHODS:
-        raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
+        close = difflib.get_close_matches(str(method), sorted(METHODS), n=1)
+        raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})"
+                         + (f"; did you mean '{close[0]}'?" if close else ""))
+    _check_keywords(method, options)
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
@@ -99,6 +107,7 @@ def simulate(
         max_correction=max_initial_correction, size=system.size(),
     )
     x0, v0, correction = start.x, start.v, start.correction
+    _warn_if_corrected(correction, system.velocities, system.size())
     _refuse_nonfinite_start(model, x0, v0, float(t_start))
     started = time.perf_counter()
     solver = METHODS[method](start.manifold, rtol=rtol, atol=atol, dt=dt, **options)
@@ -177,6 +186,46 @@ def simulate(
             trajectory=traj,
         )
     return traj
+
+
+def _warn_if_corrected(correction: dict, v0, size: float) -> None:
+    """An InitialStateWarning when the start was changed beyond round-off (as ``constrained run``
+    prints it): the user's velocity had components the constraints forbid, or the positions
+    were off the constraints (within max_initial_correction)."""
+    speed = max(1.0, float(np.max(np.abs(np.asarray(v0, float)), initial=0.0)))
+    dx, dv = correction["position"], correction["velocity"]
+    changed = []
+    if dx > 1e-9 * size:
+        changed.append(f"positions moved by {dx:.3g} m (the worst violation was "
+                       f"{correction['max_residual_before']:.3g} m, of '{correction['worst_constraint']}')")
+    if dv > 1e-9 * speed:
+        changed.append(f"velocities changed by {dv:.3g} m/s (their components along the constrained "
+                       "directions removed)")
+    if changed:
+        warnings.warn(InitialStateWarning("the initial state was made consistent with the constraints: "
+                                          + "; ".join(changed) + " (trajectory.info['initial_correction'])"),
+                      stacklevel=3)
+
+
+#: Keywords every run takes besides simulate's own and its method's OPTIONS (the solvers' common
+#: ones, and a run with one-sided constraints' own).
+COMMON_KEYWORDS = ("compiled", "progress", "rest_speed", "max_events")
+
+
+def _check_keywords(method: str, options: dict) -> None:
+    """Refuse a keyword no run takes, with the one meant (did you mean 'rtol'?) or the methods
+    that take it; keywords some run takes are checked by the method itself."""
+    own = [name for name in inspect.signature(simulate).parameters if name not in ("system", "options")]
+    takes = {*own, *COMMON_KEYWORDS, *METHODS[method].OPTIONS}
+    for key in sorted(set(options) - takes):
+        elsewhere = sorted(m for m, cls in METHODS.items() if key in cls.OPTIONS)
+        if elsewhere:
+            raise InputError(f"method '{method}' does not take the option {key!r}; "
+                             f"{', '.join(elsewhere)} take{'s' if len(elsewhere) == 1 else ''} it")
+        close = difflib.get_close_matches(key, sorted(takes), n=1)
+        raise InputError(f"simulate() got an unknown keyword {key!r}"
+                         + (f"; did you mean '{close[0]}'?" if close else
+                            f" (it takes {', '.join(sorted(takes))})"))
 
 
 def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: float, stats: dict) -> str:

@@ -76,6 +76,9 @@ class SceneBuilder(RunSections):
         effects = [self.item(i, item, "effects") for i, item in enumerate(self.array_of_tables("effects"))]
         try:
             system = System(particles, constraints, effects, parameters, name, definitions)
+            for c in system.constraints:  # a formula's value in [0, 1] (sweeps check theirs per run)
+                if c.unilateral:
+                    c.coefficient_of_restitution(system.parameter_values)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
         structure = self.structure(system)
@@ -235,8 +238,11 @@ class SceneBuilder(RunSections):
             if not isinstance(v, bool):
                 self.fail(key, f"must be true (a one-sided constraint) or false, got {_describe(v)}")
             return v
-        if k == "restitution":
-            return self.number(v, key, "a coefficient of restitution from 0 to 1")
+        if k == "restitution":  # a number, or a formula of the parameters (swept like any)
+            if isinstance(v, str):
+                return self.formula(v, key)
+            return self.number(v, key, "a coefficient of restitution from 0 to 1, or a formula of the "
+                               "parameters")
         if k in ("a", "b", "particle"):
             return self.particle(v, key)
         if k == "particles":

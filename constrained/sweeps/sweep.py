@@ -193,9 +193,11 @@ def sweep(
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     overrides = list(overrides)
-    if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int)
-                                   or chunk_size < 1):
-        raise InputError(f"--chunk-size must be a whole number >= 1, got {chunk_size!r}")
+    for option, value, least in (("--chunk-size", chunk_size, 1), ("--workers", workers, 1),
+                                 ("--limit", limit, 0), ("--samples", samples, 1)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < least):
+            raise InputError(f"{option} must be a whole number >= {least}, got {value!r}"
+                             + (" (0: compute none of the missing runs)" if option == "--limit" else ""))
     if not vary and design_file is None:
         raise InputError("give at least one --vary KEY=SPEC, or --design FILE")
     specs = [parse_vary(v) for v in vary]
