@@ -129,3 +129,278 @@ def test_the_helper_gone_before_it_answered_means_drawing_here(tmp_path, capsys,
     monkeypatch.setattr(fp, "_serve", die)
     assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert {"trajectory.png", "energy.png"} <= set(_listing(tmp_path / "out"))
+
+
+# --- item 7: an event may be called anything ------------------------------------------------------
+def test_an_event_named_with_spaces_runs_and_is_recorded_by_its_name(tmp_path, capsys):
+    scene = tmp_path / "event.toml"
+    # the pendulum crosses x = 0.2 m going out and coming back (amplitude 0.32 m at 1 m/s)
+    scene.write_text(pendulum_toml(1.0) + '\n[[events]]\nname = "half way"\nexpr = "x_bob - 0.2"\n')
+    assert main(["check", str(scene), "--quiet"]) == 0
+    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--quiet"]) == 0, capsys.readouterr().err
+    traj = C.Trajectory.load(tmp_path / "out" / "trajectory.npz")
+    assert [e.kind for e in traj.events] == ["half way", "half way"]
+    for e in traj.events:
+        assert e.x[0, 0] == pytest.approx(0.2, abs=1e-9)  # located to round-off on the crossing
+
+
+# --- item 8: absurd nesting: a message and exit 2, quickly ----------------------------------------
+def test_a_toml_nested_100000_deep_is_refused_with_exit_2(tmp_path, capsys):
+    scene = tmp_path / "deep.toml"
+    scene.write_text("x = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    for verb in (["check"], ["run", "--out", str(tmp_path / "out")],
+                 ["sweep", "--vary", "simulate.t_end=[1, 2]", "--out", str(tmp_path / "sweep")]):
+        assert main([verb[0], str(scene), *verb[1:]]) == 2
+        err = capsys.readouterr().err
+        assert "nested too deeply" in err and str(scene) in err and "Traceback" not in err, err
+
+
+def _chain(n: int, forward: bool) -> str:
+    """A scene whose mass is the end of a chain of n definitions, each using the next."""
+    lines = ["[parameters]", "m0 = 1.0", "", "[definitions]"]
+    if forward:  # d1 = m0 + 1e-3, d2 = d1 + 1e-3, ... (each uses the one before)
+        lines += [f'd{k} = "{"m0" if k == 1 else f"d{k - 1}"} + 1e-3"' for k in range(1, n + 1)]
+        top = f"d{n}"
+    else:  # d1 = d2 + 1e-3, ..., dn = m0 (each uses the one after: a recursive order would overflow)
+        lines += [f'd{k} = "d{k + 1} + 1e-3"' for k in range(1, n)] + [f'd{n} = "m0"']
+        top = "d1"
+    return "\n".join(lines) + f'\n\n[[particles]]\nname = "p"\nmass = "{top}"\nposition = [0, 0, 0]\n' \
+        "\n[simulate]\nt_end = 0.01\n"
+
+
+@pytest.mark.parametrize("forward", [True, False], ids=["each-uses-the-one-before", "each-uses-the-next"])
+def test_a_definitions_chain_1100_deep_is_refused_quickly_and_1000_deep_works(tmp_path, capsys, forward):
+    scene = tmp_path / "chain.toml"
+    scene.write_text(_chain(1100, forward))
+    assert main(["check", str(scene), "--quiet"]) == 2  # (was: a RecursionError after ~20 s)
+    err = capsys.readouterr().err
+    assert "nest more than 1000 deep" in err and "definitions.d" in err and "Traceback" not in err, err
+    scene.write_text(_chain(1000, forward))
+    system = C.load_scene(scene).system
+    assert system.particles[0].mass == pytest.approx(1.0 + (1000 if forward else 999) * 1e-3, rel=1e-12)
+
+
+def test_a_cycle_in_the_definitions_is_named():
+    s = C.System()
+    s.set_parameter("k", 1.0)
+    s.define("a", "b + k")
+    with pytest.raises(C.InputError, match="cycle: a -> b -> a"):
+        s.define("b", "2 * a")
+
+
+# --- item 9: a damaged saved run is drawn where it can be ------------------------------------------
+@pytest.mark.parametrize("damage", ["some", "all"])
+def test_plot_of_a_file_with_nan_positions(tmp_path, capsys, damage):
+    system = C.load_scene(SCENES / "double_pendulum.toml").system
+    tr = C.simulate(system, 1.0, t_eval=np.linspace(0, 1, 51))
+    if damage == "some":
+        tr.x[10:20] = np.nan
+    else:
+        tr.x[:] = np.nan
+    saved = tr.save(tmp_path / "trajectory.npz")
+    code = main(["plot", str(saved), "--out", str(tmp_path / "figs")])
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    if damage == "some":  # every kind drawn, the ten damaged samples left out and said so
+        assert code == 0, err
+        assert "10 of 51 samples" in out
+        assert {"trajectory.png", "phase.png", "energy.png"} <= set(_listing(tmp_path / "figs"))
+    else:
+        assert code == 2 and "nothing to draw" in err and str(saved) in err
+
+
+# --- item 10: parameter names that formulas cannot use --------------------------------------------
+@pytest.mark.parametrize("name", ["lambda", "if", "None", "class"])
+def test_a_parameter_named_like_a_keyword_is_refused_where_it_is_declared(tmp_path, capsys, name):
+    scene = tmp_path / "kw.toml"
+    scene.write_text(f"[parameters]\n{name} = 1.0\n" + pendulum_toml(0.1))
+    assert main(["check", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert f"key parameters.{name}" in err and "keyword" in err and f"'{name}_'" in err, err
+    with pytest.raises(C.InputError, match="keyword"):
+        C.System().set_parameter(name, 1.0)
+
+
+def test_e_is_refused_as_a_name_and_says_how_to_name_restitution(tmp_path, capsys):
+    scene = tmp_path / "e.toml"
+    scene.write_text("[parameters]\ne = 0.5\n" + pendulum_toml(0.1))
+    assert main(["check", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "Euler's number" in err and "'e_r'" in err and 'restitution = "e_r"' in err, err
+
+
+BOUNCE = """
+[parameters]
+e_r = 0.5
+h = 1.0
+
+[[particles]]
+name = "ball"
+mass = 0.3
+position = [0.0, "h", 0.0]
+
+[[constraints]]
+name = "floor"
+type = "plane"
+particles = ["ball"]
+normal = [0.0, 1.0, 0.0]
+offset = 0.0
+unilateral = true
+restitution = "e_r"
+
+[[effects]]
+type = "gravity"
+g = [0.0, -9.81, 0.0]
+
+[simulate]
+t_end = 0.6
+"""
+
+
+def test_restitution_is_a_formula_of_the_parameters_and_can_be_swept(tmp_path):
+    """A ball dropped from h = 1 m: it meets the floor at u = sqrt(2 g h) and leaves at e u, so
+    it rises to e² h; the impact dissipates ½ (1 − e²) m u² = (1 − e²) m g h."""
+    from constrained.sweeps.sweep import sweep
+
+    scene = tmp_path / "bounce.toml"
+    scene.write_text(BOUNCE)
+    g, h, m = 9.81, 1.0, 0.3
+    for e in (0.0, 0.5, 0.9):
+        traj = C.load_scene(scene).run([f"parameters.e_r={e}", "simulate.t_end=0.5"]).trajectory
+        (hit,) = [r for r in traj.events if r.kind == "impact"]
+        assert hit.energy_lost == pytest.approx((1 - e**2) * m * g * h, rel=1e-8)
+        assert hit.v[0, 1] == pytest.approx(e * np.sqrt(2 * g * h), rel=1e-8)
+    result = sweep(scene, ["parameters.e_r=[0.25, 0.75, 1.5]"], out_dir=tmp_path / "sw", scheduler="sequential",
+                   progress=False, figure=False)
+    rows = {r["parameters.e_r"]: r for r in result.rows}
+    t_hit, u = np.sqrt(2 * h / g), np.sqrt(2 * g * h)
+    for e in (0.25, 0.75):  # at t_end = 0.6 s, risen from the floor at e u since t_hit
+        dt = 0.6 - t_hit
+        assert rows[e]["status"] == "ok"
+        assert rows[e]["y_ball"] == pytest.approx(e * u * dt - 0.5 * g * dt**2, rel=1e-7)
+    assert "restitution must be at most 1" in rows[1.5]["status"] and "'e_r' = 1.5" in rows[1.5]["status"]
+
+
+# --- item 11: misused arguments, each with the message that helps -----------------------------------
+@pytest.mark.parametrize("args, words", [
+    (["--limit", "-2"], "--limit must be a whole number >= 0"),
+    (["--workers", "0"], "--workers must be a whole number >= 1"),
+    (["--chunk-size", "0"], "--chunk-size must be a whole number >= 1"),
+])
+def test_sweep_refuses_counts_that_make_no_sense(tmp_path, capsys, args, words):
+    code = main(["sweep", str(SCENES / "simple_pendulum.toml"), "--vary", "simulate.t_end=[0.1, 0.2]",
+                 "--out", str(tmp_path / "sw"), *args])
+    err = capsys.readouterr().err
+    assert code == 2 and words in err, err
+    assert not (tmp_path / "sw").exists()
+
+
+@pytest.mark.parametrize("first, words", [
+    (None, "simulate() takes a System"), ("scene", "pass its .system"), (3.0, "got float"),
+])
+def test_simulate_of_something_else_than_a_system(first, words):
+    thing = C.load_scene(SCENES / "simple_pendulum.toml") if first == "scene" else first
+    with pytest.raises(C.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        C.simulate(thing, 2.0)
+    with pytest.raises(C.InputError, match="simulate_many"):
+        C.simulate_many(thing, 2.0, {})
+
+
+@pytest.mark.parametrize("restitution, words", [
+    (-0.5, "at least 0.*into the constraint"), (1.5, "at most 1.*create energy"), (True, "a number from 0"),
+])
+def test_restitution_out_of_range_gets_its_own_reason(restitution, words):
+    with pytest.raises(C.InputError, match=words):
+        C.Plane(["p"], normal=[0, 1, 0], unilateral=True, restitution=restitution)
+
+
+def test_gravity_given_a_number_is_refused_at_once_and_no_placeholder_leaks():
+    with pytest.raises(C.InputError, match=r"vector of 3 entries .*, e.g. Gravity\(\[0, -9.81, 0\]\)"):
+        C.Gravity(9.81)
+    with pytest.raises(C.InputError, match="vector of 3 entries"):
+        C.Distance("p", point=[0, 0], length=1.0)
+    # what only the build can find: its message shows the numbers as written
+    s = C.System()
+    s.add_particle("p", 1.0, [1.0, 0.0, 0.0])
+    s.add(C.Distance("p", point=[0.0, 0.0, 0.0], length=[1.5, 2.5]))
+    with pytest.raises(C.InputError) as info:
+        C.simulate(s, 1.0)
+    assert "⟦" not in str(info.value) and "(1.5, 2.5)" in str(info.value)
+
+
+@pytest.mark.parametrize("keyword, meant", [
+    ("rtool", "rtol"), ("t_evel", "t_eval"), ("paramaters", "parameters"),
+    ("max_initial_corection", "max_initial_correction"), ("outptus", "outputs"),
+])
+def test_a_misspelled_simulate_keyword_gets_a_did_you_mean(keyword, meant):
+    system = C.load_scene(SCENES / "simple_pendulum.toml").system
+    with pytest.raises(C.InputError, match=f"unknown keyword '{keyword}'; did you mean '{meant}'"):
+        C.simulate(system, 0.1, **{keyword: 1})
+
+
+def test_an_option_of_another_method_is_named_as_such():
+    system = C.load_scene(SCENES / "simple_pendulum.toml").system
+    with pytest.raises(C.InputError, match="method 'dopri' does not take the option 'max_step'; ggl, idas take"):
+        C.simulate(system, 0.1, method="dopri", max_step=0.1)
+
+
+def test_an_inconsistent_initial_velocity_is_corrected_with_a_warning():
+    """The bob at (0, -1, 0) on a 1 m rod given v = (1, 1, 0): the radial 1 m/s cannot be, and is
+    removed (as constrained run reports it); a consistent start warns nothing."""
+    system = C.load_scene(SCENES / "simple_pendulum.toml").system
+    system.particles[0].position[:] = [0.0, -1.0, 0.0]
+    system.particles[0].velocity[:] = [1.0, 1.0, 0.0]
+    with pytest.warns(C.InitialStateWarning, match=r"velocities changed by 1 m/s"):
+        tr = C.simulate(system, 0.1)
+    assert np.allclose(tr.v[0, 0], [1.0, 0.0, 0.0], atol=1e-12)
+    system.particles[0].velocity[:] = [1.0, 0.0, 0.0]
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", C.InitialStateWarning)
+        C.simulate(system, 0.1)
+
+
+# --- item 12: an impact on a moving surface loses energy in the surface's frame ---------------------
+MOVING_FLOOR = """
+[parameters]
+w = 2.0
+e_r = 0.5
+
+[[particles]]
+name = "ball"
+mass = 0.3
+position = [0.0, 1.0, 0.0]
+velocity = [0.0, -1.0, 0.0]
+
+[[constraints]]
+name = "lift"
+type = "plane"
+particles = ["ball"]
+normal = [0.0, 1.0, 0.0]
+offset = "w*t"
+unilateral = true
+restitution = "e_r"
+
+[simulate]
+t_end = 0.5
+"""
+
+
+@pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
+def test_energy_lost_on_a_rising_floor_is_half_one_minus_e_squared_m_u_squared(tmp_path, e):
+    """No gravity: the ball falls at 1 m/s, the floor rises at w = 2 m/s; they meet at
+    t = 1/3 s with relative speed u = 3 m/s. After the impact the ball moves at w + e u. In the
+    floor's frame the loss is ½ (1 − e²) m u²; in the fixed frame the kinetic energy changes by
+    ½ m ((w + e u)² − 1), which the moving floor supplies (positive for e = 1)."""
+    scene = tmp_path / "lift.toml"
+    scene.write_text(MOVING_FLOOR)
+    traj = C.load_scene(scene).run([f"parameters.e_r={e}"]).trajectory
+    (hit,) = [r for r in traj.events if r.kind == "impact"]
+    m, w, u = 0.3, 2.0, 3.0
+    assert hit.t == pytest.approx(1.0 / 3.0, abs=1e-9)
+    assert hit.v[0, 1] == pytest.approx(w + e * u, abs=1e-9)
+    assert hit.energy_lost == pytest.approx(0.5 * (1 - e**2) * m * u**2, abs=1e-9)
+    assert hit.energy_lost >= 0
+    change = 0.5 * m * ((w + e * u) ** 2 - 1.0)
+    assert hit.extra["kinetic_energy_change"] == pytest.approx(change, abs=1e-9)

@@ -209,7 +209,7 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
         released.append(worst)
     v_new = v + model.inverse_masses * (J[rows].T @ P)
     change = float(model.kinetic(v_new)) - float(model.kinetic(v))
-    lost = -change - float(f_t[rows] @ P)  # in the constraint's frame (see the module)
+    lost = max(0.0, -change - float(f_t[rows] @ P))  # in the constraint's frame (see the module)
     impulse = {int(k): float(info.side[k] * P[i] * s[k]) for i, k in enumerate(rows) if k in closing}
     return Impact(v_new, impulse, lost, tuple(released), change)
 

@@ -14,7 +14,7 @@ from ..errors import InputError
 from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
 from ..model.effects import EFFECT_TYPES
-from ..model.parameters import RESERVED_NAMES
+from ..model.parameters import RESERVED_NAMES, check_name
 from ..model.regularity import undefined_items
 from ..model.structure import kept_structure
 from ..model.symbols import Symbols
@@ -172,6 +172,13 @@ class SceneBuilder(RunSections):
                 names |= {f"{axis}_{p}", f"v{axis}_{p}"}
         return names
 
+    def name_for_formulas(self, name: str, key: str, what: str) -> None:
+        """Refuse a name no formula could use (a keyword of the syntax, e, a function), saying why."""
+        try:
+            check_name(name, key, what=what)
+        except InputError as exc:
+            self.fail(key, exc.reason)
+
     def parameters(self) -> dict[str, float]:
         table = self.raw.get("parameters", {})
         reserved = self.reserved_for_formulas()
@@ -179,6 +186,7 @@ class SceneBuilder(RunSections):
         for k, v in table.items():
             key = _join("parameters", k)
             self.identifier(k, key, "a parameter name")
+            self.name_for_formulas(k, key, "parameter")
             if k in reserved:
                 self.fail(
                     key,
@@ -194,6 +202,7 @@ class SceneBuilder(RunSections):
         for k, v in table.items():
             key = _join("definitions", k)
             self.identifier(k, key, "a definition name")
+            self.name_for_formulas(k, key, "definition")
             if k in reserved or k in parameters:
                 what = "a parameter" if k in parameters else "it already means something in formulas"
                 self.fail(key, f"the definition name '{k}' is taken ({what})")
