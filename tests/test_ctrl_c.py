@@ -117,8 +117,9 @@ def test_ctrl_c_while_the_step_loop_compiles_stops_the_run(tmp_path, method):
 def test_ctrl_c_while_a_batched_sweep_compiles_stops_it(tmp_path):
     env, marker = _slow_compiler(tmp_path)
     scene = tmp_path / "kapitza.toml"  # the sweep scene on dopri (batched), compiled
-    scene.write_text((SCENES / "kapitza_sweep.toml").read_text().replace('method = "rattle"', 'method = "dopri"')
-                     .replace("dt = 2e-3\n", "compiled = true\n"))
+    text = (SCENES / "kapitza_sweep.toml").read_text()
+    text = text.replace('method = "rattle"', 'method = "dopri"').replace("dt = 2e-3\n", "compiled = true\n")
+    scene.write_text(text)
     args = ["sweep", str(scene), "--vary", "parameters.a=lin(0.002, 0.02, 8)", "--out", str(tmp_path / "sw"),
             "--scheduler", "sequential", "--quiet"]
     code, seconds, _, err, tag = _interrupt(args, marker.exists, tmp_path, env)

@@ -90,9 +90,10 @@ def test_a_file_too_large_in_the_figure_helper_is_one_line_exit_2_and_no_process
     def limit_file_size():
         resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
 
-    proc = subprocess.run([sys.executable, "-m", "constrained.cli", "run", str(scene), "--out", str(out),
-                           "--quiet", "--set", "simulate.t_end=2", "--set",
-                           'outputs.plots=["trajectory", "energy", "animation"]'], env={**_env(), "CONSTRAINED_TEST_TAG": tag}, cwd=tmp_path,
+    args = ["run", str(scene), "--out", str(out), "--quiet", "--set", "simulate.t_end=2", "--set",
+            'outputs.plots=["trajectory", "energy", "animation"]']
+    proc = subprocess.run([sys.executable, "-m", "constrained.cli", *args],
+                          env={**_env(), "CONSTRAINED_TEST_TAG": tag}, cwd=tmp_path,
                           preexec_fn=limit_file_size, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr
     assert "animation.gif: File too large" in proc.stderr and "nothing was written" in proc.stderr
@@ -270,8 +271,8 @@ def test_restitution_is_a_formula_of_the_parameters_and_can_be_swept(tmp_path):
         (hit,) = [r for r in traj.events if r.kind == "impact"]
         assert hit.energy_lost == pytest.approx((1 - e**2) * m * g * h, rel=1e-8)
         assert hit.v[0, 1] == pytest.approx(e * np.sqrt(2 * g * h), rel=1e-8)
-    result = sweep(scene, ["parameters.e_r=[0.25, 0.75, 1.5]"], out_dir=tmp_path / "sw", scheduler="sequential",
-                   progress=False, figure=False)
+    result = sweep(scene, ["parameters.e_r=[0.25, 0.75, 1.5]"], out_dir=tmp_path / "sw",
+                   scheduler="sequential", progress=False, figure=False)
     rows = {r["parameters.e_r"]: r for r in result.rows}
     t_hit, u = np.sqrt(2 * h / g), np.sqrt(2 * g * h)
     for e in (0.25, 0.75):  # at t_end = 0.6 s, risen from the floor at e u since t_hit
@@ -340,7 +341,7 @@ def test_a_misspelled_simulate_keyword_gets_a_did_you_mean(keyword, meant):
 
 def test_an_option_of_another_method_is_named_as_such():
     system = C.load_scene(SCENES / "simple_pendulum.toml").system
-    with pytest.raises(C.InputError, match="method 'dopri' does not take the option 'max_step'; ggl, idas take"):
+    with pytest.raises(C.InputError, match="'dopri' does not take the option 'max_step'; ggl, idas take"):
         C.simulate(system, 0.1, method="dopri", max_step=0.1)
 
 
@@ -404,3 +405,43 @@ def test_energy_lost_on_a_rising_floor_is_half_one_minus_e_squared_m_u_squared(t
     assert hit.energy_lost >= 0
     change = 0.5 * m * ((w + e * u) ** 2 - 1.0)
     assert hit.extra["kinetic_energy_change"] == pytest.approx(change, abs=1e-9)
+
+
+# --- item 13: a sweep's memory does not grow with its results ---------------------------------------
+def _sweep_peak(tmp_path: Path, n: int) -> int:
+    import gc
+    import tracemalloc
+
+    from constrained.sweeps.sweep import sweep
+
+    gc.collect()
+    tracemalloc.start()
+    try:
+        result = sweep(SCENES / "simple_spring.toml", [f"parameters.k=lin(1, 10, {n})"],
+                       overrides=["simulate.t_end=0.01", "expect={}"], out_dir=tmp_path / f"sweep{n}",
+                       scheduler="sequential", progress=False, figure=False, chunk_size=200,
+                       summary=[f"max:s{i}=x_m*{i + 1}" for i in range(20)])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert result.complete and result.failed == 0 and result.total == n
+    return peak
+
+
+@pytest.mark.slow
+def test_sweep_memory_does_not_grow_with_the_rows_it_has_computed(tmp_path):
+    """Each row (46 columns here) goes to its chunk file and is streamed from there into the
+    summary: the peak grows by what the design itself holds per variant (its point, run id,
+    done flag: ≈ 0.5 KB), not by the rows (≈ 4 KB each when they were kept in memory)."""
+    _sweep_peak(tmp_path, 50)  # (imports, the model's build and compile: before measuring)
+    small, large = _sweep_peak(tmp_path, 1000), _sweep_peak(tmp_path, 4000)
+    per_variant = (large - small) / 3000
+    assert per_variant < 1500, f"{per_variant:.0f} bytes per variant"
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(tmp_path / "sweep4000" / "summary.parquet")  # the table is whole, in order
+    assert table.num_rows == 4000 and table.column("run").to_pylist() == list(range(4000))
+    k = np.asarray(table.column("parameters.k").to_pylist())
+    assert np.allclose(k, np.linspace(1, 10, 4000))
+    s0, s1 = (np.asarray(table.column(c).to_pylist()) for c in ("s0", "s1"))  # max x_m, max 2 x_m
+    assert np.all(s0 > 0) and np.allclose(s1, 2 * s0, rtol=1e-15)

@@ -297,7 +297,7 @@ def _sweep(args) -> int:
     for warning in result.warnings:
         _say(f"{PROG}: warning: {warning}", always=True)
     if result.failed:
-        _say(f"{PROG}: warning: {result.failed} of {len(result.rows)} runs failed (their errors are in "
+        _say(f"{PROG}: warning: {result.failed} of {result.finished} runs failed (their errors are in "
              f"the status column)", always=True)
     if not args.quiet:
         print(f"sweep: {result.total} runs ({result.computed} computed, {result.skipped} already done, "
@@ -308,7 +308,7 @@ def _sweep(args) -> int:
             for note in result.notes:
                 print(f"note: {note}")
         if not result.complete:
-            print(f"{result.total - len(result.rows)} runs still missing: run the same command again")
+            print(f"{result.total - result.finished} runs still missing: run the same command again")
         print("wrote: " + ", ".join(str(p) for p in result.paths))
     return 0
 
