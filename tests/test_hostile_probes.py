@@ -445,3 +445,37 @@ def test_sweep_memory_does_not_grow_with_the_rows_it_has_computed(tmp_path):
     assert np.allclose(k, np.linspace(1, 10, 4000))
     s0, s1 = (np.asarray(table.column(c).to_pylist()) for c in ("s0", "s1"))  # max x_m, max 2 x_m
     assert np.all(s0 > 0) and np.allclose(s1, 2 * s0, rtol=1e-15)
+
+
+# --- also: ggl failed at t = 0 on a loaded machine (test_runtime's Ctrl-C test, sometimes) ----------
+def test_ggl_on_a_slow_clock_runs_as_on_a_fast_one(monkeypatch):
+    """An output interval that needs more than STEPS_PER_CALL steps fails its SUNDIALS call
+    (IDA_TOO_MUCH_WORK). Whether the call was then retried over fewer outputs hinged on how
+    long the failed call took; on a loaded machine it was not, the first interval was split
+    instead of the failing one, again and again, and the run failed at t = 0 (test_runtime's
+    Ctrl-C test of ggl, sometimes). The retry is decided by step counts now: a clock 50x slower
+    gives the same motion. (The simple pendulum takes ~120 steps a second at rtol 1e-8: an
+    interval of 200 s is beyond one call.)"""
+    import time as real_time
+
+    import constrained.solvers.idas as idas
+
+    system = C.load_scene(SCENES / "simple_pendulum.toml").system
+    kw = dict(method="ggl", t_eval=[0.0, 200.0, 400.0], outputs=["energy", "constraint_residual"])
+    fast = C.simulate(system, 400.0, **kw)
+
+    class SlowClock:  # every call seems 50 times longer (a machine shared by other jobs)
+        def __getattr__(self, name):
+            return getattr(real_time, name)
+
+        @staticmethod
+        def perf_counter():
+            return 50.0 * real_time.perf_counter()
+
+    monkeypatch.setattr(idas, "time", SlowClock())
+    slow = C.simulate(system, 400.0, **kw)
+    assert slow.info["status"] == "completed" and list(slow.t) == [0.0, 200.0, 400.0]
+    assert fast.stats["steps"] / 2 > idas.STEPS_PER_CALL  # (each interval is beyond one call)
+    assert np.max(np.abs(slow.x - fast.x)) < 1e-5
+    assert np.max(np.abs(slow.energy - slow.energy[0])) < 1e-6 * abs(slow.energy[0])
+    assert np.max(slow.constraint_residual) < 1e-10

@@ -173,11 +173,15 @@ class _IdasBase(Stepper):
                 # first step in RESTART_STEPS usually passes
                 self._step0_next = self._step0 * self._retries.pop(0)
                 return Advance.empty(state, n3)
+            if "TOO_MUCH_WORK" in reason and span > 1e-9 * max(abs(seg[-1]), 1e-300):
+                # more than STEPS_PER_CALL steps for this span: the pace is at least SPLIT times
+                # that, and the next call is cut to fit it (``pieces`` above: fewer output times,
+                # or inner times in one interval). Decided by step counts, never by the clock, so
+                # a run does not fail on a loaded machine where it passes on an idle one
+                self._pace = max(self._pace, SPLIT * STEPS_PER_CALL / span)
+                return Advance.empty(state, n3)
             if self._calls.retry_smaller(len(seg), time.perf_counter() - called):
                 return Advance.empty(state, n3)
-            if "TOO_MUCH_WORK" in reason and seg[0] - t_prev > 1e-9 * max(abs(seg[-1]), 1e-300):
-                inner = tuple(float(tk) for tk in np.linspace(t_prev, seg[0], SPLIT + 1)[1:-1])
-                return Advance.empty((t_prev, y, z, inner + times), n3)
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
                                  f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
         self._calls.took(time.perf_counter() - called)
