@@ -75,14 +75,23 @@ def simulate(
         raise InputError(f"t_end ({t_end:g} s) must be later than t_start ({t_start:g} s)")
     if not (isinstance(max_initial_correction, int | float) and max_initial_correction >= 0):
         raise InputError(f"max_initial_correction must be >= 0, got {max_initial_correction!r}")
-    wanted = OUTPUT_NAMES if outputs is None else set(outputs)
+    try:
+        wanted = OUTPUT_NAMES if outputs is None else set(outputs)
+        if isinstance(outputs, str) or not all(isinstance(name, str) for name in wanted):
+            raise TypeError
+    except TypeError:
+        raise InputError(f"outputs must be a list of names (of {', '.join(sorted(OUTPUT_NAMES))}), "
+                         f"got {outputs!r:.80}") from None
     unknown = wanted - OUTPUT_NAMES
     if unknown:
         raise InputError(
             f"unknown output(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(OUTPUT_NAMES))})"
         )
     if t_eval is not None:
-        t_eval = np.asarray(list(t_eval), dtype=float).ravel()
+        try:
+            t_eval = np.asarray(list(t_eval), dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise InputError(f"t_eval must be a list of times in seconds, got {t_eval!r:.80}") from None
         if t_eval.size == 0 or not np.all(np.isfinite(t_eval)):
             raise InputError("t_eval must be a non-empty list of finite times")
         if np.any(np.diff(t_eval) <= 0):

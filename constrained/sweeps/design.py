@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..scene.load import SceneError, parse_override
+from ..scene.load import NESTED_TOO_DEEPLY, SceneError, parse_override, refuse_deep_nesting
 
 #: The most runs one design may have (values of one spec, and grid x samples): a larger
 #: design is refused before it is built (it would take minutes and gigabytes to list).
@@ -392,8 +392,10 @@ def parse_summary(text: str) -> Summary:
 def load_raw(scene_text: str, file: str) -> dict:
     """The scene's TOML as a dict; a SceneError names the file when it is not TOML."""
     try:
-        return tomllib.loads(scene_text)
+        raw = tomllib.loads(scene_text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
     except RecursionError:
-        raise SceneError("not valid TOML: its arrays or tables are nested too deeply", file=file) from None
+        raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
+    refuse_deep_nesting(raw, file)
+    return raw
