@@ -38,14 +38,8 @@ STABILITY_RTOL = 1e-8
 FORCE_RTOL = 1e-10
 LENGTH_RTOL = 1e-12
 
-__all__ = [
-    "Equilibrium",
-    "equilibrium",
-    "virtual_work",
-    "constraint_virtual_work_residual",
-    "generalized_forces",
-    "tangent_basis",
-]
+__all__ = ["Equilibrium", "equilibrium", "virtual_work", "constraint_virtual_work_residual",
+           "generalized_forces", "tangent_basis"]
 
 
 @dataclass
@@ -89,6 +83,9 @@ class Equilibrium:
     #: One-sided constraint rows that do not hold at this equilibrium (their force would have
     #: the forbidden sign there; multiplier 0).
     slack: list[str] = field(default_factory=list)
+    #: Each constraint row's scale max_p |∂f/∂x_p| at x (constrained.residual): λ_k times it is
+    #: a force in N, so the solve's force accuracy bounds |λ_k| by it over this scale.
+    row_scales: np.ndarray | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -402,6 +399,7 @@ def equilibrium(
         raise InputError("no consistent set of holding one-sided constraints found (the active set "
                          "cycles); give a starting configuration nearer the equilibrium (x_guess)")
     eq.multipliers, eq.constraint_labels = lam, list(model.constraint_labels)
+    eq.row_scales = residual.row_scales(model, eq.x.ravel(), t)
     eq.slack = [model.constraint_labels[k] for k in info.rows if k not in held]
     return eq
 
@@ -523,4 +521,5 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         tangent_basis=N,
         method=used,
         max_constraint_residual=residual.position_residual(model, x, t),  # metres
+        row_scales=residual.row_scales(model, x, t) if C else np.zeros(0),
     )
