@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+import functools
 import inspect
 import math
 import time
@@ -67,7 +68,8 @@ def simulate(
         close = difflib.get_close_matches(str(method), sorted(METHODS), n=1)
         raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})"
                          + (f"; did you mean '{close[0]}'?" if close else ""))
-    _check_keywords(method, options)
+    if options:
+        _check_keywords(method, options)
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
@@ -222,11 +224,15 @@ def _warn_if_corrected(correction: dict, v0, size: float) -> None:
 COMMON_KEYWORDS = ("compiled", "progress", "rest_speed", "max_events")
 
 
+@functools.cache
+def _own_keywords() -> tuple[str, ...]:
+    return tuple(name for name in inspect.signature(simulate).parameters if name not in ("system", "options"))
+
+
 def _check_keywords(method: str, options: dict) -> None:
     """Refuse a keyword no run takes, with the one meant (did you mean 'rtol'?) or the methods
     that take it; keywords some run takes are checked by the method itself."""
-    own = [name for name in inspect.signature(simulate).parameters if name not in ("system", "options")]
-    takes = {*own, *COMMON_KEYWORDS, *METHODS[method].OPTIONS}
+    takes = {*_own_keywords(), *COMMON_KEYWORDS, *METHODS[method].OPTIONS}
     for key in sorted(set(options) - takes):
         elsewhere = sorted(m for m, cls in METHODS.items() if key in cls.OPTIONS)
         if elsewhere:
