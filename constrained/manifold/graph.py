@@ -88,7 +88,7 @@ def _flush_underflow(J):
     its nonzeros (elementwise operations on a large sparse MX matrix are slow to build)."""
     if isinstance(J, ca.SX | ca.DM):
         return J * (ca.fabs(J) >= UNDERFLOW)
-    nz = J.nz[:]
+    nz = ca.vec(J.nz[:])
     return ca.MX(J.sparsity(), nz * (ca.fabs(nz) >= UNDERFLOW))
 
 
