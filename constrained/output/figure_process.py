@@ -126,7 +126,10 @@ class FigureProcess:
 
         try:
             while True:
-                kind, *rest = self.conn.recv()
+                try:
+                    kind, *rest = self.conn.recv()
+                except (EOFError, OSError):  # the helper is gone (the pipe closed or reset)
+                    return None
                 if kind == "progress":
                     if progress is not None:
                         progress(rest[0])
@@ -141,8 +144,6 @@ class FigureProcess:
                     if name in ("InputError", "ExpressionError"):
                         raise InputError(message)
                     raise RuntimeError(f"drawing the figures failed: {name}: {message}")
-        except EOFError:
-            return None
         finally:
             self.close(abandon=True)
 
