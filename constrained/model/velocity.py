@@ -157,21 +157,28 @@ class Rolling(VelocityConstraint):
             raise InputError(f"must be three numbers (a fixed plane), got {normal!r}", where=f"{where}.normal")
         if not any(normal):
             raise InputError("the normal vector is zero", where=f"{where}.normal")
-        if isinstance(radius, bool) or not isinstance(radius, int | float) or not radius >= 0:
-            raise InputError(f"must be a number of metres ≥ 0, got {radius!r}", where=f"{where}.radius")
-        if radius > 0 and (a is None or b is None):
+        if isinstance(radius, bool) or not (isinstance(radius, str) and radius.strip()
+                                            or isinstance(radius, int | float) and radius >= 0):
+            raise InputError(f"must be a number of metres ≥ 0 (or a formula of the parameters), got "
+                             f"{radius!r}", where=f"{where}.radius")
+        #: Whether a ball rolls (radius > 0, or a formula), or the particle itself touches.
+        self.ball = isinstance(radius, str) or radius > 0
+        if self.ball and (a is None or b is None):
             raise InputError("a rolling ball (radius > 0) needs two more particles 'a' and 'b' of its body, "
                              "which with the centre give its orientation", where=where)
-        if radius > 0 and len({particle, a, b}) < 3:
+        if self.ball and len({particle, a, b}) < 3:
             raise InputError("'particle', 'a' and 'b' must be three different particles of the body",
                              where=where)
+        if not self.ball and (a is not None or b is not None):
+            raise InputError("'a' and 'b' give the body of a rolling ball: give a 'radius' > 0 with them, "
+                             "or leave them out (radius 0: the particle itself does not slide)", where=where)
         self.normal = [float(c) for c in normal]
 
     @property
     def label(self) -> str:
         if self.name:
             return self.name
-        if self.radius:
+        if self.ball:
             return f"rolling {self.particle} (radius {_fmt(self.radius)} m, normal {_fmt(self.normal)})"
         return f"no slip {self.particle} (normal {_fmt(self.normal)})"
 
@@ -186,12 +193,12 @@ class Rolling(VelocityConstraint):
         where = self._where()
         n, t1, t2 = (ca.DM(u) for u in self.tangents())
         vc = s.velocity(self.particle, where)
-        if type(self.radius) is not float or self.radius:  # a ball: the body's point at the contact
+        if self.ball:  # the body's material point at the contact
             xc = s.position(self.particle, where)
             e1, e2 = s.position(self.a, where) - xc, s.position(self.b, where) - xc
             d1, d2 = s.velocity(self.a, where) - vc, s.velocity(self.b, where) - vc
             e3, d3 = ca.cross(e1, e2), ca.cross(d1, e2) + ca.cross(e1, d2)
-            r = -s.number(self.radius) * n
+            r = -s.time_function(self.radius, f"{where}.radius") * n
             det = ca.dot(e1, e3)  # = |e₁ × e₂|²
             alpha, beta, gamma = (ca.dot(ca.cross(e2, e3), r) / det, ca.dot(ca.cross(e3, e1), r) / det,
                                   ca.dot(e3, r) / det)

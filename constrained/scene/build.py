@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import InputError
 from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
+from ..model.velocity import VELOCITY_TYPES
 from ..model.effects import EFFECT_TYPES
 from ..model.parameters import RESERVED_NAMES
 from ..model.regularity import undefined_items
@@ -201,7 +202,7 @@ class SceneBuilder(RunSections):
         """One [[constraints]] or [[effects]] entry -> the library object."""
         key = _join(section, i)
         kind = "constraint" if section == "constraints" else "effect"
-        types = CONSTRAINT_TYPES if section == "constraints" else EFFECT_TYPES
+        types = {**CONSTRAINT_TYPES, **VELOCITY_TYPES} if section == "constraints" else EFFECT_TYPES
         schema = CONSTRAINT_KEYS if section == "constraints" else EFFECT_KEYS
         if "type" not in item:
             self.fail(
@@ -241,6 +242,12 @@ class SceneBuilder(RunSections):
             return self.particle(v, key)
         if k == "particles":
             return self.particle_list(v, key)
+        if k in ("across", "along"):  # a knife edge's direction: two particles
+            pair = self.particle_list(v, key)
+            if len(pair) != 2:
+                self.fail(key, f"must be a list of two particle names (the direction from the first to "
+                               f"the second), got {len(pair)}")
+            return pair
         if k in ("point", "normal", "g", "A"):
             return self.vector(v, key)
         if k == "expr":
