@@ -29,6 +29,7 @@ from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
 from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
+from . import rest
 
 #: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
 #: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
@@ -38,14 +39,8 @@ STABILITY_RTOL = 1e-8
 FORCE_RTOL = 1e-10
 LENGTH_RTOL = 1e-12
 
-__all__ = [
-    "Equilibrium",
-    "equilibrium",
-    "virtual_work",
-    "constraint_virtual_work_residual",
-    "generalized_forces",
-    "tangent_basis",
-]
+__all__ = ["Equilibrium", "equilibrium", "virtual_work", "constraint_virtual_work_residual",
+           "generalized_forces", "tangent_basis"]
 
 
 @dataclass
@@ -89,6 +84,8 @@ class Equilibrium:
     #: One-sided constraint rows that do not hold at this equilibrium (their force would have
     #: the forbidden sign there; multiplier 0).
     slack: list[str] = field(default_factory=list)
+    #: What the velocity constraints do at this equilibrium (analysis/rest.py), or "".
+    velocity_constraints: str = ""
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -133,6 +130,7 @@ class Equilibrium:
             "constraint_virtual_work_residual": self.constraint_virtual_work_residual,
             "max_constraint_residual": self.max_constraint_residual,
             "slack": list(self.slack),
+            "velocity_constraints": self.velocity_constraints,
         }
 
     def __repr__(self) -> str:
@@ -170,8 +168,8 @@ def _forces_at_rest(model: Model, x: np.ndarray, t: float) -> tuple[np.ndarray, 
 
 
 def virtual_work(system, x, t: float = 0.0, *, model: Model | None = None) -> float:
-    """max |δW| over unit admissible virtual displacements: ‖Nᵀ F‖₂, N an orthonormal basis
-    of null(J(x)), F = all effects' forces at (x, v = 0, t). Zero exactly at equilibrium."""
+    """max |δW| over unit admissible virtual displacements: ‖Nᵀ F‖₂, N an orthonormal basis of
+    null(J(x)) (∩ null(A): velocity rows too), F = the forces at (x, v = 0, t); 0 at equilibrium."""
     model = model or assemble(system)
     xf = _flat(system, x)
     F, J = _forces_at_rest(model, xf, t)
@@ -434,7 +432,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     # (constraint rows in metres: each over its scale, constrained.residual)
     w = np.concatenate(
         [np.full(n3, 1.0 / (FORCE_RTOL * force_scale)),
-         1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t))]
+         1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t)[:model.n_position_rows])]
     )
 
     def restore(z: np.ndarray) -> np.ndarray:
@@ -471,9 +469,12 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
             "particles' positions), or check that the forces can be balanced by the constraints"
         )
     x = z[:n3]
-    F, J = _forces_at_rest(model, x, t)
-    lam = _min_norm_multipliers(model, J, F)
-    N = tangent_basis(J, n3)
+    rest.require_rest(model, x, t, size)
+    F, G = _forces_at_rest(model, x, t)  # G: J, then velocity rows' A (d'Alembert: A δx = 0 too)
+    lam = _min_norm_multipliers(model, G, F)
+    note, held = rest.velocity_forces_note(model, G, lam, force_scale)
+    J, Nv = G[:model.n_position_rows], tangent_basis(G, n3)
+    N = tangent_basis(J, n3)  # stability on the configuration's tangent space
     K = np.asarray(kkt.stiffness(x, lam), float)
     knorm = float(np.linalg.norm(K, 2)) if K.size else 0.0
     conservative = bool(np.linalg.norm(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
@@ -488,7 +489,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
     tol = stability_rtol * (float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0)
     soft = np.abs(omega2) <= tol
-    if not conservative:
+    if not conservative or held or note and np.any(omega2 <= tol):  # see analysis/rest.py
         stable = None
     elif np.any(omega2 < -tol):
         stable = False
@@ -499,19 +500,19 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     modes = r[:, None] * (Nw @ vec[:, soft])
     modes = modes / np.maximum(np.linalg.norm(modes, axis=0), 1e-300)
     soft_modes = modes.T.reshape(-1, model.n_particles, 3)
-    Fc = J.T @ lam if C else np.zeros(n3)
+    Fc = G.T @ lam if C else np.zeros(n3)
     return Equilibrium(
         x=x.reshape(-1, 3),
         multipliers=lam,
         constraint_forces=Fc.reshape(-1, 3),
         applied_forces=F.reshape(-1, 3),
-        anchor_reactions=_anchor_reactions(model, J, lam) if C else [],
+        anchor_reactions=_anchor_reactions(model, G, lam) if C else [],
         stable=stable,
         eigenvalues=eig,
         frequencies_squared=omega2,
         soft_modes=soft_modes,
-        virtual_work_residual=float(np.linalg.norm(N.T @ F)),
-        constraint_virtual_work_residual=float(np.linalg.norm(N.T @ Fc)),
+        virtual_work_residual=float(np.linalg.norm(Nv.T @ F)),
+        constraint_virtual_work_residual=float(np.linalg.norm(Nv.T @ Fc)),
         converged=converged,
         iterations=iterations,
         particle_names=list(system.names),
@@ -523,4 +524,5 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         tangent_basis=N,
         method=used,
         max_constraint_residual=residual.position_residual(model, x, t),  # metres
+        velocity_constraints=note,
     )
