@@ -149,6 +149,8 @@ class Rolling(VelocityConstraint):
                  name=None, where=None, unilateral: bool = False, restitution: float = 0.0):
         self.particle, self.normal, self.radius, self.a, self.b = particle, normal, radius, a, b
         self.name, self.where = name, where
+        #: Whether a ball rolls (radius > 0, or a formula), or the particle itself touches.
+        self.ball = isinstance(radius, str) or (isinstance(radius, int | float) and radius > 0)
         self._one_sided(unilateral, restitution)
         where = self._where()
         if (isinstance(normal, str) or not isinstance(normal, Sequence | np.ndarray) or len(normal) != 3
@@ -161,8 +163,6 @@ class Rolling(VelocityConstraint):
                                             or isinstance(radius, int | float) and radius >= 0):
             raise InputError(f"must be a number of metres ≥ 0 (or a formula of the parameters), got "
                              f"{radius!r}", where=f"{where}.radius")
-        #: Whether a ball rolls (radius > 0, or a formula), or the particle itself touches.
-        self.ball = isinstance(radius, str) or radius > 0
         if self.ball and (a is None or b is None):
             raise InputError("a rolling ball (radius > 0) needs two more particles 'a' and 'b' of its body, "
                              "which with the centre give its orientation", where=where)
@@ -199,7 +199,7 @@ class Rolling(VelocityConstraint):
             d1, d2 = s.velocity(self.a, where) - vc, s.velocity(self.b, where) - vc
             e3, d3 = ca.cross(e1, e2), ca.cross(d1, e2) + ca.cross(e1, d2)
             r = -s.time_function(self.radius, f"{where}.radius") * n
-            det = ca.dot(e1, e3)  # = |e₁ × e₂|²
+            det = ca.dot(e3, e3)  # e₁·(e₂ × e₃) = |e₁ × e₂|²
             alpha, beta, gamma = (ca.dot(ca.cross(e2, e3), r) / det, ca.dot(ca.cross(e3, e1), r) / det,
                                   ca.dot(e3, r) / det)
             vc = vc + alpha * d1 + beta * d2 + gamma * d3

@@ -304,7 +304,8 @@ class GGL(_IdasBase):
         F, J, _ = m.dynamics(x, v, t)
         _, f_t = m.velocity_terms(x, t)
         f = m.constraint(x, t)
-        Jf, f = (w[pos] * J[self.rows, :][pos, :], w[pos] * f[[self.rows[k] for k in pos]])
+        Jf, f = ((w[pos] * J[self.rows, :][pos, :], w[pos] * f[[self.rows[k] for k in pos]]) if pos
+                 else (ca.SX(0, n3), ca.SX(0, 1)))
         J, f_t = w * J[self.rows, :], w * f_t[self.rows]  # rows in metres
         return {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu),
                 "ode": ca.vertcat(v + minv * ca.mtimes(Jf.T, mu), minv * (F + ca.mtimes(J.T, lam))),
