@@ -395,7 +395,8 @@ def test_no_slip_particle_is_a_pivot_reached_at_the_velocity_level():
     """radius 0: the particle itself does not slide on the plane. Integrable (its in-plane
     position stays), so a pendulum hung from a no-slip particle swings as from a pin."""
     L = 0.9
-    particles = [C.Particle("o", 5.0, [0, 0, 0]), C.Particle("b", 1.0, [L * math.sin(0.6), -L * math.cos(0.6), 0])]
+    particles = [C.Particle("o", 5.0, [0, 0, 0]),
+                 C.Particle("b", 1.0, [L * math.sin(0.6), -L * math.cos(0.6), 0])]
     base = [C.Distance("o", "b", length=L), C.Plane(["b"], [0, 0, 1])]
     pinned = C.System(particles, [*base, C.Pin("o", [0, 0, 0])], [C.Gravity([0, -G, 0])])
     rolling = C.System(particles, [*base, C.Plane(["o"], [0, 0, 1]), C.Plane(["o"], [0, 1, 0]),

@@ -182,8 +182,9 @@ def _dense_report(model: Model, system, x, t, f, J, samples, seed) -> Constraint
 
 def degrees_of_freedom(system, x=None, t: float = 0.0) -> int:
     """3N − rank J at (x, t): the configuration's freedom (velocity constraints leave it as it
-    is; ``constraint_report(...).velocity_degrees_of_freedom`` counts the velocities). Warns (SingularConfigurationWarning) when the configuration is
-    singular, i.e. the rank is lower here than nearby and the count overstates the freedom."""
+    is; ``constraint_report(...).velocity_degrees_of_freedom`` counts the velocities). Warns
+    (SingularConfigurationWarning) when the configuration is singular, i.e. the rank is lower
+    here than nearby and the count overstates the freedom."""
     report = constraint_report(system, x, t)
     if report.singular:
         warnings.warn(

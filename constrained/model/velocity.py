@@ -115,7 +115,8 @@ class KnifeEdge(VelocityConstraint):
             return self.name
         if self.across is not None:
             return f"knife edge {self.particle} (no velocity along {self.across[0]}→{self.across[1]})"
-        return f"knife edge {self.particle} (blade {self.along[0]}→{self.along[1]}, normal {_fmt(self.normal)})"
+        a, b = self.along
+        return f"knife edge {self.particle} (blade {a}→{b}, normal {_fmt(self.normal)})"
 
     def rows(self, s):
         where = self._where()
@@ -124,7 +125,8 @@ class KnifeEdge(VelocityConstraint):
         if self.across is None:
             d = ca.cross(s.point(self.normal, f"{where}.normal"), d)
         e = d / ca.norm_2(d)
-        return [(self._checked(ca.dot(e, s.velocity(self.particle, where)), s, self.label, where), self.label)]
+        row = ca.dot(e, s.velocity(self.particle, where))
+        return [(self._checked(row, s, self.label, where), self.label)]
 
 
 class Rolling(VelocityConstraint):
@@ -156,7 +158,8 @@ class Rolling(VelocityConstraint):
         if (isinstance(normal, str) or not isinstance(normal, Sequence | np.ndarray) or len(normal) != 3
                 or not all(isinstance(c, int | float) and not isinstance(c, bool) and np.isfinite(c)
                            for c in normal)):
-            raise InputError(f"must be three numbers (a fixed plane), got {normal!r}", where=f"{where}.normal")
+            raise InputError(f"must be three numbers (a fixed plane), got {normal!r}",
+                             where=f"{where}.normal")
         if not any(normal):
             raise InputError("the normal vector is zero", where=f"{where}.normal")
         if isinstance(radius, bool) or not (isinstance(radius, str) and radius.strip()

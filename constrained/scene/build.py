@@ -13,13 +13,13 @@ import numpy as np
 from ..errors import InputError
 from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
-from ..model.velocity import VELOCITY_TYPES
 from ..model.effects import EFFECT_TYPES
 from ..model.parameters import RESERVED_NAMES
 from ..model.regularity import undefined_items
 from ..model.structure import kept_structure
 from ..model.symbols import Symbols
 from ..model.system import Particle, System
+from ..model.velocity import VELOCITY_TYPES
 from .keys import (
     CONSTRAINT_KEYS,
     EFFECT_KEYS,

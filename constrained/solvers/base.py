@@ -221,7 +221,8 @@ class Solver:
         self.model: Model = manifold.model
         if self.refuses_velocity_rows and self.model.n_position_rows < self.model.n_constraints:
             raise InputError(f"method '{self.name}' cannot take velocity constraints: "
-                             f"{self.refuses_velocity_rows}; use another (dopri, projection, baumgarte, idas, ggl, pantelides)")
+                             f"{self.refuses_velocity_rows}; use another method (dopri, projection, "
+                             "baumgarte, idas, ggl, pantelides)")
         #: The constraint rows the method's own equations use (an independent set).
         self.rows: list[int] = (list(range(manifold.model.n_constraints)) if manifold.rows is None
                                 else list(manifold.rows))
