@@ -407,3 +407,24 @@ def test_no_slip_particle_is_a_pivot_reached_at_the_velocity_level():
     np.testing.assert_allclose(b.x, a.x, atol=1e-9)
     # the same force holds the pivot: the rows differ, the sum Jᵀλ does not
     np.testing.assert_allclose(b.constraint_forces, a.constraint_forces, atol=1e-7)
+
+
+def test_rows_of_f_come_first_whatever_the_scene_order():
+    system = sleigh()
+    blade = system.constraints.pop()
+    system.constraints.insert(0, blade)  # the knife edge listed first
+    tr = C.simulate(system, 1.0, rtol=1e-10, atol=1e-12, t_eval=[0.0, 0.5, 1.0])
+    assert tr.constraint_labels[-1] == blade.label  # its multiplier is the last column
+    ref = C.simulate(sleigh(), 1.0, rtol=1e-10, atol=1e-12, t_eval=[0.0, 0.5, 1.0])
+    np.testing.assert_allclose(tr.multipliers, ref.multipliers, atol=1e-10)
+
+
+def test_the_sleigh_scene_runs_other_parameter_values_on_the_same_structure():
+    from constrained.model.structure import Structure
+
+    scene = C.load_scene("scenarios/chaplygin_sleigh.toml")
+    scene.run(["simulate.t_end=1"])
+    builds = Structure.builds
+    result = scene.run(["simulate.t_end=2", "parameters.W0=3.0", "parameters.mS=0.8"])
+    assert result.ok, result.report()
+    assert Structure.builds == builds
