@@ -428,3 +428,21 @@ def test_the_sleigh_scene_runs_other_parameter_values_on_the_same_structure():
     result = scene.run(["simulate.t_end=2", "parameters.W0=3.0", "parameters.mS=0.8"])
     assert result.ok, result.report()
     assert Structure.builds == builds
+
+
+def test_noether_charges_of_a_sleigh_are_those_its_runner_allows():
+    """Translations and rotations leave L and every row unchanged, but d/dt(p·ξ) = μ·(A ξ):
+    the runner pushes across, so neither momentum nor angular momentum is conserved, and
+    is_symmetry names the runner; the energy is the integral that survives (b = 0)."""
+    system = sleigh()
+    for kind in ({"translation": [1, 0, 0]}, {"rotation": ([0, 0, 1], [0, 0, 0])}):
+        report = C.is_symmetry(system, **kind)
+        assert not report.holds
+        assert report.breaking == ["constraint 2 (knife edge P (blade P→F, normal (0, 0, 1)))"]
+    # the same translation without the runner is a symmetry
+    free = C.System(system.particles, system.constraints[:2])
+    assert C.is_symmetry(free, translation=[1, 0, 0]).holds
+    tr = C.simulate(system, 3.0, rtol=1e-10, atol=1e-12, t_eval=np.linspace(0, 3, 31))
+    momentum = np.sum(np.array([1.0, 2.3])[None, :, None] * tr.v, axis=1)
+    assert np.ptp(momentum[:, 0]) > 0.01
+    assert np.ptp(tr.energy) < 1e-9
