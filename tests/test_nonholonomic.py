@@ -446,3 +446,12 @@ def test_noether_charges_of_a_sleigh_are_those_its_runner_allows():
     momentum = np.sum(np.array([1.0, 2.3])[None, :, None] * tr.v, axis=1)
     assert np.ptp(momentum[:, 0]) > 0.01
     assert np.ptp(tr.energy) < 1e-9
+
+
+def test_cyclic_coordinates_of_the_sleigh_are_not_conserved_where_the_runner_acts():
+    scene = C.load_scene("scenarios/chaplygin_sleigh.toml")
+    found = C.conservation(scene)
+    # X and Y are absent from L, but the runner acts on both: their momenta are not conserved
+    assert set(found.structurally_cyclic) == {"X", "Y"}
+    assert found.cyclic == []
+    assert found.jacobi_integral_conserved  # the runner does no work
