@@ -455,3 +455,20 @@ def test_cyclic_coordinates_of_the_sleigh_are_not_conserved_where_the_runner_act
     assert set(found.structurally_cyclic) == {"X", "Y"}
     assert found.cyclic == []
     assert found.jacobi_integral_conserved  # the runner does no work
+
+
+@pytest.mark.slow
+def test_sleigh_viewer_page_works_in_chromium(tmp_path):
+    from test_viewer import CHROMIUM, IN_CI, selftest
+
+    if CHROMIUM is None:
+        if IN_CI:
+            pytest.fail("chromium is not installed: the viewer tests need it in CI")
+        pytest.skip("no chromium on this machine (the viewer's browser tests run in CI)")
+    assert main(["run", "scenarios/chaplygin_sleigh.toml", "--out", str(tmp_path), "--set",
+                 "simulate.t_end=2", "--set", 'outputs.plots=["viewer"]', "--quiet"]) == 0
+    report = selftest(CHROMIUM, tmp_path / "viewer.html")
+    assert report["errors"] == [], report
+    assert report["particles"] == 3 and report["constraints"] == 5  # plane, three rods, the runner (listed)
+    assert report["start"]["ink"] > 1000 and report["slider_changes_picture"]
+    assert report["multiplier_choice_changes_panel"] and report["forces_toggle_changes_picture"]
