@@ -472,3 +472,30 @@ def test_sleigh_viewer_page_works_in_chromium(tmp_path):
     assert report["particles"] == 3 and report["constraints"] == 5  # plane, three rods, the runner (listed)
     assert report["start"]["ink"] > 1000 and report["slider_changes_picture"]
     assert report["multiplier_choice_changes_panel"] and report["forces_toggle_changes_picture"]
+
+
+def test_a_turning_constraint_with_b_zero_does_no_work():
+    """v · e(t) = 0 with e(t) = (cos Ωt, sin Ωt, 0): rheonomic, but b = 0, so its force does no
+    work (power −μ·b): the speed stays V and the particle runs round a circle of radius V/Ω."""
+    m, V, W = 0.013, 0.04, 2.5  # grams and centimetres
+    system = C.System([C.Particle("p", m, [0.01, 0.02, 0], [0, V, 0])],
+                      [C.Plane("p", [0, 0, 1]), C.Velocity(f"vx_p*cos({W}*t) + vy_p*sin({W}*t)")])
+    t = np.linspace(0.0, 4.0, 81)
+    for method in ("dopri", "idas"):
+        tr = C.simulate(system, 4.0, method=method, rtol=1e-10, atol=1e-13, t_eval=t)
+        np.testing.assert_allclose(tr.x[:, 0, 0], 0.01 + V / W * (np.cos(W * t) - 1), atol=1e-10)
+        np.testing.assert_allclose(tr.x[:, 0, 1], 0.02 + V / W * np.sin(W * t), atol=1e-10)
+        np.testing.assert_allclose(np.linalg.norm(tr.v[:, 0], axis=1), V, rtol=1e-8)
+        # the force is the centripetal m V Ω, across the velocity
+        np.testing.assert_allclose(np.abs(tr.multipliers[:, -1]), m * V * W, rtol=1e-6)
+
+
+def test_gram_and_centimetre_sleigh_follows_the_closed_form():
+    scale = dict(mP=0.002, mF=0.0035, L=0.012, v0=0.003, w0=0.4)
+    t = np.linspace(0.0, 5.0, 51)
+    tr = C.simulate(sleigh(**scale), 5.0, rtol=1e-10, atol=1e-14, t_eval=t)
+    omega, speed, heading = sleigh_state(tr, scale["L"])
+    omega_ref, speed_ref, heading_ref = sleigh_closed_form(t, **scale)
+    np.testing.assert_allclose(omega, omega_ref, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(speed, speed_ref, rtol=1e-7, atol=1e-11)
+    np.testing.assert_allclose(heading, heading_ref, atol=1e-8)

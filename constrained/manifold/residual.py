@@ -45,8 +45,9 @@ def _build(model) -> dict:
     x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
     p = ca.SX.sym("p", len(model.parameter_vector))
     view = ParametricView(model, p)
-    f, _ = view.jacobian(x, t)
-    J, f_t = view.velocity_terms(x, t)  # every row (those of f first, then velocity rows)
+    f, J = view.jacobian(x, t)
+    G, f_t = view.velocity_terms(x, t)  # every row (those of f first, then velocity rows)
+    J = G if model.n_position_rows < model.n_constraints else J  # (else the same J: one graph)
     s = row_scales_expr(J, model.n_particles)
     C_f = model.n_position_rows
     position = ca.mmax(ca.fabs(f) / s[:C_f]) if C_f else ca.SX(0)
