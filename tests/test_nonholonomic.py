@@ -499,3 +499,13 @@ def test_gram_and_centimetre_sleigh_follows_the_closed_form():
     np.testing.assert_allclose(omega, omega_ref, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(speed, speed_ref, rtol=1e-7, atol=1e-11)
     np.testing.assert_allclose(heading, heading_ref, atol=1e-8)
+
+
+def test_simulate_many_runs_velocity_constraints_in_one_mapped_loop():
+    system = C.System([C.Particle("p", 1.0, [0.2, 0, 0], [0, 0.5, 0])], [C.Velocity("vx_p - U*sin(W*t)")],
+                      [C.Gravity([0, -G, 0])], parameters={"U": 0.8, "W": 3.0})
+    U = np.array([0.1, 0.5, 0.8])
+    t = np.linspace(0.0, 1.0, 11)
+    many = C.simulate_many(system, 1.0, {"U": U}, t_eval=t, rtol=1e-10, atol=1e-12)
+    assert all(s == "completed" for s in many.status)
+    np.testing.assert_allclose(many.x[:, :, 0, 0], 0.2 + np.outer(U, 1 - np.cos(3.0 * t)) / 3.0, atol=1e-9)

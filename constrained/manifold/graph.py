@@ -151,7 +151,7 @@ def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     x = x - dx
     f, J = model.jacobian(x, t)
     s = model.row_scales(x, t) if hasattr(model, "row_scales") else row_scales_expr(J, model.n_particles)
-    residual = ca.mmax(abs(f) / s) if f.numel() else 0
+    residual = ca.mmax(abs(f) / s) if f.numel() else type(x).zeros(1, 1)
     if model.n_position_rows < model.n_constraints:  # velocity rows: a solve of each level
         _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
         x = x - dx
