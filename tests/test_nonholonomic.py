@@ -509,3 +509,22 @@ def test_simulate_many_runs_velocity_constraints_in_one_mapped_loop():
     many = C.simulate_many(system, 1.0, {"U": U}, t_eval=t, rtol=1e-10, atol=1e-12)
     assert all(s == "completed" for s in many.status)
     np.testing.assert_allclose(many.x[:, :, 0, 0], 0.2 + np.outer(U, 1 - np.cos(3.0 * t)) / 3.0, atol=1e-9)
+
+
+def test_an_event_on_the_sleighs_heading_lands_at_the_closed_form_instant():
+    """θ(t) = √(I/M)/a (gd(k t + c0) − gd(c0)) reaches 1 rad at t = (gd⁻¹(gd(c0) + a √(M/I)) − c0)/k,
+    gd⁻¹(y) = asinh(tan y)."""
+    scene = C.load_scene("scenarios/chaplygin_sleigh.toml")
+    M, a, I, v0, W0 = 2.0, 0.5, 1.25, 0.5, 2.0
+    V = math.sqrt((M * v0**2 + I * W0**2) / M)
+    k, c0 = a * M * V / I, math.atanh(v0 / V)
+    expected = (math.asinh(math.tan(math.atan(math.sinh(c0)) + a * math.sqrt(M / I))) - c0) / k
+
+    def heading(t, x, v):
+        return math.atan2((x[4] + x[7]) / 2 - x[1], (x[3] + x[6]) / 2 - x[0]) - 1.0
+
+    for method in ("dopri", "projection"):
+        tr = C.simulate(scene.system, 8.0, method=method, rtol=1e-10, atol=1e-12,
+                        events=[C.Event("turned 1 rad", heading, direction=1)])
+        assert tr.info["stop"] == "terminal event"
+        assert tr.t[-1] == pytest.approx(expected, abs=1e-9)
