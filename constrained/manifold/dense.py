@@ -25,8 +25,9 @@ def row_scale(J: np.ndarray, inverse_masses: np.ndarray) -> np.ndarray:
 
 def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
                 policy: RankPolicy = RANK, full_rank: bool = True) -> np.ndarray:
-    """Solve (J M⁻¹ Jᵀ) y = b; the minimum-norm least-squares y (in the scaled norm |D⁻¹y|)
-    when rows are dependent.
+    """Solve (J M⁻¹ Jᵀ) y = b; for dependent rows the least-squares y of minimum Euclidean
+    norm |y| (the rows as written): of all multipliers giving the same constraint forces Jᵀy,
+    the one with no component along the self-stress space null(Jᵀ).
 
     ``full_rank=False`` skips the Cholesky attempt (the caller knows rows are redundant).
     ``b`` may be a vector (C,) or a matrix (C, k).
@@ -51,11 +52,24 @@ def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
             pass
     # SVD of Ĵ = D J M^(-1/2): A's scaled form is Ĵ Ĵᵀ = U Σ² Uᵀ, so z = U Σ⁻² Uᵀ (D b)
     Jhat = s[:, None] * J * np.sqrt(inverse_masses)[None, :]
-    U, sv, _ = np.linalg.svd(Jhat, full_matrices=False)
+    U, sv, _ = np.linalg.svd(Jhat, full_matrices=J.shape[0] > J.shape[1])
     keep = sv > policy.dependent_rtol * sv[0] if sv.size and sv[0] > 0 else np.zeros(sv.shape, bool)
-    Uk, w = U[:, keep], 1.0 / sv[keep] ** 2
+    Uk, w = U[:, :sv.size][:, keep], 1.0 / sv[keep] ** 2
     z = Uk @ (w * (Uk.T @ sb)) if sb.ndim == 1 else Uk @ (w[:, None] * (Uk.T @ sb))
-    return s * z if z.ndim == 1 else s[:, None] * z
+    y = s * z if z.ndim == 1 else s[:, None] * z
+    # null(Ĵᵀ) is spanned by U's other columns, and null(Jᵀ) = D null(Ĵᵀ): z is minimum-norm
+    # in the scaled rows, |D⁻¹ y|; the multipliers' own minimum norm takes null(Jᵀ) out of y
+    dropped = np.concatenate([~keep, np.ones(U.shape[1] - sv.size, bool)])
+    return without_self_stress(y, s[:, None] * U[:, dropped])
+
+
+def without_self_stress(y: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """y less its Euclidean projection on span(N) (columns: a basis of null(Jᵀ), the
+    self-stresses): the minimum-norm multipliers with the same constraint forces Jᵀy."""
+    if N.shape[1] == 0:
+        return y
+    Q, _ = np.linalg.qr(N)
+    return y - Q @ (Q.T @ y)
 
 
 def independent_rows(J: np.ndarray, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> np.ndarray:

@@ -74,6 +74,11 @@ def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None =
     def scale(J):
         return 1.0 / ca.sqrt(ca.mtimes(J * J, minv))
 
+    # CasADi's sparse QR forms Householder norms without guarding against underflow: an entry
+    # of J near 1e-160 (a coordinate that Newton leaves at 1e-160 instead of 0) squares to a
+    # subnormal number and the factorization returns NaN. Such entries are zero in every
+    # physical sense; they are flushed (RATTLE at small steps met them on the four-bar).
+    J_left, J_right = _flush_underflow(J_left), _flush_underflow(J_right)
     d_left, d_right = scale(J_left), scale(J_right)
     # diagonal matrices (sparse) keep the scaling O(nnz): an outer product d_l d_rᵀ would be C × C
     Dl, Dr = ca.diag(d_left), ca.diag(d_right)
@@ -81,6 +86,14 @@ def schur_solve_graph(J_left, J_right, inverse_masses, rhs, linsol: str | None =
     b = ca.mtimes(Dl, rhs)
     z = ca.solve(A, b) if linsol is None else ca.solve(A, b, linsol)
     return ca.mtimes(Dr, z)
+
+
+#: |entries| of J below this are taken as 0 in a numeric QR (their squares would underflow).
+UNDERFLOW = 1e-150
+
+
+def _flush_underflow(J):
+    return ca.if_else(ca.fabs(J) < UNDERFLOW, 0, J)
 
 
 def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl", feedback=None):

@@ -13,7 +13,9 @@ few thousand that SVD is out of reach (C × 3N dense). The same z, sparsely:
 3. the null space of G = Ĵ Ĵᵀ (that of Ĵᵀ): each dependent row is a combination of the
    independent ones, ĵ_r = Ĵ_Iᵀ c_r with G_II c_r = Ĵ_I ĵ_rᵀ, so n_r = e_r − c_r (on I) spans it;
 4. z = P z_p with P = I − N (NᵀN)⁻¹ Nᵀ the projector onto range(G), and D b replaced by
-   P D b in step 2 first: z = G⁺ D b, the minimum-norm least-squares solution, as the SVD's.
+   P D b in step 2 first: z = G⁺ D b, the minimum-norm least-squares solution, as the SVD's;
+5. y = D z less its projection on null(Jᵀ) = D N: the multipliers of minimum Euclidean norm
+   (``dense.without_self_stress``), as the dense solve returns them.
 
 Cost: one sparse factorization and |R| + 1 solves, O(N) each on a chain.
 """
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .dense import without_self_stress
 from .rank_policy import RANK, RankPolicy
 from .sparse_rank import as_scipy, independent_rows_sparse, sp, split_rows, splu
 
@@ -61,7 +64,10 @@ def schur_solve(J, inverse_masses: np.ndarray, b: np.ndarray, *,
         z[independent] = lu.solve(sb[independent])
         if dependent.size:
             z = z - N @ np.linalg.solve(NtN, N.T @ z)
-    return s * z if z.ndim == 1 else s[:, None] * z
+    y = s * z if z.ndim == 1 else s[:, None] * z
+    if independent.size and dependent.size:  # minimum |y|, not |D⁻¹ y|: null(Jᵀ) = D null(Ĵᵀ)
+        y = without_self_stress(y, s[:, None] * N)
+    return y
 
 
 def full_row_rank(J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> bool | None:

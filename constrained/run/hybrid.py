@@ -58,6 +58,12 @@ from .unilateral import (
 REST_SPEED_PER_ATOL = 1e3
 #: Events a run may have before it is stopped as chattering.
 MAX_EVENTS = 10_000
+#: A Zeno sequence: the last impact intervals' ratios agree to this fraction.
+ZENO_RATIO_SPREAD = 0.05
+#: A Zeno sequence settles when its accumulation point is nearer than this (s; or 1000 ε |t_end|
+#: when larger): flights much shorter than that are below what a gap of round-off 1e-16 m (and
+#: an event instant of round-off ε |t|) resolves, and all the remaining bounces fit in it.
+ZENO_TIME = 1e-6
 
 
 #: Methods a hybrid run can use: adaptive, with events located to round-off in a segment
@@ -125,9 +131,11 @@ class _Watch:
     """The events one segment watches: releases, contacts and the user's, with memoized
     multipliers (solve_ivp evaluates every event function at the same point)."""
 
-    def __init__(self, model: Model, active: ActiveSet, user: list[Event], t0: float):
+    def __init__(self, model: Model, active: ActiveSet, user: list[Event], t0: float,
+                 rebounding: dict[int, float] | None = None):
         info = one_sided(model)
         self.model, self.active, self._memo, self.t0 = model, active, (None, None), t0
+        self.rebounding = rebounding or {}
         self.events: list[Event] = []
         self.meaning: list[tuple[str, int | None]] = []
         for k in info.rows:
@@ -160,7 +168,22 @@ class _Watch:
         return lambda t, x, v: self._open_at_start(side * self._multipliers(t, x, v)[k], t)
 
     def _gap(self, k):
+        if k in self.rebounding:
+            return self._deflated_gap(k, self.rebounding[k])
         return lambda t, x, v: self._open_at_start(gaps(self.model, x, t)[k], t)
+
+    def _deflated_gap(self, k, speed: float):
+        """The gap of a row that has just bounced off, divided by the time since: g(t) =
+        w (t − t0) − ½ |g̈| (t − t0)² + … vanishes at the impact instant t0 itself, where its
+        round-off (~1e-16 m) would read as a crossing a moment after t0 for a short flight;
+        g(t)/(t − t0) → w (the rebound speed, > 0) at t0 instead, and changes sign only where
+        the flight ends."""
+        t0 = self.t0
+
+        def deflated(t, x, v):
+            return speed if t <= t0 else gaps(self.model, x, t)[k] / (t - t0)
+
+        return deflated
 
     def kind(self, event: Event) -> tuple[str, int | None]:
         return self.meaning[self.events.index(event)]
@@ -190,13 +213,15 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     _check_start(model, x_given, x, t, rows, err, size, max_correction)
     touching = [k for k in info.rows if k in rows]
     rows = [k for k in rows if k not in touching]
-    active, x, v = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True)
+    history = _Impacts(max(ZENO_TIME, 1e3 * np.finfo(float).eps * abs(t_end)))
+    active, x, v, rebounding = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True,
+                                           history=history)
 
     T, X, V, segments = [], [], [], []
     grid = None if t_eval is None else np.asarray(t_eval, float)
     stopped_by, failure, nfev = None, None, 0
     while True:
-        watch = _Watch(model, active, list(user_events), t)
+        watch = _Watch(model, active, list(user_events), t, rebounding)
         if grid is None:
             seg_eval = None
         else:
@@ -241,7 +266,8 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
             record(t, model.constraint_labels[row], "release", x, v)
         closing = [row] if kind == "contact" else []
         closing += _also_closing(model, x, v, t, active.rows, closing, touch)
-        active, x, v = _transition(model, x, v, t, held, closing, rest, tol, record)
+        active, x, v, rebounding = _transition(model, x, v, t, held, closing, rest, tol, record,
+                                               history=history)
         if len(records) > max_events:
             counts = {}
             for r in records:
@@ -286,9 +312,11 @@ def _check_start(model: Model, x_given, x, t, rows, err, size, max_correction) -
             "Correct the positions, or raise simulate.max_initial_correction")
 
 
-def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_start=False):
-    """Rows ``closing`` meet the state at t while ``held`` are held: impact, then the holding
-    test; returns (the new ActiveSet, x, v)."""
+def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_start=False,
+                history: _Impacts | None = None):
+    """Rows ``closing`` meet the state at t while ``held`` are held: impact (with the rest
+    rule), then the holding test; returns (the new ActiveSet, x, v, the rows that bounced off
+    with their rebound speeds g' > 0 in the row's own units per second)."""
     info = one_sided(model)
     labels = model.constraint_labels
     s = scales(model, x, t)
@@ -297,34 +325,79 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
     # a start moving away from a touched one-sided row leaves it free
     joining = [k for k in closing if not at_start or info.side[k] * c[k] / s[k] <= rest]
     hit = [k for k in joining if approach[k] > rest]
+    bounced: dict[int, float] = {}
     if hit:
         e = {k: info.restitution[k] for k in hit}
-        settles = {k for k in hit if e[k] * approach[k] <= rest}
+        notes = {}
+        for k in hit:
+            note = history.settles(k, t, e[k] * approach[k], rest) if history is not None else None
+            if note is None and e[k] * approach[k] <= rest:
+                note = f"rebound speed {e[k] * approach[k]:.3g} m/s below the rest speed {rest:.3g} m/s"
+            if note is not None and e[k] > 0:
+                notes[k] = "settles: " + note
+        settles = {k for k in hit if k in notes or e[k] == 0}
         result = impact(model, x, v, t, held, hit, {k: (0.0 if k in settles else e[k]) for k in hit})
         v = result.v
         for k in result.released:
             record(t, labels[k], "release", x, v, extra={"note": "released by the impact"})
         held = [k for k in held if k not in result.released]
         for k in hit:
-            note = (f"settles: rebound speed {e[k] * approach[k]:.3g} m/s below the rest speed {rest:.3g} m/s"
-                    if k in settles and e[k] > 0 else "")
             record(t, labels[k], "impact", x, v, impulse=result.impulse[k],
                    energy_lost=result.energy_lost if k == hit[0] else 0.0,
                    extra={"approach_speed": approach[k], "restitution": float(e[k]),
-                          **({"note": note} if note else {})})
-        joining = [k for k in joining if k not in hit or k in settles or e[k] == 0]
+                          **({"note": notes[k]} if k in notes else {})})
+        joining = [k for k in joining if k not in hit or k in settles]
+        c_after = constraint_velocities(model, x, v, t)
+        bounced = {k: float(info.side[k] * c_after[k]) for k in hit if k not in settles}
+        bounced = {k: w for k, w in bounced.items() if w > 0}
     candidates = sorted(set(held) | set(joining))
     active, dropped = holding_set(model, candidates, x, v, t, tol=0.0)
     for k in joining:
         if k in hit:
             continue
         if k not in dropped and not at_start:  # the start's held rows are in info["segments"]
-            record(t, labels[k], "contact", x, v, extra={"approach_speed": approach[k]})
+            away = info.side[k] * c[k] / s[k]
+            note = ({"note": f"settles: moving off at {away:.3g} m/s, a flight too short for the run to "
+                             "resolve in time"} if away > 0 else {})
+            record(t, labels[k], "contact", x, v, extra={"approach_speed": approach[k], **note})
     for k in dropped:
         if k not in joining:
             record(t, labels[k], "release", x, v)
     x, v, _ = active.project(x, v, t, tol)
-    return active, x, v
+    return active, x, v, bounced
+
+
+class _Impacts:
+    """Each one-sided row's impact instants, for the Zeno test of the rest rule: a row whose
+    last impacts follow each other at intervals shrinking by a steady ratio r < 1 (a ball
+    bouncing with e = r) would bounce infinitely often before the accumulation point
+    t∞ = t + Δ r / (1 − r). It settles when t∞ is closer than ``zeno_time``: the remaining
+    bounces (infinitely many, all within zeno_time) are replaced by one plastic impact, which
+    loses the same energy, the rebound's ½ m_eff (e u)²."""
+
+    def __init__(self, zeno_time: float):
+        self.zeno_time = zeno_time
+        self.times: dict[int, list[float]] = {}
+
+    def settles(self, k: int, t: float, rebound: float, rest: float) -> str | None:
+        times = self.times.setdefault(k, [])
+        times.append(t)
+        if len(times) < 4:
+            return None
+        d1, d2, d3 = np.diff(times[-4:])
+        if not (d1 > 0 and d2 > 0 and d3 > 0):
+            return None
+        r1, r2 = d2 / d1, d3 / d2
+        if not (r2 < 1 and abs(r1 - r2) <= ZENO_RATIO_SPREAD * r2):
+            return None
+        remaining = d3 * r2 / (1 - r2)
+        if rebound > rest and remaining > self.zeno_time:
+            return None
+        if rebound <= rest:
+            return (f"rebound speed {rebound:.3g} m/s below the rest speed {rest:.3g} m/s "
+                    f"({len(times)} impacts; accumulation point t∞ ≈ {t + remaining:.9g} s)")
+        return (f"Zeno sequence of {len(times)} impacts: the accumulation point t∞ ≈ {t + remaining:.9g} s "
+                f"is within {self.zeno_time:.3g} s")
 
 
 # ---- the run as simulate returns it --------------------------------------------------------------

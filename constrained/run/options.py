@@ -57,13 +57,17 @@ class RunOptions:
     outputs: frozenset[str] | None = None
     max_initial_correction: float = 1e-3
     compiled: bool | str = "auto"
+    rest_speed: float | None = None
+    max_steps: int | None = None
     method_options: Mapping[str, Any] = field(default_factory=dict)
 
     def simulate_kwargs(self) -> dict:
+        extra = {k: v for k, v in (("rest_speed", self.rest_speed), ("max_steps", self.max_steps))
+                 if v is not None}
         return {"method": self.method, "rtol": self.rtol, "atol": self.atol, "dt": self.dt,
                 "t_start": self.t_start, "t_eval": self.t_eval, "outputs": self.outputs,
                 "max_initial_correction": self.max_initial_correction, "compiled": self.compiled,
-                **self.method_options}
+                **extra, **self.method_options}
 
 
 def from_settings(settings: Mapping[str, Any], *, outputs: Iterable[str] | None = None,
@@ -107,6 +111,7 @@ def from_settings(settings: Mapping[str, Any], *, outputs: Iterable[str] | None 
         outputs=None if outputs is None else frozenset(outputs),
         max_initial_correction=float(s.get("max_initial_correction", 1e-3)),
         compiled=s.get("compiled", "auto") if compiled is None else compiled,
+        rest_speed=s.get("rest_speed"), max_steps=s.get("max_steps"),
         method_options=options,
     )
 

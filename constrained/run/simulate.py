@@ -97,6 +97,8 @@ def simulate(
             model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
             wanted=wanted, events=events, max_initial_correction=max_initial_correction,
             build_time=build_time, options={"dt": dt, **options})
+    # what only contacts use means nothing without one-sided constraints
+    options = {k: v for k, v in options.items() if k not in ("rest_speed", "max_events")}
     start = consistent_start(
         model, system.positions, system.velocities, t_start,
         max_correction=max_initial_correction, size=system.size(),

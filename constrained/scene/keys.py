@@ -36,6 +36,8 @@ SIMULATE_DEFAULTS: dict[str, Any] = {
     "base": "DOP853",
     "max_initial_correction": 1e-3,
     "compiled": "auto",
+    "rest_speed": None,  # one-sided constraints: rebounds slower than this (m/s) settle; None: 1000 × atol
+    "max_steps": None,  # the step limit; None: the driver's default (solvers/driver.py)
 }
 
 #: Limits of [simulate]: output samples a run may store, fixed steps it may take (dt), and

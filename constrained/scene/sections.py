@@ -186,6 +186,14 @@ class RunSections(Validator):
         if mic < 0:
             self.fail(k + "max_initial_correction", f"must be zero or positive, got {mic!r}")
         s["max_initial_correction"] = mic
+        if s["rest_speed"] is not None:
+            s["rest_speed"] = self.number(s["rest_speed"], k + "rest_speed", "a speed in m/s")
+            if s["rest_speed"] < 0:
+                self.fail(k + "rest_speed", f"must be a speed >= 0 in m/s, got {s['rest_speed']:g}")
+        if s["max_steps"] is not None:
+            n = s["max_steps"]
+            if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+                self.fail(k + "max_steps", f"must be a whole number >= 1, got {_describe(n)}")
         if s["compiled"] not in (True, False, "auto"):
             self.fail(k + "compiled", f'must be true, false or "auto", got {_describe(s["compiled"])}')
         if s["method"] == "reduced" and "reduced" not in self.raw:

@@ -24,7 +24,14 @@ import numpy as np
 from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
 from .events import locate
-from .watches import SingularWatch, past_a_limit
+from .watches import CollapseWatch, SingularWatch, past_a_limit
+
+#: A run given no output times keeps its accepted steps, but at most one per this fraction of
+#: its span (a run whose steps collapse would otherwise store millions of samples).
+STEP_SAMPLES = 20_000
+#: The step limit when none is given (accepted plus rejected steps; a fixed-step method gets
+#: at least twice the steps its span needs).
+DEFAULT_MAX_STEPS = 2_000_000
 
 #: Failures of a step that a limit position passed during it may explain.
 STEP_FAILURES = (Status.PROJECTION_FAILED, Status.STEP_SIZE_COLLAPSED, Status.SOLVER_FAILED)
@@ -45,15 +52,20 @@ class _Run:
         self.from_caller = t_eval is not None
         grid = np.asarray(t_eval, float) if t_eval is not None else stepper.default_grid(t0, t_end)
         self.every_step = grid is None
+        self.min_gap = (t_end - t0) / STEP_SAMPLES  # between kept steps (every_step)
         self.ts, self.xs, self.vs = [], [], []
         if self.every_step or grid[0] <= t0:
             self.keep(t0, x0, v0)
         self.pending = [] if self.every_step else [float(tk) for tk in grid if tk > t0]
         self.last, self.last_a = (t0, x0, v0), None
         self.events = tuple(events)
-        self.g_last = [e.function(t0, x0, v0) for e in self.events]
+        # an event exactly zero at the start has no side yet (a pendulum released from rest
+        # with the event vx = 0): the run begins on it, which is not a crossing; its side is
+        # that of its first nonzero value
+        self.g_last = [_side(e.function(t0, x0, v0)) for e in self.events]
         self.hits: list[EventHit] = []
         self.singular = SingularWatch(stepper.manifold, stepper.rows, stepper.singular_tol)
+        self.collapse = CollapseWatch(t_end) if stepper.adaptive and stepper.dt is None else None
         self.stiffness = diagnostics.StiffnessWatch(stepper.model, x0, t0, t_end, method=stepper.name)
         self.h_rho, self.rho_max = [], 0.0
         self.sampled = diagnostics.STIFFNESS_MIN_STEPS // 2
@@ -67,8 +79,24 @@ class _Run:
         return float(self.ts[-1][-1]) if self.ts else -np.inf
 
     def keep_reached(self) -> None:
-        """On a stop between two outputs of the method's own grid, keep the state reached."""
-        if not self.from_caller and not self.every_step and self.last[0] > self.kept_until():
+        """On a stop between two outputs of the method's own grid (or between kept steps),
+        keep the state reached."""
+        if not self.from_caller and self.last[0] > self.kept_until():
+            self.keep(*self.last)
+
+    def thinned(self, t: np.ndarray) -> np.ndarray:
+        """Which of the accepted steps at times ``t`` to keep: each one at least ``min_gap``
+        after the last kept (the run's end always)."""
+        keep = np.zeros(len(t), bool)
+        last = self.kept_until()
+        for i, tk in enumerate(t):
+            if tk - last >= self.min_gap or tk >= self.t_end:
+                keep[i], last = True, tk
+        return keep
+
+    def keep_last_step(self) -> None:
+        """A run that ends between kept steps keeps the state it reached."""
+        if self.every_step and self.last[0] > self.kept_until():
             self.keep(*self.last)
 
     def t_stop(self) -> float:
@@ -98,9 +126,11 @@ class _Run:
         if k and not self.events and (self.every_step or stepper.lands):  # no dense output needed
             t = adv.t[:k]
             if self.every_step:
-                self.ts.append(t)
-                self.xs.append(adv.x[:k])
-                self.vs.append(adv.v[:k])
+                keep = self.thinned(t)
+                if keep.any():
+                    self.ts.append(t[keep])
+                    self.xs.append(adv.x[:k][keep])
+                    self.vs.append(adv.v[:k][keep])
             due = bisect.bisect_right(self.pending, t[-1])  # the output times landed on
             if due:
                 i = np.searchsorted(t, self.pending[:due])
@@ -127,9 +157,11 @@ class _Run:
                 self.keep(hit.t, hit.x, hit.v)
                 self.last = (hit.t, hit.x, hit.v)
                 return hit
-            if self.every_step or (stepper.lands and self.pending and sample[0] >= self.pending[0]):
-                if self.pending:
-                    self.pending.pop(0)
+            if self.every_step:
+                if self.thinned(np.array([sample[0]]))[0]:
+                    self.keep(*sample)
+            elif stepper.lands and self.pending and sample[0] >= self.pending[0]:
+                self.pending.pop(0)
                 self.keep(*sample)
             self.last, self.last_a = sample, a
         return None
@@ -137,8 +169,9 @@ class _Run:
     def crossings(self, sample, dense) -> EventHit | None:
         """Events crossed since the last sample, located and listed; the first terminal one."""
         g_now = [e.function(*sample) for e in self.events]
-        crossed = [j for j, e in enumerate(self.events) if e.crossed(self.g_last[j], g_now[j])]
-        self.g_last = g_now
+        crossed = [j for j, e in enumerate(self.events)
+                   if self.g_last[j] is not None and e.crossed(self.g_last[j], g_now[j])]
+        self.g_last = [g if g != 0 or self.g_last[j] is not None else None for j, g in enumerate(g_now)]
         found = sorted((locate(self.stepper, self.events[j], self.last, sample, dense) for j in crossed),
                        key=lambda h: h.t)
         for hit in found:
@@ -169,6 +202,18 @@ class _Run:
         diagnostics.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
 
 
+def _default_step_limit(stepper: Solver, t0: float, t_end: float) -> int:
+    """DEFAULT_MAX_STEPS, or twice the steps a fixed step ``dt`` needs over the span."""
+    dt = getattr(stepper, "dt", None)
+    needed = int(np.ceil((t_end - t0) / dt)) if dt else 0
+    return max(DEFAULT_MAX_STEPS, 2 * needed)
+
+
+def _side(g: float) -> float | None:
+    """g, or None for exactly zero (no side yet)."""
+    return None if g == 0 else g
+
+
 def _interrupted(t: float) -> Failure:
     return Failure(Status.INTERRUPTED, f"{Status.INTERRUPTED.value} at t = {t:.6g} s")
 
@@ -183,6 +228,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
     run.last_a = stepper.start_acceleration(state)
     failure = None
     steps = 0
+    max_steps = stepper.max_steps or _default_step_limit(stepper, t0, t_end)
     try:
         while run.last[0] < t_end:
             if stepper.stop_requested():
@@ -195,6 +241,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
                                                 f"t = {run.last[0]:.6g} s; {verdict}")
                 break
             t_stop = run.t_stop()
+            previous_t = run.last[0]
             adv = stepper.step(state, t_stop)
             state = adv.state
             k, failure = run.checked(adv, t_stop)
@@ -202,14 +249,22 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
             steps = int(stepper.stats.get("steps", 0))
             if hit is not None:
                 failure = Failure(Status.EVENT, f"the terminal event '{hit.event.name}' at t = {hit.t:.6g} s")
+                if stepper.progress is not None:
+                    stepper.progress(float(hit.t))
                 break
             if failure is None and k and run.last[0] < t_end:  # (a finished run needs no watch)
                 reason = run.singular.check(run.last[1], run.last[0])
                 failure = Failure(Status.SINGULAR_CONFIGURATION, reason) if reason else None
-            if failure is None and stepper.max_steps and \
-                    steps + int(stepper.stats.get("rejected", 0)) > stepper.max_steps:
-                failure = Failure(Status.STEP_LIMIT, f"more than max_steps = {stepper.max_steps} steps "
-                                                     f"before t = {t_end:.6g} s")
+            if failure is None and k and run.collapse is not None and run.last[0] < t_end:
+                h = adv.h if adv.h else (float(adv.t[k - 1]) - previous_t) / k
+                reason = run.collapse.check(steps, run.last[0], h)
+                if reason:
+                    failure = Failure(Status.STEP_SIZE_COLLAPSED, f"{reason}; "
+                                      + stepper.diagnose(run.last[1], run.last[2], run.last[0]))
+            if failure is None and steps + int(stepper.stats.get("rejected", 0)) > max_steps:
+                failure = Failure(Status.STEP_LIMIT, f"more than max_steps = {max_steps} steps before "
+                                  f"t = {t_end:.6g} s (at t = {run.last[0]:.6g} s); raise simulate.max_steps "
+                                  "for a longer run")
             if failure is not None:
                 run.keep_reached()
                 break
@@ -219,6 +274,8 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
     except KeyboardInterrupt:  # Ctrl-C inside a call into C, or from a progress callback
         failure = _interrupted(run.last[0])
         run.keep_reached()
+    if failure is None or failure.status is Status.COMPLETED:
+        run.keep_last_step()
     stepper.finish()
     stats = stepper.counted()
     run.stiffness_verdict(stats, failure)

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import interrupt
 from .base import Event, EventHit, Solver, Status
 
 #: Refinement of an event instant: at most this many landings on candidate instants.
 EVENT_REFINEMENTS = 12
+#: Steps one landing on a candidate instant may take (it normally takes one or two): the
+#: work budget that keeps event location finite whatever the method does near the instant.
+LANDING_STEPS = 200
 #: brentq's smallest relative tolerance (4 machine epsilons).
 BRENTQ_RTOL = 4 * np.finfo(float).eps
 
@@ -73,12 +77,19 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
 
 
 def _land(stepper: Solver, ta: float, xa, va, t1: float):
-    """The method's state at t1, stepping from the accepted sample (ta, xa, va)."""
+    """The method's state at t1, stepping from the accepted sample (ta, xa, va): a
+    RuntimeError when it cannot (a failed step, more than LANDING_STEPS calls without
+    reaching t1, or Ctrl-C), after which the dense output's state stands."""
+    if not t1 > ta:
+        return np.asarray(xa), np.asarray(va)
     state = stepper.init(xa, va, ta, t1, first_step=t1 - ta)
-    while True:
+    for _ in range(LANDING_STEPS):
+        if interrupt.requested():
+            raise RuntimeError("interrupted")
         adv = stepper.step(state, t1)
         state = adv.state
         if adv.status is not Status.COMPLETED:
             raise RuntimeError(adv.message)
         if len(adv.t) and adv.t[-1] >= t1:
             return adv.x[-1], adv.v[-1]
+    raise RuntimeError(f"no landing at t = {t1:.17g} s within {LANDING_STEPS} steps")

@@ -31,6 +31,7 @@ from ..codegen.fast_call import FastCall
 from ..errors import InputError
 from ..manifold import diagnostics, residual
 from ..manifold.graph import schur_solve_graph, velocity_correction_graph
+from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
 
@@ -39,8 +40,13 @@ AUTO_COMPILE_COORDINATES = 90
 
 #: Largest number of output samples when the caller gives no output grid.
 DEFAULT_SAMPLES = 2000
-#: Coordinate-steps per chained call (see ``run``): 16384 steps of a 6-coordinate model.
+#: Coordinate-steps per chained call at most (Ctrl-C waits for a call): 16384 steps of a
+#: 6-coordinate model.
 CHUNK_WORK = 6 << 14
+#: Steps chained per call: the shortest that covers the steps to the next output is called;
+#: steps past the count asked for are skipped (nearly free). The same few Functions serve every
+#: dt, so a new step size compiles nothing.
+CHUNKS = (1, 16, 256, 4096, 16384)
 
 
 class Rattle(Stepper):
@@ -70,54 +76,74 @@ class Rattle(Stepper):
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
         self.newton_tol = newton_tol
-        self._chunks: dict[int, FastCall] = {}
 
-    def _step(self, h: float) -> ca.Function:
-        """One RATTLE step on the state (x, v, t, λ, err) — err: running max of |f| after Newton."""
+    def _step(self) -> ca.Function:
+        """One RATTLE step on the state (x, v, t, λ, err, h, s, p) — err: running max of |f|
+        after Newton (in metres: each row over its scale s at the run's start); the step h, the
+        row scales s and the parameters p ride along as inputs, so one Function (one compile)
+        serves every step size, start and parameter value of the structure."""
         m = self.model
         rows = self.manifold.rows
-        n3, C = m.n_coordinates, len(self.rows)
+        n3, C, n_all = m.n_coordinates, len(self.rows), m.n_constraints
         x, v, t, err = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t"), ca.MX.sym("err")
-        lam = ca.MX.sym("lam", C)
-        minv = ca.DM(m.inverse_masses)
-        F0, J0, _ = m.dynamics(x, v, t)
+        left, h = ca.MX.sym("left"), ca.MX.sym("h")
+        lam, scales = ca.MX.sym("lam", C), ca.MX.sym("scales", n_all)
+        P = ca.MX.sym("p", len(m.parameter_vector))
+        view = ParametricView(m, P)
+        minv = view.inverse_masses if isinstance(view.inverse_masses, ca.MX) else ca.DM(view.inverse_masses)
+        F0, J0, _ = view.dynamics(x, v, t)
         t1 = t + h
+        passed = [h, scales, P]
+        counted = [left - 1, *passed]
         if C:
             J0 = J0 if rows is None else J0[list(rows), :]
             kick = 0.5 * h * h * minv
             base = x + h * v + kick * F0
             lam_k = lam
             for _ in range(self.newton_iterations):
-                f1, J1 = m.jacobian(base + kick * ca.mtimes(J0.T, lam_k), t1)
+                f1, J1 = view.jacobian(base + kick * ca.mtimes(J0.T, lam_k), t1)
                 if rows is not None:
                     f1, J1 = f1[list(rows)], J1[list(rows), :]
                 # d f(x1(λ)) / dλ = J(x1) · h²/2 M⁻¹ J(x_n)ᵀ
-                lam_k = lam_k - schur_solve_graph(J1, J0, 0.5 * h * h * m.inverse_masses, f1)
+                lam_k = lam_k - schur_solve_graph(J1, J0, kick, f1)
             v_half = v + 0.5 * h * minv * (F0 + ca.mtimes(J0.T, lam_k))
             x1 = x + h * v_half
-            # in metres: each row over its scale at the start (constrained.residual)
-            residual = ca.mmax(ca.fabs(m.constraint(x1, t1)) / ca.DM(self.row_scales))
-            F1, _, _ = m.dynamics(x1, v_half, t1)
+            residual = ca.mmax(ca.fabs(view.constraint(x1, t1)) / scales)
+            F1, _, _ = view.dynamics(x1, v_half, t1)
             v_pred = v_half + 0.5 * h * minv * F1
-            v1 = v_pred - velocity_correction_graph(m, x1, v_pred, t1, rows=rows)
-            state = ca.vertcat(x, v, t, lam, err)
-            out = ca.vertcat(x1, v1, t1, lam_k, ca.fmax(err, residual))
-            return ca.Function("rattle_step", [state], [out])
-        v_half = v + 0.5 * h * minv * F0
-        x1 = x + h * v_half
-        F1, _, _ = m.dynamics(x1, v_half, t1)
-        state = ca.vertcat(x, v, t, err)
-        return ca.Function("verlet_step", [state], [ca.vertcat(x1, v_half + 0.5 * h * minv * F1, t1, err)])
+            v1 = v_pred - velocity_correction_graph(view, x1, v_pred, t1, rows=rows)
+            state = ca.vertcat(x, v, t, lam, err, left, *passed)
+            out = ca.vertcat(x1, v1, t1, lam_k, ca.fmax(err, residual), *counted)
+        else:
+            v_half = v + 0.5 * h * minv * F0
+            x1 = x + h * v_half
+            F1, _, _ = view.dynamics(x1, v_half, t1)
+            state = ca.vertcat(x, v, t, err, left, *passed)
+            out = ca.vertcat(x1, v_half + 0.5 * h * minv * F1, t1, err, *counted)
+        step = ca.Function("rattle_attempt", [state], [out])
+        # once the steps asked for are done, a step is skipped (short-circuit: nearly free)
+        S = ca.MX.sym("state", state.numel())
+        done = S[2 * n3 + 1 + C + 1] <= 0
+        return ca.Function("rattle_step", [S], [ca.if_else(done, S, step(S), True)])
 
-    def _chunk(self, step: ca.Function, k: int, *, compile_it: bool = False) -> FastCall:
-        """k steps folded into one call (compiled when asked), called through its buffer."""
-        chunk = self._chunks.get(k)
-        if chunk is None:
-            function = step.fold(k) if k > 1 else step
-            if compile_it:
-                function = compiled_evaluation.compile_function(function)
-            chunk = self._chunks[k] = FastCall(function)
-        return chunk
+    def _chunks(self) -> dict[int, FastCall]:
+        """The chained steps (CHUNKS, as many as one call may take), built once per structure,
+        row set and Newton iterations (``structure_cache``) and compiled together when asked:
+        every dt, start and parameter value of the structure shares them."""
+        cache, prefix = structure_cache(self.model)
+        key = (*prefix, "rattle", self.manifold.rows, self.newton_iterations, self.compiled)
+        chunks = cache.get(key)
+        if chunks is None:
+            step = self._step()
+            n3 = self.model.n_coordinates
+            functions = {k: (step if k == 1 else step.fold(k))
+                         for k in CHUNKS if k == 1 or k * n3 <= CHUNK_WORK}
+            if self.compiled:
+                machine = compiled_evaluation.compile_functions(list(functions.values()))
+                if all(f.class_name() == "External" for f in machine):
+                    functions = dict(zip(functions, machine, strict=True))
+            chunks = cache[key] = {k: FastCall(f) for k, f in functions.items()}
+        return chunks
 
     def prepare(self, t0, t_end, t_eval) -> None:
         """The fixed step: dt shortened slightly to land on t_end; t_eval must lie on its grid."""
@@ -131,42 +157,40 @@ class Rattle(Stepper):
                     f"method 'rattle' outputs at multiples of its step ({self.h:.6g} s); "
                     "give t_eval on that grid or omit it"
                 )
-        grid = np.asarray(t_eval, float) if t_eval is not None else self.default_grid(t0, t_end)
-        gaps = np.diff(np.rint((grid - t0) / self.h).astype(int))
-        # the regular gap between samples is one chunk, compiled once; other gaps are split
-        # into powers of two (at most a few distinct folds)
-        self._gap = int(np.bincount(gaps[gaps > 0]).argmax()) if np.any(gaps > 0) else 1
 
     def default_grid(self, t0, t_end):
         every = max(1, self._n_steps // DEFAULT_SAMPLES)
         steps = list(range(0, self._n_steps + 1, every))
         if steps[-1] != self._n_steps:
             steps.append(self._n_steps)
-        return t0 + self.h * np.array(steps, float)
+        grid = t0 + self.h * np.array(steps, float)
+        grid[-1] = t_end  # (the step was made to land there; no round-off short of it)
+        return grid
 
     def init(self, x0, v0, t0, t_end, first_step=None):
         m = self.model
-        n3, C = m.n_coordinates, len(self.rows)
+        C = len(self.rows)
         if not hasattr(self, "row_scales"):  # the run's scales, from its start
             self.scale = max(1.0, float(np.max(np.abs(x0), initial=0.0)))
             self.row_scales = residual.row_scales(m, x0, t0) if C else np.zeros(0)
-            self._step_function = self._step(self.h)
-            # one call into CasADi (Ctrl-C waits for its end) covers about CHUNK_WORK
-            # coordinate-steps: each call is near 0.1 s at most
-            self._regular = min(self._gap, 1 << 14, 1 << max(3, int(math.log2(max(CHUNK_WORK // n3, 1)))))
         lam0 = self.manifold.accelerations(x0, v0, t0)[1][self.rows] if C else np.zeros(0)
-        return (round((t0 - self._t0) / self.h), np.concatenate([x0, v0, [t0], lam0, [0.0]]))
+        scales = np.asarray(self.row_scales, float) if C else np.zeros(m.n_constraints)
+        return (round((t0 - self._t0) / self.h),
+                np.concatenate([x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, m.parameter_vector]))
 
     def step(self, state, t_stop) -> Advance:
-        """One chained call of up to ``_regular`` steps (powers of two for the rest) to t_stop."""
+        """One chained call towards t_stop: the shortest chain that covers the steps left, else
+        the longest (its steps past the count are skipped)."""
         m = self.model
         n3 = m.n_coordinates
         done, y = state
         left = max(1, round((t_stop - self._t0) / self.h) - done)
-        k = self._regular if left >= self._regular else 1 << (left.bit_length() - 1)
-        compile_it = self.compiled and k == self._regular and k >= 8
-        chunk = self._chunk(self._step_function, k, compile_it=compile_it)
-        (new,) = chunk(y)
+        chunks = self._chunks()
+        size = next((c for c in chunks if c >= left), max(chunks))
+        k = min(left, size)
+        y = y.copy()
+        y[2 * n3 + 2 + len(self.rows)] = k  # the steps this call takes
+        (new,) = chunks[size](y)
         t_new = self._t0 + (done + k) * self.h
         if abs(t_new - t_stop) <= 1e-9 * self.h:
             t_new = t_stop
@@ -174,10 +198,11 @@ class Rattle(Stepper):
             cause = diagnostics.nonfinite_cause(m, y[:n3], y[n3:2 * n3], y[2 * n3])
             return Advance.empty(state, n3, Status.NON_FINITE,
                                  f"non-finite state between t = {y[2 * n3]:.6g} s and {t_new:.6g} s; {cause}")
-        if new[-1] > self.newton_tol * self.scale:
+        err = new[2 * n3 + 1 + len(self.rows)]
+        if err > self.newton_tol * self.scale:
             return Advance.empty(state, n3, Status.PROJECTION_FAILED, (
                                f"Newton for the position multipliers did not converge between t = "
-                               f"{y[2 * n3]:.6g} s and {t_new:.6g} s (|f| = {new[-1]:.3g} m after "
+                               f"{y[2 * n3]:.6g} s and {t_new:.6g} s (|f| = {err:.3g} m after "
                                f"{self.newton_iterations} iterations): reduce dt"))
         self.stats["steps"] = done + k
         return Advance((done + k, new), np.array([t_new]), new[None, :n3], new[None, n3:2 * n3], h=self.h)

@@ -118,3 +118,58 @@ def past_a_limit(stepper: Solver, last, t_next: float) -> str | None:
     return (f"singular configuration between t = {last[0]:.6g} s and {t_next:.6g} s: beyond it no "
             f"position satisfies the constraints {names} together (a limit position, where their rows "
             "become dependent); likely cause: the drive carries the mechanism past that limit")
+
+
+#: The collapse watch looks at the time advanced in windows of steps that double in length,
+#: from this many steps on.
+COLLAPSE_FIRST_SAMPLE = 256
+#: ... and calls it a collapse only when the mean step has fallen this far below its largest
+COLLAPSE_DROP = 1e-3
+#: ... and the mean step of each of the last two windows fell below this fraction of the one
+#: before (0.5: each window, twice as many steps as the one before, advanced less time).
+COLLAPSE_RATIO = 0.5
+
+
+class CollapseWatch:
+    """Steps that shrink towards zero before t_end: a finite-time singularity (a rod whose
+    length is driven to zero, a body falling into a 1/r potential) speeds the motion up
+    without bound, and an adaptive method's steps shrink with it: the run would crawl on for
+    millions of steps, storing ever more samples, without reaching t*.
+
+    The watch takes the time advanced in windows of steps that double in length (256, 512, …
+    steps). Steady steps advance twice as far in each window as in the one before; a collapse
+    advances less. When the mean step of each of the last two windows fell below
+    COLLAPSE_RATIO of the window before, the mean step is below COLLAPSE_DROP of the run's
+    largest, and the windows' geometric series sums to an instant t* before t_end, the run
+    stops, naming t*: within a few thousand steps of the collapse's onset whatever its physics.
+    A passage through a short fast phase (a close encounter) recovers within a window and is
+    not stopped."""
+
+    def __init__(self, t_end: float):
+        self.t_end = t_end
+        self.samples: list[tuple[int, float]] = []
+        self.next_at = COLLAPSE_FIRST_SAMPLE
+        self.h_max = 0.0
+
+    def check(self, steps: int, t: float, h: float) -> str | None:
+        """The stop sentence when the steps collapse towards a t* before t_end, else None."""
+        if h > 0 and np.isfinite(h):
+            self.h_max = max(self.h_max, h)
+        if steps < self.next_at:
+            return None
+        self.next_at = 2 * max(steps, self.next_at)
+        self.samples.append((steps, t))
+        if len(self.samples) < 4:
+            return None
+        (n0, t0), (n1, t1), (n2, t2), (n3, t3) = self.samples[-4:]
+        h1, h2, h3 = (t1 - t0) / (n1 - n0), (t2 - t1) / (n2 - n1), (t3 - t2) / (n3 - n2)
+        if not (h1 > 0 and h2 < COLLAPSE_RATIO * h1 and h3 < COLLAPSE_RATIO * h2
+                and h3 < COLLAPSE_DROP * self.h_max):
+            return None
+        sigma = h3 / h2  # < 1/2: the next windows' advances form a converging series
+        t_star = t3 + (n3 - n2) * h3 * 2 * sigma / (1 - 2 * sigma)
+        if not t_star < self.t_end:
+            return None
+        return (f"the step size collapsed: the mean step fell from {self.h_max:.3g} s to {h3:.3g} s, "
+                f"shrinking faster with every step, towards t* ≈ {t_star:.6g} s, where the motion "
+                "becomes singular (a finite-time blow-up: no number of steps reaches t*)")
