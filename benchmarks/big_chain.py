@@ -36,19 +36,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def chain_scene(n: int, *, t_end: float = 1.0, rtol: float = 1e-6, atol: float = 1e-8,
-                samples: int | None = None) -> str:
-    """The TOML text of the N-link planar chain released horizontal."""
+                samples: int | None = None, link: float = 1.0, mass: float = 1.0) -> str:
+    """The TOML text of the N-link planar chain released horizontal (links of ``link`` m,
+    particles of ``mass`` kg: the rope of issue 28 is 1 cm and 10 g)."""
     lines = [
-        f"# {n}-link planar chain released horizontal (benchmarks/big_chain.py)",
+        f"# {n}-link planar chain of {link:g} m links and {mass:g} kg particles released horizontal "
+        "(benchmarks/big_chain.py)",
         "[scene]", f'name = "{n}-link chain, horizontal"', "",
     ]
     for i in range(n):
-        lines += ["[[particles]]", f'name = "p{i}"', "mass = 1.0", f"position = [{i + 1}.0, 0.0, 0.0]", ""]
+        lines += ["[[particles]]", f'name = "p{i}"', f"mass = {mass!r}",
+                  f"position = [{(i + 1) * link!r}, 0.0, 0.0]", ""]
     lines += ["[[constraints]]", 'type = "distance"', 'a = "p0"', "point = [0.0, 0.0, 0.0]",
-              "length = 1.0", ""]
+              f"length = {link!r}", ""]
     for i in range(1, n):
         lines += ["[[constraints]]", 'type = "distance"', f'a = "p{i - 1}"', f'b = "p{i}"',
-                  "length = 1.0", ""]
+                  f"length = {link!r}", ""]
     names = ", ".join(f'"p{i}"' for i in range(n))
     lines += ["[[constraints]]", 'type = "plane"', f"particles = [{names}]",
               "normal = [0.0, 0.0, 1.0]", "offset = 0.0", ""]
@@ -129,12 +132,23 @@ def breakdown(scene: Path, out: Path) -> list:
     return json.loads(proc.stdout.strip().splitlines()[-1])["stages"]
 
 
+def scene_text(args, n: int) -> str:
+    text = chain_scene(n, samples=args.samples, link=args.link, mass=args.mass, rtol=args.rtol,
+                       atol=args.atol)
+    return text.replace("[simulate]\n", f'[simulate]\nmethod = "{args.method}"\n') if args.method else text
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="+", default=[1000, 3000, 10000])
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--quiet", action="store_true", help="pass --quiet (no printed report)")
     ap.add_argument("--samples", type=int, help="output samples (default: every accepted step)")
+    ap.add_argument("--link", type=float, default=1.0, help="link length (m); the rope of issue 28: 0.01")
+    ap.add_argument("--mass", type=float, default=1.0, help="particle mass (kg); the rope of issue 28: 0.01")
+    ap.add_argument("--rtol", type=float, default=1e-6)
+    ap.add_argument("--atol", type=float, default=1e-8, help="(the rope of issue 28: 1e-6)")
+    ap.add_argument("--method", help="[simulate] method (default: the default method)")
     ap.add_argument("--json", type=Path, help="write the results here")
     ap.add_argument("--write-only", type=Path, metavar="DIR", help="only write the scenes into DIR")
     ap.add_argument("--breakdown", action="store_true", help="time the stages in one more run")
@@ -143,13 +157,13 @@ def main(argv=None) -> int:
     if args.write_only:
         args.write_only.mkdir(parents=True, exist_ok=True)
         for n in args.n:
-            (args.write_only / f"chain{n}.toml").write_text(chain_scene(n, samples=args.samples))
+            (args.write_only / f"chain{n}.toml").write_text(scene_text(args, n))
         return 0
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.n:
             scene = Path(tmp) / f"chain{n}.toml"
-            scene.write_text(chain_scene(n, samples=args.samples))
+            scene.write_text(scene_text(args, n))
             runs = [run_once(scene, Path(tmp) / f"out{n}", quiet=args.quiet) for _ in range(args.repeats)]
             best = min(runs, key=lambda r: r["wall_s"])
             row = dict(n=n, wall_s=best["wall_s"], peak_rss_mb=min(r["peak_rss_mb"] for r in runs),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 
+from . import notebook
 from ._version import __version__
 
 #: public name -> the submodule defining it
@@ -36,6 +37,12 @@ _LAZY = {
     **dict.fromkeys(("Equilibrium", "constraint_virtual_work_residual", "equilibrium",
                      "generalized_forces", "virtual_work"), "analysis.statics"),
     **dict.fromkeys(("SweepResult", "sweep"), "sweeps.sweep"),
+    **dict.fromkeys(("FitSweep", "fit_sweep"), "sweeps.fits"),
+    **dict.fromkeys(("Mode", "Modes", "ModesCrossCheck", "modes"), "analysis.modes"),
+    "RotatingFrame": "analysis.linearization",
+    **dict.fromkeys(("Sensitivities", "sensitivities"), "analysis.fitting.sensitivities"),
+    **dict.fromkeys(("FitResult", "fit"), "analysis.fitting.fit"),
+    **dict.fromkeys(("Measurements", "read_measurements"), "analysis.fitting.measurements"),
     **dict.fromkeys(("SymmetryReport", "charge_drift", "euler_lagrange", "is_symmetry",
                      "is_symmetry_reduced", "noether_charge", "noether_charge_reduced",
                      "with_total_derivative"), "analysis.symmetry"),
@@ -59,10 +66,35 @@ def __dir__():
 
 
 def load_scene(path, overrides=None):
-    """Load a TOML scene: a Scene with ``.system``, ``.settings``, ``.outputs`` (and ``.run()``)."""
+    """Load a TOML scene: a Scene with ``.system``, ``.settings``, ``.outputs`` (and ``.run()``).
+
+    ``overrides`` are ``"KEY=VALUE"`` strings as the command line's ``--set``. A scene that
+    cannot be used raises an InputError naming the file, the key and what is wrong. Example::
+
+        import constrained as C
+
+        scene = C.load_scene("scenarios/double_pendulum.toml", ["simulate.t_end=2"])
+        run = scene.run()                  # the scene's own [simulate] settings
+        print(run.ok, run.report())        # its [expect] checks
+        traj = run.trajectory              # t, x, v, multipliers, constraint forces, energy ...
+        print(traj.success, traj["x"].shape)
+        df = traj.to_pandas()              # columns x_p1, y_p1, ..., lambda[...] (needs pandas)
+
+    The same scene without a file: ``C.System`` (see ``help(C.System)``).
+    """
     from .scene.load import load_scene as _load
 
     return _load(path, overrides)
+
+
+def _inline_viewer(trajectory, *, system=None, title: str = "") -> str:
+    """The interactive viewer of a trajectory inside a notebook cell (constrained.output.viewer)."""
+    from .output.viewer import inline_viewer
+
+    return inline_viewer(trajectory, system=system, title=title)
+
+
+notebook.register("viewer", _inline_viewer)
 
 
 __all__ = [
@@ -79,4 +111,7 @@ __all__ = [
     "Equilibrium", "constraint_virtual_work_residual", "equilibrium", "generalized_forces",
     "virtual_work",
     "SweepResult", "sweep", "action", "Scene", "RunResult", "__version__",
+    "Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes",
+    "Sensitivities", "sensitivities", "FitResult", "fit", "Measurements", "read_measurements",
+    "FitSweep", "fit_sweep",
 ]

@@ -159,3 +159,38 @@ SLOW = [b for b in ALL if b.slow]
 @pytest.mark.parametrize("block", SLOW, ids=[b.id for b in SLOW])
 def test_slow_block(block, workdir):
     run_block(block, {"__name__": "__docs__"}, workdir)
+
+
+CONTINUES = "# continues the block above"
+
+
+def names_from_earlier_blocks(code: str) -> set[str]:
+    """The names a Python block reads without defining or importing them itself (nor builtins)."""
+    import ast
+    import builtins
+
+    tree = ast.parse(code)
+    defined = set(dir(builtins))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            defined.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, ast.Name) and not isinstance(node.ctx, ast.Load):
+            defined.add(node.id)
+        elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+            defined.add(node.name)
+        elif isinstance(node, ast.arg):
+            defined.add(node.arg)
+        elif isinstance(node, ast.ExceptHandler) and node.name:
+            defined.add(node.name)
+    return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)} - defined
+
+
+def test_a_block_that_needs_an_earlier_one_says_so():
+    """A reader copies one block: it runs on its own, or its first line says it continues the
+    block above (issue 32)."""
+    unsaid = [f"{b.id} (uses {', '.join(sorted(names))})" for b in ALL if b.language == "python"
+              and (names := names_from_earlier_blocks(b.code)) and not b.code.startswith(CONTINUES)]
+    assert not unsaid, f"start these blocks with '{CONTINUES}' or make them self-contained: {unsaid}"
+    said = [b.id for b in ALL if b.language == "python" and b.code.startswith(CONTINUES)
+            and not names_from_earlier_blocks(b.code)]
+    assert not said, f"these blocks run on their own: drop '{CONTINUES}': {said}"

@@ -236,7 +236,11 @@ def test_animation_is_a_gif_with_labelled_axes(tmp_path, make):
     from PIL import Image
 
     with Image.open(path) as im:
-        assert im.n_frames == len(traj.t)
+        # the frames and their duration that playback chose (real time where it can)
+        from constrained.output.animation import MAX_FRAMES, playback
+
+        frames, ms = playback(float(traj.t[-1] - traj.t[0]), MAX_FRAMES, len(traj.t))
+        assert im.n_frames == frames <= len(traj.t) and im.info["duration"] == ms
         frame = np.asarray(im.convert("L"))
         assert frame.std() > 5  # not blank
     fig, _ = animation_figure(traj, max_frames=10)
@@ -277,3 +281,91 @@ def test_plot_verb_bad_input_exits_2(tmp_path, capsys):
 
     assert main(["plot", str(tmp_path / "nothere.npz")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+# --- the animation: speed said, forces in every frame, the scene's curves ----------------------
+
+
+def test_animation_says_its_speed_and_plays_in_real_time_when_it_can():
+    from constrained.output.animation import MIN_FRAME_MS, animation_parts, playback
+
+    for span, samples in ((6.0, 301), (10.0, 357), (2.4, 25), (7.5, 40)):
+        frames, ms = playback(span, 120, samples)
+        assert frames <= min(120, samples) and ms % 10 == 0
+        assert ms * (frames - 1) == pytest.approx(1000 * span, rel=0.05)  # real time, to 10 ms
+    frames, ms = playback(0.5, 120, 100)  # too short for real time at 120 frames: slowed, and said
+    assert ms == MIN_FRAME_MS and ms * (frames - 1) > 1000 * 0.5
+    fig, draw, n = animation_parts(pendulum(), None, True, 120)
+    assert "GIF plays in real time" in [t.get_text() for t in fig.texts]
+    fast = pendulum()
+    fast.t = fast.t / 10  # 0.6 s in 300 steps of 2 ms: 120 frames of 20 ms are longer than that
+    fig, draw, n = animation_parts(fast, None, True, 120)
+    speed = 0.6 / (0.02 * (n - 1))
+    assert [t.get_text() for t in fig.texts] == [f"GIF plays at {speed:.3g}× real time (slowed)"]
+
+
+def test_force_arrows_are_scaled_per_frame_and_drawn_above_the_particles():
+    """One frame with a force 1e4 times the others' (an impact) does not shrink the arrows of the
+    other frames to nothing: each frame's longest arrow is ARROW_SHARE of the picture, and the
+    title gives its magnitude in N."""
+    from constrained.output.animation import ARROW_SHARE, animation_parts
+
+    traj = pendulum()
+    forces = traj.constraint_forces.copy()
+    forces[150] *= 1e4
+    traj.constraint_forces = forces
+    fig, draw, n = animation_parts(traj, None, True, len(traj.t))
+    ax = fig.axes[0]
+    size = max(np.ptp(traj.x[:, 0, 0]), np.ptp(traj.x[:, 0, 1]))
+    dots = [line for line in ax.lines if line.get_marker() == "o"]
+    for k in (0, 100, 150, 250):
+        artists = draw(k)
+        quiver = next(a for a in artists if hasattr(a, "U"))
+        length = float(np.max(np.hypot(quiver.U, quiver.V)))
+        assert length == pytest.approx(ARROW_SHARE * size, rel=1e-6)
+        assert quiver.get_zorder() > max(d.get_zorder() for d in dots)
+        assert artists.index(quiver) > max(artists.index(d) for d in dots)  # blitted after them
+        title = next(a for a in artists if hasattr(a, "get_text")).get_text()
+        magnitude = float(np.max(np.linalg.norm(traj.constraint_forces[k], axis=-1)))
+        assert f"longest force arrow: {magnitude:.3g} N" in title
+
+
+def test_animation_draws_the_curve_a_scene_holds_its_bead_on(tmp_path):
+    """A bead on a helical wire (a curve: two surfaces): the GIF shows the wire — points on it
+    near the motion, each within 1e-5 m of both surfaces."""
+    import constrained as C
+    from constrained.output.animation import animation_parts, save_animation
+
+    system = C.System(
+        [C.Particle("bead", 0.1, [0.5, 0.0, 0.0], [0.0, 1.0, 0.2])],
+        [C.Curve("bead", ["x - 0.5*cos(z/0.1)", "y - 0.5*sin(z/0.1)"], name="helix")],
+        [C.Gravity([0, 0, -G])],
+    )
+    traj = C.simulate(system, 1.0, t_eval=np.linspace(0, 1, 51), outputs={"constraint_forces"})
+    fig, draw, n = animation_parts(traj, system, True, 20)
+    ax = fig.axes[0]
+    wire = next(line for line in ax.lines if line.get_label().startswith("curve: helix"))
+    x, y, z = (np.asarray(c) for c in wire.get_data_3d())
+    assert len(x) > 50
+    np.testing.assert_allclose(x, 0.5 * np.cos(z / 0.1), atol=1e-5)  # (points stored to 1e-6 m)
+    np.testing.assert_allclose(y, 0.5 * np.sin(z / 0.1), atol=1e-5)
+    assert "curve: helix" in [t.get_text() for t in ax.get_legend().get_texts()]
+    (gif,) = save_animation(traj, tmp_path / "helix.gif", system=system, max_frames=20)
+    assert gif.read_bytes()[:6] == b"GIF89a"
+
+
+def test_gif_frames_keep_their_colours():
+    """One palette for the whole GIF, each frame mapped through a table: a rendered frame comes
+    back with every pixel within a few levels of its colour."""
+    from constrained.output.animation import animation_parts
+    from constrained.output.gif import PaletteMap, palette_from
+
+    fig, draw, n = animation_parts(helix(), None, True, 10)
+    fig.canvas.draw()
+    rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    mapping = PaletteMap(palette_from([rgb]))
+    back = mapping.palette[mapping(rgb)].astype(int)
+    error = np.abs(back - rgb.astype(int)).max(axis=-1)
+    assert np.percentile(error, 99) <= 16 and error.mean() < 2
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    assert np.array_equal(mapping(rgba), mapping(rgba[..., :3]))  # the 32-bit path agrees

@@ -28,7 +28,8 @@ def test_sweep_without_dask_names_both_install_commands(tmp_path, monkeypatch, c
                  "--set", "simulate.t_end=0.1", "--out", str(tmp_path / "s"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2
-    assert "pip install 'constrained[dask]'" in err and "pip install '.[dask]'" in err
+    # the distribution's name on the package index ("constrained" there is another project)
+    assert "pip install 'constrained-particles[dask]'" in err and "pip install '.[dask]'" in err
     assert "--scheduler sequential" in err
     # without --scheduler a small sweep runs in this process: no Dask needed
     code = main(["sweep", str(SCENARIOS / "simple_spring.toml"), "--vary", "parameters.k=[3, 4]",

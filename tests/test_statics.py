@@ -7,6 +7,7 @@ catenary, numpy for the double Atwood machine, hand-derived potentials for the r
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -360,3 +361,44 @@ def test_ipopt_route_finds_the_minimum():
     eq = equilibrium(pendulum(np.pi - 0.3, 1.3, 0.8), method="ipopt")  # from near the top
     np.testing.assert_allclose(eq.x[0], [0.0, -0.8, 0.0], atol=1e-10)
     assert eq.method == "ipopt" and eq.stable is True and eq.virtual_work_residual < 1e-10
+
+
+# --- 8. the report: round-off shown as 0, the accuracy said once ---------------------------------
+
+
+def test_report_prints_zero_below_the_solves_accuracy(tmp_path, capsys):
+    """The lever lies in z = 0 with its pivot at the origin: the planes carry no load and the
+    z components vanish; the solve leaves them at 1e-15 … 1e-43, which the report shows as 0
+    (never "-0"), while the real tensions keep their digits."""
+    out = tmp_path / "st"
+    assert main(["statics", str(ROOT / "scenarios" / "lever.toml"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert text.count("accuracy of the solve:") == 1
+    lines = text.splitlines()
+    block = lines[lines.index(next(ln for ln in lines if ln.startswith("multipliers"))) + 1:]
+    planes = [ln for ln in block[:8] if "plane" in ln]
+    assert len(planes) == 3 and all(ln.split()[0] == "0" for ln in planes), planes
+    assert not re.search(r"(?<![\w.])-0(?![.\d])", text), text   # no "-0"
+    assert not re.search(r"e-(1[3-9]|[2-9]\d)\b", text.split("virtual-work residual")[0]), text
+    assert "38.1344" in text and "-32.7" in text   # the loads themselves
+    data = json.loads((out / "equilibrium.json").read_text())
+    assert data["accuracy"]["force_N"] < 1e-8 and data["accuracy"]["position_m"] < 1e-11
+
+
+def test_report_threshold_follows_each_rows_scale():
+    """A surface written as 1e12 · (y + 1) = 0 holds a 1 kg bead with λ = g / 1e12 ≈ 1e-11 per unit
+    of f: far below the solve's force accuracy in newtons, and still a real multiplier (λ times
+    the row's scale 1e12 is the 9.81 N the surface pushes with), so it is printed, not zeroed."""
+    from constrained.analysis.statics_report import accuracy, format_equilibrium
+
+    s = C.System(name="bead on a scaled floor")
+    s.add_particle("b", 1.0, [0.3, -1.0, 0.0])
+    s.add(C.Surface("b", "1e12 * (y + 1)"), C.Plane("b", [0, 0, 1]), C.Plane("b", [1, 0, 0], 0.3))
+    s.add(C.Gravity([0, -G, 0]))
+    eq = equilibrium(s)
+    lam = eq.multipliers[0]
+    assert lam == pytest.approx(G / 1e12, rel=1e-9)  # J = 1e12 ŷ: Jᵀλ is the floor's 9.81 N upward
+    np.testing.assert_allclose(eq.constraint_forces[0], [0.0, G, 0.0], atol=1e-9)
+    assert abs(lam) < accuracy(eq)[1]
+    row = next(ln for ln in format_equilibrium(eq).splitlines() if "1e12" in ln or "1e+12" in ln)
+    assert float(row.split()[0]) == pytest.approx(lam, rel=1e-5), row

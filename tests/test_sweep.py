@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -415,3 +416,34 @@ def test_a_sweep_runs_method_reduced_through_the_one_map_of_settings(tmp_path):
         # 0.2 rad from rest, l = 1 m: at t = 1 s, θ = 0.2 cos(√g t) to O(θ³) (frequency shift θ0²/16)
         th = 0.2 * np.cos(np.sqrt(g) * (1 - 0.2**2 / 16) * 1.0)
         assert float(row["x_bob"]) == pytest.approx(np.sin(th), abs=2e-3)
+
+
+# --- the default figure and folder (issue 32) ---------------------------------------------------
+
+
+def test_default_folder_does_not_double_the_word():
+    assert S.default_out_dir(Path("scenarios/kapitza_sweep.toml")) == Path("out/kapitza_sweep")
+    assert S.default_out_dir(Path("double_pendulum.toml")) == Path("out/double_pendulum_sweep")
+    assert S.default_out_dir(Path("sweep.toml")) == Path("out/sweep_sweep")  # nothing else to name it by
+
+
+def test_default_figure_of_a_driven_scene_is_a_coordinate_in_metres(tmp_path, monkeypatch):
+    """The Kapitza pendulum is driven (its pivot moves): its energy drift says nothing about the
+    scene. Without --plot or --summary the figure shows the position coordinate that the varied
+    drive changes most across the runs, labelled in metres; with --summary, the summary."""
+    from constrained.sweeps.plot import axis_label, default_column
+
+    monkeypatch.chdir(tmp_path)
+    r = S.sweep(KAPITZA, ["parameters.nu=[40, 140, 240]"], overrides=["simulate.t_end=0.6"], progress=False)
+    assert r.out_dir == Path("out/kapitza_sweep") and (r.out_dir / "sweep.png").is_file()
+    column, why = default_column(r)
+    assert column != "energy_drift" and np.ptp(r.column("energy_drift")) > 0  # (it does vary)
+    positions = [c for c in r.columns if re.fullmatch(r"(?:(?:min|max)_)?[xyz]_bob", c)]
+    assert column in positions
+    assert np.ptp(r.column(column)) == max(np.ptp(r.column(c)) for c in positions)
+    assert axis_label(column).endswith("[m]") and "bob" in axis_label(column) and "--plot" in why
+    # the slow drive lets the bob fall, the fast one holds it up: the lowest height differs by ~l
+    assert np.ptp(r.column("min_y_bob")) > 0.1
+    r2 = S.sweep(KAPITZA, ["parameters.nu=[40, 240]"], overrides=["simulate.t_end=0.6"], summary=[UP],
+                 out_dir=tmp_path / "with_summary", progress=False)
+    assert default_column(r2, ["up"]) == ("up", "")

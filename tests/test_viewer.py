@@ -26,7 +26,7 @@ import pytest
 
 import constrained as C
 from constrained.cli.main import main
-from constrained.output import viewer
+from constrained.output import shapes, viewer
 from constrained.run.trajectory import Trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,6 +109,14 @@ def test_run_writes_viewer_html_that_works_in_chromium(dp_run, chromium):
             assert all(re.fullmatch(r"-?[0-9.]+(e[-+]?[0-9]+)?", text) for text in labels), axes
         assert axes["t"][0] == "0" and float(axes["t"][-1]) == 1.0
     assert report["forces_toggle_changes_picture"]
+    # arrows scaled per frame: drawn in every frame, not only near the run's largest force
+    assert len(report["force_pixels"]) == 12 and min(report["force_pixels"]) > 40, report["force_pixels"]
+    # at 1280 × 800 no panel title is cut, and each says its unit
+    assert report["titles_cut"] == [], report["titles_cut"]
+    energy, residual, multiplier = report["panel_titles"]
+    assert "[J]" in energy and "[m]" in residual and "λ [N]" in multiplier
+    # graph paper in the plane of the motion, with the x and y axes through the origin
+    assert report["grid"]["lines"] >= 8 and sorted(report["grid"]["axes"]) == ["x", "y"]
     assert report["multiplier_choice_changes_panel"]
     assert report["play_advances"]
     assert report["rotation_changes_picture"]
@@ -212,7 +220,7 @@ def test_every_constraint_kind_is_drawn_and_moves(chromium, tmp_path):
     # the growing cylinder: a cloud per key time, on the cylinder of that time
     keys = np.array(cylinder["keys"])
     cloud = _f32(cylinder["moving"]).reshape(len(keys), cylinder["count"], 3)
-    assert 2 < len(keys) <= viewer.CLOUD_KEYS
+    assert 2 < len(keys) <= shapes.CLOUD_KEYS
     for k, frame in enumerate(keys):
         p = cloud[k][np.isfinite(cloud[k, :, 0])]
         assert len(p) > 10
@@ -305,6 +313,28 @@ def test_view_basis():
     basis, _, planar = viewer.view_basis(helix[:, None, :], up=[0, 0, 1])
     assert not planar and basis[1][2] > 0.8
     assert np.allclose(basis @ basis.T, np.eye(3)) and np.isclose(np.linalg.det(basis), 1.0)
+
+
+def test_floor_grid_lies_under_the_motion_and_names_its_axes():
+    # 3-D under gravity along −y: a level floor (y = the lowest point), lines along x and z
+    s = np.linspace(0, 9, 80)
+    helix = np.stack([np.cos(s), s / 9 - 0.3, np.sin(s)], axis=1)[:, None, :]
+    basis, _, planar = viewer.view_basis(helix, up=[0, 1, 0])
+    grid = viewer.floor_grid(helix, basis, planar, up=[0, 1, 0])
+    ends = np.array(grid["lines"]).reshape(-1, 3)
+    assert np.allclose(ends[:, 1], -0.3) and grid["normal"] == [0.0, 1.0, 0.0]
+    step = grid["step"]
+    assert np.allclose(np.round(ends[:, [0, 2]] / step), ends[:, [0, 2]] / step)  # whole steps
+    assert ends[:, 0].min() <= -1 + 1e-9 and ends[:, 0].max() >= 1 - 1e-9  # the motion's extent
+    assert sorted(a[2] for a in grid["axes"]) == ["x", "z"]
+    assert {n[1] for n in grid["names"]} == {"x [m]", "z [m]"}
+    for point, text in grid["ticks"]:  # each number is the coordinate (x or z) where it stands
+        assert np.isclose(float(text), point[0], atol=1e-9) or np.isclose(float(text), point[2], atol=1e-9)
+    # planar, in the vertical plane z = 0.5: graph paper in that plane
+    circle = np.stack([np.cos(s), np.sin(s), np.full_like(s, 0.5)], axis=1)[:, None, :]
+    basis, _, planar = viewer.view_basis(circle)
+    grid = viewer.floor_grid(circle, basis, planar)
+    assert planar and np.allclose(np.array(grid["lines"]).reshape(-1, 3)[:, 2], 0.5)
 
 
 # --------------------------------------------------------------------------------- bad input

@@ -12,6 +12,7 @@ from __future__ import annotations
 import casadi as ca
 
 from ..errors import InputError
+from ..extras import install_hint
 from ..run.reduced import ReducedModel
 
 __all__ = ["describe", "pretty", "symbolic_reduced", "to_sympy"]
@@ -57,8 +58,8 @@ def _sympy(*, required: bool):
         import sympy
     except ImportError:
         if required:
-            raise InputError("LaTeX output needs SymPy: install the 'pretty' extra "
-                             "(pip install 'constrained[pretty]') or leave LaTeX off") from None
+            raise InputError(f"LaTeX output needs SymPy: install the 'pretty' extra "
+                             f"({install_hint('pretty')}) or leave LaTeX off") from None
         return None
     return sympy
 

@@ -27,9 +27,9 @@ from ..errors import InputError
 from ..manifold import residual
 from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
+from ..model import velocity
 from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
-from . import rest
 
 #: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
 #: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
@@ -84,8 +84,10 @@ class Equilibrium:
     #: One-sided constraint rows that do not hold at this equilibrium (their force would have
     #: the forbidden sign there; multiplier 0).
     slack: list[str] = field(default_factory=list)
-    #: What the velocity constraints do at this equilibrium (analysis/rest.py), or "".
-    velocity_constraints: str = ""
+    velocity_constraints: str = ""  #: what velocity constraints do at it (model/velocity.py: at_rest)
+    #: Each constraint row's scale max_p |∂f/∂x_p| at x (constrained.residual): λ_k times it is
+    #: a force in N, so the solve's force accuracy bounds |λ_k| by it over this scale.
+    row_scales: np.ndarray | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -135,10 +137,8 @@ class Equilibrium:
 
     def __repr__(self) -> str:
         verdict = {True: "stable", False: "unstable", None: "neutral"}[self.stable]
-        return (
-            f"Equilibrium({len(self.x)} particles, {verdict}, virtual work residual "
-            f"{self.virtual_work_residual:.3g}, {self.iterations} iterations)"
-        )
+        return (f"Equilibrium({len(self.x)} particles, {verdict}, virtual work residual "
+                f"{self.virtual_work_residual:.3g}, {self.iterations} iterations)")
 
 
 # --- building blocks ---------------------------------------------------------------------------
@@ -400,6 +400,7 @@ def equilibrium(
         raise InputError("no consistent set of holding one-sided constraints found (the active set "
                          "cycles); give a starting configuration nearer the equilibrium (x_guess)")
     eq.multipliers, eq.constraint_labels = lam, list(model.constraint_labels)
+    eq.row_scales = residual.row_scales(model, eq.x.ravel(), t)
     eq.slack = [model.constraint_labels[k] for k in info.rows if k not in held]
     return eq
 
@@ -469,10 +470,9 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
             "particles' positions), or check that the forces can be balanced by the constraints"
         )
     x = z[:n3]
-    rest.require_rest(model, x, t, size)
     F, G = _forces_at_rest(model, x, t)  # G: J, then velocity rows' A (d'Alembert: A δx = 0 too)
     lam = _min_norm_multipliers(model, G, F)
-    note, held = rest.velocity_forces_note(model, G, lam, force_scale)
+    note, held = velocity.at_rest(model, x, t, size, G, lam, force_scale)
     J, Nv = G[:model.n_position_rows], tangent_basis(G, n3)
     N = tangent_basis(J, n3)  # stability on the configuration's tangent space
     K = np.asarray(kkt.stiffness(x, lam), float)
@@ -489,7 +489,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
     tol = stability_rtol * (float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0)
     soft = np.abs(omega2) <= tol
-    if not conservative or held or note and np.any(omega2 <= tol):  # see analysis/rest.py
+    if not conservative or held or note and np.any(omega2 <= tol):  # see velocity.at_rest
         stable = None
     elif np.any(omega2 < -tol):
         stable = False
@@ -525,4 +525,5 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         method=used,
         max_constraint_residual=residual.position_residual(model, x, t),  # metres
         velocity_constraints=note,
+        row_scales=residual.row_scales(model, x, t) if C else np.zeros(0),
     )

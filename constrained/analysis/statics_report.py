@@ -7,35 +7,62 @@ from pathlib import Path
 
 import numpy as np
 
-from .statics import Equilibrium
+from .statics import FORCE_RTOL, LENGTH_RTOL, Equilibrium
 
 
-def _vec(v) -> str:
-    return "(" + ", ".join(f"{float(c):.6g}" for c in v) + ")"
+def accuracy(eq: Equilibrium) -> tuple[float, float]:
+    """``(metres, newtons)``: how well the solve determines positions and forces — its
+    convergence tolerances (``LENGTH_RTOL`` × the configuration's size, ``FORCE_RTOL`` × the
+    largest force), or the residuals it reached where those are larger. A value below them is
+    round-off: the report shows it as 0."""
+    x = np.asarray(eq.x, dtype=float).reshape(-1, 3)
+    size = max(float(np.max(np.linalg.norm(x, axis=1), initial=0.0)),
+               float(np.max(np.ptp(x, axis=0))) if len(x) > 1 else 0.0) or 1.0
+    forces = [np.asarray(eq.applied_forces), np.asarray(eq.constraint_forces)]
+    force_scale = max(float(np.max(np.abs(f), initial=0.0)) for f in forces) or 1.0
+    metres = max(LENGTH_RTOL * size, float(eq.max_constraint_residual))
+    newtons = max(FORCE_RTOL * force_scale, float(eq.virtual_work_residual),
+                  float(eq.constraint_virtual_work_residual))
+    return metres, newtons
+
+
+def _num(value: float, below: float) -> str:
+    """``value`` to 6 digits, or 0 when it is below ``below`` (round-off; never "-0")."""
+    return "0" if abs(value) <= below or value == 0 else f"{float(value):.6g}"
+
+
+def _vec(v, below: float = 0.0) -> str:
+    return "(" + ", ".join(_num(float(c), below) for c in v) + ")"
 
 
 def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
-    """A plain-text report: positions, multipliers, reactions, stability, residuals."""
+    """A plain-text report: positions, multipliers, reactions, stability, residuals. Values
+    below the solve's accuracy (``accuracy``, said once at the top) are shown as 0."""
     names = eq.particle_names or [f"p{i}" for i in range(len(eq.x))]
+    metres, newtons = accuracy(eq)
     out = [title] if title else []
     out.append(f"equilibrium at t = {eq.t:g} s ({eq.method}, {eq.iterations} iterations)")
+    out.append(f"accuracy of the solve: positions {metres:.1g} m, forces {newtons:.1g} N "
+               "(values below it are shown as 0)")
     out.append("positions [m], applied force F and constraint force (Jᵀλ)_i [N]:")
     for i, n in enumerate(names):
         out.append(
-            f"  {n}: x = {_vec(eq.x[i])}, F = {_vec(eq.applied_forces[i])}, "
-            f"constraint force = {_vec(eq.constraint_forces[i])}"
+            f"  {n}: x = {_vec(eq.x[i], metres)}, F = {_vec(eq.applied_forces[i], newtons)}, "
+            f"constraint force = {_vec(eq.constraint_forces[i], newtons)}"
         )
     if len(eq.multipliers):
-        out.append("multipliers λ (force on particle i is (Jᵀλ)_i):")
-        for label, v in zip(eq.constraint_labels, eq.multipliers, strict=True):
-            out.append(f"  {v: .6g}  {label}")
+        out.append("multipliers λ (force on particle i is (Jᵀλ)_i; N for rows in metres):")
+        scales = eq.row_scales if eq.row_scales is not None and len(eq.row_scales) == len(eq.multipliers) \
+            else np.ones(len(eq.multipliers))
+        for label, v, scale in zip(eq.constraint_labels, eq.multipliers, scales, strict=True):
+            out.append(f"  {_num(v, newtons / max(float(scale), 1e-300)):>12}  {label}")
     if eq.slack:
         out.append("one-sided constraints slack at the equilibrium (not touching there, or their force "
                    "would have the forbidden sign; multiplier 0): " + ", ".join(eq.slack))
     if eq.anchor_reactions:
         out.append("support reactions (force the support exerts; the load on it is the negative) [N]:")
         for label, f in eq.anchor_reactions:
-            out.append(f"  {_vec(f)}  {label}")
+            out.append(f"  {_vec(f, newtons)}  {label}")
     verdict = {True: "STABLE (strict minimum of V on the constraints)",
                False: "UNSTABLE (a negative eigenvalue)",
                None: "NEUTRAL (zero eigenvalues: soft modes)" if eq.conservative
@@ -68,11 +95,12 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
 
 
 def write_equilibrium_json(eq: Equilibrium, path) -> Path:
-    """Write ``eq.to_dict()`` as JSON, atomically."""
+    """Write ``eq.to_dict()`` (the raw numbers) and the solve's ``accuracy`` as JSON, atomically."""
     from ..run.trajectory import atomic_write
 
     path = Path(path)
-    text = json.dumps(eq.to_dict(), indent=2)
+    metres, newtons = accuracy(eq)
+    text = json.dumps({**eq.to_dict(), "accuracy": {"position_m": metres, "force_N": newtons}}, indent=2)
     atomic_write(path, lambda f: f.write(text.encode("utf-8")))
     return path
 

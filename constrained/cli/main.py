@@ -45,6 +45,12 @@ verbs:
   sweep   many runs of one scene on Dask: --vary KEY=SPEC (grid / random); summary.csv
             constrained sweep scenarios/kapitza_sweep.toml --vary "parameters.a=lin(0.002, 0.02, 12)" \
               --vary "parameters.nu=lin(20, 240, 12)" --summary "min:up=y_bob - a*cos(nu*t)"
+  modes   normal modes about the equilibrium (or a steady motion in a rotating frame): frequencies,
+          damping, stability, shapes; modes.json, modes.png, one mode as GIF and viewer page
+            constrained modes scenarios/hanging_chain.toml --out out/chain_modes
+  fit     fit [parameters] to measured data (CSV: t and observed columns) with exact Jacobians;
+          estimates, standard errors, residual plots, the fitted run
+            constrained fit scenarios/pendulum_fit.toml scenarios/data/pendulum_camera.csv --params l,b
   path    the motion between the scene's positions and --to in --time T, by making the
           discrete action stationary (IPOPT); minimum or saddle; path.npz, path.png
             constrained path scenarios/double_pendulum.toml --to "p1=[0,-1,0]; p2=[0,-2,0]" --time 1
@@ -109,14 +115,15 @@ def build_parser() -> argparse.ArgumentParser:
           "statics scenarios/lever.toml --out out/lever", out=OUT, quiet=True)
     bench = _verb(
         verbs, "bench", "work-precision table and figure: error and drift against wall time per method",
-        "Simulate SCENE with each method at each tolerance; write DIR/bench.csv "
-        "(method, rtol, dt, error, constraint_residual, velocity_residual, energy_drift, "
-        "wall_time_s, steps, nfev, status), DIR/bench.md and DIR/bench.png.",
+        "Simulate SCENE with each method at each tolerance, once to warm up, then timed; write "
+        "DIR/bench.csv (method, rtol, dt, error, constraint_residual, velocity_residual, energy_drift, "
+        "wall_time_s, compile_time_s (the first run's one-time cost, not in wall_time_s), steps, nfev, "
+        "status), DIR/bench.md and DIR/bench.png.",
         "bench scenarios/double_pendulum.toml --set simulate.t_end=2 "
         "--methods projection,rattle --tolerances 1e-8,1e-10", out=OUT, quiet=True)
     bench.add_argument("--methods", help="comma-separated methods (default: all)")
     bench.add_argument("--tolerances", help="comma-separated rtol values (default: 1e-6,1e-8,1e-10,1e-12)")
-    bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row (median)")
+    bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row, after a warm-up")
     derive = _verb(
         verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
         "Without options print T, V, L, the momenta and Lagrange's equations of "
@@ -138,9 +145,64 @@ def build_parser() -> argparse.ArgumentParser:
                         help="a candidate generalized force, one per coordinate in coordinate order "
                         "(repeat once per coordinate; write --force=-k*x when the formula starts with '-')")
     _add_sweep(verbs)
+    _add_modes_and_fit(verbs)
     _add_plot(verbs)
     _add_view(verbs)
     return parser
+
+
+def _add_modes_and_fit(verbs) -> None:
+    """The ``modes`` and ``fit`` verbs (constrained.cli_verbs_fit)."""
+    m = _verb(
+        verbs, "modes", "normal modes about an equilibrium or a steady motion; one mode animated",
+        "Linearize SCENE on its constraints about the equilibrium near its positions (statics; with "
+        "--at start: its initial state, which must be at rest, or steady in the --rotating frame) and "
+        "solve M q'' + (G + D) q' + K q = 0: frequencies, damping ratios, stability and mode shapes as "
+        "particle displacements. Write DIR/modes.json, DIR/modes.png (the shapes) and the chosen mode as "
+        "DIR/mode<K>.gif and the viewer page DIR/mode<K>.html. With a [reduced] section the roots are "
+        "compared with those of Lagrange's equations linearized at the same state.",
+        "modes scenarios/bead_on_rotating_hoop.toml --rotating 0,0,4 "
+        "--set 'particles.bead.position=[0.8,0,-0.6]'",
+        out="output directory (default: out/<scene file stem>_modes)", quiet=True)
+    m.add_argument("--at", choices=("equilibrium", "start"), default="equilibrium",
+                   help="about the equilibrium near the scene's positions (default), or its initial state")
+    m.add_argument("--rotating", metavar="WX,WY,WZ",
+                   help="angular velocity (rad/s) of a frame in which the state is at rest (a steady motion)")
+    m.add_argument("--frame-point", metavar="X,Y,Z", help="a point on the frame's axis (default the origin)")
+    m.add_argument("--mode", type=int, metavar="K",
+                   help="the mode to animate (default: the slowest oscillation)")
+    m.add_argument("--amplitude", type=float, metavar="A",
+                   help="the animated mode's largest displacement in metres (default 5%% of the system's "
+                   "size)")
+    m.add_argument("--no-animation", action="store_true", help="skip the GIF and the viewer page")
+    f = _verb(
+        verbs, "fit", "fit [parameters] to measured data with exact Jacobians; standard errors, residuals",
+        "Fit the [parameters] named by --params so that the run of SCENE reproduces DATA (a CSV file: a "
+        "column t and one column per observable, named by its formula, e.g. x_bob, or by --observe; "
+        "optional sigma_NAME columns give each value's standard deviation). Least squares (SciPy, "
+        "trust region) with the Jacobian from CasADi AD through the run's steps. Print the estimates and "
+        "their standard errors; write DIR/fit.json, DIR/fit.csv, DIR/fit.png, DIR/residuals.png and the "
+        "fitted run DIR/trajectory.npz. Several DATA files: one fit each (here or on Dask), DIR/fits.csv. "
+        "Exit 1 when a fit does not converge (its results are written).",
+        "fit scenarios/pendulum_fit.toml scenarios/data/pendulum_camera.csv --params l,b --out out/fit",
+        out="output directory (default: out/<scene file stem>_fit)", quiet=True)
+    f.add_argument("data", nargs="+", metavar="DATA", help="CSV file(s) of measurements")
+    f.add_argument("--params", required=True, metavar="P1,P2", help="comma-separated [parameters] to fit")
+    f.add_argument("--observe", action="append", default=[], metavar="NAME=FORMULA",
+                   help="the formula of a data column that is not a formula itself, e.g. "
+                   "'theta=atan2(x_bob, -y_bob)' (repeatable)")
+    f.add_argument("--sigma", type=float, metavar="S",
+                   help="standard deviation of every value without a sigma_NAME column (default: estimated "
+                   "from the residuals)")
+    f.add_argument("--start", action="append", default=[], metavar="NAME=VALUE",
+                   help="start values (default: the scene's), e.g. l=0.5,b=0.1")
+    f.add_argument("--bounds", action="append", default=[], metavar="NAME=LOW:HIGH",
+                   help="bounds of a fitted parameter (repeatable), e.g. l=0.1:5")
+    f.add_argument("--max-runs", type=int, default=100, metavar="N", help="runs allowed (default 100)")
+    f.add_argument("--scheduler", default="sequential", metavar="ADDRESS",
+                   help="several DATA files: 'sequential' (default), 'local' (a local Dask cluster) or "
+                   "tcp://HOST:PORT")
+    f.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster")
 
 
 def _add_plot(verbs) -> None:
@@ -193,7 +255,7 @@ def _add_sweep(verbs) -> None:
         "sweep scenarios/kapitza_sweep.toml --vary 'parameters.a=lin(0.002, 0.02, 12)' "
         "--vary 'parameters.nu=lin(20, 240, 12)' \\\n    --summary 'min:up=y_bob - a*cos(nu*t)' "
         "--boundary 'a**2*nu**2 - 2*g*l' --out out/kapitza",
-        out="output directory (default: out/<scene file stem>_sweep)", quiet=True)
+        out="output directory (default: out/<scene file stem>_sweep, the word not doubled)", quiet=True)
     sw.add_argument("--vary", action="append", default=[], metavar="KEY=SPEC",
                     help="a scene key (--set syntax) and its values (repeatable: a grid)")
     sw.add_argument("--design", metavar="FILE",
@@ -214,7 +276,8 @@ def _add_sweep(verbs) -> None:
                     help="a summary column: a formula in t, x_P, vx_P, ..., parameters, at t_end or "
                     "reduced over the run with max:, min:, max_abs:, mean: (repeatable)")
     sw.add_argument("--trajectories", action="store_true", help="also write DIR/runs/<id>.npz")
-    sw.add_argument("--plot", metavar="COLUMN", help="the column the figure shows")
+    sw.add_argument("--plot", metavar="COLUMN", help="the column the figure shows (default: the first "
+                    "--summary, else the position coordinate that varies most across the runs)")
     sw.add_argument("--boundary", metavar="FORMULA",
                     help="2-D map: draw the zero contour of a formula in the varied keys' last names "
                     "and the parameters, e.g. 'a**2*nu**2 - 2*g*l'")
@@ -278,11 +341,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ..output.output_set import discard_uncommitted, user_path
     from . import run as cli_run  # the verbs' imports (NumPy, CasADi, ...) only when one runs
     from . import verbs as cli_verbs
+    from . import verbs_fit
 
     handlers = {"run": cli_run._run, "check": cli_verbs._check, "crosscheck": cli_verbs._crosscheck,
                 "bench": cli_verbs._bench, "statics": cli_verbs._statics, "derive": cli_verbs._derive,
                 "sweep": cli_verbs._sweep, "path": cli_verbs._path, "plot": cli_verbs._plot,
-                "view": cli_verbs._view}
+                "view": cli_verbs._view, "modes": verbs_fit._modes, "fit": verbs_fit._fit}
     try:
         return handlers[args.verb](args)
     except InputError as exc:

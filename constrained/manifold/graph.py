@@ -93,7 +93,12 @@ UNDERFLOW = 1e-150
 
 
 def _flush_underflow(J):
-    return ca.if_else(ca.fabs(J) < UNDERFLOW, 0, J)
+    """J with its entries below UNDERFLOW set to 0, its sparsity kept: done on the vector of
+    its nonzeros (elementwise operations on a large sparse MX matrix are slow to build)."""
+    if isinstance(J, ca.SX | ca.DM):
+        return J * (ca.fabs(J) >= UNDERFLOW)
+    nz = ca.vec(J.nz[:])
+    return ca.MX(J.sparsity(), nz * (ca.fabs(nz) >= UNDERFLOW))
 
 
 def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl", feedback=None):

@@ -10,10 +10,10 @@ Python does the heavy lifting so that the page stays small and smooth on any run
 - the time series (energy, constraint residual, every multiplier) are reduced to a
   min/max envelope of at most ``MAX_SERIES_POINTS`` points each, and all multipliers
   together to at most ``MAX_SERIES_VALUES`` numbers, so spikes survive decimation;
-- with the scene's System the constraints are evaluated here, at the frame times: rods and
-  strings (distance constraints, also to a fixed or moving anchor), pins moving with t,
-  planes as patches and surfaces and curves as clouds of points on them, found by
-  Newton projection of a grid around the motion. Custom constraints are listed, not drawn.
+- with the scene's System the constraints are evaluated at the frame times (output/shapes.py):
+  rods and strings (distance constraints, also to a fixed or moving anchor), pins moving with
+  t, planes as patches and surfaces and curves as clouds of points on them, found by Newton
+  projection of a grid around the motion. Custom constraints are listed, not drawn.
 """
 
 from __future__ import annotations
@@ -27,14 +27,12 @@ import warnings
 from importlib import resources
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from ..model.constraints import Curve, Custom, Distance, Pin, Plane, Surface
 from ..model.effects import Gravity
-from ..model.symbols import Symbols
 from ..run.trajectory import Trajectory, atomic_write
+from .shapes import shapes
 
 __all__ = ["viewer_page", "write_viewer", "MAX_FRAMES", "MAX_POINT_FRAMES"]
 
@@ -50,14 +48,8 @@ MAX_SERIES_POINTS = 2000
 MAX_EVENTS = 200
 #: Most numbers of all multiplier series together.
 MAX_SERIES_VALUES = 400_000
-#: Most points of a surface or curve cloud, and most key times of a moving one.
-CLOUD_POINTS = 700
-CLOUD_KEYS = 40
-#: Most distinct surface and curve formulas drawn (each costs a Newton projection and page space).
-MAX_CLOUDS = 12
 #: How far above the level a 3-D motion is first seen from (radians; drag to turn).
 ELEVATION = math.radians(25.0)
-_GRID = 14  # seeds per axis of the Newton projection onto surfaces and curves
 _TEMPLATE = "viewer_template.html"
 
 
@@ -83,10 +75,10 @@ def _quantize(a: np.ndarray, lo: np.ndarray, step: np.ndarray) -> str:
 # --------------------------------------------------------------------------------- decimation
 
 
-def frame_indices(t: np.ndarray, n_particles: int) -> np.ndarray:
+def frame_indices(t: np.ndarray, n_particles: int, point_frames: int = MAX_POINT_FRAMES) -> np.ndarray:
     """Sample indices of the frames: uniform in time, at most the budgets above allow."""
     n = len(t)
-    budget = max(MIN_FRAMES, MAX_POINT_FRAMES // max(n_particles, 1))
+    budget = max(MIN_FRAMES, point_frames // max(n_particles, 1))
     count = min(MAX_FRAMES, budget)
     if n <= count:
         return np.arange(n)
@@ -183,6 +175,68 @@ def view_basis(x: np.ndarray, up=None) -> tuple[np.ndarray, list[str], bool]:
     return basis, names, planar
 
 
+def _nice(x: float) -> float:
+    """1, 2 or 5 times a power of ten, near ``x`` from below."""
+    e = 10.0 ** math.floor(math.log10(x))
+    m = x / e
+    return (5.0 if m >= 5 else 2.0 if m >= 2 else 1.0) * e
+
+
+def floor_grid(x: np.ndarray, basis: np.ndarray, planar: bool, up=None) -> dict:
+    """The picture's grid and axes, in world coordinates (the page projects them like the rest).
+
+    Planar motion: graph paper in the plane of the motion (``basis`` rows 0 and 1). 3-D
+    motion: a floor, the level plane (perpendicular to ``up``, default +z) at the lowest point
+    of the motion. Lines every ``step`` metres (1, 2 or 5 × 10^k, about six across) over the
+    motion's extent, rounded out to whole steps; ``axes``: the grid's lines through the origin, named
+    after the coordinate they measure; ``ticks``: the coordinate values along two edges.
+    """
+    p = x.reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    p = p[:: max(1, len(p) // 20000)] if len(p) else np.zeros((1, 3))
+    if planar:
+        e1, e2, normal = basis[0], basis[1], basis[2]
+        level = float(np.median(p @ normal))
+    else:
+        normal = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float) / np.linalg.norm(up)
+        k = int(np.argmax(np.abs(normal)))
+        if abs(normal[k]) > 1 - 1e-9:  # level with two coordinate axes
+            e1, e2 = np.eye(3)[(k + 1) % 3], np.eye(3)[(k + 2) % 3]
+        else:
+            e1 = np.cross(normal, basis[2])
+            e1 = e1 / np.linalg.norm(e1) if np.linalg.norm(e1) > 1e-9 else basis[0]
+            e2 = np.cross(normal, e1)
+        level = float(np.min(p @ normal))
+    a, b = p @ e1, p @ e2
+    size = max(float(np.ptp(a)), float(np.ptp(b)), float(np.ptp(p @ normal)), 1e-3)
+    step = _nice(size / 5)
+    lo_a, hi_a = math.floor(a.min() / step - 1e-9), math.ceil(a.max() / step + 1e-9)
+    lo_b, hi_b = math.floor(b.min() / step - 1e-9), math.ceil(b.max() / step + 1e-9)
+
+    def at(u, v):
+        return [round(float(c), 9) for c in u * e1 + v * e2 + level * normal]
+
+    def name(e):  # the coordinate a direction measures, and its sign
+        j = int(np.argmax(np.abs(e)))
+        return ("xyz"[j], float(np.sign(e[j]))) if abs(e[j]) > 1 - 1e-9 else (None, 1.0)
+
+    (n1, s1), (n2, s2) = name(e1), name(e2)
+    us, vs = np.arange(lo_a, hi_a + 1) * step, np.arange(lo_b, hi_b + 1) * step
+    lines = [[at(u, vs[0]), at(u, vs[-1])] for u in us] + [[at(us[0], v), at(us[-1], v)] for v in vs]
+    axes = []
+    if us[0] < 0 < us[-1] and n2:
+        axes.append([at(0.0, vs[0]), at(0.0, vs[-1]), n2 if s2 > 0 else f"−{n2}"])
+    if vs[0] < 0 < vs[-1] and n1:
+        axes.append([at(us[0], 0.0), at(us[-1], 0.0), n1 if s1 > 0 else f"−{n1}"])
+    every = max(1, len(us) // 6)
+    ticks = [[at(u, vs[0] - 0.35 * step), f"{s1 * u + 0.0:.6g}"] for u in us[::every]]
+    ticks += [[at(us[0] - 0.35 * step, v), f"{s2 * v + 0.0:.6g}"] for v in vs[1::max(1, len(vs) // 6)]]
+    names = [[at(us[-1] + 0.5 * step, vs[0]), f"{n1 or 'u'} [m]"],
+             [at(us[0], vs[-1] + 0.5 * step), f"{n2 or 'v'} [m]"]]
+    return {"lines": lines, "axes": axes, "ticks": ticks, "names": names, "step": step,
+            "normal": [float(c) for c in normal]}
+
+
 def up_direction(system) -> np.ndarray | None:
     """Against the scene's uniform gravity, when it has one with constant numbers."""
     for e in getattr(system, "effects", ()):
@@ -194,154 +248,6 @@ def up_direction(system) -> np.ndarray | None:
             if np.linalg.norm(g) > 0:
                 return -g / np.linalg.norm(g)
     return None
-
-
-# --------------------------------------------------------------------------------- geometry
-
-
-def _time_vector(fn: ca.Function, times: np.ndarray) -> np.ndarray:
-    """(len(times), k) values of a CasADi function of t returning k numbers."""
-    out = fn.map(len(times))(times.reshape(1, -1))
-    return np.asarray(out, dtype=float).T
-
-
-class _Geometry:
-    """The constraints of a System, evaluated at the frame times for the page."""
-
-    def __init__(self, system, names: list[str], times: np.ndarray, x: np.ndarray):
-        self.s = Symbols(system)
-        self.names = {n: k for k, n in enumerate(names)}
-        self.times = times
-        finite = x.reshape(-1, 3)
-        finite = finite[np.all(np.isfinite(finite), axis=1)]
-        self.lo = finite.min(axis=0) if len(finite) else np.zeros(3)
-        self.hi = finite.max(axis=0) if len(finite) else np.zeros(3)
-        self.size = float(max(np.max(self.hi - self.lo), 1e-3))
-        self.centre = 0.5 * (self.lo + self.hi)
-        self.items: list[dict] = []
-        self._clouds: dict[tuple, dict] = {}  # one cloud per distinct formula (a chain repeats them)
-
-    def particle(self, name, where) -> int:
-        if name not in self.names:
-            raise InputError(f"names particle {name!r}, which the trajectory does not have", where=where)
-        return self.names[name]
-
-    def point(self, entries, where) -> dict:
-        """A point of t: fixed ``[x, y, z]`` or per frame (base64 float32, frames × 3)."""
-        vec = self.s.point(entries, where)
-        fn = ca.Function("p", [self.s.t], [vec])
-        if not ca.depends_on(vec, self.s.t):
-            return {"fixed": [float(v) for v in np.asarray(fn(0.0)).ravel()]}
-        return {"moving": _f32(_time_vector(fn, self.times))}
-
-    def add(self, c) -> None:
-        where = c.where or c.label
-        label = c.label
-        if isinstance(c, Distance):
-            item = {"kind": "rod", "label": label, "a": self.particle(c.a, where)}
-            if c.b is not None:
-                item["b"] = self.particle(c.b, where)
-            else:
-                item["point"] = self.point(c.point, where)
-            self.items.append(item)
-        elif isinstance(c, Pin):
-            self.items.append({"kind": "pin", "label": label, "a": self.particle(c.a, where),
-                               "point": self.point(c.point, where)})
-        elif isinstance(c, Plane):
-            self.items.append({"kind": "plane", "label": label, **self.plane(c, where)})
-        elif isinstance(c, Surface | Curve):
-            exprs = [c.expr] if isinstance(c, Surface) else c.exprs
-            self.items.append({"kind": "surface" if isinstance(c, Surface) else "curve",
-                               "label": label, **self.cloud(exprs, where)})
-        else:  # Custom, or a constraint class this page does not know
-            kind = ("custom" if isinstance(c, Custom) else "velocity constraint"
-                    if getattr(c, "level", "") == "velocity" else type(c).__name__.lower())
-            self.items.append({"kind": "undrawn", "label": f"{label} ({kind}: not drawn)"})
-
-    def plane(self, c: Plane, where) -> dict:
-        """The plane as a square patch around the motion: 4 corners, fixed or per frame."""
-        s = self.s
-        n = s.point(c.normal, f"{where}.normal")
-        d = s.time_function(c.offset, f"{where}.offset")
-        fn = ca.Function("n", [s.t], [ca.vertcat(n, d)])
-        moving = ca.depends_on(ca.vertcat(n, d), s.t)
-        nd = _time_vector(fn, self.times if moving else np.zeros(1))
-        corners = np.array([self._square(row[:3], row[3]) for row in nd])  # (K, 4, 3)
-        if moving:
-            return {"moving": _f32(corners.reshape(len(corners), 12))}
-        return {"fixed": corners[0].tolist()}
-
-    def _square(self, normal, offset) -> np.ndarray:
-        norm = float(np.linalg.norm(normal))
-        if not np.isfinite(norm) or norm == 0:
-            return np.full((4, 3), np.nan)
-        n = normal / norm
-        centre = self.centre - (n @ self.centre - offset / norm) * n
-        u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
-        u /= np.linalg.norm(u)
-        w = np.cross(n, u)
-        h = 0.75 * self.size
-        return np.array([centre + h * (su * u + sw * w) for su, sw in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
-
-    def cloud(self, exprs: list[str], where) -> dict:
-        """Points on g_k(x, y, z, t) = 0 near the motion (Newton from a grid), per key time."""
-        key = tuple(str(e) for e in exprs)
-        if key in self._clouds:
-            return {"same_as": self._clouds[key]["index"]}
-        if len(self._clouds) >= MAX_CLOUDS:
-            return {"points": [], "note": f"not drawn: only the first {MAX_CLOUDS} distinct formulas are"}
-        self._clouds[key] = {"index": len(self.items)}
-        return self._cloud(exprs, where)
-
-    def _cloud(self, exprs: list[str], where) -> dict:
-        s = self.s
-        p = ca.SX.sym("p", 3)
-        g = ca.vertcat(*[s.parse_field(e, f"{where}.expr", p) for e in exprs])
-        J = ca.jacobian(g, p)
-        step = p - J.T @ ca.solve(J @ J.T + 1e-14 * ca.SX.eye(g.numel()), g)
-        newton = ca.Function("newton", [p, s.t], [step, ca.norm_inf(g)])
-        moving = ca.depends_on(g, s.t)
-        lo, hi = self.lo - 0.3 * self.size, self.hi + 0.3 * self.size
-        axes = [np.linspace(lo[k], hi[k], _GRID) if hi[k] > lo[k] else np.array([lo[k]]) for k in range(3)]
-        seeds = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3).T
-        mapped = newton.map(seeds.shape[1])
-        if moving:
-            count = min(CLOUD_KEYS, len(self.times))
-            keys = np.unique(np.linspace(0, len(self.times) - 1, count).astype(int))
-        else:
-            keys = np.array([0])
-        clouds = []
-        for k in keys:
-            clouds.append(self._project(mapped, seeds, float(self.times[k]), lo, hi))
-        count = max(len(c) for c in clouds)
-        if count == 0:
-            return {"points": [], "note": "no points found near the motion"}
-        if not moving:
-            return {"points": np.round(clouds[0], 6).tolist()}
-        # equal counts per key (NaN padding) so the page can index one flat array
-        padded = np.full((len(keys), count, 3), np.nan)
-        for j, c in enumerate(clouds):
-            padded[j, : len(c)] = c
-        return {"keys": keys.tolist(), "count": count, "moving": _f32(padded.reshape(len(keys), -1))}
-
-    def _project(self, newton, seeds, t, lo, hi) -> np.ndarray:
-        pts = seeds
-        with np.errstate(all="ignore"):
-            for _ in range(12):
-                step, _res = newton(pts, t)
-                pts = np.asarray(step, dtype=float)
-            res = np.asarray(newton(pts, t)[1], dtype=float).ravel()
-        pts = pts.T
-        ok = np.isfinite(res) & (res < 1e-6 * self.size) & np.all((pts >= lo) & (pts <= hi), axis=1)
-        pts = pts[ok]
-        if len(pts) == 0:
-            return pts
-        cells = np.round((pts - lo) / (self.size / 80)).astype(np.int64)
-        _, first = np.unique(cells, axis=0, return_index=True)
-        pts = pts[np.sort(first)]
-        if len(pts) > CLOUD_POINTS:
-            pts = pts[np.linspace(0, len(pts) - 1, CLOUD_POINTS).astype(int)]
-        return pts
 
 
 def _check_scene(system, names: list[str], n: int) -> None:
@@ -357,7 +263,8 @@ def _check_scene(system, names: list[str], n: int) -> None:
 # --------------------------------------------------------------------------------- page
 
 
-def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
+def page_data(traj: Trajectory, *, system=None, title: str = "",
+              point_frames: int = MAX_POINT_FRAMES) -> dict:
     """Everything the page draws, decimated and encoded (JSON-ready)."""
     t = np.asarray(traj.t, dtype=float)
     x = np.asarray(traj.x)  # maybe float32 and big: converted after decimation only
@@ -370,9 +277,10 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
         _check_scene(system, names, n)
         names = [p.name for p in system.particles]
     names = names if len(names) == n else [f"particle {i}" for i in range(n)]
-    idx = frame_indices(t, n)
+    idx = frame_indices(t, n, point_frames)
     times, xf = t[idx], np.asarray(x[idx], dtype=float)
-    basis, axes, planar = view_basis(xf, up_direction(system) if system is not None else None)
+    up = up_direction(system) if system is not None else None
+    basis, axes, planar = view_basis(xf, up)
     with warnings.catch_warnings():  # an axis that is NaN throughout: drawn nowhere
         warnings.simplefilter("ignore", RuntimeWarning)
         lo, hi = np.nanmin(xf, axis=(0, 1)), np.nanmax(xf, axis=(0, 1))
@@ -383,15 +291,11 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
         "t": _f32(times), "t0": float(t[0]), "t1": float(t[-1]),
         "x": {"lo": lo.tolist(), "step": step.tolist(), "q": _quantize(xf, lo, step)},
         "view": {"basis": basis.tolist(), "axes": axes, "planar": planar},
+        "grid": floor_grid(xf, basis, planar, up),
         "series": {},
     }
     if traj.constraint_forces is not None:
-        f = np.asarray(np.asarray(traj.constraint_forces)[idx], dtype=float)
-        big = float(np.nanmax(np.abs(f))) if np.isfinite(f).any() else 0.0
-        if big > 0 and np.isfinite(big):
-            fstep = big / 32767.0
-            data["forces"] = {"lo": [-big] * 3, "step": [fstep] * 3, "q": _quantize(f, -big, fstep),
-                              "max": float(np.nanmax(np.linalg.norm(f, axis=-1)))}
+        data.update(_forces(np.asarray(np.asarray(traj.constraint_forces)[idx], dtype=float)))
     for name in ("energy", "constraint_residual"):
         y = getattr(traj, name)
         if y is not None and len(y) == len(t):
@@ -418,16 +322,32 @@ def page_data(traj: Trajectory, *, system=None, title: str = "") -> dict:
                           for e in events[:MAX_EVENTS]]
         data["events_total"] = len(events)
     if system is not None:
-        geo = _Geometry(system, names, times, xf)
-        for c in system.constraints:
-            geo.add(c)
-        data["constraints"] = geo.items
+        data["constraints"] = _encoded(shapes(system, names, times, xf))
     return data
 
 
-def viewer_page(traj: Trajectory, *, system=None, title: str = "") -> str:
+def _forces(f: np.ndarray) -> dict:
+    """The constraint forces of the frames (F, N, 3), quantized per frame: int16 codes of
+    f / (frame's largest component) and that scale, so that a frame of small forces keeps its
+    digits beside a run's one large force; ``norm``: each frame's largest |F| (the page scales
+    the arrows of a frame by it). Empty when there are none."""
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a frame that is NaN throughout
+        frame = np.nan_to_num(np.nanmax(np.abs(f), axis=(1, 2)), nan=0.0, posinf=0.0)
+        norm = np.nan_to_num(np.nanmax(np.linalg.norm(f, axis=-1), axis=1), nan=0.0, posinf=0.0)
+    if not np.any(frame > 0):
+        return {}
+    unit = np.where(frame > 0, frame, 1.0) / 32767.0  # newtons per code, per frame
+    codes = np.round(f / unit[:, None, None])
+    codes = np.where(np.isfinite(codes), np.clip(codes, -32767, 32767), -32768)
+    return {"forces": {"unit": _f32(unit), "q": _b64(codes, np.int16), "norm": _f32(norm),
+                       "max": float(norm.max())}}
+
+
+def viewer_page(traj: Trajectory, *, system=None, title: str = "",
+                point_frames: int = MAX_POINT_FRAMES) -> str:
     """The HTML text of the viewer of ``traj`` (constraints drawn when ``system`` is given)."""
-    data = page_data(traj, system=system, title=title)
+    data = page_data(traj, system=system, title=title, point_frames=point_frames)
     blob = json.dumps(_finite(data), separators=(",", ":"), allow_nan=False, default=_plain)
     blob = blob.replace("</", "<\\/")  # never closes the <script> element holding it
     template = resources.files(__package__).joinpath(_TEMPLATE).read_text(encoding="utf-8")
@@ -447,10 +367,31 @@ def _finite(value):
     return value
 
 
+def _encoded(value):
+    """The arrays of what moves with t (shapes.py) as base64 float32, the rest as it is."""
+    if isinstance(value, dict):
+        return {k: _encoded(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_encoded(v) for v in value]
+    return _f32(value) if isinstance(value, np.ndarray) else value
+
+
 def _plain(value):
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"not JSON: {type(value).__name__}")
+
+
+#: Frames × particles of the viewer inside a notebook cell (the notebook file keeps it).
+INLINE_POINT_FRAMES = 60_000
+
+
+def inline_viewer(traj: Trajectory, *, system=None, title: str = "", height: int = 600) -> str:
+    """The viewer as an ``<iframe>`` for a notebook cell (Jupyter's ``_repr_html_``): the page
+    of ``viewer_page`` with fewer frames for big systems (``INLINE_POINT_FRAMES``)."""
+    page = viewer_page(traj, system=system, title=title, point_frames=INLINE_POINT_FRAMES)
+    return (f'<iframe srcdoc="{html.escape(page, quote=True)}" style="width:100%;height:{int(height)}px;'
+            'border:1px solid #d9dce3" title="constrained viewer"></iframe>')
 
 
 def write_viewer(traj: Trajectory, path, *, system=None, title: str = "") -> Path:

@@ -38,7 +38,7 @@ from ..manifold.manifold import Manifold
 from ..model.held import held
 from ..model.structure import Model
 from ..solvers import METHODS
-from ..solvers.base import Event, Status
+from ..solvers.base import Event, Failure, Status
 from .action_integral import action
 from .event_records import EventRecord
 from .quantities import constraint_forces_along, trajectory_from
@@ -108,7 +108,7 @@ def run_segment(model: Model, rows, x0, v0, t0: float, t_end: float, *, t_eval, 
     if sol.status is Status.INTERRUPTED:
         failure = "interrupted"
     elif sol.status not in (Status.COMPLETED, Status.EVENT):
-        failure = str(sol.failure)
+        failure = sol.failure  # its text, carrying its status (solvers.base.Failure)
     return t, x, v, sol.events, failure, sol.stats
 
 
@@ -273,9 +273,10 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
             for r in records:
                 counts[r.constraint] = counts.get(r.constraint, 0) + 1
             worst = max(counts, key=counts.get)
-            failure = (f"more than {max_events} events by t = {t:.6g} s, {counts[worst]} of them of "
-                       f"'{worst}': the constraint chatters (opens and closes ever faster); raise "
-                       "rest_speed so that slow rebounds settle, or give restitution = 0")
+            failure = Failure(Status.STEP_LIMIT, f"more than {max_events} events by t = {t:.6g} s, "
+                              f"{counts[worst]} of them of '{worst}': the constraint chatters (opens and "
+                              "closes ever faster); raise rest_speed so that slow rebounds settle, or "
+                              "give restitution = 0")
             break
     n3 = model.n_coordinates
     return HybridRun(np.array(T), np.array(X).reshape(-1, n3), np.array(V).reshape(-1, n3), segments,
@@ -439,7 +440,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
                    "stopped" if result.failure else "completed"),
         "stop": (Status.EVENT.value if result.stopped_by else
                  Status.INTERRUPTED.value if result.failure == "interrupted" else
-                 "failed" if result.failure else Status.COMPLETED.value),
+                 getattr(result.failure, "status", Status.SOLVER_FAILED).value if result.failure
+                 else Status.COMPLETED.value),
         "t_end": float(t_end), "t_end_reached": reached,
         "segments": [{"t_start": t0, "t_end": t1, "held": [model.constraint_labels[k] for k in rows],
                       "dof": _dof(model, result, i0, rows)} for i0, _, rows, t0, t1 in result.segments],
@@ -449,11 +451,15 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
     if result.stopped_by:
         traj.info["stopped_by_event"] = result.stopped_by
     if result.failure == "interrupted":
-        raise RunInterrupted(f"the run was interrupted (Ctrl-C) before t_end = {t_end:g} s; what was "
-                             "computed is kept", trajectory=traj)
+        traj.info["message"] = (f"the run was interrupted (Ctrl-C) before t_end = {t_end:g} s; what was "
+                                "computed is kept")
+        raise RunInterrupted(traj.info["message"], trajectory=traj)
     if result.failure:
-        raise SimulationError(f"the run stopped early: {result.failure}; the last good state is at "
-                              f"t = {reached:.6g} s", trajectory=traj)
+        traj.info["message"] = (f"the run stopped early: {result.failure}; the last good state is at "
+                                f"t = {reached:.6g} s")
+        raise SimulationError(traj.info["message"], trajectory=traj)
+    if result.stopped_by:
+        traj.info["message"] = f"the terminal event '{result.stopped_by}' at t = {reached:.6g} s"
     return traj
 
 

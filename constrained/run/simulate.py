@@ -156,29 +156,28 @@ def simulate(
                 f"{len(traj.t)} samples)" if skipped else "")
         if skipped:
             traj.info["quantities_skipped"] = skipped
-        raise RunInterrupted(f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
-                             f"what was computed is kept{note}", trajectory=traj)
+        traj.info["message"] = (f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
+                                f"what was computed is kept{note}")
+        raise RunInterrupted(traj.info["message"], trajectory=traj)
+    if ended_by_event:  # which event, when (Trajectory.message)
+        traj.info["message"] = str(solution.failure)
     failure = None if ended_by_event else solution.failure
     bad = None if failure else _first_nonfinite(model, traj, wanted)
     if bad is not None:
         what, k = bad
         state = (traj.x[k].ravel(), traj.v[k].ravel(), float(traj.t[k]))
         kept = traj.head(k)
-        kept.info.update(status="stopped", t_end_reached=float(kept.t[-1]) if k else float(t_start))
-        raise SimulationError(
-            f"non-finite {what} at t = {traj.t[k]:.6g} s; "
-            f"{diagnostics.nonfinite_cause(model, *state)}",
-            trajectory=kept,
-        )
+        message = f"non-finite {what} at t = {traj.t[k]:.6g} s; {diagnostics.nonfinite_cause(model, *state)}"
+        kept.info.update(status="stopped", stop=Status.NON_FINITE.value, message=message,
+                         t_end_reached=float(kept.t[-1]) if k else float(t_start))
+        raise SimulationError(message, trajectory=kept)
     if failure:
         cause = ("" if "likely cause" in failure else
                  _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
                  " (likely cause: a singular configuration, stiffness, or forces that blow up)")
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
-        raise SimulationError(
-            f"the run stopped early: {failure}; the last good state is at {last}{cause}",
-            trajectory=traj,
-        )
+        traj.info["message"] = f"the run stopped early: {failure}; the last good state is at {last}{cause}"
+        raise SimulationError(traj.info["message"], trajectory=traj)
     return traj
 
 

@@ -85,6 +85,8 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
             manifold = Manifold(model, rows=rows, policy=policy, compiled=compiled)
             x = manifold.project_positions(x, t0, tol=1e-13 * size * s_min, max_iter=50).x
     v = manifold.project_velocities(x, v0, t0)
+    if manifold.redundant:
+        _refuse_taut_self_stress(manifold, x, v, t0)
     dv = float(np.max(np.linalg.norm((v - v0).reshape(-1, 3), axis=1), initial=0.0))
     report = {
         "position": dx,
@@ -100,3 +102,53 @@ def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     """``consistent_start`` as a tuple (x, v, correction report)."""
     start = consistent_start(model, x0, v0, t0, max_correction=max_correction, size=size)
     return start.x, start.v, start.correction
+
+
+#: The curvature of the motion may leave range(J) by this fraction of its size (round-off).
+SELF_STRESS_RTOL = 1e-6
+
+
+def _refuse_taut_self_stress(manifold: Manifold, x, v, t: float) -> None:
+    """Refuse a start from which no motion is possible: dependent rows that carry a self-stress
+    (a straight chain of rods pinned at both ends at exactly its length, the edge of a flat
+    cloth between two pinned corners) and a motion that would bend them.
+
+    At rest the motion starts along the acceleration a (moving: along v). Along a direction d
+    the constraints demand J ẍ = −c with c = dᵀ ∂²f/∂x² d, the curvature term of γ (γ's part
+    quadratic in the velocity, taken here by a symmetric difference of γ at v ± d). When c has a
+    part r outside range(J) — along the self-stress space null(Jᵀ) — no acceleration meets it:
+    the set can follow only by stretching, with forces that grow without bound. The rows
+    carrying r are named."""
+    model = manifold.model
+    a, _ = manifold.accelerations(x, v, t)
+    moving = float(np.linalg.norm(v)) > 1e-12 * max(1.0, float(np.linalg.norm(x)))
+    d = v if moving else a
+    if not float(np.linalg.norm(d)) > 0:
+        return
+
+    def gamma(w):
+        return np.asarray(model.dynamics(x, w, t)[2], float).ravel()
+
+    c = 0.5 * (gamma(v + d) + gamma(v - d)) - gamma(v)
+    size = float(np.linalg.norm(c))
+    if not size > 0 or not np.isfinite(size):
+        return
+    algebra = manifold.algebra
+    J = algebra.matrix(model.jacobian(x, t)[1])
+    ones = np.ones(model.n_coordinates)
+    y = algebra.schur_solve(J, ones, c, full_rank=False)
+    r = c - J @ (J.T @ y)  # the part of c outside range(J): along null(Jᵀ)
+    if not float(np.linalg.norm(r)) > SELF_STRESS_RTOL * size:
+        return
+    weights = np.abs(r) / np.max(np.abs(r))
+    rows = sorted(int(k) for k in np.flatnonzero(weights > 0.05))
+    labels = model.constraint_labels
+    named = ", ".join(f"'{labels[k]}'" for k in rows[:6])
+    named += f" and {len(rows) - 6} more" if len(rows) > 6 else ""
+    raise InconsistentStateError(
+        f"no motion can start from this state: the constraints {named} form a taut, self-stressed "
+        f"set (e.g. a straight chain of rods held at both ends at exactly its length) that the "
+        f"{'motion' if moving else 'applied forces'} would bend, which they allow only by stretching, "
+        "with forces that grow without bound; give the set slack (anchor its ends closer together) "
+        "or start it bent (e.g. a sagging edge)")
+

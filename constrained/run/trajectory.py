@@ -24,6 +24,21 @@ QUANTITIES = (
     "velocity_residual",
     "action",
 )
+#: The unit of each array (a multiplier is a force when its constraint row is in metres, as
+#: distances, pins and planes are; a row f in other units gives λ in J per unit of f).
+UNITS = {
+    "t": "s", "x": "m", "v": "m/s", "multipliers": "N", "constraint_forces": "N", "energy": "J",
+    "constraint_residual": "m", "velocity_residual": "m/s", "action": "J·s",
+}
+#: What each array is, in words (xarray's ``long_name``).
+MEANINGS = {
+    "t": "time", "x": "position", "v": "velocity",
+    "multipliers": "Lagrange multiplier of each constraint row (N for rows in metres; J per unit of f "
+                   "otherwise)",
+    "constraint_forces": "constraint force (J^T λ) on each particle", "energy": "total energy",
+    "constraint_residual": "max |f| over the constraint rows, each in metres",
+    "velocity_residual": "max |J v + f_t| over the constraint rows", "action": "action S(t) = ∫ L dt",
+}
 
 
 @dataclass
@@ -32,6 +47,18 @@ class Trajectory:
     constraint_forces (T, N, 3), energy / residuals (T,), action (T,): the cumulative
     S(t) = ∫ L dt in J·s. Quantities a run was not asked for are None. ``stats`` holds
     the solver's counters and wall time.
+
+    As SciPy's ``solve_ivp`` result: ``success``, ``status`` (a ``C.Status``), ``message``, and
+    the arrays by name, ``traj["x"]``. ``to_pandas()`` / ``to_xarray()`` give them as a table
+    with the particles' names and the units; in Jupyter the trajectory shows a summary and the
+    interactive viewer. Example::
+
+        import constrained as C
+
+        scene = C.load_scene("scenarios/double_pendulum.toml")
+        traj = C.simulate(scene.system, 2.0)
+        traj.success, traj.message          # (True, 'the run reached t_end')
+        traj["x"][-1, traj.particle("p2")]  # where p2 is at t = 2 s, in metres
     """
 
     t: np.ndarray
@@ -63,6 +90,146 @@ class Trajectory:
             raise InputError(
                 f"no particle '{name}' in this trajectory ({', '.join(self.particle_names)})"
             ) from None
+
+    # --- SciPy's habits ------------------------------------------------------------------
+    @property
+    def status(self):
+        """How the run ended, a ``C.Status`` (``Status.COMPLETED``, ``Status.EVENT`` for a
+        terminal event, ``Status.INTERRUPTED``, ...). A run that failed raised a
+        SimulationError whose ``trajectory`` keeps what was computed, with this status."""
+        from ..solvers.base import Status
+
+        stop = self.info.get("stop")
+        if stop in Status._value2member_map_:
+            return Status(stop)
+        said = self.info.get("status", "completed")
+        known = {"completed": Status.COMPLETED, "interrupted": Status.INTERRUPTED}
+        return known.get(said, Status.SOLVER_FAILED)
+
+    @property
+    def success(self) -> bool:
+        """True when the run reached t_end or a terminal event (SciPy's ``success``)."""
+        return self.info.get("status", "completed") == "completed"
+
+    @property
+    def message(self) -> str:
+        """One sentence on how the run ended (the error's text for a run that stopped early)."""
+        return str(self.info.get("message") or self.status.message)
+
+    def keys(self) -> list[str]:
+        """The names ``traj[name]`` takes: t, x, v and the quantities this run computed."""
+        return list(self.arrays())
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        """The array called ``name`` (``traj["x"]`` is ``traj.x``), by the names of ``keys()``."""
+        if name in ("t", "x", "v", *QUANTITIES):
+            value = getattr(self, name)
+            if value is not None:
+                return value
+            raise KeyError(f"this run did not compute {name!r}: ask for it with "
+                           f"outputs=[..., {name!r}] (it has {', '.join(self.keys())})")
+        raise KeyError(f"no array {name!r} in a trajectory (it has {', '.join(self.keys())})")
+
+    def __contains__(self, name) -> bool:
+        return name in self.keys()
+
+    def to_pandas(self):
+        """A pandas DataFrame, one row per sample, indexed by ``t``: columns ``x_P, y_P, z_P``,
+        ``vx_P, vy_P, vz_P`` per particle P (the names formulas use), ``Fx_P, Fy_P, Fz_P`` for
+        the constraint forces, ``lambda[LABEL]`` per constraint row, ``energy``, the residuals,
+        ``action``, as far as the run has them; ``df.attrs["units"]`` gives each column's unit.
+        Needs pandas (``pip install pandas``)."""
+        from ..extras import need
+
+        pd = need("pandas", "data", "Trajectory.to_pandas")
+        columns, units = {}, {}
+        names = self._names()
+        for key, prefix, unit in (("x", "", "m"), ("v", "v", "m/s"), ("constraint_forces", "F", "N")):
+            value = getattr(self, key)
+            if value is None:
+                continue
+            for i, name in enumerate(names):
+                for k, axis in enumerate("xyz"):
+                    column = f"{prefix}{axis}_{name}"
+                    columns[column], units[column] = value[:, i, k], unit
+        if self.multipliers is not None:
+            lam = np.asarray(self.multipliers).reshape(len(self.t), -1)
+            for k, label in enumerate(self._labels(lam.shape[1])):
+                columns[f"lambda[{label}]"], units[f"lambda[{label}]"] = lam[:, k], UNITS["multipliers"]
+        for key in ("energy", "constraint_residual", "velocity_residual", "action"):
+            if getattr(self, key) is not None:
+                columns[key], units[key] = np.asarray(getattr(self, key)), UNITS[key]
+        frame = pd.DataFrame(columns, index=pd.Index(np.asarray(self.t), name="t"))
+        frame.attrs["units"] = {"t": "s", **units}
+        frame.attrs["info"] = {k: v for k, v in self.info.items() if isinstance(v, str | int | float)}
+        return frame
+
+    def to_xarray(self):
+        """An xarray Dataset: ``x``, ``v``, ``constraint_forces`` over (t, particle, axis),
+        ``multipliers`` over (t, constraint), the scalar series over t; coordinates the particles'
+        names, the axes x, y, z and the constraint rows' labels; every variable with ``units``
+        and ``long_name`` attributes. Needs xarray (``pip install xarray``)."""
+        from ..extras import need
+
+        xr = need("xarray", "data", "Trajectory.to_xarray")
+        variables = {}
+        for key in ("x", "v", "constraint_forces"):
+            if getattr(self, key) is not None:
+                variables[key] = (("t", "particle", "axis"), np.asarray(getattr(self, key)),
+                                  {"units": UNITS[key], "long_name": MEANINGS[key]})
+        if self.multipliers is not None:
+            variables["multipliers"] = (("t", "constraint"),
+                                        np.asarray(self.multipliers).reshape(len(self.t), -1),
+                                        {"units": UNITS["multipliers"], "long_name": MEANINGS["multipliers"]})
+        for key in ("energy", "constraint_residual", "velocity_residual", "action"):
+            if getattr(self, key) is not None:
+                variables[key] = (("t",), np.asarray(getattr(self, key)),
+                                  {"units": UNITS[key], "long_name": MEANINGS[key]})
+        coords = {"t": ("t", np.asarray(self.t), {"units": "s", "long_name": "time"}),
+                  "particle": self._names(), "axis": ["x", "y", "z"]}
+        if self.multipliers is not None:
+            coords["constraint"] = self._labels(variables["multipliers"][1].shape[1])
+        attrs = {k: v for k, v in self.info.items() if isinstance(v, str | int | float)}
+        return xr.Dataset(variables, coords=coords, attrs={**attrs, "message": self.message})
+
+    def _names(self) -> list[str]:
+        names = list(self.particle_names or [])
+        return names if len(names) == self.n_particles else [f"particle{i}" for i in range(self.n_particles)]
+
+    def _labels(self, count: int) -> list[str]:
+        labels = list(self.constraint_labels or [])
+        return labels if len(labels) == count else [f"row{k}" for k in range(count)]
+
+    def _repr_html_(self) -> str:
+        """Jupyter: the summary table and the interactive viewer (constrained.output.viewer)."""
+        from .. import notebook
+
+        return notebook.table(repr(self), self.summary()) + notebook.view("viewer", self)
+
+    def summary(self) -> list[tuple[str, str]]:
+        """``(what, value)`` rows: how the run ended, its span, sizes, method and cost."""
+        t = np.asarray(self.t, dtype=float)
+        rows = [("status", f"{self.status.value}: {self.message}"),
+                ("time", f"{t[0]:g} … {t[-1]:g} s, {len(t)} samples" if len(t) else "no samples"),
+                ("particles", ", ".join(self._names()[:12]) + (" …" if self.n_particles > 12 else ""))]
+        if self.constraint_labels:
+            rows.append(("constraint rows", f"{len(self.constraint_labels)}"))
+        for key, what in (("method", "method"), ("rtol", "rtol")):
+            if key in self.info:
+                rows.append((what, f"{self.info[key]}"))
+        for key, what in (("steps", "steps"), ("wall_time_s", "solver time [s]")):
+            if key in self.stats:
+                value = self.stats[key]
+                rows.append((what, f"{value:.3g}" if isinstance(value, float) else f"{value}"))
+        if self.energy is not None and len(self.energy):
+            e = np.asarray(self.energy, dtype=float)
+            rows.append(("energy drift max |E − E0| [J]", f"{np.nanmax(np.abs(e - e[0])):.3g}"))
+        if self.constraint_residual is not None and len(self.constraint_residual):
+            rows.append(("max constraint residual [m]", f"{np.nanmax(self.constraint_residual):.3g}"))
+        if self.events:
+            rows.append(("events", f"{len(self.events)}"))
+        rows.append(("arrays", ", ".join(f"{k} [{UNITS[k]}]" for k in self.keys())))
+        return rows
 
     def head(self, n: int) -> Trajectory:
         """The first ``n`` samples (a copy of the arrays' views, same names and info)."""

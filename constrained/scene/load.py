@@ -68,7 +68,10 @@ RESERVED_NAMES = RESERVED_NAMES
 
 @dataclass
 class Scene:
-    """A loaded scene: the System to simulate and what to do with it."""
+    """A loaded scene (``C.load_scene``): the ``system`` to simulate, its ``settings`` (the
+    ``[simulate]`` table with defaults), ``outputs``, the ``[reduced]`` coordinates and the
+    ``[expect]`` checks; ``run()`` simulates with the scene's own settings. In Jupyter a Scene
+    shows as a table of what it holds and how it runs."""
 
     path: Path | None
     name: str
@@ -85,6 +88,23 @@ class Scene:
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {self.system!r})"
+
+    def _repr_html_(self) -> str:
+        """Jupyter: the system's table, then how the scene runs and what it checks."""
+        from ..notebook import table
+
+        s = self.settings
+        rows = [("file", str(self.path) if self.path else "(built in Python)")]
+        if self.description:
+            rows.append(("description", self.description))
+        rows += self.system.summary()
+        rows.append(("simulate", ", ".join(f"{k} = {v}" for k, v in s.items() if v is not None)))
+        rows.append(("outputs", ", ".join(self.outputs.get("quantities", ()))))
+        if self.reduced:
+            rows.append(("reduced coordinates", ", ".join(self.reduced.get("coordinates", ()))))
+        if self.expect:
+            rows.append(("expect", ", ".join(self.expect)))
+        return table(repr(self), rows)
 
     def with_overrides(self, overrides: Iterable[str]) -> Scene:
         """A new Scene: this one's file contents with ``--set`` style ``"KEY=VALUE"`` overrides."""
@@ -160,6 +180,17 @@ class RunResult:
 
     def __iter__(self):
         return iter((self.trajectory, self.expectations))
+
+    def _repr_html_(self) -> str:
+        """Jupyter: the [expect] checks, the trajectory's summary and the viewer with the
+        scene's constraints drawn."""
+        from .. import notebook
+
+        checks = [("expect", f"{len(self.expectations) - len(self.failed)} of {len(self.expectations)} "
+                             "checks pass")] + [("  ", r.line) for r in self.expectations]
+        rows = checks + self.trajectory.summary()
+        return (notebook.table(repr(self), rows)
+                + notebook.view("viewer", self.trajectory, system=self.scene.system, title=self.scene.name))
 
     def __repr__(self) -> str:
         n, bad = len(self.expectations), len(self.failed)

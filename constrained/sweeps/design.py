@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..extras import install_hint
 from ..scene.load import SceneError, parse_override
 
 #: The most runs one design may have (values of one spec, and grid x samples): a larger
@@ -296,8 +297,8 @@ def _read_parquet(path: Path, where: str) -> tuple[list[str], list[list[float]]]
     try:
         import pyarrow.parquet as pq
     except ImportError:
-        raise InputError("reading Parquet needs pyarrow: pip install 'constrained[dask]', or give a "
-                         ".csv file", where=where) from None
+        raise InputError(f"reading Parquet needs pyarrow: {install_hint('dask')}, or give a .csv file",
+                         where=where) from None
     try:
         table = pq.read_table(path)
     except Exception as exc:  # pyarrow's errors (ArrowInvalid, OSError) for a file that is not Parquet

@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from ..extras import install_hint
 from ..run.ensemble import BLOCK, MIN_THREAD_COLUMNS
 from ..threads import available_cores
 from .batch import COMPILE_FROM
@@ -46,8 +47,7 @@ RUN_CHUNK = 8
 #: Estimated seconds of work left above which "auto" starts a local Dask cluster.
 DASK_WORTH_S = 20.0
 #: How to get Dask: the extra from the package index, or from a source checkout.
-DASK_INSTALL_HINT = ("pip install 'constrained[dask]' (from a source checkout: pip install '.[dask]' "
-                     "in its top folder)")
+DASK_INSTALL_HINT = install_hint("dask")
 
 _PARAMETER_KEY = re.compile(r"parameters\.([A-Za-z_]\w*)")
 

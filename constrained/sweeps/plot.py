@@ -17,7 +17,6 @@ from ..model import expressions
 from ..run.trajectory import atomic_write
 from ..scene.load import apply_overrides
 from .design import load_raw
-from .store import SOLVER_COLUMNS
 
 
 def cell_edges(values: Sequence[float], log: bool = False) -> np.ndarray:
@@ -54,10 +53,27 @@ KEY_UNITS = {"t_end": "s", "t_start": "s", "dt": "s", "output_dt": "s", "mass": 
              "coefficient": "N·s/m", "g": "m/s²", "charge": "C"}
 
 
+#: The summary table's own columns: what each means and its unit (x_P: a coordinate of P at t_end).
+_TABLE_COLUMN = re.compile(r"(?:(min|max)_)?(v?[xyz])_(\w+)")
+_TABLE_UNITS = {"t_final": ("t_final", "s"), "energy_drift": ("energy drift max |E − E0|", "J"),
+                "max_constraint_residual": ("max constraint residual", "m"),
+                "max_velocity_residual": ("max velocity residual", "m/s")}
+
+
 def axis_label(key: str, units: dict | None = None) -> str:
     """``"a [m]"`` for ``parameters.a`` with ``units = {a = "m"}``; known keys get their SI unit
-    (``particles.p1.mass [kg]``); a summary column is looked up in ``units`` by its name."""
+    (``particles.p1.mass [kg]``); a summary column is looked up in ``units`` by its name, and the
+    table's own columns say what they are (``min_y_bob`` → ``smallest y of bob over the run [m]``)."""
     units = units or {}
+    if "." not in key and key not in units:
+        if key in _TABLE_UNITS:
+            return f"{_TABLE_UNITS[key][0]} [{_TABLE_UNITS[key][1]}]"
+        m = _TABLE_COLUMN.fullmatch(key)
+        if m:
+            extreme, coordinate, particle = m.groups()
+            when = {"min": "smallest {} of {} over the run", "max": "largest {} of {} over the run",
+                    None: "{} of {} at t_end"}[extreme].format(coordinate, particle)
+            return f"{when} [{'m/s' if coordinate.startswith('v') else 'm'}]"
     parts = re.split(r"[.\[\]]+", key.strip("."))
     names = [p for p in parts if p and not p.isdigit()]
     last = names[-1] if names else key
@@ -68,10 +84,34 @@ def axis_label(key: str, units: dict | None = None) -> str:
     return f"{key} [{unit}]" if unit else key
 
 
+def default_column(result, summaries: Sequence[str] = ()) -> tuple[str | None, str]:
+    """``(column, why)``: what sweep.png shows without ``--plot`` — the first ``--summary``
+    column; else the position coordinate of the table (at t_end, or smallest or largest over
+    the run) that varies most across the runs, in metres: what the varied keys change most in
+    the motion. Never a measure of the runs' accuracy (energy drift, residuals): energy is not
+    even conserved in a driven or damped scene."""
+    named = [c for c in summaries if c in result.columns]
+    if named:
+        return named[0], ""
+    spread = {}
+    for c in result.columns:
+        m = _TABLE_COLUMN.fullmatch(c)
+        if m and not m.group(2).startswith("v"):
+            z = result.column(c)
+            if z.dtype != object and np.isfinite(z).sum() > 1:
+                spread[c] = float(np.nanmax(z) - np.nanmin(z))
+    if not spread:
+        return None, ""
+    best = max(spread, key=spread.get)  # the first of equals: columns are in particle order
+    return best, "the coordinate that varies most; --plot COLUMN to choose"
+
+
 def save_sweep_figure(result, path, *, column: str | None = None, boundary: str | None = None,
-                      scene_text: str | None = None, file: str = "scene", overrides=()) -> Path | None:
-    """1-D: ``column`` against the parameter; 2-D grid: a map, with the zero contour of ``boundary``.
-    None (nothing drawn, matplotlib not even imported) when not one or two keys vary."""
+                      scene_text: str | None = None, file: str = "scene", overrides=(),
+                      summaries: Sequence[str] = ()) -> Path | None:
+    """1-D: ``column`` (default: ``default_column``) against the parameter; 2-D grid: a map,
+    with the zero contour of ``boundary``. None (nothing drawn, matplotlib not even imported)
+    when not one or two keys vary."""
     specs = [s for s in result.specs if len(set(map(repr, s.values))) > 1 or s.random]
     if len(specs) not in (1, 2):
         return None
@@ -81,12 +121,9 @@ def save_sweep_figure(result, path, *, column: str | None = None, boundary: str 
     import matplotlib.pyplot as plt
     from matplotlib.colors import TwoSlopeNorm
 
+    why = ""
     if column is None:
-        metric = [c for c in result.columns[result.columns.index("status") + 1:] if c not in SOLVER_COLUMNS]
-        user = [c for c in metric if not c.startswith(("x_", "y_", "z_", "vx_", "vy_", "vz_", "min_", "max_"))
-                and c not in ("t_final", "energy_drift", "max_constraint_residual", "max_velocity_residual",
-                              "steps")]
-        column = user[0] if user else ("energy_drift" if "energy_drift" in metric else (metric or [None])[0])
+        column, why = default_column(result, summaries)
     if column is None or column not in result.columns or len(specs) not in (1, 2):
         return None
     z = result.column(column)
@@ -149,7 +186,7 @@ def save_sweep_figure(result, path, *, column: str | None = None, boundary: str 
             ax.set_xscale("log")
         if sy.log:
             ax.set_yscale("log")
-    ax.set_title(f"sweep: {column} ({len(result.rows)} runs)", fontsize=10)
+    ax.set_title(f"sweep: {column} ({len(result.rows)} runs)" + (f"\n({why})" if why else ""), fontsize=10)
     path = Path(path)
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
     plt.close(fig)

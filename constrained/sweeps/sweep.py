@@ -22,6 +22,7 @@ this process or on Dask, chosen by the estimated work unless ``scheduler`` says.
 from __future__ import annotations
 
 import hashlib
+import re
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -176,7 +177,8 @@ def sweep(
     ``summary``: ``[REDUCTION:]NAME=FORMULA`` columns (formulas in t, x_NAME, vx_NAME, ...
     and the scene's parameters; reductions final, max, min, max_abs, mean over the samples).
     ``limit``: compute at most this many missing runs, then stop (the rest stay missing).
-    ``plot``: the column the figure shows (default: the first summary, else energy_drift);
+    ``plot``: the column the figure shows (default: the first summary, else the position
+    coordinate that varies most across the runs, see ``plot.default_column``);
     ``boundary``: a formula in the varied keys' last names and the parameters whose zero
     contour is drawn on a 2-D map. ``batch=False`` runs every variant on the per-run path;
     ``chunk_size``: variants per batched chunk (default ``sweep_execute.BATCH_CHUNK``).
@@ -208,7 +210,7 @@ def sweep(
         twice = next(n for n in names if names.count(n) > 1)
         raise InputError(f"--summary: the name '{twice}' is used twice")
     _validate(scene_text, file, overrides, specs, points[0], summaries)
-    out = Path(out_dir) if out_dir is not None else Path("out") / (path.stem + "_sweep")
+    out = Path(out_dir) if out_dir is not None else default_out_dir(path)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a directory")
     manifest = {
@@ -282,13 +284,21 @@ def sweep(
     if figure and result.rows:
         try:
             fig = save_sweep_figure(result, out / "sweep.png", column=plot, boundary=boundary,
-                                    scene_text=scene_text, file=file, overrides=overrides)
+                                    scene_text=scene_text, file=file, overrides=overrides,
+                                    summaries=[s.name for s in summaries])
         except ImportError:
             fig = None
         if fig is not None:
             paths.append(fig)
     result.wall_time_s = time.perf_counter() - started
     return result
+
+
+def default_out_dir(scene_path: Path) -> Path:
+    """``out/<scene file stem>_sweep``, without doubling the word: ``kapitza_sweep.toml`` →
+    ``out/kapitza_sweep``, ``double_pendulum.toml`` → ``out/double_pendulum_sweep``."""
+    stem = Path(scene_path).stem
+    return Path("out") / ((re.sub(r"[_-]?sweep$", "", stem, flags=re.IGNORECASE) or stem) + "_sweep")
 
 
 def _blocker(base_raw: dict, file: str, shared: list[str], save_trajectories: bool,

@@ -1,0 +1,1 @@
+"""Measurements and a model: observables, exact sensitivities of a run, least-squares fits."""
