@@ -529,3 +529,18 @@ def test_an_event_on_the_sleighs_heading_lands_at_the_closed_form_instant():
                         events=[C.Event("turned 1 rad", heading, direction=1)])
         assert tr.info["stop"] == "terminal event"
         assert tr.t[-1] == pytest.approx(expected, abs=1e-9)
+
+
+def test_normal_modes_keep_to_the_motions_the_runner_allows():
+    """A double pendulum hanging down whose lower bob q rides a runner along the lower rod:
+    to first order q cannot move sideways, so one mode is left, the upper bob swinging with
+    ω² = g (m_p + m_q)/(m_p l1) + g m_q/(m_p l2) (the potential's curvature over m_p alone)."""
+    mp, mq, l1, l2 = 1.0, 2.0, 1.0, 0.7
+    system = C.System([C.Particle("p", mp, [0, -l1, 0]), C.Particle("q", mq, [0, -l1 - l2, 0])],
+                      [C.Distance("p", point=[0, 0, 0], length=l1), C.Distance("p", "q", length=l2),
+                       C.Plane(["p", "q"], [0, 0, 1]), C.KnifeEdge("q", along=["p", "q"], normal=[0, 0, 1])],
+                      [C.Gravity([0, -G, 0])])
+    expected = math.sqrt(G * (mp + mq) / (mp * l1) + G * mq / (mp * l2))
+    for found in (C.modes(system), C.modes(system, x=system.positions, refine=True)):
+        assert found.degrees_of_freedom == 1
+        assert found.frequencies[0] == pytest.approx(expected, rel=1e-9)
