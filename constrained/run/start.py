@@ -134,7 +134,7 @@ def _refuse_taut_self_stress(manifold: Manifold, x, v, t: float) -> None:
     if not size > 0 or not np.isfinite(size):
         return
     algebra = manifold.algebra
-    J = algebra.matrix(model.jacobian(x, t)[1])
+    J = algebra.matrix(model.velocity_terms(x, t)[0])  # every row of γ (velocity rows' A after J)
     ones = np.ones(model.n_coordinates)
     y = algebra.schur_solve(J, ones, c, full_rank=False)
     r = c - J @ (J.T @ y)  # the part of c outside range(J): along null(Jᵀ)
