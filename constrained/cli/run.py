@@ -269,6 +269,8 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
     lines.append(
         f"particles {scene.system.n_particles}, constraint rows {len(tr.constraint_labels)}, "
         f"degrees of freedom {dof if dof is not None else '?'}"
+        + (f" (velocities: {tr.info['velocity_degrees_of_freedom']}, velocity constraints)"
+           if "velocity_degrees_of_freedom" in tr.info else "")
     )
     lines.append(
         f"method {s['method']}, rtol {s['rtol']:g}, atol {s['atol']:g}, "

@@ -179,6 +179,13 @@ def _check(args) -> int:
         f"{rank_text}, degrees of freedom {report.degrees_of_freedom}"
         + (f" ({report.generic_degrees_of_freedom} away from this configuration)" if report.singular else "")
     )
+    velocity = list(getattr(report, "velocity_labels", []))
+    if velocity:  # velocity constraints: rows of their own, after those of f
+        rows = f"{len(velocity)} row{'s' if len(velocity) > 1 else ''}"
+        out.append(f"velocity constraints ({rows} a(x, t)·v + b = 0, no position level):")
+        out += [f"  [{len(labels) + k}] {label}" for k, label in enumerate(velocity)]
+        out.append(f"rank [J; A] {report.velocity_rank}, velocity degrees of freedom "
+                   f"{report.velocity_degrees_of_freedom} (configuration: {report.degrees_of_freedom})")
     redundant = list(report.redundant)
     out.append("redundant constraints: " + ("; ".join(redundant) if redundant else "none"))
     out.append(

@@ -1,4 +1,5 @@
-"""The holonomic constraint library: each constraint yields rows of f(x, t) = 0.
+"""The holonomic constraint library: each constraint yields rows of f(x, t) = 0 (the velocity
+constraints, rows a(x, t)·v + b(x, t) = 0, are in model/velocity.py).
 
 Every constraint is a small object with ``rows(symbols) -> list[(expr, label)]``. One
 object may give several scalar rows (a pin gives three, a plane one per particle); each
@@ -74,6 +75,8 @@ class Constraint(Labelled):
     """
 
     kind = "constraint"
+    #: "position" (rows f(x, t) = 0), or "velocity" (rows a(x, t)·v + b = 0: model/velocity.py).
+    level = "position"
     side = 1
     unilateral = False
     restitution = 0.0

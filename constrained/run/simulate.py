@@ -167,7 +167,9 @@ def simulate(
         }
     )
     if not start.manifold.redundant:  # independent rows at the start: rank C, as constraint_report says
-        traj.info["degrees_of_freedom"] = model.n_coordinates - model.n_constraints
+        traj.info["degrees_of_freedom"] = model.n_coordinates - model.n_position_rows  # configuration
+        if model.n_position_rows < model.n_constraints:
+            traj.info["velocity_degrees_of_freedom"] = model.n_coordinates - model.n_constraints
     traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
                                np.reshape(hit.v, (-1, 3))) for hit in solution.events]
     if interrupted:

@@ -19,6 +19,7 @@ from ..model.regularity import undefined_items
 from ..model.structure import kept_structure
 from ..model.symbols import Symbols
 from ..model.system import Particle, System
+from ..model.velocity import VELOCITY_TYPES
 from .keys import (
     CONSTRAINT_KEYS,
     EFFECT_KEYS,
@@ -213,7 +214,7 @@ class SceneBuilder(RunSections):
         """One [[constraints]] or [[effects]] entry -> the library object."""
         key = _join(section, i)
         kind = "constraint" if section == "constraints" else "effect"
-        types = CONSTRAINT_TYPES if section == "constraints" else EFFECT_TYPES
+        types = {**CONSTRAINT_TYPES, **VELOCITY_TYPES} if section == "constraints" else EFFECT_TYPES
         schema = CONSTRAINT_KEYS if section == "constraints" else EFFECT_KEYS
         if "type" not in item:
             self.fail(
@@ -256,6 +257,12 @@ class SceneBuilder(RunSections):
             return self.particle(v, key)
         if k == "particles":
             return self.particle_list(v, key)
+        if k in ("across", "along"):  # a knife edge's direction: two particles
+            pair = self.particle_list(v, key)
+            if len(pair) != 2:
+                self.fail(key, f"must be a list of two particle names (the direction from the first to "
+                               f"the second), got {len(pair)}")
+            return pair
         if k in ("point", "normal", "g", "A"):
             return self.vector(v, key)
         if k == "expr":
