@@ -18,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from .constraints import Distance, Labelled, _as_list, _fmt
+from .constraints import Distance, Labelled, _as_list, _fmt, _three
 
 
 class Effect(Labelled):
@@ -47,6 +47,7 @@ class Gravity(Effect):
 
     def __init__(self, g, particles=None, *, name=None, where=None):
         self.g, self.name, self.where, self.particles = g, name, where, None
+        _three(g, f"{self.where or 'effect gravity'}.g", "Gravity([0, -9.81, 0]) for g = 9.81 m/s² along −y")
         self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
 
     @property

@@ -110,10 +110,11 @@ def _undefined_in(system: System, t0: float, structure: Structure, numbers) -> l
     effects, owner_e = _start_check(structure)
     with np.errstate(all="ignore"):
         bad = set()
-        if structure.n_constraints:
-            vc, jc = structure.function("jacobian")(x0, t0, p)
+        if structure.n_constraints:  # f and J, then the velocity level [J; A], [f_t; b]
             owner_c = np.asarray(structure.constraint_owner, dtype=int)
-            bad |= {("constraints", int(k)) for k in owner_c[np.concatenate([_bad_rows(vc), _bad_rows(jc)])]}
+            rows = [_bad_rows(m) for m in (*structure.function("jacobian")(x0, t0, p),
+                                           *structure.function("velocity_terms")(x0, t0, p))]
+            bad |= {("constraints", int(k)) for k in owner_c[np.concatenate(rows)]}
         if owner_e.size:
             ve, jex, jev = effects(x0, v0, t0, p)
             rows = np.concatenate([_bad_rows(ve), _bad_rows(jex), _bad_rows(jev)])

@@ -2,8 +2,9 @@
 
 Equations (DESIGN.md): ``M x'' = F(x, x', t) + Jᵀ λ`` with ``f(x, t) = 0``. Differentiating
 the constraints twice gives ``J x'' + γ = 0``, ``γ = d/dt(J v + f_t) − J x''``, which CasADi
-forms by AD as ``γ = ∂c/∂x · v + ∂c/∂t`` for ``c = J v + f_t``. Only the terms the system
-needs are built: ``active_terms`` lists them.
+forms by AD as ``γ = ∂c/∂x · v + ∂c/∂t`` for ``c = J v + f_t``. Velocity constraints
+(model/velocity.py) add rows ``A v + b = 0`` after f's at the velocity and acceleration levels
+(``G = [J; A]``, multipliers [λ; μ]). Only the terms the system needs are built: ``active_terms``.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from . import lifting
+from . import lifting, velocity
 from .effects import forces  # noqa: F401 (the slots' sum; mapped builds import it from here)
 from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
 from .pairs.potentials import PairPotentials
@@ -50,6 +51,10 @@ class Structure:
 
     def __init__(self, system, *, lift: bool = True):
         system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+        with lifting.shown(numbers):  # a refusal names the scene's numbers, never their tokens
+            self._assemble(system, numbers)
+
+    def _assemble(self, system, numbers: np.ndarray) -> None:
         s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
         x, v, t, p = s.x, s.v, s.t, s.p
         n3 = 3 * system.n_particles
@@ -62,17 +67,21 @@ class Structure:
         self.particle_names = tuple(q.name for q in system.particles)
         active = set()
 
-        rows, labels, owners = [], [], []
+        rows, labels, owners = ([], []), ([], []), ([], [])  # position rows, then velocity rows
         for k, constraint in enumerate(system.constraints):
+            level = int(getattr(constraint, "level", "position") == "velocity")
             for expr, label in constraint.rows(s):
-                rows.append(expr)
-                labels.append(label)
-                owners.append(k)
-        #: The rows' labels, a plain number written as a token (``lifting.fill`` puts a
-        #: Model's values in).
-        self.constraint_labels: list[str] = labels
-        self.constraint_owner = np.array(owners, dtype=int)
-        self.n_constraints = len(rows)
+                rows[level].append(expr)
+                labels[level].append(label)
+                owners[level].append(k)
+        rows, velocity_rows = rows
+        #: The rows' labels (position rows, then velocity rows), a plain number written as a
+        #: token (``lifting.fill`` puts a Model's values in).
+        self.constraint_labels: list[str] = labels[0] + labels[1]
+        self.constraint_owner = np.array(owners[0] + owners[1], dtype=int)
+        #: Rows of f (position level); the velocity rows (model/velocity.py) follow them.
+        self.n_position_rows = len(rows)
+        self.n_constraints = len(rows) + len(velocity_rows)
         f = ca.vertcat(*rows) if rows else ca.SX(0, 1)
         J = ca.jacobian(f, x)
         self.rheonomic = bool(rows) and ca.depends_on(f, t)
@@ -84,9 +93,13 @@ class Structure:
             c = ca.mtimes(J, v) + f_t
             gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
         else:
-            f_t = ca.SX(self.n_constraints, 1)  # structurally zero: no f_t terms
+            f_t = ca.SX(self.n_position_rows, 1)  # structurally zero: no f_t terms
             c = ca.mtimes(J, v)
             gamma = ca.jtimes(c, x, v)
+        # the velocity level, J v + f_t = 0 then A v + b = 0 (G = [J; A]), and its derivative
+        G, c0, gamma = velocity.velocity_level(system, velocity_rows, J, f_t, gamma, x, v, t)
+        if velocity_rows:
+            active.add("velocity_constraints")
 
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
         terms = []
@@ -139,8 +152,8 @@ class Structure:
 
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
         function("jacobian", [x, t], ["x", "t"], [f, J], ["f", "J"])
-        function("velocity_terms", [x, t], ["x", "t"], [J, f_t], ["J", "f_t"])
-        function("dynamics", [x, v, t], ["x", "v", "t"], [F, J, gamma], ["F", "J", "gamma"])
+        function("velocity_terms", [x, t], ["x", "t"], [G, c0], ["J", "f_t"])
+        function("dynamics", [x, v, t], ["x", "v", "t"], [F, G, gamma], ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
         function("kinetic", [v], ["v"], [T], ["T"])
@@ -246,10 +259,10 @@ class Model:
 
     Functions (all with flat 3N vectors; p at ``parameter_vector``: the parameters'
     ``parameter_values``, then the plain ``numbers``):
-      ``constraint(x, t) -> f``                (C,)
-      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C, 3N)
-      ``velocity_terms(x, t) -> (J, f_t)``
-      ``dynamics(x, v, t) -> (F, J, γ)``        what the acceleration-level KKT needs
+      ``constraint(x, t) -> f``                (C_f,)
+      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C_f, 3N), C_f = n_position_rows
+      ``velocity_terms(x, t) -> (G, c₀)``       G v + c₀ = 0: J, f_t, then velocity rows' A, b
+      ``dynamics(x, v, t) -> (F, G, γ)``        what the acceleration-level KKT needs (all rows)
       ``energy(x, v, t) -> h``                 h = T + V + U − v·∂U/∂v (the energy function)
       ``potential(x, t) -> V``
       ``kinetic(v) -> T``
@@ -292,7 +305,7 @@ class Model:
                       self.inverse_masses):
             array.flags.writeable = False
         self.constraint_owner = structure.constraint_owner
-        self.n_constraints = structure.n_constraints
+        self.n_constraints, self.n_position_rows = structure.n_constraints, structure.n_position_rows
         self.rheonomic = structure.rheonomic
         self.active_terms = structure.active_terms
         #: The system's data the numeric side needs, copied so the Model does not change.

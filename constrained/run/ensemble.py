@@ -33,6 +33,7 @@ from ..model import expressions
 from ..model.cache import ParametricView, structure_cache
 from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
+from ..model.system import require_system
 from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from ..threads import available_cores, one_blas_thread
 
@@ -256,6 +257,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     ``progress(fraction)`` is told how far the slowest running variant is (``True``: a tqdm
     bar on stderr).
     """
+    require_system(system, "simulate_many")
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
@@ -337,6 +339,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)
                 X[running, j], V[running, j] = S[:n3, running].T, S[n3:2 * n3, running].T
+        # Ctrl-C in the last chunk: every variant finished, and the caller must stop all the same
+        stopped = interrupt.requested()
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - started
@@ -345,7 +349,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                     S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int),
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
                      "evaluation": evaluation, "block": width, "threads": threads, "method": "dopri",
-                     "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol})
+                     "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol, "interrupted": stopped})
 
 
 def _progress(progress, n_var: int):

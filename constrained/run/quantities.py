@@ -145,10 +145,11 @@ def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray,
 
 
 def _constraint_force_function(model: Model) -> ca.Function:
-    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once."""
+    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once
+    (with velocity rows, J is [J; A] and λ is [λ; μ]: ``velocity_terms``)."""
     def build():
         X, T, L = ca.MX.sym("x", model.n_coordinates), ca.MX.sym("t"), ca.MX.sym("lam", model.n_constraints)
-        _, J = model.jacobian(X, T)
+        J, _ = model.velocity_terms(X, T)
         return ca.Function("constraint_force", [X, T, L], [ca.densify(ca.mtimes(J.T, L))])
 
     return built_once(model, "constraint_force", build)
