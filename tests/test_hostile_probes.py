@@ -458,7 +458,7 @@ def test_ggl_on_a_slow_clock_runs_as_on_a_fast_one(monkeypatch):
     interval of 200 s is beyond one call.)"""
     import time as real_time
 
-    import constrained.solvers.idas as idas
+    import constrained.solvers.sundials.idas as idas
 
     system = C.load_scene(SCENES / "simple_pendulum.toml").system
     kw = dict(method="ggl", t_eval=[0.0, 200.0, 400.0], outputs=["energy", "constraint_residual"])
