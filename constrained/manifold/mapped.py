@@ -143,8 +143,14 @@ def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[in
     ``symbols``: (name, size) -> the local symbol of that size."""
     if not exprs:
         return [], []
-    pattern = ca.jacobian_sparsity(ca.vertcat(*exprs), x).T
+    stacked = ca.vertcat(*exprs)
+    pattern = ca.jacobian_sparsity(stacked, x).T
     colind, row = pattern.colind(), pattern.row()
+    # the entries of p each row reads: a row's kernel takes those alone (pl), so that its work
+    # does not grow with the length of p (one number per rod of a 10,000-link chain)
+    reads = ca.jacobian_sparsity(stacked, p).T if p.numel() else None
+    read_colind, read_row = ((reads.colind(), reads.row()) if reads is not None
+                             else ([0] * (len(exprs) + 1), []))
     c = ca.SX.sym("c", MAX_CONSTANTS)
     found: dict[tuple, list] = {}
     rest = []
@@ -153,22 +159,24 @@ def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[in
         if not index or e.numel() != 1:
             rest.append(k)
             continue
+        used = read_row[read_colind[k]:read_colind[k + 1]]
         xl = symbols.setdefault(("xl", len(index)), ca.SX.sym("xl", len(index)))
+        pl = symbols.setdefault(("pl", len(used)), ca.SX.sym("pl", len(used)))
         try:
-            local = ca.Function("kernel", [xl, t, p], [ca.substitute(e, x[index], xl)])
+            local = ca.Function("kernel", [xl, t, pl], [ca.substitute([e], [x[index], p[used]], [xl, pl])[0]])
         except RuntimeError:  # it depends on more than x_l, t and p (velocities)
             rest.append(k)
             continue
         lift = lifted(local, c, parameters=2)
-        if lift is None:
-            expr, numbers, cs = local.sx_out(0), [], ca.SX(0, 1)
+        if lift is None:  # the instance keeps its own entries of p
+            expr, numbers, cs = ca.substitute(local.sx_out(0), pl, p[used]), [], ca.SX(0, 1)
+            key = (tuple(first_parts(index)), tuple(used), local.serialize())
         else:
             cs = symbols.setdefault(("c", len(lift[1])), ca.SX.sym("c", len(lift[1])))
-            expr, numbers = ca.substitute(lift[0], c[:len(lift[1])], cs), lift[1]
-        first: dict[int, int] = {}
-        parts = tuple(first.setdefault(i // 3, len(first)) for i in index)
-        key = (parts, ca.Function("kernel", [xl, cs, t, p], [expr]).serialize())
-        found.setdefault(key, [expr, xl, cs, parts, []])[4].append((k, index, numbers))
+            expr = ca.substitute(lift[0], c[:len(lift[1])], cs)
+            numbers = [(kind, used[value] if kind == "p" else value) for kind, value in lift[1]]
+            key = (tuple(first_parts(index)), ca.Function("kernel", [xl, cs, t], [expr]).serialize())
+        found.setdefault(key, [expr, xl, cs, key[0], []])[4].append((k, index, numbers))
     groups = []
     for expr, xl, cs, parts, members in found.values():
         if len(members) < MIN_GROUP:
@@ -179,6 +187,12 @@ def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[in
         groups.append(_Group(expr, xl, cs, index, sources, constants,
                              np.array([k for k, _, _ in members]), parts))
     return groups, sorted(rest)
+
+
+def first_parts(index) -> list[int]:
+    """The particle of each local coordinate, numbered 0, 1, … in order of appearance."""
+    first: dict[int, int] = {}
+    return [first.setdefault(i // 3, len(first)) for i in index]
 
 
 def _sources(members: list, n_p: int) -> tuple[np.ndarray, np.ndarray]:
