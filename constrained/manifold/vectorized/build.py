@@ -62,6 +62,11 @@ class Jacobian:
             products.append(take(self.streams[s1], p1) * take(weighted[s2], p2))
         return ca.MX(b.gram_sparsity, b.by_gram([products[k] for k in b.gram_sources]))
 
+    def matrix(self):
+        """J as a sparse MX matrix (C, 3N): for generic products; the methods above are cheaper."""
+        b = self.build
+        return ca.MX(b.jacobian_sparsity, b.by_nonzero(self.streams)) if b.n_rows else ca.MX(0, b.n3)
+
 
 class VectorizedBuild:
     """The index data of a structure's vectorized evaluation (``vectorized_build``)."""
@@ -93,7 +98,10 @@ class VectorizedBuild:
         self.by_force = Summation([g.index.shape[1] for g in mb.terms for _ in g.index],
                                   [col for g in mb.terms for col in g.index], self.n3)
         self._gram_pattern(lengths)
+        self._jacobian_pattern(lengths)
         self._kernels: dict = {}
+        _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
+        self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
 
     # --- A = J M⁻¹ Jᵀ: which products, summed where --------------------------------------------
     def _gram_pattern(self, lengths: list[int]) -> None:
@@ -135,6 +143,15 @@ class VectorizedBuild:
         self.gram_sources = sources
         self.by_gram = Summation([len(t) for t in targets], targets, len(key))
 
+    def _jacobian_pattern(self, lengths: list[int]) -> None:
+        """J's sparsity (C, 3N) and where each stream's entries go in its nonzeros."""
+        n = self.n_rows
+        key = [c * n + r for r, c in zip(self.rows, self.cols, strict=True)]
+        every = np.unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
+        self.jacobian_sparsity = ca.Sparsity.triplet(n, self.n3, (every % max(n, 1)).tolist(),
+                                                     (every // max(n, 1)).tolist())
+        self.by_nonzero = Summation(lengths, [np.searchsorted(every, k) for k in key], len(every))
+
     # --- evaluation at one state ------------------------------------------------------------
     def _kernel(self, g, outputs: tuple) -> ca.Function:
         key = (id(g), outputs)
@@ -165,8 +182,9 @@ class VectorizedBuild:
     def _columns(self, g, kernel, X, V, T, P) -> list:
         n = g.index.shape[1]
         values = ca.vertcat(P, ca.DM(g.constants)) if g.constants.size else P
-        inputs = [[take(X, i) for i in g.index], [take(V, i) for i in g.index] if V is not None else None,
-                  [take(values, s) for s in g.sources], [T], lambda j: P[j]]
+        # gathers made when the kernel reads them (each input element is read once)
+        inputs = [lambda j: take(X, g.index[j]), lambda j: take(V, g.index[j]),
+                  lambda j: take(values, g.sources[j]), [T], lambda j: P[j]]
         return on_columns(kernel, inputs, n)
 
     def evaluate(self, X, V, T, P, outputs: tuple, forces_too: bool = False) -> dict:
@@ -192,6 +210,22 @@ class VectorizedBuild:
             else:
                 result[k] = self.by_place(rows[k] + [value])
         return result
+
+
+    def _value_kernel(self, g) -> ca.Function:
+        key = (id(g), "value")
+        if key not in self._kernels:
+            e, xl = self.e, g.xl
+            vl = ca.SX.sym("vl", xl.numel())
+            self._kernels[key] = ca.Function("value", [xl, vl, g.c, e.t, e.p], [g.local], {"cse": True})
+        return self._kernels[key]
+
+    def energy(self, X, V, T, P, masses):
+        """The energy function h = T + V + U − v·∂U/∂v (the Structure's ``energy``), MX scalar."""
+        total = 0.5 * ca.dot(masses * V, V) + self._rest_function(("E",))(X, V, T, P)
+        for g in self.mapped.terms:
+            total = total + ca.sum1(self._columns(g, self._value_kernel(g), X, V, T, P)[0][0])
+        return total
 
 
 def vectorized_build(structure: Structure) -> VectorizedBuild:

@@ -23,6 +23,40 @@ def applies(model: Model, rows=None) -> bool:
     return rows is None and getattr(model, "rows", None) is None and model.n_coordinates >= VECTORIZED_FROM
 
 
+class VectorizedView(ParametricView):
+    """``ParametricView`` whose Functions are the vectorized build's (MX): ``constraint``,
+    ``jacobian``, ``velocity_terms``, ``dynamics`` (J a sparse MX matrix), ``energy`` and
+    ``row_scales``, for graphs that take the model generically (``manifold.structural_call``)."""
+
+    def __init__(self, model: Model, P):
+        super().__init__(model, P)
+        self.build = vectorized_build(model.structure)
+
+    def _at(self, X, V, T, outputs: tuple, forces_too: bool = False) -> dict:
+        return self.build.evaluate(X, V, T, self.P, outputs, forces_too)
+
+    def constraint(self, X, T):
+        return self._at(X, None, T, ("f",))["f"]
+
+    def jacobian(self, X, T):
+        out = self._at(X, None, T, ("f", "J"))
+        return out["f"], out["J"].matrix()
+
+    def velocity_terms(self, X, T):
+        out = self._at(X, None, T, ("J", "f_t"))
+        return out["J"].matrix(), out["f_t"]
+
+    def dynamics(self, X, V, T):
+        out = self._at(X, V, T, ("J", "gamma"), forces_too=True)
+        return out["F"], out["J"].matrix(), out["gamma"]
+
+    def energy(self, X, V, T):
+        return self.build.energy(X, V, T, self.P, self.masses)
+
+    def row_scales(self, X, T):
+        return self._at(X, None, T, ("scale",))["scale"]
+
+
 def acceleration_graph(view: ParametricView, X, V, T):
     """(a, λ) at (X, V, T) with the view's parameters: ``manifold.graph.acceleration_graph``."""
     b = vectorized_build(view._model.structure)
@@ -32,6 +66,27 @@ def acceleration_graph(view: ParametricView, X, V, T):
         return minv * F, ca.MX(0, 1)
     lam = ca.solve(J.gram(minv), -out["gamma"] - J.times(minv * F), "ldl")
     return minv * (F + J.transpose_times(lam)), lam
+
+
+def position_step_graph(view: ParametricView, X, T):
+    """(f, dx) with x ← x − dx one mass-weighted Newton step: ``manifold.graph.position_step_graph``."""
+    b = vectorized_build(view._model.structure)
+    out = b.evaluate(X, None, T, view.P, ("f", "J"))
+    minv, J = view.inverse_masses, out["J"]
+    if not b.n_rows:
+        return ca.MX(0, 1), ca.MX.zeros(b.n3)
+    return out["f"], minv * J.transpose_times(ca.solve(J.gram(minv), out["f"], "ldl"))
+
+
+def velocity_correction_graph(view: ParametricView, X, V, T):
+    """dv with v ← v − dv the nearest velocity with J v + f_t = 0: ``manifold.graph``'s."""
+    b = vectorized_build(view._model.structure)
+    if not b.n_rows:
+        return ca.MX.zeros(b.n3)
+    out = b.evaluate(X, None, T, view.P, ("J", "f_t") if b.rheonomic else ("J",))
+    minv, J = view.inverse_masses, out["J"]
+    c = J.times(V) + out["f_t"] if b.rheonomic else J.times(V)
+    return minv * J.transpose_times(ca.solve(J.gram(minv), c, "ldl"))
 
 
 def projection_graph(view: ParametricView, x, v, t):
@@ -59,4 +114,68 @@ def acceleration_function(model: Model) -> ca.Function:
         P = ca.MX.sym("p", len(model.parameter_vector))
         a, lam = acceleration_graph(ParametricView(model, P), X, V, T)
         cache[key] = ca.Function("acceleration", [X, V, T, P], [a, lam])
+    return cache[key]
+
+
+def _symbols(model: Model):
+    n3 = model.n_coordinates
+    P = ca.MX.sym("p", len(model.parameter_vector))
+    return ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t"), P
+
+
+def fast_path_functions(model: Model) -> list[ca.Function]:
+    """The manifold's fast paths on the vectorized build (dense outputs, p last):
+    ``acceleration(x, v, t, p) -> (a, λ)``, ``newton_step(x, t, p) -> (f, dx)``,
+    ``velocity_correction(x, v, t, p) -> dv``."""
+    X, V, T, P = _symbols(model)
+    view = ParametricView(model, P)
+    a, lam = acceleration_graph(view, X, V, T)
+    f, dx = position_step_graph(view, X, T)
+    dv = velocity_correction_graph(view, X, V, T)
+    d = ca.densify
+    return [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
+            ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
+            ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
+
+
+#: The quantities ``quantities_function`` can give, in order.
+QUANTITY_OUTPUTS = ("multipliers", "check", "constraint_forces", "energy", "constraint_residual",
+                    "velocity_residual")
+
+
+def quantities_function(model: Model, wanted: tuple) -> ca.Function:
+    """``(x, v, t, p) -> [...]`` the quantities ``wanted`` (names in QUANTITY_OUTPUTS, in that
+    order) at one state: the multipliers λ of the KKT system (sparse LDLᵀ), their ``check``
+    r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) (``run.quantities``), the constraint forces Jᵀλ,
+    the energy, the position and velocity residuals in metres (max_i |f_i| / s_i, |J_i v + f_t,i| / s_i).
+    Built once per structure and choice."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "quantities", "vectorized", wanted)
+    if key in cache:
+        return cache[key]
+    X, V, T, P = _symbols(model)
+    view = ParametricView(model, P)
+    b = vectorized_build(model.structure)
+    minv = view.inverse_masses
+    kkt = bool({"multipliers", "check", "constraint_forces"} & set(wanted))
+    names = ["f", "J", *(["f_t"] if b.rheonomic else []), *(["gamma"] if kkt else []), "scale"]
+    out = b.evaluate(X, V, T, P, tuple(names), forces_too=True)
+    J, outputs = out["J"], {}
+    if kkt:
+        F, gamma = out["F"], out["gamma"]
+        load = J.times(minv * F)
+        lam = ca.solve(J.gram(minv), -gamma - load, "ldl") if b.n_rows else ca.MX(0, 1)
+        a = minv * (F + J.transpose_times(lam))
+        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
+        outputs["multipliers"] = lam
+        outputs["check"] = ca.mmax(ca.fabs(J.times(a) + gamma)) / scale if b.n_rows else ca.MX(0)
+        outputs["constraint_forces"] = J.transpose_times(lam)
+    if "energy" in wanted:
+        outputs["energy"] = b.energy(X, V, T, P, view.masses)
+    if "constraint_residual" in wanted:
+        outputs["constraint_residual"] = ca.mmax(ca.fabs(out["f"]) / out["scale"]) if b.n_rows else ca.MX(0)
+    if "velocity_residual" in wanted:
+        velocity = J.times(V) + out["f_t"] if b.rheonomic else J.times(V)
+        outputs["velocity_residual"] = ca.mmax(ca.fabs(velocity) / out["scale"]) if b.n_rows else ca.MX(0)
+    cache[key] = ca.Function("quantities", [X, V, T, P], [ca.densify(outputs[k]) for k in wanted])
     return cache[key]
