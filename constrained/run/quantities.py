@@ -87,8 +87,8 @@ def _along_vectorized(model: Model, traj: Trajectory, X: np.ndarray, V: np.ndarr
             for name, value in zip(names, fast(X[k], V[k], t[k], p), strict=True):
                 out[name][k] = value
     if kkt:
-        lam = out.get("multipliers", np.full((n, C), np.nan))
-        forces = out.get("constraint_forces", np.full((n, model.n_coordinates), np.nan))
+        lam = out["multipliers"] if full_rank else np.full((n, C), np.nan)
+        forces = out["constraint_forces"] if full_rank else np.full((n, model.n_coordinates), np.nan)
         good = np.zeros(n, bool)
         if full_rank:
             good = (out["check"][:, 0] <= 1e-9) & np.all(np.isfinite(lam), axis=1)

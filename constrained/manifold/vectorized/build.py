@@ -82,7 +82,10 @@ class VectorizedBuild:
         terms = _row_terms(f_rest, e.x, e.v, e.t, lambda i: i // 3)
         r, c = terms["J"].sparsity().get_triplet()
         rest_J = ca.vertcat(*terms["J"].nonzeros()) if terms["J"].nnz() else ca.SX(0, 1)
-        F_rest = ca.densify(forces(mb.rest_slots, e.x, e.v, e.t)[0])
+        F_rest = forces(mb.rest_slots, e.x, e.v, e.t)[0]
+        #: Whether the rest has forces (else F is the potential terms' alone).
+        self.rest_forces = F_rest.nnz() > 0 and not F_rest.is_zero()
+        F_rest = ca.densify(F_rest)
         self.rest = {k: terms[k] for k in ("f", "f_t", "gamma", "scale")}
         self.rest["J"], self.rest["F"] = rest_J, F_rest
         self._rest_functions: dict = {}
@@ -196,17 +199,24 @@ class VectorizedBuild:
             out = self._columns(g, self._kernel(g, outputs), X, V, T, P)
             for k, values in zip(outputs, out, strict=True):
                 rows[k] += values if k == "J" else values
-        rest_outputs = (*outputs, "F") if forces_too else outputs
+        rest_outputs = (*outputs, "F") if forces_too and (self.rest_forces or not mb.terms) else outputs
         rest = self._rest_function(rest_outputs)(X, V if V is not None else ca.MX.zeros(self.n3), T, P)
         rest = rest if isinstance(rest, list | tuple) else [rest]
         result = {}
+        if forces_too and "F" not in rest_outputs:
+            rest_outputs, rest = (*rest_outputs, "F"), [*rest, None]
         for k, value in zip(rest_outputs, rest, strict=True):
             if k == "J":
                 result["J"] = Jacobian(self, rows["J"] + [value])
             elif k == "F":
                 gradients = [col for g in mb.terms
                              for col in self._columns(g, self._gradient_kernel(g), X, V, T, P)[0]]
-                result["F"] = value - self.by_force(gradients) if gradients else value
+                if not gradients:
+                    result["F"] = value
+                elif self.rest_forces:
+                    result["F"] = value - self.by_force(gradients)
+                else:  # every force a potential term's: no dense zeros to subtract from
+                    result["F"] = -self.by_force(gradients)
             else:
                 result[k] = self.by_place(rows[k] + [value])
         return result

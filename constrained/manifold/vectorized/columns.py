@@ -91,8 +91,10 @@ class Summation:
         by_kind = np.argsort(inverse, kind="stable")
         bounds = np.searchsorted(inverse[by_kind], np.arange(len(kinds) + 1))
         self.groups, placed, zeros = [], [], None
-        for u, kind in enumerate(kinds):
-            members = by_kind[bounds[u]:bounds[u + 1]]
+        # signatures in the order of their first target: where each covers a range of targets
+        # (a chain's rows: the rest, the rods, the planes) no permutation is needed at the end
+        for u in sorted(range(len(kinds)), key=lambda u: by_kind[bounds[u]]):
+            kind, members = kinds[u], by_kind[bounds[u]:bounds[u + 1]]
             if kind[0] < 0:  # targets nobody names
                 zeros = members
                 continue
