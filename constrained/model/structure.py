@@ -60,8 +60,8 @@ class Structure:
         active = set()
 
         rows, labels, owners = [], [], []
-        for k, constraint in enumerate(system.constraints):
-            for expr, label in constraint.rows(s):
+        for k, built in enumerate(_constraint_rows(system.constraints, s)):
+            for expr, label in built:
                 rows.append(expr)
                 labels.append(label)
                 owners.append(k)
@@ -71,19 +71,23 @@ class Structure:
         self.constraint_owner = np.array(owners, dtype=int)
         self.n_constraints = len(rows)
         f = ca.vertcat(*rows) if rows else ca.SX(0, 1)
-        J = ca.jacobian(f, x)
         self.rheonomic = bool(rows) and ca.depends_on(f, t)
         if rows:
             active.add("constraints")
         if self.rheonomic:
             active.add("rheonomic")
-            f_t = ca.jacobian(f, t)
-            c = ca.mtimes(J, v) + f_t
-            gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
-        else:
+
+        @functools.cache
+        def kinematics() -> tuple:
+            """(J, f_t, γ), differentiated when a Function that needs them is first made (a
+            large model's runs use the vectorized build's instead: constrained.manifold)."""
+            J = ca.jacobian(f, x)
+            if self.rheonomic:
+                f_t = ca.jacobian(f, t)
+                c = ca.mtimes(J, v) + f_t
+                return J, f_t, ca.jtimes(c, x, v) + ca.jacobian(c, t)
             f_t = ca.SX(self.n_constraints, 1)  # structurally zero: no f_t terms
-            c = ca.mtimes(J, v)
-            gamma = ca.jtimes(c, x, v)
+            return J, f_t, ca.jtimes(ca.mtimes(J, v), x, v)
 
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
         terms = []
@@ -127,9 +131,10 @@ class Structure:
             self._parts[name] = (inputs, in_names, outputs, out_names)
 
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
-        function("jacobian", [x, t], ["x", "t"], [f, J], ["f", "J"])
-        function("velocity_terms", [x, t], ["x", "t"], [J, f_t], ["J", "f_t"])
-        function("dynamics", [x, v, t], ["x", "v", "t"], [F, J, gamma], ["F", "J", "gamma"])
+        function("jacobian", [x, t], ["x", "t"], lambda: [f, kinematics()[0]], ["f", "J"])
+        function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[:2]), ["J", "f_t"])
+        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F, kinematics()[0], kinematics()[2]],
+                 ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
         function("kinetic", [v], ["v"], [T], ["T"])
@@ -140,6 +145,7 @@ class Structure:
         """The parametric Function ``name``: the Model's inputs, then ``p``."""
         if name not in self._functions:
             inputs, in_names, outputs, out_names = self._parts[name]
+            outputs = outputs() if callable(outputs) else outputs
             self._functions[name] = ca.Function(name, [*inputs, self._p], outputs,
                                                 [*in_names, "p"], out_names)
         return self._functions[name]
@@ -154,6 +160,7 @@ class Structure:
         for every parameter value, shared by all Models of this structure), else None."""
         if name not in self._fixed:
             inputs, in_names, outputs, out_names = self._parts[name]
+            outputs = outputs() if callable(outputs) else outputs
             p = self._p
             free = not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs)
             self._fixed[name] = ca.Function(name, inputs, outputs, in_names, out_names) if free else None
@@ -189,6 +196,26 @@ class Structure:
                 while len(self._bound) > BOUND_FUNCTIONS_KEPT:
                     self._bound.popitem(last=False)
         return bound
+
+
+#: Runs of at least this many constraints of one class are built together (``batch_rows``).
+BATCH_FROM = 64
+
+
+def _constraint_rows(constraints: list, s: Symbols) -> list:
+    """Each constraint's ``rows(s)``, in order; runs of BATCH_FROM or more constraints of one
+    class through the class's ``batch_rows`` where it has one (the same expressions)."""
+    out, k = [], 0
+    while k < len(constraints):
+        cls, j = type(constraints[k]), k + 1
+        while j < len(constraints) and type(constraints[j]) is cls:
+            j += 1
+        run = constraints[k:j]
+        batch = cls.batch_rows(run, s) if len(run) >= BATCH_FROM and hasattr(cls, "batch_rows") else None
+        batch = batch if batch is not None else [None] * len(run)
+        out += [rows if rows is not None else c.rows(s) for c, rows in zip(run, batch, strict=True)]
+        k = j
+    return out
 
 
 def _entries_of(values: list, p: ca.SX) -> np.ndarray | None:
