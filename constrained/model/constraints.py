@@ -286,6 +286,26 @@ class Custom(Constraint):
         return [(s.parse(self.expr, f"{self._where()}.expr"), self.label)]
 
 
+#: Runs of at least this many constraints of one class are built together (``batch_rows``).
+BATCH_FROM = 64
+
+
+def constraint_rows(constraints: list, s) -> list:
+    """Each constraint's ``rows(s)``, in order; runs of BATCH_FROM or more constraints of one
+    class through the class's ``batch_rows`` where it has one (the same expressions)."""
+    out, k = [], 0
+    while k < len(constraints):
+        cls, j = type(constraints[k]), k + 1
+        while j < len(constraints) and type(constraints[j]) is cls:
+            j += 1
+        run = constraints[k:j]
+        batch = cls.batch_rows(run, s) if len(run) >= BATCH_FROM and hasattr(cls, "batch_rows") else None
+        batch = batch if batch is not None else [None] * len(run)
+        out += [rows if rows is not None else c.rows(s) for c, rows in zip(run, batch, strict=True)]
+        k = j
+    return out
+
+
 CONSTRAINT_TYPES = {
     "distance": Distance,
     "pin": Pin,

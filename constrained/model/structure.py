@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import InputError
 from . import lifting
+from .constraints import constraint_rows
 from .symbols import Symbols
 
 #: Functions bound to parameter values that a Structure keeps (the most recent), so that
@@ -60,7 +61,7 @@ class Structure:
         active = set()
 
         rows, labels, owners = [], [], []
-        for k, built in enumerate(_constraint_rows(system.constraints, s)):
+        for k, built in enumerate(constraint_rows(system.constraints, s)):
             for expr, label in built:
                 rows.append(expr)
                 labels.append(label)
@@ -196,26 +197,6 @@ class Structure:
                 while len(self._bound) > BOUND_FUNCTIONS_KEPT:
                     self._bound.popitem(last=False)
         return bound
-
-
-#: Runs of at least this many constraints of one class are built together (``batch_rows``).
-BATCH_FROM = 64
-
-
-def _constraint_rows(constraints: list, s: Symbols) -> list:
-    """Each constraint's ``rows(s)``, in order; runs of BATCH_FROM or more constraints of one
-    class through the class's ``batch_rows`` where it has one (the same expressions)."""
-    out, k = [], 0
-    while k < len(constraints):
-        cls, j = type(constraints[k]), k + 1
-        while j < len(constraints) and type(constraints[j]) is cls:
-            j += 1
-        run = constraints[k:j]
-        batch = cls.batch_rows(run, s) if len(run) >= BATCH_FROM and hasattr(cls, "batch_rows") else None
-        batch = batch if batch is not None else [None] * len(run)
-        out += [rows if rows is not None else c.rows(s) for c, rows in zip(run, batch, strict=True)]
-        k = j
-    return out
 
 
 def _entries_of(values: list, p: ca.SX) -> np.ndarray | None:

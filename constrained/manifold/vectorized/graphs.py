@@ -64,7 +64,7 @@ def acceleration_graph(view: ParametricView, X, V, T):
     minv, F, J = view.inverse_masses, out["F"], out["J"]
     if not b.n_rows:
         return minv * F, ca.MX(0, 1)
-    lam = ca.solve(J.gram(minv), -out["gamma"] - J.times(minv * F), "ldl")
+    lam = J.solve(minv, -out["gamma"] - J.times(minv * F))
     return minv * (F + J.transpose_times(lam)), lam
 
 
@@ -75,7 +75,7 @@ def position_step_graph(view: ParametricView, X, T):
     minv, J = view.inverse_masses, out["J"]
     if not b.n_rows:
         return ca.MX(0, 1), ca.MX.zeros(b.n3)
-    return out["f"], minv * J.transpose_times(ca.solve(J.gram(minv), out["f"], "ldl"))
+    return out["f"], minv * J.transpose_times(J.solve(minv, out["f"]))
 
 
 def velocity_correction_graph(view: ParametricView, X, V, T):
@@ -86,7 +86,7 @@ def velocity_correction_graph(view: ParametricView, X, V, T):
     out = b.evaluate(X, None, T, view.P, ("J", "f_t") if b.rheonomic else ("J",))
     minv, J = view.inverse_masses, out["J"]
     c = J.times(V) + out["f_t"] if b.rheonomic else J.times(V)
-    return minv * J.transpose_times(ca.solve(J.gram(minv), c, "ldl"))
+    return minv * J.transpose_times(J.solve(minv, c))
 
 
 def projection_graph(view: ParametricView, x, v, t):
@@ -95,11 +95,11 @@ def projection_graph(view: ParametricView, x, v, t):
     P, minv = view.P, view.inverse_masses
     first = b.evaluate(x, None, t, P, ("f", "J"))
     J = first["J"]
-    x = x - minv * J.transpose_times(ca.solve(J.gram(minv), first["f"], "ldl"))
+    x = x - minv * J.transpose_times(J.solve(minv, first["f"]))
     out = b.evaluate(x, None, t, P, ("f", "J", "f_t", "scale") if b.rheonomic else ("f", "J", "scale"))
     J = out["J"]
     velocity = J.times(v) + out["f_t"] if b.rheonomic else J.times(v)
-    sol = ca.solve(J.gram(minv), ca.horzcat(out["f"], velocity), "ldl")
+    sol = J.solve(minv, ca.horzcat(out["f"], velocity))
     residual = ca.mmax(ca.fabs(out["f"]) / out["scale"])
     return x - minv * J.transpose_times(sol[:, 0]), v - minv * J.transpose_times(sol[:, 1]), residual
 
@@ -164,7 +164,7 @@ def quantities_function(model: Model, wanted: tuple) -> ca.Function:
     if kkt:
         F, gamma = out["F"], out["gamma"]
         load = J.times(minv * F)
-        lam = ca.solve(J.gram(minv), -gamma - load, "ldl") if b.n_rows else ca.MX(0, 1)
+        lam = J.solve(minv, -gamma - load) if b.n_rows else ca.MX(0, 1)
         a = minv * (F + J.transpose_times(lam))
         scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
         outputs["multipliers"] = lam
