@@ -12,10 +12,11 @@ constraint residual — on the default output grid, every accepted step):
   1e-6. A taut fine rope is stiff (its transverse waves): dopri's steps are set by stability,
   and the run says so (StiffnessWarning). ``--link 1 --mass 1 --atol 1e-8`` is the old,
   favourable chain of issue 16 (1 m links, 1 kg: a 10 km chain that barely moves in 1 s).
-- ``--cloth K``: a K × K cloth of 1 cm squares (rods on the grid's edges), 1.5e-5 kg per
-  particle (a 150 g/m² cotton), lying flat in z = 0 and pinned at two diagonally opposite
-  corners, gravity (0, 0, −9.81) across it; 0.5 s at rtol = atol = 1e-6. (Two corners of one
-  edge are refused on purpose: that edge is a taut straight chain, docs/hard-cases.md.)
+- ``--cloth K``: a K × K cloth of 1 cm squares (rods on the grid's edges, shear springs of
+  0.5 N/m on both diagonals of each square), 1.5e-5 kg per particle (a 150 g/m² cotton), lying
+  flat in z = 0 and pinned at two diagonally opposite corners, gravity (0, 0, −9.81) across
+  it; 0.5 s at rtol = atol = 1e-6. (Two corners of one edge are refused on purpose: that edge
+  is a taut straight chain, docs/hard-cases.md.)
 
 Each run is one subprocess ``/usr/bin/time -v python -m constrained.cli run SCENE --out DIR``:
 its wall time is everything a user waits for (interpreter start, imports, reading and checking
@@ -55,8 +56,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: Cloth: 1 cm squares, a 150 g/m² cotton (1.5e-5 kg per particle).
-CLOTH_LINK, CLOTH_MASS = 0.01, 1.5e-5
+#: Cloth: 1 cm squares, a 150 g/m² cotton (1.5e-5 kg per particle), shear springs of 0.5 N/m on
+#: both diagonals of every square (a cotton's in-plane shear stiffness, about 1 N/m; without them
+#: the rods alone are a mechanism whose free corners fold flat into a dead-centre configuration:
+#: the 100 × 100 cloth reached one at t = 0.245 s).
+CLOTH_LINK, CLOTH_MASS, CLOTH_SHEAR = 0.01, 1.5e-5, 0.5
 
 
 def chain_scene(n: int, *, t_end: float = 1.0, rtol: float = 1e-6, atol: float = 1e-6,
@@ -104,6 +108,11 @@ def cloth_scene(k: int, *, t_end: float = 0.5, rtol: float = 1e-6, atol: float =
                 if i + di < k and j + dj < k:
                     lines += ["[[constraints]]", 'type = "distance"', f'a = "p{i}_{j}"',
                               f'b = "p{i + di}_{j + dj}"', f"length = {link!r}", ""]
+    for i in range(k - 1):  # shear springs on both diagonals of every square
+        for j in range(k - 1):
+            for (a, b) in (((i, j), (i + 1, j + 1)), ((i + 1, j), (i, j + 1))):
+                lines += ["[[effects]]", 'type = "spring"', f'a = "p{a[0]}_{a[1]}"', f'b = "p{b[0]}_{b[1]}"',
+                          f"k = {CLOTH_SHEAR!r}", f"rest = {link * 2 ** 0.5!r}", ""]
     far = (k - 1) * link
     lines += ["[[constraints]]", 'type = "pin"', 'a = "p0_0"', "point = [0.0, 0.0, 0.0]", "",
               "[[constraints]]", 'type = "pin"', f'a = "p{k - 1}_{k - 1}"',
