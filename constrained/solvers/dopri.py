@@ -133,14 +133,17 @@ class Dopri(Stepper):
         vector = not self.compiled and not symbolic and vectorized.applies(self.model, rows)
         if self.compiled and not symbolic and mapped.applies(self.model):
             m, with_p = mapped.MappedView(self.model, P), mapped.acceleration_function(self.model, rows)
-        elif vector:
-            m, with_p = ParametricView(self.model, P), vectorized.acceleration_function(self.model)
+        elif vector:  # m⁻¹ (and forces of p alone) once per step, shared by its accelerations
+            m = ParametricView(self.model, P)
+            with_p = vectorized.acceleration_function(self.model, statics=True)
+            minv, forces = vectorized.statics(m)
+            shared = [minv] if forces is None else [minv, forces]
         else:
             m = ParametricView(self.model, P)
             with_p = acceleration_function(self.model, rows, symbolic=symbolic, parametric=True)
 
         def accel(X, V, T):
-            return with_p(X, V, T, P)
+            return with_p(X, V, T, P, *shared) if vector else with_p(X, V, T, P)
 
         linsol = "symbolicqr" if symbolic else "ldl"
         done = t >= t_target  # (then the attempt is skipped: see the end)
@@ -166,7 +169,7 @@ class Dopri(Stepper):
         v1 = v + hh * combine(Kv, tab.B)
         t1 = ca.if_else(clipped, t_target, t + hh)
         if m.n_constraints and vector:
-            x1, v1, residual = vectorized.projection_graph(m, x1, v1, t1)
+            x1, v1, residual = vectorized.projection_graph(m, x1, v1, t1, minv=minv)
         elif m.n_constraints:
             x1, v1, residual = projection_graph(m, x1, v1, t1, rows=rows, linsol=linsol)
         else:

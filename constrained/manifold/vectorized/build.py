@@ -299,10 +299,12 @@ class VectorizedBuild:
         for g in mb.rows:
             out = self._columns(g, self._kernel(g, outputs), X, V, T, P)
             for k, values in zip(outputs, out, strict=True):
-                rows[k] += values if k == "J" else values
+                rows[k] += values
         rest_outputs = (*outputs, "F") if forces_too and (self.rest_forces or not mb.terms) else outputs
-        rest = self._rest_function(rest_outputs)(X, V if V is not None else ca.MX.zeros(self.n3), T, P)
-        rest = rest if isinstance(rest, list | tuple) else [rest]
+        rest = []
+        if rest_outputs:
+            rest = self._rest_function(rest_outputs)(X, V if V is not None else ca.MX.zeros(self.n3), T, P)
+            rest = rest if isinstance(rest, list | tuple) else [rest]
         result = {}
         if forces_too and "F" not in rest_outputs:
             rest_outputs, rest = (*rest_outputs, "F"), [*rest, None]

@@ -57,11 +57,23 @@ class VectorizedView(ParametricView):
         return self._at(X, None, T, ("scale",))["scale"]
 
 
-def acceleration_graph(view: ParametricView, X, V, T):
-    """(a, λ) at (X, V, T) with the view's parameters: ``manifold.graph.acceleration_graph``."""
+def statics(view: ParametricView) -> tuple:
+    """``(m⁻¹, F)``: the inverse masses (3N,) and, when they depend on p alone (gravity, fixed
+    loads), the forces (3N,; else None) — what every acceleration of a step shares, computed
+    once per step and handed to ``acceleration_function(model, statics=True)``."""
     b = vectorized_build(view._model.structure)
-    out = b.evaluate(X, V, T, view.P, ("J", "gamma"), forces_too=True)
-    minv, F, J = view.inverse_masses, out["F"], out["J"]
+    X, V, T = ca.MX.sym("x", b.n3), ca.MX.sym("v", b.n3), ca.MX.sym("t")
+    F = b.evaluate(X, V, T, view.P, (), forces_too=True)["F"]
+    return view.inverse_masses, (None if ca.depends_on(F, ca.vertcat(X, V, T)) else F)
+
+
+def acceleration_graph(view: ParametricView, X, V, T, *, minv=None, forces=None):
+    """(a, λ) at (X, V, T) with the view's parameters: ``manifold.graph.acceleration_graph``;
+    ``minv``, ``forces``: the ``statics`` of the step, when given."""
+    b = vectorized_build(view._model.structure)
+    out = b.evaluate(X, V, T, view.P, ("J", "gamma"), forces_too=forces is None)
+    minv = view.inverse_masses if minv is None else minv
+    F, J = out["F"] if forces is None else forces, out["J"]
     if not b.n_rows:
         return minv * F, ca.MX(0, 1)
     lam = J.solve(minv, -out["gamma"] - J.times(minv * F))
@@ -89,10 +101,10 @@ def velocity_correction_graph(view: ParametricView, X, V, T):
     return minv * J.transpose_times(J.solve(minv, c))
 
 
-def projection_graph(view: ParametricView, x, v, t):
+def projection_graph(view: ParametricView, x, v, t, *, minv=None):
     """(x, v, residual before the last Newton step in metres): ``manifold.graph.projection_graph``."""
     b = vectorized_build(view._model.structure)
-    P, minv = view.P, view.inverse_masses
+    P, minv = view.P, view.inverse_masses if minv is None else minv
     first = b.evaluate(x, None, t, P, ("f", "J"))
     J = first["J"]
     x = x - minv * J.transpose_times(J.solve(minv, first["f"]))
@@ -104,16 +116,22 @@ def projection_graph(view: ParametricView, x, v, t):
     return x - minv * J.transpose_times(sol[:, 0]), v - minv * J.transpose_times(sol[:, 1]), residual
 
 
-def acceleration_function(model: Model) -> ca.Function:
-    """``(x, v, t, p) -> (a, λ)`` on the vectorized build, built once per structure."""
+def acceleration_function(model: Model, *, statics: bool = False) -> ca.Function:
+    """``(x, v, t, p) -> (a, λ)`` on the vectorized build, built once per structure;
+    ``statics``: ``(x, v, t, p, m⁻¹[, F]) -> (a, λ)`` taking what ``statics`` gives (F when the
+    forces depend on p alone)."""
     cache, prefix = structure_cache(model)
-    key = (*prefix, "acceleration", "vectorized")
+    key = (*prefix, "acceleration", "vectorized", statics)
     if key not in cache:
-        n3 = model.n_coordinates
-        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        P = ca.MX.sym("p", len(model.parameter_vector))
-        a, lam = acceleration_graph(ParametricView(model, P), X, V, T)
-        cache[key] = ca.Function("acceleration", [X, V, T, P], [a, lam])
+        X, V, T, P = _symbols(model)
+        view = ParametricView(model, P)
+        inputs, extra = [X, V, T, P], {}
+        if statics:
+            extra["minv"] = ca.MX.sym("minv", model.n_coordinates)
+            if globals()["statics"](view)[1] is not None:
+                extra["forces"] = ca.MX.sym("F", model.n_coordinates)
+        a, lam = acceleration_graph(view, X, V, T, **extra)
+        cache[key] = ca.Function("acceleration", [*inputs, *extra.values()], [a, lam])
     return cache[key]
 
 
