@@ -200,9 +200,19 @@ def _buckets(colind: np.ndarray, row: np.ndarray, read_colind: np.ndarray) -> li
             continue
         particle = row[colind[ks][:, None] + np.arange(d)] // 3  # (n, d)
         first = np.argmax(particle[:, :, None] == particle[:, None, :], axis=2)  # first equal position
-        key = np.concatenate([first, reads[ks][:, None]], axis=1)
-        _, inverse = np.unique(key, axis=0, return_inverse=True)
-        out += [ks[inverse.ravel() == u] for u in range(int(inverse.max()) + 1)]
+        if d * np.log2(max(d, 2)) + np.log2(int(reads[ks].max(initial=0)) + 2) < 62:
+            # one integer per row: the reads, then the positions in base d (a 1-D unique is fast)
+            key = reads[ks].astype(np.int64)
+            for j in range(d):
+                key = key * d + first[:, j]
+            _, inverse = np.unique(key, return_inverse=True)
+        else:
+            _, inverse = np.unique(np.concatenate([first, reads[ks][:, None]], axis=1), axis=0,
+                                   return_inverse=True)
+        inverse = inverse.ravel()
+        order = np.argsort(inverse, kind="stable")
+        bounds = np.searchsorted(inverse[order], np.arange(int(inverse.max()) + 2))
+        out += [ks[order[bounds[u]:bounds[u + 1]]] for u in range(len(bounds) - 1)]
     return sorted(out, key=lambda ks: ks[0])
 
 
