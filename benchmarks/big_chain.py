@@ -125,13 +125,14 @@ def cloth_scene(k: int, *, t_end: float = 0.5, rtol: float = 1e-6, atol: float =
     return "\n".join(lines)
 
 
-def run_once(scene: Path, out: Path, *, quiet: bool) -> dict:
-    """One ``constrained run`` in a fresh process under /usr/bin/time -v."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def run_once(scene: Path, out: Path, *, quiet: bool, code: Path = ROOT) -> dict:
+    """One ``constrained run`` in a fresh process under /usr/bin/time -v, with the package at
+    ``code`` (this checkout, or ``--before``'s)."""
+    env = dict(os.environ, PYTHONPATH=str(code) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "constrained.cli", "run", str(scene),
            "--out", str(out)] + (["--quiet"] if quiet else [])
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=code)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
@@ -267,6 +268,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, help="write the results here")
     ap.add_argument("--write-only", type=Path, metavar="DIR", help="only write the scenes into DIR")
     ap.add_argument("--breakdown", action="store_true", help="time the stages and the floor in one more run")
+    ap.add_argument("--before", type=Path, metavar="DIR",
+                    help="also run every case with the package of another checkout (e.g. `git archive "
+                         "main | tar -x -C DIR`), alternating with this one: before/after in one run")
     args = ap.parse_args(argv)
     ropes = args.n if args.n is not None else ([] if args.cloth else [1000, 3000, 10000])
     cases = [(f"rope{n}", dict(n=n)) for n in ropes] + [(f"cloth{k}", dict(cloth=k)) for k in args.cloth]
@@ -281,24 +285,35 @@ def main(argv=None) -> int:
         for name, case in cases:
             scene = Path(tmp) / f"{name}.toml"
             scene.write_text(scene_text(args, **case))
-            runs = [run_once(scene, Path(tmp) / f"out_{name}", quiet=args.quiet) for _ in range(args.repeats)]
-            best = min(runs, key=lambda r: r["wall_s"])
+            codes = {"now": ROOT, **({"before": args.before.resolve()} if args.before else {})}
+            runs = {k: [] for k in codes}
+            for _ in range(args.repeats):  # the versions alternate
+                for label, code in codes.items():
+                    runs[label].append(run_once(scene, Path(tmp) / f"out_{name}_{label}", quiet=args.quiet,
+                                                code=code))
             particles = case.get("n") or case["cloth"] ** 2
-            row = dict(case=name, particles=particles, wall_s=best["wall_s"], cpu_s=best["cpu_s"],
-                       peak_rss_mb=min(r["peak_rss_mb"] for r in runs), walls=[r["wall_s"] for r in runs],
-                       samples=best["samples"],
+            row = dict(case=name, particles=particles,
                        breakdown=breakdown(scene, Path(tmp) / f"stages_{name}") if args.breakdown else None)
+            for label, done in runs.items():
+                best = min(done, key=lambda r: r["wall_s"])
+                row[label] = dict(wall_s=best["wall_s"], cpu_s=best["cpu_s"],
+                                  peak_rss_mb=min(r["peak_rss_mb"] for r in done),
+                                  walls=[r["wall_s"] for r in done], samples=best["samples"])
+                walls = ", ".join(f"{r['wall_s']:.2f}" for r in done)
+                rss = row[label]["peak_rss_mb"]
+                print(f"{name} ({label}): {best['wall_s']:.2f} s wall, {best['cpu_s']:.2f} s CPU "
+                      f"(runs {walls}), peak RSS {rss:.0f} MB, {best['samples']} samples", file=sys.stderr)
+                if not args.quiet:
+                    print(best["stdout"], file=sys.stderr)
             results.append(row)
-            print(f"{name}: {row['wall_s']:.2f} s wall, {row['cpu_s']:.2f} s CPU (runs "
-                  f"{', '.join(f'{w:.2f}' for w in row['walls'])}), peak RSS {row['peak_rss_mb']:.0f} MB, "
-                  f"{row['samples']} samples", file=sys.stderr)
-            if not args.quiet:
-                print(best["stdout"], file=sys.stderr)
-    print("| scene | particles | wall (s) | CPU (s) | peak RSS (MB) | samples |")
-    print("|---|---|---|---|---|---|")
+    labels = ["before", "now"] if args.before else ["now"]
+    print("| scene | particles | " + " | ".join(f"{k}: wall (s) | {k}: CPU (s) | {k}: peak RSS (MB)"
+                                                for k in labels) + " | samples |")
+    print("|---|---|" + "---|---|---|" * len(labels) + "---|")
     for r in results:
-        print(f"| {r['case']} | {r['particles']:,} | {r['wall_s']:.2f} | {r['cpu_s']:.2f} | "
-              f"{r['peak_rss_mb']:.0f} | {r['samples']} |")
+        cells = " | ".join(f"{r[k]['wall_s']:.2f} | {r[k]['cpu_s']:.2f} | {r[k]['peak_rss_mb']:.0f}"
+                           for k in labels)
+        print(f"| {r['case']} | {r['particles']:,} | {cells} | {r['now']['samples']} |")
     for r in results:
         b = r["breakdown"]
         if not b:
