@@ -1,4 +1,4 @@
-"""constrained: particles under holonomic constraints, constraint forces as Lagrange multipliers.
+"""constrained: particles under holonomic and velocity constraints, constraint forces as multipliers.
 
 The public names are imported lazily (PEP 562 ``__getattr__``): ``import constrained`` is
 cheap, and the module holding a name (CasADi, SciPy, matplotlib behind it) is imported the
@@ -19,13 +19,14 @@ _LAZY = {
     **dict.fromkeys(("ConstraintReport", "constraint_report", "degrees_of_freedom"),
                     "manifold.constraint_report"),
     **dict.fromkeys(("Curve", "Custom", "Distance", "Pin", "Plane", "Surface"), "model.constraints"),
+    **dict.fromkeys(("KnifeEdge", "Rolling", "Velocity"), "model.velocity"),
     **dict.fromkeys(("Conservation", "conservation", "describe"), "analysis.derivation"),
     **dict.fromkeys(("EquationCheck", "check_equations"), "analysis.equations"),
     **dict.fromkeys(("check_generalized_forces", "check_lagrangian"), "analysis.candidates"),
     **dict.fromkeys(("Central", "Damping", "Electromagnetic", "Force", "Gravity", "Pairwise",
                      "Potential", "Spring"), "model.effects"),
-    **dict.fromkeys(("ConstrainedError", "InconsistentStateError", "InputError", "RunInterrupted",
-                     "SimulationError"), "errors"),
+    **dict.fromkeys(("ConstrainedError", "InconsistentStateError", "InitialStateWarning", "InputError",
+                     "RunInterrupted", "SimulationError"), "errors"),
     **dict.fromkeys(("Model", "assemble"), "model.structure"),
     "CrossCheck": "analysis.crosscheck",
     "ReducedModel": "run.reduced",
@@ -99,9 +100,10 @@ notebook.register("viewer", _inline_viewer)
 __all__ = [
     "ActionResult", "PathResult", "StationarityResult", "stationarity", "stationary_path",
     "Central", "ConstrainedError", "ConstraintReport", "Curve", "Custom", "Damping", "Distance",
-    "Electromagnetic", "Force", "Gravity", "InconsistentStateError", "InputError", "Model",
+    "Electromagnetic", "Force", "Gravity", "InconsistentStateError", "InitialStateWarning", "InputError",
+    "Model",
     "Pairwise", "Particle", "Pin", "Plane", "Potential", "RunInterrupted", "SimulationError", "Spring",
-    "Surface", "System",
+    "Surface", "System", "KnifeEdge", "Rolling", "Velocity",
     "Trajectory", "assemble", "constraint_report", "degrees_of_freedom", "load_scene", "simulate",
     "Conservation", "CrossCheck", "EquationCheck", "ReducedModel", "check_equations", "conservation",
     "cross_check", "describe", "check_lagrangian", "check_generalized_forces",

@@ -70,3 +70,9 @@ class SceneError(InputError):
 def one_line(text: str) -> str:
     """``text`` with its runs of whitespace (newlines too) as single spaces."""
     return " ".join(str(text).split())
+
+
+class InitialStateWarning(UserWarning):
+    """The initial state was changed to satisfy the constraints (positions within
+    ``max_initial_correction``, or velocities with components the constraints forbid): the run
+    starts from the corrected state, in ``trajectory.info["initial_correction"]``."""

@@ -29,6 +29,9 @@ which = sys.argv[1]
 if which == "f":
     x = ca.SX.sym("x", 3); f = ca.Function("cachetest", [x], [ca.sin(x) + 2 * x])
     arg, want = np.array([0.1, 0.2, 0.3]), np.sin([0.1, 0.2, 0.3]) + 2 * np.array([0.1, 0.2, 0.3])
+elif which == "planted":  # the same name and shapes as f, another body: what an attacker plants
+    x = ca.SX.sym("x", 3); f = ca.Function("cachetest", [x], [-7 * x])
+    arg, want = np.array([0.1, 0.2, 0.3]), -7 * np.array([0.1, 0.2, 0.3])
 else:
     x = ca.SX.sym("x", 2); f = ca.Function("cachetest", [x], [ca.cos(x)])
     arg, want = np.array([0.1, 0.2]), np.cos([0.1, 0.2])
@@ -98,7 +101,8 @@ def test_a_damaged_cache_entry_is_rebuilt_and_the_answer_is_right(tmp_path, dama
     third = run("f", cache)  # repaired: loaded from the cache without a notice
     assert third.returncode == 0 and "value-ok" in third.stdout
     assert "compile cache" not in third.stderr
-    assert not [p for p in cache.iterdir() if p.suffix not in (".so", ".json")]  # no temporaries
+    # no temporaries (the signing key is the user's secret, kept there)
+    assert not [p for p in cache.iterdir() if p.suffix not in (".so", ".json") and p.name != "signing.key"]
 
 
 @needs_cc
@@ -124,7 +128,7 @@ def test_concurrent_writers_leave_one_whole_entry(tmp_path):
     assert all("value-ok" in out for out, _ in outs)
     so = entry(cache)
     assert compiled._verify(so) is None
-    assert sorted(p.suffix for p in cache.iterdir()) == [".json", ".so"]
+    assert sorted(p.suffix for p in cache.iterdir() if p.name != "signing.key") == [".json", ".so"]
 
 
 def test_the_cache_folder_can_be_set_by_either_variable(monkeypatch, tmp_path):
@@ -208,3 +212,96 @@ def test_a_run_survives_a_damaged_cache_and_rebuilds_it(tmp_path, damage):
     assert again.stdout == first.stdout  # the same end state, to the last digit
     assert "rebuilding it" in again.stderr and str(so) in again.stderr
     assert compiled._verify(so) is None  # the entry is whole again
+
+
+# --- issue 27, item 1: a shared or planted cache never runs another user's code --------------------
+def _plant(cache: Path, tmp_path: Path, *, sign: bool) -> Path:
+    """Our entry for f replaced by a library computing -7 x (same name and shapes) and a record
+    that matches it: copied from another user's cache (signed with their key), or written by
+    hand with the right size and checksum (no signature)."""
+    assert run("f", cache).returncode == 0
+    so = entry(cache)
+    other = tmp_path / "other-user"
+    assert run("planted", other).returncode == 0
+    shutil.copyfile(entry(other), so)
+    record = json.loads(entry(other).with_suffix(".json").read_text())
+    if not sign:
+        record.pop("hmac", None)
+    record.update(size=so.stat().st_size, sha256=compiled._sha256(so))
+    so.with_suffix(".json").write_text(json.dumps(record))
+    return so
+
+
+@needs_cc
+@pytest.mark.parametrize("sign", [True, False], ids=["record-signed-by-another-key", "unsigned-record"])
+def test_a_planted_library_with_a_matching_record_is_never_loaded(tmp_path, sign):
+    cache = tmp_path / "cache"
+    so = _plant(cache, tmp_path, sign=sign)
+    assert compiled._verify(so) is None  # size and checksum agree: only the signature tells
+    again = run("f", cache)
+    assert again.returncode == 0 and "value-ok" in again.stdout, (again.stdout, again.stderr[-2000:])
+    if sign:
+        assert "signature does not match" in again.stderr and "rebuilding" in again.stderr
+    third = run("f", cache)  # the rebuilt entry is ours: loaded without a word
+    assert "value-ok" in third.stdout and "compile cache" not in third.stderr
+
+
+@needs_cc
+def test_the_cache_folder_key_and_entries_are_private(tmp_path):
+    cache = tmp_path / "deep" / "cache"
+    assert run("f", cache).returncode == 0
+    assert cache.stat().st_mode & 0o777 == 0o700
+    assert (cache / "signing.key").stat().st_mode & 0o777 == 0o600
+    so = entry(cache)
+    assert so.stat().st_mode & 0o077 == 0 and so.with_suffix(".json").stat().st_mode & 0o077 == 0
+    assert "hmac" in json.loads(so.with_suffix(".json").read_text())
+
+
+@needs_cc
+@pytest.mark.parametrize("mode", [0o777, 0o775, 0o757])
+def test_a_cache_folder_others_can_write_is_not_used(tmp_path, mode, monkeypatch, capsys):
+    import casadi as ca
+
+    cache = tmp_path / "shared"
+    cache.mkdir()
+    cache.chmod(mode)
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(cache))
+    monkeypatch.delenv("CONSTRAINED_COMPILE", raising=False)
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("sharedtest", [x], [ca.cos(x)])
+    for _ in range(2):  # refused each time, said once
+        g = compiled.compile_function(f)
+        assert g is f and "is writable by" in compiled.last_error
+    err = capsys.readouterr().err
+    assert err.count("is not used") == 1 and str(cache) in err and "chmod 700" in err
+    assert list(cache.iterdir()) == []  # nothing written into it, nothing loaded from it
+
+
+@needs_cc
+def test_a_cache_folder_of_another_user_is_not_used(tmp_path, monkeypatch, capsys):
+    import casadi as ca
+
+    cache = tmp_path / "theirs"
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(cache))
+    monkeypatch.delenv("CONSTRAINED_COMPILE", raising=False)
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("theirstest", [x], [ca.cos(x)])
+    assert compiled.compile_function(f).class_name() == "External"  # our folder: compiled
+    owner = os.geteuid()
+    monkeypatch.setattr(compiled, "_user", lambda: owner + 1)  # the same folder seen by another user
+    assert compiled.compile_function(f) is f
+    assert "belongs to another user" in compiled.last_error
+    assert "belongs to another user" in capsys.readouterr().err
+
+
+@needs_cc
+@pytest.mark.parametrize("which", [".so", ".json"])
+def test_an_entry_others_can_write_is_rebuilt(tmp_path, which):
+    cache = tmp_path / "cache"
+    assert run("f", cache).returncode == 0
+    target = entry(cache).with_suffix(which)
+    target.chmod(0o666)
+    again = run("f", cache)
+    assert again.returncode == 0 and "value-ok" in again.stdout, again.stderr[-2000:]
+    assert "writable by group and others" in again.stderr and "rebuilding" in again.stderr
+    assert target.stat().st_mode & 0o077 == 0

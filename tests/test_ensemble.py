@@ -84,3 +84,21 @@ def test_progress_is_reported_up_to_the_end(double):
     assert seen == sorted(seen)  # the slowest variant only moves forward
     with pytest.raises(C.InputError, match="progress must be True"):
         C.simulate_many(system, 1.0, {"m1": [1.0]}, model=model, compiled=False, progress="yes")
+
+
+def test_systems_of_one_structure_start_from_their_own_plain_numbers():
+    """Two pendulums differing only in their plain-number start angles share a Structure (and its
+    compiled start); each batched run starts from its own angle and ends where simulate does."""
+    def pendulum(theta0: float) -> C.System:
+        s = C.System(name="pendulum")
+        s.parameters = {"g": 9.81}
+        s.add_particle("bob", 1.0, [np.sin(theta0), -np.cos(theta0), 0.0])
+        s.add(C.Distance("bob", point=[0, 0, 0], length=1.0), C.Plane("bob", [0, 0, 1]),
+              C.Gravity([0, "-g", 0]))
+        return s
+
+    for theta0 in (0.6, 0.3):  # the second reuses what the first built
+        system = pendulum(theta0)
+        batch = C.simulate_many(system, 1.0, {"g": [9.81, 9.0]}, rtol=1e-10, atol=1e-12)
+        single = C.simulate(system, 1.0, rtol=1e-10, atol=1e-12, parameters={"g": 9.0}, t_eval=[0.0, 1.0])
+        np.testing.assert_allclose(batch.x[1, -1], single.x[-1], atol=1e-8)

@@ -216,7 +216,7 @@ def shrinking_rod() -> C.System:
     """A pendulum whose rod length 1 − t is driven to zero at t = 1: the angular momentum kept,
     the speed grows as 1/(1 − t) without bound (a finite-time singularity)."""
     s = C.System(name="shrinking rod")
-    s.add_particle("bob", 1.0, [0.6, -0.8, 0.0])
+    s.add_particle("bob", 1.0, [0.6, -0.8, 0.0], [-0.6, 0.8, 0.0])  # drawn in with the rod: 1 m/s
     s.add(C.Distance("bob", point=[0, 0, 0], length="1 - t"), C.Plane("bob", [0, 0, 1]),
           C.Gravity([0, -G, 0]))
     return s

@@ -61,11 +61,15 @@ def test_a_second_run_replaces_the_first_runs_whole_set(tmp_path, capsys):
     no_strays(tmp_path)
 
 
-def test_an_interrupted_run_leaves_the_earlier_set_untouched(tmp_path, capsys, monkeypatch):
+def test_ctrl_c_while_the_figures_are_drawn_keeps_the_data_as_one_set(tmp_path, capsys, monkeypatch):
+    """Ctrl-C after the npz and csv were written, while the figures are drawn: the run's data
+    is kept (issue 27: what was computed is saved), as a set of its own — the earlier run's
+    figures are gone, never beside the new data; exit 130, one line."""
     out = tmp_path / "out"
     path = scene(tmp_path, FULL)
     assert main(["run", str(path), "--out", str(out), "--quiet"]) == 0
-    before = listing(out)
+    assert {"trajectory.png", "energy.png"} <= set(listing(out))
+    capsys.readouterr()
 
     import constrained.output.figure_process
 
@@ -74,7 +78,10 @@ def test_an_interrupted_run_leaves_the_earlier_set_untouched(tmp_path, capsys, m
 
     monkeypatch.setattr(constrained.output.figure_process.FigureProcess, "wait", interrupted)
     assert main(["run", str(path), "--out", str(out), "--quiet", "--set", "simulate.t_end=0.1"]) == 130
-    assert listing(out) == before
+    assert sorted(listing(out)) == ["trajectory.csv", "trajectory.npz"]
+    assert t_end_of(out / "trajectory.npz") == pytest.approx(0.1)
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "error" not in err and "interrupted (Ctrl-C)" in err
     no_strays(tmp_path)
 
 

@@ -276,7 +276,11 @@ def test_scene_keys_unilateral_restitution_and_events(tmp_path):
 
 @pytest.mark.parametrize("constraint, events, message", [
     ("unilateral = 1", "", r"constraints\[0\].unilateral: must be true"),
-    ("unilateral = true\nrestitution = 2.0", "", "restitution.*from 0"),
+    ("unilateral = true\nrestitution = 2.0", "", "restitution must be at most 1.*create energy"),
+    ("unilateral = true\nrestitution = -0.5", "", "restitution must be at least 0.*into the constraint"),
+    ("unilateral = true\nrestitution = \"e\"", "", "restitution must be at most 1, got 'e' = 2.71"),
+    ("unilateral = true\nrestitution = \"e_r\"", "", "restitution.*unknown name 'e_r'"),
+    ("unilateral = true\nrestitution = true", "", "restitution.*coefficient of restitution"),
     ("restitution = 0.5", "", "add unilateral = true"),
     ("unilateral = true\nelastic = true", "", "unknown key 'elastic'.*unilateral, restitution"),
     ("", '[[events]]\nname = "e"\nexpr = "y_c"', "events\\[0\\].expr"),

@@ -31,7 +31,8 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from ..errors import InputError, SimulationError
+from .. import interrupt
+from ..errors import InputError, RunInterrupted, SimulationError
 from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
 from ..model.structure import Model
@@ -127,7 +128,7 @@ class PathResult:
 
 
 class _IterationLog(ca.Callback):
-    """IPOPT iteration callback: records x at every iterate."""
+    """IPOPT iteration callback: records x at every iterate; stops the search on Ctrl-C."""
 
     def __init__(self, nx: int, ng: int, npar: int):
         ca.Callback.__init__(self)
@@ -159,7 +160,7 @@ class _IterationLog(ca.Callback):
 
     def _record(self, arg):
         self.iterates.append(np.array(arg[0]).ravel().copy())
-        return [0]
+        return [1 if interrupt.requested() else 0]  # Ctrl-C: IPOPT stops (User_Requested_Stop)
 
     eval = _record  # the name CasADi calls (not Python's eval)
 
@@ -324,7 +325,9 @@ def stationary_path(
     opts.update({k if "." in k or k in _NLPSOL_KEYS else f"ipopt.{k}": v
                  for k, v in (ipopt_options or {}).items()})
     solver = ca.nlpsol("stationary_path", "ipopt", nlp, opts)
-    sol = solver(x0=z0, p=p_val, lbg=0, ubg=0)
+    with interrupt.watch():
+        sol = solver(x0=z0, p=p_val, lbg=0, ubg=0)
+        stopped = interrupt.requested()
     stats = solver.stats()
     z = np.array(sol["x"]).ravel()
     w_sol = z[: n3 * (K - 1)]
@@ -335,7 +338,8 @@ def stationary_path(
     history = [float(S_fun(it[: n3 * (K - 1)], p_val)) for it in log.iterates]
     S_val = float(S_fun(w_sol, p_val))
     X = np.vstack([xs, w_sol.reshape(K - 1, n3), xe])
-    second = _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, K, h)
+    second = math.nan if stopped else _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn,
+                                                        X, K, h)
     V = _legendre_velocities(model, Ld_fun, X, tn)
     converged = bool(stats.get("success", False))
     status = str(stats.get("return_status", "unknown"))
@@ -358,7 +362,8 @@ def stationary_path(
         info={"end_points_projected": True, "independent_rows": rows.tolist()},
     )
     if not converged:
-        exc = SimulationError(
+        exc = RunInterrupted(f"the search was interrupted (Ctrl-C) after {iterations} iterations; the last "
+                             "iterate is kept", trajectory=traj) if stopped else SimulationError(
             f"IPOPT did not find a stationary path ({status}) after {iterations} iterations; "
             "the last iterate is kept (try more nodes, a shorter time T, or a start path "
             "closer to the motion via guess=)",
@@ -503,7 +508,7 @@ def end_configuration(text: str, system) -> np.ndarray:
         try:
             vec = tomllib.loads(f"v = {value.strip()}")["v"]
             vec = np.asarray(vec, float)
-        except (tomllib.TOMLDecodeError, TypeError, ValueError):
+        except (tomllib.TOMLDecodeError, TypeError, ValueError, RecursionError):
             vec = None
         if vec is None or vec.shape != (3,) or not np.all(np.isfinite(vec)):
             raise InputError(f"--to: the position of {name!r} must be 3 numbers like [0, -1, 0], "

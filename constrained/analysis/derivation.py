@@ -46,9 +46,10 @@ CYCLIC_RTOL = 1e-10
 class Conservation:
     """Conserved quantities found in a reduced model, and their drift along a trajectory.
 
-    ``cyclic``: coordinates with ∂L/∂q_j = 0 and no non-conservative force on them (their
-    momenta p_j are conserved); ``structurally_cyclic``: those whose L does not even mention
-    q_j; ``hamiltonian_conserved``: ∂L/∂t = 0 and no non-conservative forces at all;
+    ``cyclic``: coordinates with ∂L/∂q_j = 0 and no non-conservative force on them, nor a
+    velocity constraint acting on them (their momenta p_j are conserved);
+    ``structurally_cyclic``: those whose L does not even mention q_j; ``hamiltonian_conserved``:
+    ∂L/∂t = 0, no non-conservative forces at all, and velocity constraints doing no work;
     ``hamiltonian_is_energy``: H = T + V at the sampled states (not for rheonomic maps or
     velocity-dependent potentials). Drifts (max |Δ| relative to the starting value, or to
     1 when that is zero) are filled in when a trajectory is given.
@@ -120,19 +121,22 @@ def conservation(scene_or_model, trajectory=None, *, samples: int = 20, seed: in
     ex = rm.expressions
     L, q, qd, t = ex["L"], rm.q, rm.q_dot, rm.t
     Qs, Qds, Ts = rm.sample_states(samples, seed)
+    # velocity constraints act on q_j through column j of Ã = ∂c/∂q̇: d/dt p_j = … + (Ãᵀμ)_j
+    acting = ca.sum1(ca.fabs(ca.densify(ca.jacobian(ex["velocity_rows"], qd))))
     pieces = ca.Function("pieces", [q, qd, t], [
         ex["dL_dq"], ex["Q"], ca.gradient(ex["T"], q), ca.gradient(ex["V"], q), ca.gradient(ex["U"], q),
-        ca.jacobian(L, t), ex["H"], ex["T"] + ex["V"], ex["T"], ex["V"], ex["U"],
+        ca.jacobian(L, t), ex["H"], ex["T"] + ex["V"], ex["T"], ex["V"], ex["U"], acting,
     ])
     n = rm.n
     dL = np.zeros((samples, n))
     Qnc = np.zeros((samples, n))
+    held = np.zeros((samples, n))
     scale = np.zeros(samples)
     dLdt = np.zeros(samples)
     h_gap = np.zeros(samples)
     for i in range(samples):
         vals = [np.asarray(v).ravel() for v in pieces(Qs[i], Qds[i], Ts[i])]
-        dL[i], Qnc[i] = vals[0], vals[1]
+        dL[i], Qnc[i], held[i] = vals[0], vals[1], vals[11] if vals[11].size else 0.0
         scale[i] = sum(float(np.sum(np.abs(vals[k]))) for k in (2, 3, 4, 8, 9, 10)) or 1.0
         dLdt[i] = float(vals[5][0])
         h_gap[i] = abs(float(vals[6][0]) - float(vals[7][0])) / scale[i]
@@ -140,14 +144,14 @@ def conservation(scene_or_model, trajectory=None, *, samples: int = 20, seed: in
     for j, c in enumerate(rm.coordinates):
         struct = not ca.depends_on(L, q[j])
         numeric = bool(np.all(np.abs(dL[:, j]) <= CYCLIC_RTOL * scale))
-        free_of_forces = bool(np.all(np.abs(Qnc[:, j]) <= CYCLIC_RTOL * scale))
+        free_of_forces = bool(np.all(np.abs(Qnc[:, j]) <= CYCLIC_RTOL * scale)) and not np.any(held[:, j])
         if struct:
             structural.append(c)
         if (struct or numeric) and free_of_forces:
             cyclic.append(c)
     h_conserved = bool(np.all(np.abs(dLdt) <= CYCLIC_RTOL * scale)) and bool(
         np.all(np.abs(Qnc) <= CYCLIC_RTOL * scale[:, None])
-    )
+    ) and (not rm.n_velocity_rows or rm.jacobi_integral_conserved())  # b̃ = 0: they do no work
     result = Conservation(
         coordinates=list(rm.coordinates),
         cyclic=cyclic,

@@ -95,12 +95,18 @@ def check_equations(
     ``M q̈ = rhs``, ``|lhs − rhs| ≤ rtol × Σ|terms|`` (terms after expanding sums). An
     equation without accelerations that holds everywhere is an identity, not an equation
     of motion, and is reported as not ok. Unknown names raise InputError.
+
+    With velocity constraints the states have q̇ on them (``consistent_rates``), q̈ and the
+    multipliers ``mu1, mu2 …`` (one per velocity row, in order) come from the
+    Lagrange–d'Alembert equations ``M q̈ = rhs + Ãᵀμ``, and equations may use the ``mu``.
     """
     rm = _reduced(scene_or_model, parameters)
     if isinstance(equations, str):
         equations = [equations]
     names = dict(rm.names)
     q, qd, qdd, t = rm.q, rm.q_dot, rm.q_ddot, rm.t
+    mu = ca.SX.sym("mu", rm.n_velocity_rows)
+    names.update({f"mu{k + 1}": mu[k] for k in range(rm.n_velocity_rows) if f"mu{k + 1}" not in names})
     parsed = []
     for k, text in enumerate(equations):
         where = f"equation {k + 1}"
@@ -115,13 +121,17 @@ def check_equations(
         terms = [ca.SX(expressions.parse(s, names, where=where)) for s in terms_src]
         parsed.append((text, ca.SX(expr), terms))
     Q, Qd, Ts = rm.sample_states(samples, seed)
+    Qd = np.array([rm.consistent_rates(a, b, c) for a, b, c in zip(Q, Qd, Ts, strict=True)])
     Qdd = np.array([np.asarray(rm.acceleration(a, b, c)).ravel() for a, b, c in zip(Q, Qd, Ts, strict=True)])
+    Mu = (np.array([np.asarray(rm.velocity_multipliers(a, b, c)).ravel() for a, b, c in zip(Q, Qd, Ts,
+                                                                                           strict=True)])
+          if rm.n_velocity_rows else np.zeros((samples, 0)))
     out = []
     for k, (text, expr, terms) in enumerate(parsed):
-        f = ca.Function("candidate", [q, qd, qdd, t], [expr, ca.vertcat(*terms), ca.gradient(expr, qdd)])
+        f = ca.Function("candidate", [q, qd, qdd, t, mu], [expr, ca.vertcat(*terms), ca.gradient(expr, qdd)])
         worst_rel, worst_abs, worst_i, involves_acc = 0.0, 0.0, 0, False
         for i in range(samples):
-            e, tv, g = f(Q[i], Qd[i], Qdd[i], Ts[i])
+            e, tv, g = f(Q[i], Qd[i], Qdd[i], Ts[i], Mu[i])
             e = float(e)
             scale = float(np.sum(np.abs(np.asarray(tv)))) or 1.0
             involves_acc = involves_acc or bool(np.any(np.abs(np.asarray(g)) > 0))

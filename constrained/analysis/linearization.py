@@ -127,9 +127,10 @@ def relative_equilibrium(model: Model, x0: np.ndarray, t: float, omega, centre, 
         def residual_and_jacobian(z):
             r, Ry, _, J, _ = fun(z[:n3], np.zeros(n3), z[n3:])
             f, _ = model.jacobian(z[:n3], t)
-            J = np.asarray(J, float).reshape(C, n3)
+            J = np.asarray(J, float).reshape(C, n3)  # every row; f only the first (velocity rows: none)
             res = np.concatenate([np.asarray(r, float).ravel(), np.asarray(f, float).ravel()])
-            jac = np.block([[np.asarray(Ry, float), J.T], [J, np.zeros((C, C))]])
+            Jf = J[:model.n_position_rows]
+            jac = np.block([[np.asarray(Ry, float), J.T], [Jf, np.zeros((len(Jf), C))]])
             return res, jac
 
     def restore(z):
@@ -142,8 +143,8 @@ def relative_equilibrium(model: Model, x0: np.ndarray, t: float, omega, centre, 
     _, lam = manifold.accelerations(x0, omega_velocity(omega, centre, x0), t)
     scale = _force_scale(model, *fun(x0, np.zeros(n3), lam)[3:], lam, omega, x0)
     # one unit of the weighted residual is the tolerance: forces in N, constraint rows in metres
-    w = np.concatenate([np.full(n3, 1.0 / (FORCE_RTOL * scale)),
-                        1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t))])
+    scales = residual.row_scales(model, x0, t)[:model.n_position_rows]  # the rows of f
+    w = np.concatenate([np.full(n3, 1.0 / (FORCE_RTOL * scale)), 1.0 / (LENGTH_RTOL * size * scales)])
     z, iterations, converged = _newton(Kkt, np.concatenate([x0, lam]), w, 100, restore)
     if not converged:
         raise InputError(f"no state at rest in the frame found near the given positions after {iterations} "

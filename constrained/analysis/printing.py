@@ -148,7 +148,8 @@ def _pp(e, digits: int) -> tuple[str, int]:
 
 def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int = 4000,
              latex: bool = False) -> str:
-    """T, V, L, the conjugate momenta and Lagrange's equations ``M q̈ = rhs`` as text, in the
+    """T, V, L, the conjugate momenta and Lagrange's equations ``M q̈ = rhs`` (with velocity
+    constraints: ``M q̈ = rhs + Ãᵀμ`` and the constraints in q, multipliers mu1 …) as text, in the
     names of the coordinates, their rates and the scene's parameters (``m1``, ``l1``, ``g``:
     their values are not substituted). ``latex``: LaTeX lines (needs SymPy, the ``pretty``
     extra)."""
@@ -166,13 +167,24 @@ def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int =
         lines.append(f"{name} = {pretty(e)}")
     for j, c in enumerate(rm.coordinates):
         lines.append(f"p_{c} = {pretty(ex['p'][j])}")
-    E = ca.mtimes(ex["M"], rm.q_ddot) - ex["rhs"]
+    E, rows = _equations(rm)
     for j, c in enumerate(rm.coordinates):
         lines.append(f"equation for {c}: {pretty(E[j])} = 0")
+    for k in range(rows.numel()):
+        lines.append(f"velocity constraint {k + 1} (multiplier mu{k + 1}): {pretty(rows[k])} = 0")
     text = "\n".join(lines)
     if len(text) > max_chars:
         text = text[:max_chars] + "\n… (truncated)"
     return text
+
+
+def _equations(rm: ReducedModel) -> tuple:
+    """(M q̈ − rhs − Ãᵀμ, the velocity rows c(q, q̇, t)): Lagrange's equations, or with velocity
+    constraints the Lagrange–d'Alembert ones, μ the symbols mu1, mu2 …"""
+    rows = rm.expressions["velocity_rows"]
+    mu = ca.vertcat(*[ca.SX.sym(f"mu{k + 1}") for k in range(rows.numel())])
+    E = ca.mtimes(rm.expressions["M"], rm.q_ddot) - rm.expressions["rhs"]
+    return (E - ca.mtimes(ca.jacobian(rows, rm.q_dot).T, mu) if rows.numel() else E), rows
 
 
 def symbolic_reduced(rm: ReducedModel) -> ReducedModel:
@@ -209,8 +221,9 @@ def _describe_latex(rm: ReducedModel) -> str:
         lines.append(f"{name} = {tex(ex[name])}")
     for j, c in enumerate(rm.coordinates):
         lines.append(f"p_{{{sympy.latex(sympy.Symbol(c))}}} = {tex(ex['p'][j])}")
-    E = ca.mtimes(ex["M"], rm.q_ddot) - ex["rhs"]
+    E, rows = _equations(rm)
     for j in range(len(rm.coordinates)):
         lines.append(f"{tex(E[j])} = 0")
+    lines += [f"{tex(rows[k])} = 0" for k in range(rows.numel())]
     return "\n".join(lines)
 

@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..manifold import residual
 from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
+from ..model import velocity
 from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
 
@@ -83,6 +84,7 @@ class Equilibrium:
     #: One-sided constraint rows that do not hold at this equilibrium (their force would have
     #: the forbidden sign there; multiplier 0).
     slack: list[str] = field(default_factory=list)
+    velocity_constraints: str = ""  #: what velocity constraints do at it (model/velocity.py: at_rest)
     #: Each constraint row's scale max_p |∂f/∂x_p| at x (constrained.residual): λ_k times it is
     #: a force in N, so the solve's force accuracy bounds |λ_k| by it over this scale.
     row_scales: np.ndarray | None = None
@@ -130,14 +132,13 @@ class Equilibrium:
             "constraint_virtual_work_residual": self.constraint_virtual_work_residual,
             "max_constraint_residual": self.max_constraint_residual,
             "slack": list(self.slack),
+            "velocity_constraints": self.velocity_constraints,
         }
 
     def __repr__(self) -> str:
         verdict = {True: "stable", False: "unstable", None: "neutral"}[self.stable]
-        return (
-            f"Equilibrium({len(self.x)} particles, {verdict}, virtual work residual "
-            f"{self.virtual_work_residual:.3g}, {self.iterations} iterations)"
-        )
+        return (f"Equilibrium({len(self.x)} particles, {verdict}, virtual work residual "
+                f"{self.virtual_work_residual:.3g}, {self.iterations} iterations)")
 
 
 # --- building blocks ---------------------------------------------------------------------------
@@ -167,8 +168,8 @@ def _forces_at_rest(model: Model, x: np.ndarray, t: float) -> tuple[np.ndarray, 
 
 
 def virtual_work(system, x, t: float = 0.0, *, model: Model | None = None) -> float:
-    """max |δW| over unit admissible virtual displacements: ‖Nᵀ F‖₂, N an orthonormal basis
-    of null(J(x)), F = all effects' forces at (x, v = 0, t). Zero exactly at equilibrium."""
+    """max |δW| over unit admissible virtual displacements: ‖Nᵀ F‖₂, N an orthonormal basis of
+    null(J(x)) (∩ null(A): velocity rows too), F = the forces at (x, v = 0, t); 0 at equilibrium."""
     model = model or assemble(system)
     xf = _flat(system, x)
     F, J = _forces_at_rest(model, xf, t)
@@ -432,7 +433,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     # (constraint rows in metres: each over its scale, constrained.residual)
     w = np.concatenate(
         [np.full(n3, 1.0 / (FORCE_RTOL * force_scale)),
-         1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t))]
+         1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t)[:model.n_position_rows])]
     )
 
     def restore(z: np.ndarray) -> np.ndarray:
@@ -469,9 +470,11 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
             "particles' positions), or check that the forces can be balanced by the constraints"
         )
     x = z[:n3]
-    F, J = _forces_at_rest(model, x, t)
-    lam = _min_norm_multipliers(model, J, F)
-    N = tangent_basis(J, n3)
+    F, G = _forces_at_rest(model, x, t)  # G: J, then velocity rows' A (d'Alembert: A δx = 0 too)
+    lam = _min_norm_multipliers(model, G, F)
+    note, held = velocity.at_rest(model, x, t, size, G, lam, force_scale)
+    J, Nv = G[:model.n_position_rows], tangent_basis(G, n3)
+    N = tangent_basis(J, n3)  # stability on the configuration's tangent space
     K = np.asarray(kkt.stiffness(x, lam), float)
     knorm = float(np.linalg.norm(K, 2)) if K.size else 0.0
     conservative = bool(np.linalg.norm(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
@@ -486,7 +489,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
     tol = stability_rtol * (float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0)
     soft = np.abs(omega2) <= tol
-    if not conservative:
+    if not conservative or held or note and np.any(omega2 <= tol):  # see velocity.at_rest
         stable = None
     elif np.any(omega2 < -tol):
         stable = False
@@ -497,19 +500,19 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     modes = r[:, None] * (Nw @ vec[:, soft])
     modes = modes / np.maximum(np.linalg.norm(modes, axis=0), 1e-300)
     soft_modes = modes.T.reshape(-1, model.n_particles, 3)
-    Fc = J.T @ lam if C else np.zeros(n3)
+    Fc = G.T @ lam if C else np.zeros(n3)
     return Equilibrium(
         x=x.reshape(-1, 3),
         multipliers=lam,
         constraint_forces=Fc.reshape(-1, 3),
         applied_forces=F.reshape(-1, 3),
-        anchor_reactions=_anchor_reactions(model, J, lam) if C else [],
+        anchor_reactions=_anchor_reactions(model, G, lam) if C else [],
         stable=stable,
         eigenvalues=eig,
         frequencies_squared=omega2,
         soft_modes=soft_modes,
-        virtual_work_residual=float(np.linalg.norm(N.T @ F)),
-        constraint_virtual_work_residual=float(np.linalg.norm(N.T @ Fc)),
+        virtual_work_residual=float(np.linalg.norm(Nv.T @ F)),
+        constraint_virtual_work_residual=float(np.linalg.norm(Nv.T @ Fc)),
         converged=converged,
         iterations=iterations,
         particle_names=list(system.names),
@@ -521,5 +524,6 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         tangent_basis=N,
         method=used,
         max_constraint_residual=residual.position_residual(model, x, t),  # metres
+        velocity_constraints=note,
         row_scales=residual.row_scales(model, x, t) if C else np.zeros(0),
     )

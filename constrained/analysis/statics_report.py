@@ -67,6 +67,8 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
                False: "UNSTABLE (a negative eigenvalue)",
                None: "NEUTRAL (zero eigenvalues: soft modes)" if eq.conservative
                else "not assessed (forces are not conservative)"}[eq.stable]
+    if eq.stable is None and eq.velocity_constraints:
+        verdict = "not decided by the energy method (velocity constraints: see below)"
     out.append(f"stability: {verdict}")
     out.append(
         "  tangent-space eigenvalues of ∇²(V − λ·f) [N/m]: "
@@ -81,6 +83,8 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
     for k, mode in enumerate(eq.soft_modes):
         moving = [f"{names[i]} {_vec(mode[i])}" for i in range(len(mode)) if np.linalg.norm(mode[i]) > 1e-9]
         out.append(f"  soft mode {k + 1}: " + "; ".join(moving))
+    if eq.velocity_constraints:
+        out.append(eq.velocity_constraints)
     out.append(f"potential energy V = {eq.potential_energy:.10g} J")
     out.append(
         f"virtual-work residual max|δW| (unit δx) = {eq.virtual_work_residual:.3g} J/m; "

@@ -197,7 +197,9 @@ def is_symmetry(model, *, translation=None, rotation=None, samples: int = 20, se
 
     For each term of L (``T``, each potential V, each generalized potential U):
     ``δ = ∂term/∂x·ξ + ∂term/∂v·ξ̇``, ``ξ̇ = (∂ξ/∂x) v``; for each constraint row ``J_k ξ``;
-    for each dissipation R and applied force F the power along ξ, ``−∂R/∂v·ξ`` and ``F·ξ``.
+    for each dissipation R and applied force F the power along ξ, ``−∂R/∂v·ξ`` and ``F·ξ``;
+    for each velocity row ``A_k ξ`` (its force's power along ξ, d'Alembert: the charge of a
+    symmetry the velocity constraints forbid is not conserved).
     A term breaks the symmetry when ``|δ| > rtol × (|∂term/∂x||ξ| + |∂term/∂v||ξ̇|)`` somewhere.
     (Invariance up to a total time derivative, a quasi-symmetry, is reported as broken.)
     """
@@ -224,8 +226,10 @@ def is_symmetry(model, *, translation=None, rotation=None, samples: int = 20, se
         elif slot == "applied_force":
             checks.append((f"applied force '{label}'", ca.dot(e, xi), ca.norm_2(e) * nxi))
     for k, constraint in enumerate(model.system.constraints):
+        # d/dt (p·ξ) = δL + λ·(J ξ) + μ·(A ξ): a row must not act along ξ (a velocity row's A = ∂c/∂v)
+        by = v if getattr(constraint, "level", "position") == "velocity" else x
         for row, label in constraint.rows(s):
-            g = ca.gradient(row, x)
+            g = ca.gradient(row, by)
             checks.append((f"constraint {k} ({label})", ca.dot(g, xi), ca.norm_2(g) * nxi))
     fun = ca.Function("variations", [x, v, t],
                       [ca.vertcat(*[c for _, c, _ in checks]), ca.vertcat(*[sc for _, _, sc in checks])])

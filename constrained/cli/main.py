@@ -11,6 +11,9 @@ verbs are constrained.cli_run and constrained.cli_verbs, imported when one runs.
 from __future__ import annotations
 
 import argparse
+import errno
+import sys
+import warnings
 from collections.abc import Sequence
 
 from .._version import __version__
@@ -338,31 +341,50 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-    from ..output.output_set import discard_uncommitted, user_path
-    from . import run as cli_run  # the verbs' imports (NumPy, CasADi, ...) only when one runs
-    from . import verbs as cli_verbs
-    from . import verbs_fit
+    code = _dispatch(args)
+    if code == 130:  # Ctrl-C handled here: the exit status is 130, not a death by SIGINT
+        from ..interrupt import forget_handled_keyboard_interrupt
 
-    handlers = {"run": cli_run._run, "check": cli_verbs._check, "crosscheck": cli_verbs._crosscheck,
-                "bench": cli_verbs._bench, "statics": cli_verbs._statics, "derive": cli_verbs._derive,
-                "sweep": cli_verbs._sweep, "path": cli_verbs._path, "plot": cli_verbs._plot,
-                "view": cli_verbs._view, "modes": verbs_fit._modes, "fit": verbs_fit._fit}
+        forget_handled_keyboard_interrupt()
+    return code
+
+
+def _dispatch(args) -> int:
+    """The verb's exit status; bad input, an unwritable output and Ctrl-C as the epilog says."""
+    discard_uncommitted = user_path = None
     try:
-        return handlers[args.verb](args)
+        from ..errors import InitialStateWarning
+        from ..output.output_set import discard_uncommitted, user_path
+        from . import run as cli_run  # the verbs' imports (NumPy, CasADi, ...) only when one runs
+        from . import verbs as cli_verbs
+        from . import verbs_fit
+
+        handlers = {"run": cli_run._run, "check": cli_verbs._check, "crosscheck": cli_verbs._crosscheck,
+                    "bench": cli_verbs._bench, "statics": cli_verbs._statics, "derive": cli_verbs._derive,
+                    "sweep": cli_verbs._sweep, "path": cli_verbs._path, "plot": cli_verbs._plot,
+                    "view": cli_verbs._view, "modes": verbs_fit._modes, "fit": verbs_fit._fit}
+        with warnings.catch_warnings():  # every verb reports a corrected start in its own words
+            warnings.simplefilter("ignore", InitialStateWarning)
+            return handlers[args.verb](args)
     except InputError as exc:
         _say_error(str(exc))
         return 2
     except OSError as exc:  # writing the outputs: permissions, a full disk (nothing is left half-written)
-        target = user_path(exc.filename) if exc.filename else (getattr(args, "out", None)
-                                                               or "the output directory")
-        _say_error(f"cannot write {target}: {exc.strerror or exc}; nothing was written (choose another "
-                   "--out, or free space)")
+        target = user_path(exc.filename) if exc.filename and user_path else (getattr(args, "out", None)
+                                                                             or "the output directory")
+        hint = {errno.ENOSPC: "free space", errno.EDQUOT: "free space", errno.EFBIG: "free space",
+                errno.EACCES: "choose another --out", errno.EROFS: "choose another --out",
+                errno.EPERM: "choose another --out", None: ""}.get(exc.errno,
+                                                                   "choose another --out, or free space")
+        _say_error(f"cannot write {target}: {exc.strerror or exc}; nothing was written"
+                   + (f" ({hint})" if hint else ""))
         return 2
-    except KeyboardInterrupt:
-        _say_error("interrupted")
+    except KeyboardInterrupt:  # asked for: one line, not called an error
+        print(f"{PROG}: interrupted (Ctrl-C)", file=sys.stderr)
         return 130
     finally:
-        discard_uncommitted()  # a verb that stopped early leaves its --out folder as it was
+        if discard_uncommitted is not None:
+            discard_uncommitted()  # a verb that stopped early leaves its --out folder as it was
 
 
 def __getattr__(name: str):

@@ -16,7 +16,7 @@ from ..errors import InputError, RunInterrupted, SimulationError
 from ..output.output_set import OutputSet
 from ..run.trajectory import QUANTITIES, Trajectory, atomic_write
 from ..scene.load import Scene, check_expectations, check_regular_start, load_scene
-from .text import PROG, _end_time, _fmt_correction, _fmt_value, _say, _say_error, _scene_error
+from .text import PROG, _end_time, _fmt_correction, _fmt_value, _say, _say_error, _say_stopped, _scene_error
 
 
 def _run(args) -> int:
@@ -35,29 +35,49 @@ def _run(args) -> int:
     from ..output.figure_process import FigureProcess
 
     outs = OutputSet(out_dir, _run_files()).open()
-    try:
-        # The solvers detect non-finite values themselves and stop with a SimulationError;
-        # NumPy's floating-point warnings on the way there would only repeat it, noisily.
-        # The figures are drawn by a helper process that imports matplotlib during the run.
-        # (started before the progress bar: no tqdm thread exists yet when it forks)
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
-                (FigureProcess() if kinds else _no_figures()) as figures, \
-                _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
+    stop = None  # the SimulationError of a run that stopped early (RunInterrupted: Ctrl-C)
+    written: list[Path] = []
+    # The solvers detect non-finite values themselves and stop with a SimulationError;
+    # NumPy's floating-point warnings on the way there would only repeat it, noisily.
+    # The figures are drawn by a helper process that imports matplotlib during the run.
+    # (started before the progress bar: no tqdm thread exists yet when it forks)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"), \
+            (FigureProcess() if kinds else _no_figures()) as figures, \
+            _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
+        try:
             result = scene.run(quantities=quantities, progress=progress)
             trajectory = result.trajectory
-            written = _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs,
-                                         progress)
-    except SimulationError as exc:  # RunInterrupted (Ctrl-C) too: exit status 130
-        message = f"scene file {file}: {exc}"
-        partial = exc.trajectory
-        if partial is not None and len(partial.t):
-            (path,) = outs.commit([partial.save(outs.path("trajectory.npz"), quantities=quantities)])
-            message += f"; what was computed up to t = {partial.t[-1]:.6g} s is saved in {path}"
+        except SimulationError as exc:  # what was computed is written as the run's set
+            stop, trajectory = exc, exc.trajectory
+        except InputError as exc:
+            raise _scene_error(exc, file) from None
+        if stop is not None and not isinstance(stop, RunInterrupted):  # a run that had to stop: its data
+            if trajectory is not None and len(trajectory.t):
+                written.append(trajectory.save(outs.path("trajectory.npz"), quantities=quantities))
+        elif trajectory is not None and len(trajectory.t):  # done, or interrupted: the whole set
+            try:
+                _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs, progress,
+                                   written)
+            except KeyboardInterrupt:  # Ctrl-C while writing: keep the files already whole
+                if figures is not None:
+                    figures.close(abandon=True)
+                if not written:
+                    raise
+                stop = stop or RunInterrupted("interrupted (Ctrl-C) while the files were written; the run "
+                                              f"itself reached t_end = {trajectory.t[-1]:g} s")
+    if stop is not None:
+        message = f"scene file {file}: {stop}"
+        if written:
+            saved = outs.commit(written)
+            if isinstance(stop, RunInterrupted):
+                message += "; written: " + ", ".join(str(p) for p in saved)
+            else:
+                message += f"; what was computed up to t = {trajectory.t[-1]:.6g} s is saved in {saved[0]}"
+        if isinstance(stop, RunInterrupted):  # asked for: one line, not an error
+            _say_stopped(message)
+            return 130
         _say_error(message)
-        return 130 if isinstance(exc, RunInterrupted) else 1
-    except InputError as exc:
-        raise _scene_error(exc, file) from None
-
+        return 1
     written = outs.commit(written)
     if not args.quiet:
         _summary(scene, file, trajectory, written)
@@ -72,14 +92,17 @@ class _no_figures:
         return False
 
 
-def _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs, progress) -> list:
+def _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs, progress,
+                       written: list) -> None:
     """trajectory.npz, .csv, the figures and the viewer page of a run, into the run's output set
-    (committed by the caller); the progress display counts the files."""
+    (committed by the caller), each appended to ``written`` once whole; the progress display
+    counts the files. A requested file that cannot be written fails the run (OSError: exit 2,
+    nothing of the set committed)."""
     count = 1 + ("csv" in scene.outputs["formats"]) + len(kinds) + bool(viewer)
     progress.stage("writing", count, unit="file")
     if kinds:  # the helper draws the figures while this process writes the data files
         figures.start(trajectory, kinds, outs.dir, system=scene.system)
-    written = [trajectory.save(outs.path("trajectory.npz"), quantities=quantities)]
+    written.append(trajectory.save(outs.path("trajectory.npz"), quantities=quantities))
     progress.advance()
     if "csv" in scene.outputs["formats"]:
         path = outs.path("trajectory.csv")
@@ -96,9 +119,10 @@ def _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, ou
     if kinds:
         try:
             written.extend(figures.wait(progress.advance))
-        except (ImportError, RuntimeError) as exc:  # no matplotlib, or the drawing process died
+        except ImportError as exc:  # no matplotlib: the data files are the run's set
             _say(f"{PROG}: warning: plots skipped ({exc})", always=True)
-    return written
+        except RuntimeError as exc:  # a figure that cannot be drawn: a failed run, as a failed write
+            raise OSError(None, str(exc), None) from None
 
 
 def _run_files() -> list[str]:
@@ -245,6 +269,8 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
     lines.append(
         f"particles {scene.system.n_particles}, constraint rows {len(tr.constraint_labels)}, "
         f"degrees of freedom {dof if dof is not None else '?'}"
+        + (f" (velocities: {tr.info['velocity_degrees_of_freedom']}, velocity constraints)"
+           if "velocity_degrees_of_freedom" in tr.info else "")
     )
     lines.append(
         f"method {s['method']}, rtol {s['rtol']:g}, atol {s['atol']:g}, "

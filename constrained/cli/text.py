@@ -68,6 +68,11 @@ def _say_error(message: str) -> None:
     print(f"{PROG}: error: " + " ".join(str(message).split()), file=sys.stderr)
 
 
+def _say_stopped(message: str) -> None:
+    """A stop the user asked for (Ctrl-C): one line on stderr, not called an error."""
+    print(f"{PROG}: " + " ".join(str(message).split()), file=sys.stderr)
+
+
 def _say(message: str, *, always: bool = False) -> None:
     print(message, file=sys.stderr if always else sys.stdout)
 

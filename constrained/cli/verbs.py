@@ -13,7 +13,7 @@ from ..errors import InconsistentStateError, InputError, RunInterrupted, Simulat
 from ..output.output_set import OutputSet
 from ..run.trajectory import Trajectory
 from ..scene.load import Scene, check_regular_start, load_scene
-from .text import PROG, _end_time, _needs_reduced, _say, _say_error, _scene_error, _vec
+from .text import PROG, _end_time, _needs_reduced, _say, _say_error, _say_stopped, _scene_error, _vec
 
 # --- crosscheck ------------------------------------------------------------------------------
 
@@ -34,9 +34,12 @@ def _crosscheck(args) -> int:
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             check = cross_check(scene, t_end)
+    except RunInterrupted as exc:
+        _say_stopped(f"scene file {file}: {exc}")
+        return 130
     except SimulationError as exc:
         _say_error(f"scene file {file}: {exc}")
-        return 130 if isinstance(exc, RunInterrupted) else 1
+        return 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
     written = []
@@ -176,6 +179,13 @@ def _check(args) -> int:
         f"{rank_text}, degrees of freedom {report.degrees_of_freedom}"
         + (f" ({report.generic_degrees_of_freedom} away from this configuration)" if report.singular else "")
     )
+    velocity = list(getattr(report, "velocity_labels", []))
+    if velocity:  # velocity constraints: rows of their own, after those of f
+        rows = f"{len(velocity)} row{'s' if len(velocity) > 1 else ''}"
+        out.append(f"velocity constraints ({rows} a(x, t)·v + b = 0, no position level):")
+        out += [f"  [{len(labels) + k}] {label}" for k, label in enumerate(velocity)]
+        out.append(f"rank [J; A] {report.velocity_rank}, velocity degrees of freedom "
+                   f"{report.velocity_degrees_of_freedom} (configuration: {report.degrees_of_freedom})")
     redundant = list(report.redundant)
     out.append("redundant constraints: " + ("; ".join(redundant) if redundant else "none"))
     out.append(
@@ -294,7 +304,7 @@ def _sweep(args) -> int:
     for warning in result.warnings:
         _say(f"{PROG}: warning: {warning}", always=True)
     if result.failed:
-        _say(f"{PROG}: warning: {result.failed} of {len(result.rows)} runs failed (their errors are in "
+        _say(f"{PROG}: warning: {result.failed} of {result.finished} runs failed (their errors are in "
              f"the status column)", always=True)
     if not args.quiet:
         print(f"sweep: {result.total} runs ({result.computed} computed, {result.skipped} already done, "
@@ -305,7 +315,7 @@ def _sweep(args) -> int:
             for note in result.notes:
                 print(f"note: {note}")
         if not result.complete:
-            print(f"{result.total - len(result.rows)} runs still missing: run the same command again")
+            print(f"{result.total - result.finished} runs still missing: run the same command again")
         print("wrote: " + ", ".join(str(p) for p in result.paths))
     return 0
 
@@ -348,6 +358,9 @@ def _path(args) -> int:
                     pass
             (saved,) = outs.commit([staged])
             message += f"; the last iterate is saved in {saved}"
+        if isinstance(exc, RunInterrupted):  # asked for: one line, not an error
+            _say_stopped(message)
+            return 130
         _say_error(message)
         return 1
     except InputError as exc:
@@ -388,6 +401,15 @@ def _plot(args) -> int:
         raise InputError(f"plot: {exc}") from None
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"plot: cannot read {results} as a trajectory ({exc})") from None
+    from ..output.figure_style import finite_samples
+
+    try:
+        trajectory, dropped = finite_samples(trajectory)
+    except InputError as exc:
+        raise InputError(f"plot: {results}: {exc}") from None
+    if dropped and not args.quiet:
+        print(f"note: {dropped} of {dropped + len(trajectory.t)} samples of {results} have positions or "
+              "velocities that are not finite; the figures leave them out")
     system = load_scene(args.scene).system if args.scene else None
     out_dir = Path(args.out) if args.out else results.parent
     outs = OutputSet(out_dir).open()

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import InputError, RunInterrupted, SimulationError
 from ..output.output_set import OutputSet
 from ..scene.load import check_regular_start, load_scene
-from .text import PROG, _say, _say_error, _scene_error
+from .text import PROG, _say, _say_error, _say_stopped, _scene_error
 
 
 def _triple(text: str | None, option: str) -> tuple[float, float, float] | None:
@@ -186,9 +186,12 @@ def _fit(args) -> int:
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             result = fit(scene.system, data, names, t_start=t0, **options)
+    except RunInterrupted as exc:  # asked for: one line, not an error
+        _say_stopped(f"scene file {file}: {exc}")
+        return 130
     except SimulationError as exc:
         _say_error(f"scene file {file}: {exc}")
-        return 130 if isinstance(exc, RunInterrupted) else 1
+        return 1
     except InputError as exc:
         raise _scene_error(exc, file) from None
     outs = OutputSet(_out_dir(args, "fit"), ["fit.json", "fit.csv", "fit.png", "residuals.png",

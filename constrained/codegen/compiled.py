@@ -10,6 +10,15 @@ upgraded compiler compiles again), the flags, the CPU architecture and platform 
 model when a flag says ``native``) — the same model on the same machine compiles once. Each
 cached library has a record of its size and checksum beside it; a library that does not match
 it is rebuilt, never loaded.
+
+The cache is private (``_private_folder``): its folder is created 0700, and a folder not owned by
+the user or writable by group or others is not used (a warning, then the virtual machine): a
+library in it is code that runs in this process. Each record is signed (HMAC-SHA256) with a
+per-user key kept 0600 in the folder (``signing.key``), so a library and record copied in from
+elsewhere — a planted pair whose checksums agree — are never trusted; an entry (library or
+record) that is not the user's own file, or writable by others, is rebuilt.
+The compiler runs as a child process watched for Ctrl-C: a stop request ends it at once (the
+Functions then run on the virtual machine and the caller sees the request).
 Where there is no compiler, or the compilation fails, the virtual-machine Function is
 returned unchanged (and ``last_error`` says why).
 
@@ -24,19 +33,29 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import hmac
 import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import casadi as ca
 
+from .. import interrupt
+
 #: Why the last compile_function call fell back to the virtual machine (None if it did not).
 last_error: str | None = None
+
+#: The per-user secret (32 random bytes, mode 0600) inside the cache folder that signs records.
+SIGNING_KEY = "signing.key"
+#: Cache folders already refused in this process (warned about once).
+_refused: set[str] = set()
 
 
 def compiler() -> str | None:
@@ -85,16 +104,29 @@ def compile_functions(functions: list[ca.Function], *, flags=("-O2",)) -> list[c
         last_error = "no C compiler found (set $CC)"
         return list(functions)
     name = functions[0].name()
-    target = cache_dir() / f"{name}_{cache_key(functions, cc, flags)}.so"
+    folder = cache_dir()
+    refusal = _private_folder(folder)
+    key = None if refusal else _signing_key(folder)
+    if refusal is None and key is None:
+        refusal = f"cannot keep the signing key {SIGNING_KEY} in it"
+    if refusal is not None:
+        last_error = f"the compile cache {folder} is not used: {refusal}"
+        if str(folder) not in _refused:
+            _refused.add(str(folder))
+            _notice(f"{last_error}; running without compiled code (use a folder of your own: "
+                    "CONSTRAINED_CACHE=DIR, or chmod 700 it)")
+        return list(functions)
+    target = folder / f"{name}_{cache_key(functions, cc, flags)}.so"
     if target.exists():
-        problem = _verify(target, build_environment(cc, flags))
+        problem = _verify(target, build_environment(cc, flags), key=key)
         if problem is None:
             loaded = _load(functions, target)
             if loaded is not None:
                 return loaded
             problem = "its functions do not have the expected inputs and outputs"
-        _notice(f"compile cache entry {target} is damaged ({problem}); rebuilding it")
-    if not _build(functions, target, cc, flags):
+        if problem != UNSIGNED:  # (an entry of an earlier version is rebuilt quietly)
+            _notice(f"compile cache entry {target} is damaged or untrusted ({problem}); rebuilding it")
+    if not _build(functions, target, cc, flags, key=key):
         return list(functions)
     loaded = _load(functions, target)
     if loaded is None:
@@ -166,9 +198,113 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _verify(target: Path, environment: dict | None = None) -> str | None:
+#: What ``_verify`` says of a record without a signature (an earlier version's, or planted).
+UNSIGNED = "its record is not signed with this user's key"
+
+
+def _user() -> int | None:
+    """The effective user id (None where there are none: the ownership checks are POSIX's)."""
+    return os.geteuid() if hasattr(os, "geteuid") else None
+
+
+def _not_private(st: os.stat_result, what: str) -> str | None:
+    """Why a file or folder with status ``st`` is not the user's own, or None."""
+    user = _user()
+    if user is None:
+        return None
+    if st.st_uid != user:
+        return f"{what} belongs to another user (uid {st.st_uid})"
+    if st.st_mode & 0o022:
+        return f"{what} is writable by {'group and others' if st.st_mode & 0o002 else 'its group'}"
+    return None
+
+
+def _private_folder(folder: Path) -> str | None:
+    """None when ``folder`` can hold the cache (created 0700 when missing), else why not: a
+    folder not owned by this user, or writable by group or others (another user could plant
+    a library there)."""
+    try:
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            folder.mkdir(mode=0o700)
+        except FileExistsError:
+            pass
+        st = folder.stat()
+    except OSError as exc:
+        return f"cannot create it ({exc.strerror or exc})"
+    if not os.path.isdir(folder):
+        return "it is not a folder"
+    return _not_private(st, "the folder")
+
+
+def _signing_key(folder: Path) -> bytes | None:
+    """The user's secret that signs the records of ``folder``: created (0600) when missing,
+    replaced when it is not private; None when it cannot be written (nothing is trusted then)."""
+    path = folder / SIGNING_KEY
+    key = _read_key(path)
+    if key is not None:
+        return key
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".key.", dir=folder)  # mode 0600
+        try:
+            os.write(fd, os.urandom(32))
+        finally:
+            os.close(fd)
+        try:
+            if os.path.lexists(path):  # not private (or damaged): replaced
+                os.replace(tmp, path)
+            else:
+                try:
+                    os.link(tmp, path)  # atomic; a concurrent first writer may win: its key is read
+                except FileExistsError:
+                    pass
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    except OSError:
+        return None
+    return _read_key(path)
+
+
+def _read_key(path: Path) -> bytes | None:
+    """The 32-byte key in ``path`` when it is the user's own regular file readable by no one
+    else, else None."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        key = os.read(fd, 64)
+    finally:
+        os.close(fd)
+    private = _not_private(st, "key") is None and not st.st_mode & 0o077
+    return key if len(key) == 32 and private and os.path.isfile(path) else None
+
+
+def _signature(key: bytes, target: Path, record: dict) -> str:
+    """HMAC-SHA256 of the record (all but its signature) and the entry's name, with ``key``."""
+    fields = {k: v for k, v in record.items() if k != "hmac"}
+    message = json.dumps({"entry": target.name, **fields}, sort_keys=True).encode()
+    return hmac.new(key, message, hashlib.sha256).hexdigest()
+
+
+def _verify(target: Path, environment: dict | None = None, *, key: bytes | None = None) -> str | None:
     """None when ``target`` matches its record (and the record the build ``environment``, when
-    given), else what is wrong with it."""
+    given, and its signature by ``key``, when given), else what is wrong with it. The library
+    and its record must be this user's own regular files, writable by no one else."""
+    for path, what in ((target, "the library"), (_record(target), "its record")):
+        try:
+            st = os.lstat(path)
+        except FileNotFoundError:
+            break
+        except OSError as exc:
+            return f"cannot read it: {exc.strerror or exc}"
+        if not os.path.isfile(path) or os.path.islink(path):
+            return f"{what} is not a regular file"
+        problem = _not_private(st, what)
+        if problem:
+            return problem
     try:
         record = json.loads(_record(target).read_text())
         size, checksum = int(record["size"]), str(record["sha256"])
@@ -176,9 +312,14 @@ def _verify(target: Path, environment: dict | None = None) -> str | None:
         return "no size and checksum record beside it"
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return "its size and checksum record is unreadable"
-    for key, value in (environment or {}).items():
-        if key in record and record[key] != value:
-            return f"it was built for another setup ({key} {record[key]!r}, here {value!r})"
+    for name, value in (environment or {}).items():
+        if name in record and record[name] != value:
+            return f"it was built for another setup ({name} {record[name]!r}, here {value!r})"
+    if key is not None:
+        if "hmac" not in record:
+            return UNSIGNED
+        if not hmac.compare_digest(str(record["hmac"]), _signature(key, target, record)):
+            return "its record's signature does not match this user's key (copied in from elsewhere)"
     try:
         actual = target.stat().st_size
         if actual != size:
@@ -210,8 +351,9 @@ def _load(functions: list[ca.Function], target: Path) -> list[ca.Function] | Non
     return loaded
 
 
-def _build(functions: list[ca.Function], target: Path, cc: str, flags) -> bool:
-    """Compile ``functions`` into ``target`` and write its record; False (and last_error) on failure."""
+def _build(functions: list[ca.Function], target: Path, cc: str, flags, *, key: bytes | None = None) -> bool:
+    """Compile ``functions`` into ``target`` and write its record (signed with ``key``); False
+    (and last_error) on failure or on a stop request (Ctrl-C, which ends the compiler at once)."""
     global last_error
     name = functions[0].name()
     cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
@@ -224,22 +366,49 @@ def _build(functions: list[ca.Function], target: Path, cc: str, flags) -> bool:
             c_file = Path(tmp, f"{name}.c")
             c_file.write_text(source)
             so = Path(tmp, target.name)
-            result = subprocess.run([cc, *flags, "-shared", "-fPIC", str(c_file), "-o", str(so), "-lm"],
-                                    capture_output=True, text=True)
-            if result.returncode != 0:
-                last_error = f"the C compiler failed: {result.stderr.strip()[:300]}"
+            failure = _compile([cc, *flags, "-shared", "-fPIC", str(c_file), "-o", str(so), "-lm"])
+            if failure:
+                last_error = failure
                 return False
-            record = Path(tmp, "record.json")
-            record.write_text(json.dumps({"size": so.stat().st_size, "sha256": _sha256(so),
-                                          **build_environment(cc, flags)}))
+            os.chmod(so, 0o700)  # (whatever the umask: the check on loading wants it private)
+            record = {"size": so.stat().st_size, "sha256": _sha256(so), **build_environment(cc, flags)}
+            if key is not None:
+                record["hmac"] = _signature(key, target, record)
+            record_file = Path(tmp, "record.json")
+            record_file.write_text(json.dumps(record))
+            os.chmod(record_file, 0o600)
             # atomic renames, library first: a concurrent run sees the old file or the whole
             # new one, and a library whose record is missing or stale is rebuilt, not loaded
             os.replace(so, target)
-            os.replace(record, _record(target))
+            os.replace(record_file, _record(target))
     except OSError as exc:  # an unwritable cache: run on the virtual machine
         last_error = f"cannot write the compile cache {target.parent}: {exc.strerror or exc}"
         return False
     return True
+
+
+def _compile(command: list[str]) -> str | None:
+    """Run the C compiler; None on success, else why not. Ctrl-C (a stop request inside a run,
+    KeyboardInterrupt outside one) ends the compiler at once instead of waiting for it."""
+    with tempfile.TemporaryFile() as err:
+        # its own session: the compiler and the programs it runs (cc1, as, ld) end together
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+        try:
+            while proc.poll() is None:
+                if interrupt.pending():
+                    return "the compilation was interrupted (Ctrl-C)"
+                time.sleep(0.02)
+        finally:
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except OSError:
+                    proc.kill()
+                proc.wait()
+        if proc.returncode != 0:
+            err.seek(0)
+            return f"the C compiler failed: {err.read().decode(errors='replace').strip()[:300]}"
+    return None
 
 
 def _notice(message: str) -> None:

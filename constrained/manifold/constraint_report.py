@@ -10,7 +10,7 @@ import numpy as np
 from ..model.structure import Model, assemble
 from ..threads import one_blas_thread
 from .algebra import algebra_for
-from .manifold import RANK
+from .manifold import RANK, redundant_rows
 from .sparse_rank import independent_rows_sparse
 
 #: Relative pivot size below which a row of the (row-normalized) Jacobian counts as dependent:
@@ -26,9 +26,13 @@ class SingularConfigurationWarning(UserWarning):
 class ConstraintReport:
     """What the constraints say at one state (x, t).
 
-    ``degrees_of_freedom = n_coordinates − rank``; ``redundant`` names rows implied by
-    the others; ``singular`` is True when the rank here is below the generic rank (the
-    rank at nearby, perturbed states), so the count here overstates the freedom.
+    ``degrees_of_freedom = n_coordinates − rank`` (rank of J = ∂f/∂x: the configuration's
+    freedom); ``redundant`` names rows implied by the others; ``singular`` is True when the
+    rank here is below the generic rank (the rank at nearby, perturbed states), so the count
+    here overstates the freedom. ``n_constraints``, ``labels`` and ``residuals`` are the rows
+    of f. Velocity constraints (``velocity_labels``: their rows) restrict the velocities
+    further: ``velocity_degrees_of_freedom = n_coordinates − velocity_rank``, the rank of
+    [J; A] (equal to the configuration's freedom without them).
     """
 
     n_coordinates: int
@@ -38,10 +42,17 @@ class ConstraintReport:
     labels: list[str]
     residuals: np.ndarray
     redundant: list[str] = field(default_factory=list)
+    velocity_labels: list[str] = field(default_factory=list)
+    velocity_rank: int | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
         return self.n_coordinates - self.rank
+
+    @property
+    def velocity_degrees_of_freedom(self) -> int:
+        """3N − rank [J; A]: the independent velocities the constraints leave."""
+        return self.n_coordinates - (self.rank if self.velocity_rank is None else self.velocity_rank)
 
     @property
     def generic_degrees_of_freedom(self) -> int:
@@ -86,20 +97,36 @@ def jacobian_rank(J: np.ndarray) -> tuple[int, np.ndarray]:
 def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = None, samples: int = 3,
                       seed: int = 0) -> ConstraintReport:
     """Rank of J = ∂f/∂x at (x, t) (default: the system's initial positions), redundancy,
+    the rank of [J; A] when there are velocity constraints,
     and the generic rank from ``samples`` random perturbations of x (seeded). Independent
     rows are shown by a cheap factorization; dependent ones are found by the pivoted QR of the
     dense J up to SPARSE_FROM rows, beyond by the sparse Gram factorization (sparse_rank)."""
     model = model or assemble(system)
     x = (system.positions if x is None else np.asarray(x, float)).ravel()
+    report = _position_report(model, system, x, t, samples, seed)
+    C_f = model.n_position_rows
+    if C_f < model.n_constraints:  # velocity rows: the rank of [J; A] too (rows of f kept first)
+        with one_blas_thread():
+            rows = redundant_rows(model, x, t)
+        kept = range(model.n_constraints) if rows is None else rows
+        report.redundant += [model.constraint_labels[k] for k in range(C_f, model.n_constraints)
+                             if k not in kept]
+        report.velocity_labels = list(model.constraint_labels[C_f:])
+        report.velocity_rank = len(kept)
+    return report
+
+
+def _position_report(model: Model, system, x, t, samples: int, seed: int) -> ConstraintReport:
+    """The report on the rows of f (see ``constraint_report``)."""
     f, J_sparse = model.jacobian(x, t)
     f = np.asarray(f).ravel()
-    algebra = algebra_for(model.n_constraints)
-    if model.n_constraints and algebra.full_row_rank(J_sparse, model.inverse_masses):
+    C = model.n_position_rows
+    algebra = algebra_for(C)
+    if C and algebra.full_row_rank(J_sparse, model.inverse_masses):
         # independent rows (shown in O(N) on a chain by a sparse factorization): rank C here,
         # and nearby too, since the rank cannot exceed the number of rows
-        C = model.n_constraints
         return ConstraintReport(n_coordinates=model.n_coordinates, n_constraints=C, rank=C, generic_rank=C,
-                                labels=list(model.constraint_labels), residuals=f, redundant=[])
+                                labels=list(model.constraint_labels[:C]), residuals=f, redundant=[])
     with one_blas_thread():  # constrained/threads.py: spin-waiting BLAS threads cost more than they give
         if algebra.name == "sparse":
             report = _sparse_report(model, system, x, t, f, J_sparse, samples, seed)
@@ -127,10 +154,10 @@ def _sparse_report(model: Model, system, x, t, f, J, samples, seed) -> Constrain
     for xp, tp in _perturbed_states(system, x, t, samples, seed):
         nearby = independent_rows_sparse(model.jacobian(xp, tp)[1])
         generic = max(generic, rank if nearby is None else nearby.size)
-    redundant = np.setdiff1d(np.arange(model.n_constraints), rows)
+    redundant = np.setdiff1d(np.arange(model.n_position_rows), rows)
     return ConstraintReport(
-        n_coordinates=model.n_coordinates, n_constraints=model.n_constraints, rank=rank,
-        generic_rank=generic, labels=list(model.constraint_labels), residuals=f,
+        n_coordinates=model.n_coordinates, n_constraints=model.n_position_rows, rank=rank,
+        generic_rank=generic, labels=list(model.constraint_labels[:model.n_position_rows]), residuals=f,
         redundant=[model.constraint_labels[k] for k in redundant])
 
 
@@ -144,18 +171,20 @@ def _dense_report(model: Model, system, x, t, f, J, samples, seed) -> Constraint
         generic = max(generic, jacobian_rank(np.asarray(model.jacobian(xp, tp)[1]))[0])
     return ConstraintReport(
         n_coordinates=model.n_coordinates,
-        n_constraints=model.n_constraints,
+        n_constraints=model.n_position_rows,
         rank=rank,
         generic_rank=generic,
-        labels=list(model.constraint_labels),
+        labels=list(model.constraint_labels[:model.n_position_rows]),
         residuals=f,
         redundant=[model.constraint_labels[k] for k in redundant_rows],
     )
 
 
 def degrees_of_freedom(system, x=None, t: float = 0.0) -> int:
-    """3N − rank J at (x, t). Warns (SingularConfigurationWarning) when the configuration is
-    singular, i.e. the rank is lower here than nearby and the count overstates the freedom."""
+    """3N − rank J at (x, t): the configuration's freedom (velocity constraints leave it as it
+    is; ``constraint_report(...).velocity_degrees_of_freedom`` counts the velocities). Warns
+    (SingularConfigurationWarning) when the configuration is singular, i.e. the rank is lower
+    here than nearby and the count overstates the freedom."""
     report = constraint_report(system, x, t)
     if report.singular:
         warnings.warn(

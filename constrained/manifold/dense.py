@@ -89,6 +89,30 @@ def independent_rows(J: np.ndarray, inverse_masses: np.ndarray, policy: RankPoli
     return np.sort(order[:rank])
 
 
+def independent_rows_after(J, first: int, inverse_masses: np.ndarray, policy: RankPolicy = RANK,
+                           leading: np.ndarray | None = None) -> np.ndarray:
+    """A maximal set of independent rows of J that keeps a maximal independent set of its
+    ``first`` rows (``leading``, or found here): the rows after them (velocity rows) join
+    only where they are independent of those. Each later row of Ĵ (unit length) is reduced
+    by its projection on the span of the leading rows, and the remainders pass a pivoted QR
+    with the cut-off ``dependent_rtol`` (of 1, the rows' length)."""
+    J = as_dense(J)
+    lead = independent_rows(J[:first], inverse_masses, policy) if leading is None else np.asarray(leading)
+    Jhat = row_scale(J, inverse_masses)[:, None] * J * np.sqrt(inverse_masses)[None, :]
+    rest = Jhat[first:].T
+    if lead.size:
+        Q, _ = np.linalg.qr(Jhat[lead].T)
+        rest = rest - Q @ (Q.T @ rest)
+    if rest.shape[1] == 0:
+        return np.sort(lead)
+    import scipy.linalg as sla
+
+    _, R, order = sla.qr(rest, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    later = order[:int(np.sum(diag > policy.dependent_rtol))] + first
+    return np.sort(np.concatenate([lead, later]).astype(int))
+
+
 def full_row_rank(J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> bool | None:
     """True when J shows full row rank by a Cholesky factorization of D A D; None when it
     cannot tell (a small pivot: use ``independent_rows``)."""

@@ -25,8 +25,9 @@ class StiffnessWarning(UserWarning):
 
 
 def _jacobians(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Every row's gradient (J, then velocity rows' A) at each sample: (T, C, 3N)."""
     n = len(t)
-    _, Jcat = model.evaluate(model.jacobian, X.reshape(n, -1), t)
+    Jcat, _ = model.evaluate(model.velocity_terms, X.reshape(n, -1), t)
     return Jcat.reshape(model.n_constraints, n, model.n_coordinates).transpose(1, 0, 2)
 
 

@@ -20,6 +20,15 @@ def _select(expr, rows):
     return expr if rows is None else expr[list(rows), :]
 
 
+def position_rows(model, rows):
+    """The rows of f among ``rows`` (all of them when None): the position rows come first,
+    the velocity rows (no f) after them. None when that is every row of f."""
+    C_f = model.n_position_rows
+    if rows is None:
+        return None if C_f == model.n_constraints else tuple(range(C_f))
+    return tuple(k for k in rows if k < C_f)
+
+
 def symbolic_spd_solve(A, rhs):
     """y with A y = rhs for a symmetric positive definite A, the sparse LDLᵀ factorization
     (AMD ordering, no pivoting: stable for SPD) written out as operations: about 0.6× the
@@ -88,7 +97,7 @@ def _flush_underflow(J):
     its nonzeros (elementwise operations on a large sparse MX matrix are slow to build)."""
     if isinstance(J, ca.SX | ca.DM):
         return J * (ca.fabs(J) >= UNDERFLOW)
-    nz = J.nz[:]
+    nz = ca.vec(J.nz[:])
     return ca.MX(J.sparsity(), nz * (ca.fabs(nz) >= UNDERFLOW))
 
 
@@ -96,7 +105,8 @@ def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl",
     """(a, λ) of the KKT system as CasADi expressions in (X, V, T): A λ = −γ − J M⁻¹ F,
     a = M⁻¹ (F + Jᵀ λ), over ``rows`` (all by default; λ holds those rows only).
 
-    ``feedback = (α, β)`` imposes Baumgarte's J a + γ + 2α (J v + f_t) + β² f = 0 instead."""
+    ``feedback = (α, β)`` imposes Baumgarte's J a + γ + 2α (J v + f_t) + β² f = 0 instead
+    (a velocity row, having no f, takes 2α (A v + b) alone)."""
     minv = _casadi(model.inverse_masses)
     F, J, gamma = model.dynamics(X, V, T)
     if not model.n_constraints:
@@ -104,7 +114,9 @@ def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl",
     if feedback is not None:
         alpha, beta = feedback
         _, f_t = model.velocity_terms(X, T)
-        gamma = gamma + 2 * alpha * (ca.mtimes(J, V) + f_t) + beta**2 * model.constraint(X, T)
+        f = model.constraint(X, T)
+        f = ca.vertcat(f, type(f)(model.n_constraints - f.numel(), 1))  # velocity rows: no f
+        gamma = gamma + 2 * alpha * (ca.mtimes(J, V) + f_t) + beta**2 * f
     J, gamma = _select(J, rows), _select(gamma, rows)
     lam = schur_solve_graph(J, J, model.inverse_masses, -gamma - ca.mtimes(J, minv * F), linsol)
     return minv * (F + ca.mtimes(J.T, lam)), lam
@@ -112,15 +124,20 @@ def acceleration_graph(model: Model, X, V, T, *, rows=None, linsol: str = "ldl",
 
 def position_step_graph(model: Model, X, T, *, rows=None, linsol: str = "qr"):
     """(f, dx): one mass-weighted Newton step toward f = 0 is x ← x − dx, dx = M⁻¹Jᵀ A⁻¹ f;
-    f is over all rows (the residual), the step over ``rows``."""
+    f is over all rows of f (the residual), the step over those among ``rows`` (velocity rows
+    have no position level)."""
     f, J = model.jacobian(X, T)
+    rows = position_rows(model, rows)
     fs, Js = _select(f, rows), _select(J, rows)
     minv = _casadi(model.inverse_masses)
+    if Js.shape[0] == 0:  # velocity rows only: nothing to project at the position level
+        return f, type(X)(X.numel(), 1)
     return f, minv * ca.mtimes(Js.T, schur_solve_graph(Js, Js, model.inverse_masses, fs, linsol))
 
 
 def velocity_correction_graph(model: Model, X, V, T, *, rows=None, linsol: str = "qr"):
-    """dv with v ← v − dv the mass-weighted nearest velocity satisfying J v + f_t = 0."""
+    """dv with v ← v − dv the mass-weighted nearest velocity satisfying J v + f_t = 0 (and
+    A v + b = 0: ``velocity_terms`` holds every row of the velocity level)."""
     J, f_t = model.velocity_terms(X, T)
     J, f_t = _select(J, rows), _select(f_t, rows)
     minv = _casadi(model.inverse_masses)
@@ -145,13 +162,19 @@ def row_scales_expr(J, n_particles: int):
 def projection_graph(model: Model, x, v, t, *, rows=None, linsol: str = "qr"):
     """Two Newton steps onto f = 0, the second sharing its factorization with the velocity
     projection: (x, v, residual before the last step, in metres: max_i |f_i| / s_i with the row
-    scales of ``row_scales_expr``, or the view's ``row_scales``). The step loops (dopri) use it."""
+    scales of ``row_scales_expr``, or the view's ``row_scales``). The step loops (dopri) use it.
+    With velocity rows the positions are projected over J, the velocities over [J; A]."""
     minv = _casadi(model.inverse_masses)
     _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
     x = x - dx
     f, J = model.jacobian(x, t)
+    s = model.row_scales(x, t) if hasattr(model, "row_scales") else row_scales_expr(J, model.n_particles)
+    residual = ca.mmax(abs(f) / s) if f.numel() else type(x).zeros(1, 1)
+    if model.n_position_rows < model.n_constraints:  # velocity rows: a solve of each level
+        _, dx = position_step_graph(model, x, t, rows=rows, linsol=linsol)
+        x = x - dx
+        return x, v - velocity_correction_graph(model, x, v, t, rows=rows, linsol=linsol), residual
     _, f_t = model.velocity_terms(x, t)
     fs, Js, f_ts = _select(f, rows), _select(J, rows), _select(f_t, rows)
     sol = schur_solve_graph(Js, Js, model.inverse_masses, ca.horzcat(fs, ca.mtimes(Js, v) + f_ts), linsol)
-    s = model.row_scales(x, t) if hasattr(model, "row_scales") else row_scales_expr(J, model.n_particles)
-    return x - minv * ca.mtimes(Js.T, sol[:, 0]), v - minv * ca.mtimes(Js.T, sol[:, 1]), ca.mmax(abs(f) / s)
+    return x - minv * ca.mtimes(Js.T, sol[:, 0]), v - minv * ca.mtimes(Js.T, sol[:, 1]), residual

@@ -42,6 +42,7 @@ from ..codegen.fast_call import FastCall
 from ..model.cache import ParametricView, built_once, structure_cache
 from ..model.structure import Model
 from .algebra import LinearAlgebra, algebra_for
+from .dense import independent_rows_after
 from .graph import acceleration_graph, position_step_graph, velocity_correction_graph
 from .rank_policy import RANK, RankPolicy
 from .vectorized import graphs as vectorized
@@ -95,10 +96,11 @@ class Counters:
 
 
 def dense_jacobian(model: Model):
-    """``(x, t) -> [J]`` dense (column-major, flat) through a FunctionBuffer, with the model's
-    parameter values; the Function (p an input) is built once per structure."""
+    """``(x, t) -> [G]`` dense (column-major, flat) through a FunctionBuffer, with the model's
+    parameter values: the matrix of every row at the velocity level, J (= ∂f/∂x) and then
+    the velocity rows' A, (C, 3N); the Function (p an input) is built once per structure."""
     def build(view, X, T, P):
-        return ca.Function("dense_jacobian", [X, T, P], [ca.densify(view.jacobian(X, T)[1])])
+        return ca.Function("dense_jacobian", [X, T, P], [ca.densify(view.velocity_terms(X, T)[0])])
 
     return structural_call(model, "dense_jacobian", build, "x", "t")
 
@@ -132,10 +134,11 @@ def structural_call(model: Model, key, build, *inputs: str):
 
 
 def sparse_jacobian(model: Model):
-    """``(x, t) -> J`` (a sparse CasADi DM, C × 3N) with the model's parameter values: the
-    Model's ``jacobian``, or for a large model one call of the vectorized build."""
+    """``(x, t) -> G`` (a sparse CasADi DM, C × 3N: J, then the velocity rows' A) with the
+    model's parameter values: the Model's ``velocity_terms``, or for a large model (no velocity
+    rows) one call of the vectorized build."""
     if not vectorized.applies(model):
-        return lambda x, t: model.jacobian(x, t)[1]
+        return lambda x, t: model.velocity_terms(x, t)[0]
 
     def build(view, X, T, P):
         return ca.Function("jacobian_nonzeros", [X, T, P], [ca.densify(view.jacobian(X, T)[1].nz[:])])
@@ -169,19 +172,26 @@ def dynamics_values(model: Model):
 
 
 def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
-    """None when the rows of J(x, t) are independent; otherwise the independent subset to
-    solve with (the others are implied by it). This is the run's redundancy, a value."""
+    """None when the rows of J(x, t) (and of the velocity rows' A) are independent; otherwise
+    the independent subset to solve with (the others are implied by it), holding an
+    independent set of the rows of f (velocity rows join where independent of those, so the
+    position projection keeps rows enough). This is the run's redundancy, a value."""
     if model.n_constraints == 0:
         return None
     x = np.asarray(x, float).ravel()
     algebra = algebra_for(model.n_constraints)
     if algebra.name == "sparse":
-        J = sparse_jacobian(model)(x, t)  # CasADi-sparse: the O(N) factorization
+        J = sparse_jacobian(model)(x, t)  # CasADi-sparse (J, then A): the O(N) factorization
     else:
         J = dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
     if algebra.full_row_rank(J, model.inverse_masses, policy):
         return None
-    rows = algebra.independent_rows(J, model.inverse_masses, policy)
+    C_f = model.n_position_rows
+    if C_f < model.n_constraints:  # velocity rows: those of f first
+        lead = algebra.independent_rows(J[:C_f, :], model.inverse_masses, policy) if C_f else None
+        rows = independent_rows_after(J, C_f, model.inverse_masses, policy, lead)
+    else:
+        rows = algebra.independent_rows(J, model.inverse_masses, policy)
     return None if rows.size == model.n_constraints else tuple(int(k) for k in rows)
 
 
@@ -350,7 +360,7 @@ class Manifold:
         when it has not converged."""
         x = np.array(x, dtype=float)
         m = self.model
-        if m.n_constraints == 0:
+        if m.n_position_rows == 0:  # no f (none, or velocity rows only)
             return ProjectionResult(x, ProjectionStatus.CONVERGED, 0, 0.0)
         best = err = np.inf
         for it in range(max_iter + 1):
@@ -360,7 +370,7 @@ class Manifold:
                 if err <= tol:
                     return ProjectionResult(x, ProjectionStatus.CONVERGED, it, err)
             self.counters.njev += 1
-            f, dx = _fast_or_nan(self._fast.newton_step, (m.n_constraints, m.n_coordinates), x, t, self._p)
+            f, dx = _fast_or_nan(self._fast.newton_step, (m.n_position_rows, m.n_coordinates), x, t, self._p)
             err = float(np.max(np.abs(f)))
             if not np.isfinite(err):  # the fast path failed, or f itself is not finite
                 f = np.asarray(m.constraint(x, t), float).ravel()
@@ -383,7 +393,7 @@ class Manifold:
         return ProjectionResult(x, ProjectionStatus.MAX_ITERATIONS, max_iter, err)  # pragma: no cover
 
     def project_velocities(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
-        """Mass-weighted nearest velocity with J v + f_t = 0 (one linear solve)."""
+        """Mass-weighted nearest velocity with J v + f_t = 0 and A v + b = 0 (one linear solve)."""
         m = self.model
         if m.n_constraints == 0:
             return np.array(v, dtype=float)

@@ -225,8 +225,10 @@ def mapped_build(structure: Structure) -> MappedBuild:
 
 def applies(model: Model) -> bool:
     """Whether step loops of ``model`` use the mapped build: a plain Model (not a held row
-    subset) of MAPPED_FROM coordinates or more."""
-    return getattr(model, "rows", None) is None and model.n_coordinates >= MAPPED_FROM
+    subset) of MAPPED_FROM coordinates or more, without velocity rows (built only as the
+    Structure builds them)."""
+    return (getattr(model, "rows", None) is None and model.n_coordinates >= MAPPED_FROM
+            and model.n_position_rows == model.n_constraints)
 
 
 class MappedView(ParametricView):

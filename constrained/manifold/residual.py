@@ -10,6 +10,8 @@ row as |f_i| / s_i with the row scale
 — for a row that moves one particle (surface, pin, plane) |f_i|/s_i is, to first order, that
 particle's distance from the constraint in metres; for a distance constraint between two
 particles it is the error of the length. Velocity residuals |J_i v + f_t,i| / s_i are in m/s.
+A velocity row a·v + b (model/velocity.py) has the scale max_p |a_p|: its residual is in m/s
+too. ``row_scales`` gives every row's scale (those of f first).
 
 The projections themselves are untouched (mass-weighted, in manifold/model): only the
 tolerances handed to them and the residuals reported are converted here.
@@ -48,13 +50,12 @@ def _build(model) -> dict:
     p = kind.sym("p", len(model.parameter_vector))
     view = vectorized.VectorizedView(model, p) if large else ParametricView(model, p)
     f, J = view.jacobian(x, t)
-    _, f_t = view.velocity_terms(x, t)
+    G, f_t = view.velocity_terms(x, t)  # every row (those of f first, then velocity rows)
+    J = G if model.n_position_rows < model.n_constraints else J  # (else the same J: one graph)
     s = view.row_scales(x, t) if large else row_scales_expr(J, model.n_particles)
-    if model.n_constraints:
-        position = ca.mmax(ca.fabs(f) / s)
-        velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s)
-    else:
-        position = velocity = ca.SX(0)
+    C_f = model.n_position_rows
+    position = ca.mmax(ca.fabs(f) / s[:C_f]) if C_f else kind(0)
+    velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s) if model.n_constraints else kind(0)
     return {
         "scales": FastCall(ca.Function("row_scales", [x, t, p], [ca.densify(s)])),
         "position": ca.Function("residual_m", [x, t, p], [position]),
@@ -68,21 +69,22 @@ def _parameters(model, n: int) -> np.ndarray:
 
 
 def row_scales(model, x, t: float = 0.0) -> np.ndarray:
-    """s_i (see the module) at (x, t), shape (C,)."""
+    """s_i (see the module) at (x, t), shape (C,): the rows of f, then the velocity rows."""
     if model.n_constraints == 0:
         return np.zeros(0)
     return functions(model)["scales"](np.asarray(x, float).ravel(), t, model.parameter_vector)[0]
 
 
 def smallest_scale(model, x, t: float = 0.0) -> float:
-    """min_i s_i at (x, t): a tolerance of ``tol`` metres on every row is |f| ≤ tol × this."""
-    s = row_scales(model, x, t)
+    """min_i s_i over the rows of f at (x, t): a tolerance of ``tol`` metres on every row is
+    |f| ≤ tol × this."""
+    s = row_scales(model, x, t)[:model.n_position_rows]
     return float(np.min(s)) if s.size else 1.0
 
 
 def position_residual(model, x, t: float = 0.0) -> float:
     """max_i |f_i(x, t)| / s_i in metres at one state."""
-    if model.n_constraints == 0:
+    if model.n_position_rows == 0:
         return 0.0
     value = functions(model)["position"](np.asarray(x, float).ravel(), t, model.parameter_vector)
     return float(np.asarray(value).ravel()[0])
@@ -91,7 +93,7 @@ def position_residual(model, x, t: float = 0.0) -> float:
 def position_residual_along(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
     """max_i |f_i| / s_i (m) at each sample: X (T, 3N), t (T,)."""
     n = len(t)
-    if model.n_constraints == 0 or n == 0:
+    if model.n_position_rows == 0 or n == 0:
         return np.zeros(n)
     position = functions(model)["position"]
     return np.asarray(model.evaluate(position, X, t, _parameters(model, n))[0], float).ravel()

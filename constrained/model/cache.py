@@ -40,8 +40,8 @@ class ParametricView:
     def __init__(self, model: Model, P):
         self.P = P
         self._model = model
-        for name in ("n_coordinates", "n_constraints", "n_particles", "masses", "inverse_masses",
-                     "rheonomic", "constraint_labels", "parameter_vector"):
+        for name in ("n_coordinates", "n_constraints", "n_position_rows", "n_particles", "masses",
+                     "inverse_masses", "rheonomic", "constraint_labels", "parameter_vector"):
             setattr(self, name, getattr(model, name))
         if model.masses_follow_parameters:  # masses as entries or formulas of P in the graphs
             entries = getattr(model.structure, "mass_entries", None)

@@ -1,4 +1,5 @@
-"""The holonomic constraint library: each constraint yields rows of f(x, t) = 0.
+"""The holonomic constraint library: each constraint yields rows of f(x, t) = 0 (the velocity
+constraints, rows a(x, t)·v + b(x, t) = 0, are in model/velocity.py).
 
 Every constraint is a small object with ``rows(symbols) -> list[(expr, label)]``. One
 object may give several scalar rows (a pin gives three, a plane one per particle); each
@@ -8,7 +9,8 @@ row gets its own multiplier. Residuals are kept in metres where the geometry all
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import casadi as ca
 import numpy as np
@@ -33,6 +35,15 @@ def _as_list(value, where: str, what: str) -> list[str]:
     if not isinstance(value, Sequence) or not value or not all(isinstance(p, str) for p in value):
         raise InputError(f"{what} must be a particle name or a non-empty list of names", where=where)
     return list(value)
+
+
+def _three(value, where: str, example: str):
+    """``value`` when it is a 3-vector (numbers or formula strings), else an InputError at
+    construction, not later in the run's build."""
+    if value is None or (hasattr(value, "__len__") and not isinstance(value, str) and len(value) == 3):
+        return value
+    raise InputError(f"must be a vector of 3 entries (numbers or formulas of t), e.g. {example}; "
+                     f"got {value!r}", where=where)
 
 
 class Labelled:
@@ -65,6 +76,8 @@ class Constraint(Labelled):
     """
 
     kind = "constraint"
+    #: "position" (rows f(x, t) = 0), or "velocity" (rows a(x, t)·v + b = 0: model/velocity.py).
+    level = "position"
     side = 1
     unilateral = False
     restitution = 0.0
@@ -92,17 +105,45 @@ class Constraint(Labelled):
         if unilateral and self.two_sided_only:
             raise InputError(f"a {self.two_sided_only}; remove 'unilateral' from it",
                              where=f"{where}.unilateral")
-        if (isinstance(restitution, bool) or not isinstance(restitution, int | float)
-                or not 0 <= restitution <= 1):
-            raise InputError(
-                f"restitution must be a number from 0 (the motion into the constraint stops) to 1 "
-                f"(an elastic bounce), got {restitution!r}: e > 1 would create energy at every impact",
-                where=f"{where}.restitution")
+        if isinstance(restitution, str):  # a formula of the parameters: checked for its values
+            if not restitution.strip():
+                raise InputError("restitution must be a number from 0 to 1 or a formula of the parameters, "
+                                 "got an empty string", where=f"{where}.restitution")
+        else:
+            _check_restitution(restitution, f"{where}.restitution")
         if restitution and not unilateral:
             raise InputError("restitution applies to a one-sided constraint, which can close with an "
                              "impact; add unilateral = true, or remove restitution",
                              where=f"{where}.restitution")
-        self.unilateral, self.restitution = unilateral, float(restitution)
+        self.unilateral = unilateral
+        self.restitution = restitution if isinstance(restitution, str) else float(restitution)
+
+    def coefficient_of_restitution(self, values: Mapping[str, float]) -> float:
+        """e for the parameters' ``values``: the number given, or the formula evaluated (so a
+        sweep can vary it); InputError when it is not in [0, 1]."""
+        where = f"{self._where()}.restitution"
+        e = self.restitution
+        if isinstance(e, str):
+            from .parameters import evaluate
+
+            e = evaluate(e, values, where)
+        return _check_restitution(e, where, formula=self.restitution if isinstance(self.restitution, str)
+                                  else None)
+
+
+def _check_restitution(e, where: str, formula: str | None = None) -> float:
+    """A coefficient of restitution as a float in [0, 1], or an InputError saying why not."""
+    given = f"{formula!r} = {e!r}" if formula else repr(e)
+    if isinstance(e, bool) or not isinstance(e, int | float) or math.isnan(e):
+        raise InputError(f"restitution must be a number from 0 (the motion into the constraint stops) "
+                         f"to 1 (an elastic bounce) or a formula of the parameters, got {given}", where=where)
+    if e < 0:
+        raise InputError(f"restitution must be at least 0, got {given}: e < 0 would send the particle on "
+                         "into the constraint after the impact (0: the motion into it stops)", where=where)
+    if e > 1:
+        raise InputError(f"restitution must be at most 1, got {given}: e > 1 would create energy at every "
+                         "impact (1: an elastic bounce)", where=where)
+    return float(e)
 
 
 class Distance(Constraint):
@@ -115,9 +156,10 @@ class Distance(Constraint):
     numbers = ("point", "length")
 
     def __init__(self, a: str, b: str | None = None, *, point=None, length, name=None, where=None,
-                 unilateral: bool = False, restitution: float = 0.0):
+                 unilateral: bool = False, restitution: float | str = 0.0):
         self.a, self.b, self.point, self.length = a, b, point, length
         self.name, self.where = name, where
+        _three(point, f"{where or 'constraint distance'}.point", "point=[0, 0, 0]")
         self._one_sided(unilateral, restitution)
         if (b is None) == (point is None):
             raise InputError("give exactly one of 'b' (a particle) or 'point'", where=self._where())
@@ -174,7 +216,7 @@ class Pin(Constraint):
     numbers = ("point",)
 
     def __init__(self, a: str, point, *, name=None, where=None, unilateral: bool = False,
-                 restitution: float = 0.0):
+                 restitution: float | str = 0.0):
         self.a, self.point, self.name, self.where = a, point, name, where
         self._one_sided(unilateral, restitution)
 
@@ -194,7 +236,7 @@ class Plane(Constraint):
     numbers = ("normal", "offset")
 
     def __init__(self, particles, normal, offset=0.0, *, name=None, where=None, unilateral: bool = False,
-                 restitution: float = 0.0):
+                 restitution: float | str = 0.0):
         self.particles = _as_list(particles, where or "plane", "'particles'")
         self.normal, self.offset, self.name, self.where = normal, offset, name, where
         self._one_sided(unilateral, restitution)
@@ -223,7 +265,7 @@ class Surface(Constraint):
     """g(x, y, z, t) = 0 for each listed particle; ``expr`` is a formula in x, y, z, t."""
 
     def __init__(self, particles, expr: str, *, name=None, where=None, unilateral: bool = False,
-                 restitution: float = 0.0):
+                 restitution: float | str = 0.0):
         self.particles = _as_list(particles, where or "surface", "'particles'")
         self.expr, self.name, self.where = expr, name, where
         self._one_sided(unilateral, restitution)
@@ -247,7 +289,7 @@ class Curve(Constraint):
                       "give the two surfaces as separate one-sided 'surface' constraints")
 
     def __init__(self, particles, exprs: Sequence[str], *, name=None, where=None, unilateral: bool = False,
-                 restitution: float = 0.0):
+                 restitution: float | str = 0.0):
         self.particles = _as_list(particles, where or "curve", "'particles'")
         if isinstance(exprs, str) or len(exprs) != 2:
             raise InputError(
@@ -274,7 +316,7 @@ class Custom(Constraint):
     """Any formula in particle coordinates x_NAME, y_NAME, z_NAME and t, equal to zero."""
 
     def __init__(self, expr: str, *, name=None, where=None, unilateral: bool = False,
-                 restitution: float = 0.0):
+                 restitution: float | str = 0.0):
         self.expr, self.name, self.where = expr, name, where
         self._one_sided(unilateral, restitution)
 

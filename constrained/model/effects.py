@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 import casadi as ca
 
 from ..errors import InputError
-from .constraints import Labelled, _as_list, _fmt
+from .constraints import Labelled, _as_list, _fmt, _three
 
 
 class Effect(Labelled):
@@ -45,6 +45,7 @@ class Gravity(Effect):
 
     def __init__(self, g, particles=None, *, name=None, where=None):
         self.g, self.name, self.where, self.particles = g, name, where, None
+        _three(g, f"{self.where or 'effect gravity'}.g", "Gravity([0, -9.81, 0]) for g = 9.81 m/s² along −y")
         self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
 
     @property
@@ -257,3 +258,41 @@ EFFECT_TYPES = {
     "force": Force,
     "electromagnetic": Electromagnetic,
 }
+
+
+def forces(slots: dict, x, v, t) -> tuple:
+    """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
+
+        F = −∂V/∂x − ∂U/∂x + d/dt ∂U/∂v − ∂R/∂v + Σ applied,   V = Σ potentials, U = Σ
+        generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
+        dissipations."""
+    active = set()
+    F = ca.SX.zeros(x.numel())
+    V = U = ca.SX(0)
+    dU_dv = ca.SX.zeros(x.numel())
+    if slots["potential"]:
+        active.add("potential")
+        V = sum(slots["potential"], ca.SX(0))
+        F -= ca.gradient(V, x)
+    if slots["generalized_potential"]:
+        active.add("generalized_potential")
+        U = sum(slots["generalized_potential"], ca.SX(0))
+        dU_dv = ca.gradient(U, v)
+        if ca.depends_on(dU_dv, v):
+            raise InputError(
+                "a generalized potential must be linear in the velocities "
+                "(U = U0(x, t) + v·W(x, t)); this one is not"
+            )
+        # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
+        F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
+    if slots["dissipation"]:
+        active.add("dissipation")
+        R = sum(slots["dissipation"], ca.SX(0))
+        F -= ca.gradient(R, v)
+    if slots["applied_force"]:
+        active.add("applied_force")
+        for term in slots["applied_force"]:
+            F += term
+    if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
+        active.add("time_dependent_forces")
+    return F, V, U, dU_dv, active

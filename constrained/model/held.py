@@ -27,6 +27,9 @@ class HeldRows(Model):
         self.constraint_labels = [model.constraint_labels[k] for k in self.rows]
         self.constraint_owner = model.constraint_owner[list(self.rows)]
         self.n_constraints = len(self.rows)
+        #: The held rows of f (position rows come first, velocity rows after them).
+        self.position_rows = tuple(k for k in self.rows if k < model.n_position_rows)
+        self.n_position_rows = len(self.position_rows)
 
     def _selected(self, name: str, outputs: dict[int, str], *, parametric: bool = False) -> ca.Function:
         """The model's Function ``name`` (with p as its last input when ``parametric``) with the
@@ -35,7 +38,7 @@ class HeldRows(Model):
         f = self.full.parametric(name) if parametric else getattr(self.full, name)
         inputs = [ca.SX.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
         out = f.call(inputs)
-        rows = list(self.rows)
+        rows = list(self.position_rows if name in ("constraint", "jacobian") else self.rows)
         for i in outputs:
             out[i] = out[i][rows, :] if rows else ca.SX(0, out[i].shape[1])
         return ca.Function(name, inputs, out, f.name_in(), f.name_out())

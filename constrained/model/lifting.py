@@ -22,12 +22,15 @@ declared, vector and mapping entries in order.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import re
 from collections.abc import Mapping
 
 import numpy as np
+
+from ..errors import ExpressionError, InconsistentStateError, InputError
 
 
 class Number:
@@ -136,3 +139,16 @@ def fill(text: str, values: np.ndarray) -> str:
     if "⟦" not in text:
         return text
     return _TOKEN.sub(lambda m: f"{values[int(m.group(1))]:g}", text)
+
+
+@contextlib.contextmanager
+def shown(values: np.ndarray):
+    """Inside the block (the Structure's build, which reads a lifted system), an InputError's
+    place and reason show the numbers the scene wrote, not their tokens."""
+    try:
+        yield
+    except InputError as exc:
+        if type(exc) not in (InputError, ExpressionError, InconsistentStateError) or "⟦" not in str(exc):
+            raise
+        where = fill(exc.where, values) if exc.where else None
+        raise type(exc)(fill(exc.reason, values), where=where) from None

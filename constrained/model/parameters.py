@@ -16,6 +16,7 @@ depends on itself (a cycle is refused, naming it). Each is read in two ways:
 from __future__ import annotations
 
 import functools
+import keyword
 import math
 from collections.abc import Mapping
 
@@ -44,6 +45,14 @@ def check_name(name, where: str, *, taken: Mapping | set = frozenset(), what: st
     if not isinstance(name, str) or not name.isidentifier():
         raise InputError(f"{what} name {name!r} must be a plain identifier (letters, digits, "
                          "underscore; not starting with a digit)", where=where)
+    if keyword.iskeyword(name):  # formulas are read with Python's syntax: 'lambda' cannot be a name there
+        raise InputError(f"the {what} name '{name}' is a keyword of the formula syntax (Python's), so no "
+                         f"formula could use it; choose another, e.g. '{name}_' or '{name}1'", where=where)
+    if name == "e":
+        raise InputError(f"the {what} name 'e' is taken: in formulas e is Euler's number 2.718...; a "
+                         "coefficient of restitution can be a parameter named e.g. 'e_r' (then "
+                         "restitution = \"e_r\" in the one-sided constraint), or be written there as a "
+                         "number", where=where)
     if name in RESERVED_NAMES:
         raise InputError(f"the {what} name '{name}' is taken (it already means something in "
                          "formulas); choose another", where=where)
@@ -53,10 +62,16 @@ def check_name(name, where: str, *, taken: Mapping | set = frozenset(), what: st
     return name
 
 
+#: The longest chain of definitions each using the next (as ``expressions.MAX_DEPTH`` for the
+#: nesting inside one formula): a model's expressions, and the time to build them, grow with it.
+MAX_DEFINITION_DEPTH = 1000
+
+
 def order(definitions: Mapping[str, object], where: str = "definitions") -> list[str]:
     """The definitions' names ordered so that each comes after the definitions it uses.
 
-    Raises InputError naming the cycle (``a -> b -> a``) when a definition depends on itself.
+    Raises InputError naming the cycle (``a -> b -> a``) when a definition depends on itself,
+    or the definition at the end of a chain more than MAX_DEFINITION_DEPTH deep.
     """
     try:
         return list(_order(tuple(definitions.items()), where))
@@ -67,28 +82,40 @@ def order(definitions: Mapping[str, object], where: str = "definitions") -> list
 @functools.lru_cache(maxsize=256)
 def _order(items: tuple, where: str) -> tuple[str, ...]:
     definitions = dict(items)
-    uses = {name: (expressions.free_names(text) & set(definitions)) if isinstance(text, str) else set()
+    names = set(definitions)
+    uses = {name: (expressions.free_names(text) & names) if isinstance(text, str) else set()
             for name, text in definitions.items()}
     done: list[str] = []
     state: dict[str, int] = {}  # 1: being visited, 2: done
+    depth: dict[str, int] = {}  # the longest chain of definitions below each, itself included
 
-    def visit(name: str, path: list[str]) -> None:
-        if state.get(name) == 2:
-            return
-        if state.get(name) == 1:
-            cycle = path[path.index(name):] + [name]
-            raise InputError(
-                f"the definitions form a cycle: {' -> '.join(cycle)}; a definition may use "
-                "parameters and other definitions, but never (through others) itself",
-                where=f"{where}.{cycle[0]}")
-        state[name] = 1
-        for other in sorted(uses[name]):
-            visit(other, [*path, name])
-        state[name] = 2
-        done.append(name)
-
-    for name in definitions:
-        visit(name, [])
+    for root in definitions:  # depth first, with a stack of its own: a chain may be thousands long
+        if state.get(root) == 2:
+            continue
+        state[root], path, stack = 1, [root], [iter(sorted(uses[root]))]
+        while stack:
+            other = next(stack[-1], None)
+            if other is None:  # every definition it uses is placed: place it
+                stack.pop()
+                name = path.pop()
+                state[name] = 2
+                depth[name] = 1 + max((depth[u] for u in uses[name]), default=0)
+                if depth[name] > MAX_DEFINITION_DEPTH:
+                    raise InputError(
+                        f"the definitions nest more than {MAX_DEFINITION_DEPTH} deep: {name} heads a chain "
+                        f"of {depth[name]} definitions, each using the next; write some of them as "
+                        "formulas of the parameters", where=f"{where}.{name}")
+                done.append(name)
+            elif state.get(other) == 1:
+                cycle = path[path.index(other):] + [other]
+                raise InputError(
+                    f"the definitions form a cycle: {' -> '.join(cycle)}; a definition may use "
+                    "parameters and other definitions, but never (through others) itself",
+                    where=f"{where}.{cycle[0]}")
+            elif state.get(other) != 2:
+                state[other] = 1
+                path.append(other)
+                stack.append(iter(sorted(uses[other])))
     return tuple(done)
 
 

@@ -112,11 +112,16 @@ def _undefined_in(system: System, t0: float, structure: Structure, numbers, jaco
     effects, owner_e = _start_check(structure)
     with np.errstate(all="ignore"):
         bad = set()
-        if structure.n_constraints:
-            vc, jc = jacobian(x0, t0) if jacobian is not None else structure.function("jacobian")(x0, t0, p)
-            vc = ca.DM(np.asarray(vc, float).reshape(-1, 1)) if not isinstance(vc, ca.DM) else vc
+        if structure.n_constraints:  # f and J, then the velocity level [J; A], [f_t; b]
             owner_c = np.asarray(structure.constraint_owner, dtype=int)
-            bad |= {("constraints", int(k)) for k in owner_c[np.concatenate([_bad_rows(vc), _bad_rows(jc)])]}
+            if jacobian is not None:  # (no velocity rows: a large model's own f and J)
+                vc, jc = jacobian(x0, t0)
+                matrices = (ca.DM(np.asarray(vc, float).reshape(-1, 1)), jc)
+            else:
+                matrices = (*structure.function("jacobian")(x0, t0, p),
+                            *structure.function("velocity_terms")(x0, t0, p))
+            rows = [_bad_rows(m) for m in matrices]
+            bad |= {("constraints", int(k)) for k in owner_c[np.concatenate(rows)]}
         if owner_e.size:
             ve, jex, jev = effects(x0, v0, t0, p)
             rows = np.concatenate([_bad_rows(ve), _bad_rows(jex), _bad_rows(jev)])

@@ -2,8 +2,9 @@
 
 Equations (DESIGN.md): ``M x'' = F(x, x', t) + Jᵀ λ`` with ``f(x, t) = 0``. Differentiating
 the constraints twice gives ``J x'' + γ = 0``, ``γ = d/dt(J v + f_t) − J x''``, which CasADi
-forms by AD as ``γ = ∂c/∂x · v + ∂c/∂t`` for ``c = J v + f_t``. Only the terms the system
-needs are built: ``active_terms`` lists them.
+forms by AD as ``γ = ∂c/∂x · v + ∂c/∂t`` for ``c = J v + f_t``. Velocity constraints
+(model/velocity.py) add rows ``A v + b = 0`` after f's at the velocity and acceleration levels
+(``G = [J; A]``, multipliers [λ; μ]). Only the terms the system needs are built: ``active_terms``.
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from . import lifting
+from . import lifting, velocity
 from .constraints import constraint_rows
+from .effects import forces  # (where the slots are summed; the mapped builds import it from here)
 from .symbols import Symbols
 
 #: Functions bound to parameter values that a Structure keeps (the most recent), so that
@@ -48,6 +50,10 @@ class Structure:
 
     def __init__(self, system, *, lift: bool = True):
         system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+        with lifting.shown(numbers):  # a refusal names the scene's numbers, never their tokens
+            self._assemble(system, numbers)
+
+    def _assemble(self, system, numbers: np.ndarray) -> None:
         s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
         x, v, t, p = s.x, s.v, s.t, s.p
         n3 = 3 * system.n_particles
@@ -60,17 +66,22 @@ class Structure:
         self.particle_names = tuple(q.name for q in system.particles)
         active = set()
 
-        rows, labels, owners = [], [], []
-        for k, built in enumerate(constraint_rows(system.constraints, s)):
-            for expr, label in built:
-                rows.append(expr)
-                labels.append(label)
-                owners.append(k)
-        #: The rows' labels, a plain number written as a token (``lifting.fill`` puts a
-        #: Model's values in).
-        self.constraint_labels: list[str] = labels
-        self.constraint_owner = np.array(owners, dtype=int)
-        self.n_constraints = len(rows)
+        rows, labels, owners = ([], []), ([], []), ([], [])  # position rows, then velocity rows
+        built = constraint_rows(system.constraints, s)  # (runs of rods built together)
+        for k, constraint in enumerate(system.constraints):
+            level = int(getattr(constraint, "level", "position") == "velocity")
+            for expr, label in built[k]:
+                rows[level].append(expr)
+                labels[level].append(label)
+                owners[level].append(k)
+        rows, velocity_rows = rows
+        #: The rows' labels (position rows, then velocity rows), a plain number written as a
+        #: token (``lifting.fill`` puts a Model's values in).
+        self.constraint_labels: list[str] = labels[0] + labels[1]
+        self.constraint_owner = np.array(owners[0] + owners[1], dtype=int)
+        #: Rows of f (position level); the velocity rows (model/velocity.py) follow them.
+        self.n_position_rows = len(rows)
+        self.n_constraints = len(rows) + len(velocity_rows)
         f = ca.vertcat(*rows) if rows else ca.SX(0, 1)
         self.rheonomic = bool(rows) and ca.depends_on(f, t)
         if rows:
@@ -80,15 +91,22 @@ class Structure:
 
         @functools.cache
         def kinematics() -> tuple:
-            """(J, f_t, γ), differentiated when a Function that needs them is first made (a
+            """(J, G, c₀, γ), differentiated when a Function that needs them is first made (a
             large model's runs use the vectorized build's instead: constrained.manifold)."""
             J = ca.jacobian(f, x)
             if self.rheonomic:
                 f_t = ca.jacobian(f, t)
                 c = ca.mtimes(J, v) + f_t
-                return J, f_t, ca.jtimes(c, x, v) + ca.jacobian(c, t)
-            f_t = ca.SX(self.n_constraints, 1)  # structurally zero: no f_t terms
-            return J, f_t, ca.jtimes(ca.mtimes(J, v), x, v)
+                gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
+            else:
+                f_t = ca.SX(self.n_position_rows, 1)  # structurally zero: no f_t terms
+                gamma = ca.jtimes(ca.mtimes(J, v), x, v)
+            # the velocity level, J v + f_t = 0 then A v + b = 0 (G = [J; A]), and its derivative
+            return (J, *velocity.velocity_level(system, velocity_rows, J, f_t, gamma, x, v, t))
+
+        if velocity_rows:
+            kinematics()  # now: its refusals name the scene's items (and its numbers, not tokens)
+            active.add("velocity_constraints")
 
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
         terms = []
@@ -133,8 +151,8 @@ class Structure:
 
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
         function("jacobian", [x, t], ["x", "t"], lambda: [f, kinematics()[0]], ["f", "J"])
-        function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[:2]), ["J", "f_t"])
-        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F, kinematics()[0], kinematics()[2]],
+        function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[1:3]), ["J", "f_t"])
+        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F, kinematics()[1], kinematics()[3]],
                  ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
@@ -226,44 +244,6 @@ class Expressions:
     terms: list
 
 
-def forces(slots: dict, x, v, t) -> tuple:
-    """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
-
-        F = −∂V/∂x − ∂U/∂x + d/dt ∂U/∂v − ∂R/∂v + Σ applied,   V = Σ potentials, U = Σ
-        generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
-        dissipations."""
-    active = set()
-    F = ca.SX.zeros(x.numel())
-    V = U = ca.SX(0)
-    dU_dv = ca.SX.zeros(x.numel())
-    if slots["potential"]:
-        active.add("potential")
-        V = sum(slots["potential"], ca.SX(0))
-        F -= ca.gradient(V, x)
-    if slots["generalized_potential"]:
-        active.add("generalized_potential")
-        U = sum(slots["generalized_potential"], ca.SX(0))
-        dU_dv = ca.gradient(U, v)
-        if ca.depends_on(dU_dv, v):
-            raise InputError(
-                "a generalized potential must be linear in the velocities "
-                "(U = U0(x, t) + v·W(x, t)); this one is not"
-            )
-        # Q = −∂U/∂x + d/dt ∂U/∂v, with d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t
-        F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
-    if slots["dissipation"]:
-        active.add("dissipation")
-        R = sum(slots["dissipation"], ca.SX(0))
-        F -= ca.gradient(R, v)
-    if slots["applied_force"]:
-        active.add("applied_force")
-        for term in slots["applied_force"]:
-            F += term
-    if ca.depends_on(F, t) or (V.numel() and ca.depends_on(V, t)):
-        active.add("time_dependent_forces")
-    return F, V, U, dU_dv, active
-
-
 class Model:
     """An assembled system: CasADi Functions in (x, v, t) for the system's parameter values.
     Immutable once built: runs keep their counters and redundancy in their own ``Manifold``
@@ -271,10 +251,10 @@ class Model:
 
     Functions (all with flat 3N vectors; p at ``parameter_vector``: the parameters'
     ``parameter_values``, then the plain ``numbers``):
-      ``constraint(x, t) -> f``                (C,)
-      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C, 3N)
-      ``velocity_terms(x, t) -> (J, f_t)``
-      ``dynamics(x, v, t) -> (F, J, γ)``        what the acceleration-level KKT needs
+      ``constraint(x, t) -> f``                (C_f,)
+      ``jacobian(x, t) -> (f, J)``              J = ∂f/∂x, (C_f, 3N), C_f = n_position_rows
+      ``velocity_terms(x, t) -> (G, c₀)``       G v + c₀ = 0: J, f_t, then velocity rows' A, b
+      ``dynamics(x, v, t) -> (F, G, γ)``        what the acceleration-level KKT needs (all rows)
       ``energy(x, v, t) -> h``                 h = T + V + U − v·∂U/∂v (the energy function)
       ``potential(x, t) -> V``
       ``kinetic(v) -> T``
@@ -314,7 +294,7 @@ class Model:
                       self.inverse_masses):
             array.flags.writeable = False
         self.constraint_owner = structure.constraint_owner
-        self.n_constraints = structure.n_constraints
+        self.n_constraints, self.n_position_rows = structure.n_constraints, structure.n_position_rows
         self.rheonomic = structure.rheonomic
         self.active_terms = structure.active_terms
         #: The system's data the numeric side needs, copied so the Model does not change.

@@ -421,3 +421,15 @@ def sketch(system) -> dict:
                     length = None
             anchors.append([index[a], anchor, float(length) if isinstance(length, int | float) else None])
     return {"rods": rods, "anchors": anchors}
+
+
+def require_system(system, who: str) -> None:
+    """Refuse anything but a System as the first argument of ``who`` (a Scene too: it names
+    what to pass instead)."""
+    if isinstance(system, System):
+        return
+    if hasattr(system, "system") and isinstance(getattr(system, "system", None), System):
+        raise InputError(f"{who}() takes a System; this is a {type(system).__name__}: pass its .system "
+                         f"({who}(scene.system, ...)), or run the scene with its own settings: scene.run()")
+    raise InputError(f"{who}() takes a System (constrained.System, or load_scene(file).system) as its "
+                     f"first argument, got {type(system).__name__} {system!r:.60}")

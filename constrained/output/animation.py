@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
 
-from ..run.trajectory import Trajectory
+from ..run.trajectory import Trajectory, file_mode
 from .figure_style import MAX_LEGEND, colour, legend, motion_plane, particle_names
 
 #: Most frames an animation gets (the trajectory is resampled uniformly in time).
@@ -396,6 +396,7 @@ class _Video:
         err = self.proc.stderr.read().decode("utf-8", "replace")
         if self.proc.wait() != 0:
             raise RuntimeError(f"ffmpeg could not write {self.target}: {err.strip()[-300:]}")
+        os.chmod(self.tmp, file_mode())
         os.replace(self.tmp, self.target)
         self.done = True
         return self.target

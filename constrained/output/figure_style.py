@@ -3,13 +3,15 @@ the time axis with the run's events marked, and the plane of a planar motion."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from ..errors import InputError
-from ..run.trajectory import Trajectory
+from ..run.trajectory import QUANTITIES, Trajectory
 
 #: Legends list at most this many entries, then "…".
 MAX_LEGEND = 12
@@ -130,3 +132,20 @@ def motion_plane(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str, str]
 def fmt_vec(v: np.ndarray) -> str:
     v = np.where(np.abs(v) < 5e-4, 0.0, v)
     return "(" + ", ".join(f"{c:.3g}" for c in v) + ")"
+
+
+def finite_samples(traj: Trajectory) -> tuple[Trajectory, int]:
+    """``(traj, 0)``, or the trajectory without its samples whose time, positions or velocities
+    are not finite (a damaged or hand-made file) and how many were left out; InputError when
+    no sample is left to draw."""
+    n = len(traj.t)
+    ok = (np.isfinite(np.asarray(traj.t, float)) & np.all(np.isfinite(np.reshape(traj.x, (n, -1))), axis=1)
+          & np.all(np.isfinite(np.reshape(traj.v, (n, -1))), axis=1))
+    if ok.all():
+        return traj, 0
+    if not ok.any():
+        raise InputError(f"none of the trajectory's {n} samples has finite positions and velocities: "
+                         "nothing to draw")
+    cut = {name: None if getattr(traj, name) is None else np.asarray(getattr(traj, name))[ok]
+           for name in ("t", "x", "v", *QUANTITIES)}
+    return dataclasses.replace(traj, **cut), int(n - ok.sum())

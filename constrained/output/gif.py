@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..run.trajectory import file_mode
+
 #: Colours of the GIF palette (one index is left for Pillow's transparency handling).
 PALETTE_COLOURS = 255
 
@@ -93,8 +95,11 @@ def write_gif(path: Path, frames: list[np.ndarray], palette: np.ndarray, frame_m
     try:
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=int(frame_ms),
                        loop=0, optimize=False)
+        os.chmod(tmp, file_mode())  # mkstemp makes 0600; give the mode open() would
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and str(exc.filename or "") != str(path):  # name the user's file
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
         raise

@@ -125,6 +125,9 @@ class OutputSet:
     def commit(self, written=None) -> list[Path]:
         """Put the set into the output folder; returns the final paths (of ``written``, staged
         paths, in that order, or of every file written)."""
+        for leftover in self.dir.glob(".*"):  # a temporary of a writer stopped mid-write: not of the set
+            if leftover.is_file():
+                leftover.unlink()
         names = sorted(p.name for p in self.dir.iterdir())
         try:
             present = set(os.listdir(self.final)) if self.final.is_dir() else set()

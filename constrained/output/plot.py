@@ -27,6 +27,7 @@ from .figure_style import (
     MAX_MARKED_EVENTS,
     colour,
     constraint_labels,
+    finite_samples,
     fmt_vec,
     legend,
     motion_plane,
@@ -345,6 +346,7 @@ def save_figures(
     are drawn when ``system`` (the scene's System) is given. ``progress(amount)``, when given,
     is told 1 per kind written (the animation in fractions, frame by frame). ``parallel``:
     draw the PNG figures in forked worker processes (one per core), the animation here.
+    Samples whose positions or velocities are not finite are left out (``finite_samples``).
     """
     kinds = [kinds] if isinstance(kinds, str) else list(kinds)
     unknown = [k for k in kinds if k not in KINDS]
@@ -354,6 +356,7 @@ def save_figures(
             f"allowed: {', '.join(KINDS)}"
         )
     out_dir = Path(out_dir)
+    traj, _ = finite_samples(traj)  # (what cannot be drawn is left out, not a crash)
     pngs = [k for k in kinds if k != "animation"]
     if parallel and len(pngs) > 1 and _fork_context() is not None:
         return _save_in_parallel(traj, kinds, pngs, out_dir, dpi=dpi, system=system, progress=progress)

@@ -96,7 +96,8 @@ class Shapes:
             self.items.append({"kind": "surface" if isinstance(c, Surface) else "curve",
                                "label": label, **self.cloud(exprs, where)})
         else:  # Custom, or a constraint class this page does not know
-            kind = "custom" if isinstance(c, Custom) else type(c).__name__.lower()
+            kind = ("custom" if isinstance(c, Custom) else "velocity constraint"
+                    if getattr(c, "level", "") == "velocity" else type(c).__name__.lower())
             self.items.append({"kind": "undrawn", "label": f"{label} ({kind}: not drawn)"})
 
     def plane(self, c: Plane, where) -> dict:

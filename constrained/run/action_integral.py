@@ -68,6 +68,11 @@ def excluded_effects(model: Model) -> list[str]:
 
 
 def require_lagrangian(model: Model, what: str) -> None:
+    if model.n_position_rows < model.n_constraints:
+        raise InputError(
+            f"{what} is for holonomic constraints: a motion under velocity constraints follows "
+            "d'Alembert's principle, and is not a stationary path of the action among the paths that "
+            "obey them (that path would be the 'vakonomic' motion, another mechanics)")
     bad = excluded_effects(model)
     if bad:
         raise InputError(

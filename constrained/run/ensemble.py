@@ -33,6 +33,7 @@ from ..model import expressions
 from ..model.cache import ParametricView, structure_cache
 from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
+from ..model.system import require_system
 from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from ..threads import available_cores, one_blas_thread
 
@@ -108,27 +109,36 @@ def _table(model: Model, parameters) -> tuple[tuple[str, ...], np.ndarray]:
     return names, table
 
 
+def _start_formulas(system) -> tuple:
+    """(particle, key, index, formula) of every start entry that is a formula string."""
+    return tuple((k, key, i, entry) for k, particle in enumerate(system.particles)
+                 for key in ("position", "velocity")
+                 for i, entry in enumerate(particle.formulas.get(key, getattr(particle, key)))
+                 if isinstance(entry, str))
+
+
 def _start_function(model: Model, system) -> ca.Function:
-    """``p -> (x0, v0)``: the particles' initial positions and velocities (numbers, or
-    formulas of the parameters and definitions) as one Function of the parameter vector
-    (``Model.parameter_vector``)."""
+    """``(p, x_given, v_given) -> (x0, v0)``: the particles' initial positions and velocities as
+    one Function of the parameter vector (``Model.parameter_vector``): entries that are formulas
+    of the parameters and definitions are built in, plain numbers are taken from ``x_given``,
+    ``v_given`` (the structure is shared by systems whose plain start numbers differ)."""
+    formulas = _start_formulas(system)
+
     def build():
         p, names = symbolic(system.parameters, system.definitions)
-        parts = {"position": [], "velocity": []}
-        for particle in system.particles:
-            for key in parts:
-                given = particle.formulas.get(key, getattr(particle, key))
-                for i, entry in enumerate(given):
-                    where = f"particle '{particle.name}'.{key}[{i}]"
-                    parts[key].append(expressions.parse(entry, names, where=where)
-                                      if isinstance(entry, str) else ca.SX(float(entry)))
+        n3 = 3 * len(system.particles)
+        given = {"position": ca.SX.sym("x_given", n3), "velocity": ca.SX.sym("v_given", n3)}
+        parts = {key: [given[key][j] for j in range(n3)] for key in given}
+        for k, key, i, entry in formulas:
+            where = f"particle '{system.particles[k].name}'.{key}[{i}]"
+            parts[key][3 * k + i] = expressions.parse(entry, names, where=where)
         x0 = ca.vertcat(*parts["position"]) if parts["position"] else ca.SX(0, 1)
         v0 = ca.vertcat(*parts["velocity"]) if parts["velocity"] else ca.SX(0, 1)
         numbers = ca.SX.sym("number", model.structure.n_numbers)  # the rest of p: unused here
-        return ca.Function("start", [ca.vertcat(p, numbers)], [x0, v0])
+        return ca.Function("start", [ca.vertcat(p, numbers), given["position"], given["velocity"]], [x0, v0])
 
     cache, prefix = structure_cache(model)
-    key = (*prefix, "ensemble start")
+    key = (*prefix, "ensemble start", formulas)
     if key not in cache:
         cache[key] = build()
     return cache[key]
@@ -157,13 +167,14 @@ def _start_block(model: Model, system, dopri: Dopri, width: int) -> FastCall:
     dopri is (once per structure, row set and width)."""
     cache, prefix = structure_cache(model)
     rows = dopri.manifold.rows
-    key = (*prefix, "ensemble start block", rows, dopri.compiled, width)
+    key = (*prefix, "ensemble start block", rows, dopri.compiled, width, _start_formulas(system))
     if key not in cache:
         P, T = ca.MX.sym("p", len(model.parameter_vector)), ca.MX.sym("t")
-        x0, v0 = _start_function(model, system)(P)
+        XG, VG = ca.MX.sym("x_given", model.n_coordinates), ca.MX.sym("v_given", model.n_coordinates)
+        x0, v0 = _start_function(model, system)(P, XG, VG)
         x, v, _ = _projector(model, rows)(x0, v0, T, P)
         a, _ = acceleration_function(model, rows, parametric=True)(x, v, T, P)
-        start = ca.Function("ensemble_start", [P, T], [x0, x, v, a]).map(width)
+        start = ca.Function("ensemble_start", [P, T, XG, VG], [x0, x, v, a]).map(width)
         if dopri.compiled:
             start = compiled_evaluation.compile_function(start)
         cache[key] = FastCall(start)
@@ -245,6 +256,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     ``progress(fraction)`` is told how far the slowest running variant is (``True``: a tqdm
     bar on stderr).
     """
+    require_system(system, "simulate_many")
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
@@ -272,7 +284,10 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         # the starts: formulas of p, projected onto the constraints, their accelerations
         width = min(block, n_var)
         starts = _start_block(model, system, dopri, width)
-        x0, xs, vs, a0 = _blockwise(starts, width, P.T, np.full((1, n_var), float(t_start)))
+        given_x = np.repeat(np.asarray(system.positions, float).reshape(-1, 1), n_var, axis=1)
+        given_v = np.repeat(np.asarray(system.velocities, float).reshape(-1, 1), n_var, axis=1)
+        x0, xs, vs, a0 = _blockwise(starts, width, P.T, np.full((1, n_var), float(t_start)),
+                                    given_x, given_v)
         size = max(float(system.size()), 1.0)
         moved = np.max(np.abs(xs - x0), axis=1)
         status = ["completed"] * n_var
@@ -323,6 +338,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)
                 X[running, j], V[running, j] = S[:n3, running].T, S[n3:2 * n3, running].T
+        # Ctrl-C in the last chunk: every variant finished, and the caller must stop all the same
+        stopped = interrupt.requested()
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - started
@@ -331,7 +348,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                     S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int),
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
                      "evaluation": evaluation, "block": width, "threads": threads, "method": "dopri",
-                     "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol})
+                     "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol, "interrupted": stopped})
 
 
 def _progress(progress, n_var: int):

@@ -22,7 +22,9 @@ class EventRecord:
     """One event of a run: ``t``, ``constraint`` (its label, or the user event's name),
     ``kind`` (release / contact / impact / the user event's name), the state ``x``, ``v``
     (N, 3; after the velocity jump for an impact), and for an impact the ``impulse`` (N·s along
-    the constraint's normal, per unit of its gradient in metres) and ``energy_lost`` (J)."""
+    the constraint's normal, per unit of its gradient in metres) and ``energy_lost`` (J, in the
+    constraint's frame: ½(1 − e²) m u² with u the approach speed relative to a moving surface;
+    the fixed frame's T⁺ − T⁻ is ``extra["kinetic_energy_change"]``)."""
 
     t: float
     constraint: str

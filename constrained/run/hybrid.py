@@ -346,6 +346,7 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
             record(t, labels[k], "impact", x, v, impulse=result.impulse[k],
                    energy_lost=result.energy_lost if k == hit[0] else 0.0,
                    extra={"approach_speed": approach[k], "restitution": float(e[k]),
+                          **({"kinetic_energy_change": result.kinetic_energy_change} if k == hit[0] else {}),
                           **({"note": notes[k]} if k in notes else {})})
         joining = [k for k in joining if k not in hit or k in settles]
         c_after = constraint_velocities(model, x, v, t)
@@ -422,6 +423,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
                      options=options,
                      user_events=events, rest_speed=rest_speed, max_events=max_events, size=size,
                      max_correction=max_initial_correction)
+        if not result.failure and interrupt.requested():  # Ctrl-C in the last step: a stop too
+            result.failure = "interrupted"
     wall = time.perf_counter() - started
     correction = float(np.max(np.linalg.norm((result.x[0] - x0).reshape(-1, 3), axis=1), initial=0.0)) \
         if len(result.t) else 0.0
@@ -451,8 +454,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
     if result.stopped_by:
         traj.info["stopped_by_event"] = result.stopped_by
     if result.failure == "interrupted":
-        traj.info["message"] = (f"the run was interrupted (Ctrl-C) before t_end = {t_end:g} s; what was "
-                                "computed is kept")
+        traj.info["message"] = (f"the run was interrupted (Ctrl-C) at t = {reached:.6g} s of t_end = "
+                                f"{t_end:g} s; what was computed is kept")
         raise RunInterrupted(traj.info["message"], trajectory=traj)
     if result.failure:
         traj.info["message"] = (f"the run stopped early: {result.failure}; the last good state is at "

@@ -193,9 +193,10 @@ def _minimum_norm(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, red
 
 
 def _constraint_force_function(model: Model) -> ca.Function:
-    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once."""
+    """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once
+    per structure (with velocity rows, J is [J; A] and λ is [λ; μ]: ``velocity_terms``)."""
     def build(view, X, T, L, P):
-        _, J = view.jacobian(X, T)
+        J, _ = view.velocity_terms(X, T)
         return ca.Function("constraint_force", [X, T, L, P], [ca.densify(ca.mtimes(J.T, L))])
 
     fast = structural_call(model, "constraint_force", build, "x", "t", "lam")

@@ -8,7 +8,10 @@ CasADi derives, with symbols ``q``, ``q̇`` and ``t``:
 - ``L = T − V − U``, ``Q_j = Σ_i F_i · ∂x_i/∂q_j`` (applied forces);
 - Lagrange's equations ``d/dt ∂L/∂q̇ − ∂L/∂q = Q − ∂R/∂q̇``; with
   ``d/dt ∂L/∂q̇ = (∂p/∂q̇) q̈ + (∂p/∂q) q̇ + ∂p/∂t`` they read ``M(q, t) q̈ = rhs(q, q̇, t)``,
-  ``M = ∂²L/∂q̇²``, ``rhs = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t + Q − ∂R/∂q̇``.
+  ``M = ∂²L/∂q̇²``, ``rhs = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t + Q − ∂R/∂q̇``;
+- velocity constraints (model/velocity.py) mapped to q, ``c(q, q̇, t) = Ã q̇ + b̃ = 0``, turn
+  them into the Lagrange–d'Alembert equations ``M q̈ = rhs + Ãᵀμ``, ``Ã q̈ + γ̃ = 0`` (the
+  map takes care of f = 0; the velocity rows keep their multipliers μ).
 
 SciPy's DOP853 integrates ``(q, q̇)``; the samples are mapped back to ``x``, ``v`` and the
 Cartesian Model supplies energy, residuals and (KKT) constraint forces, so a reduced
@@ -28,7 +31,7 @@ from scipy.integrate import solve_ivp
 
 from .. import interrupt
 from ..errors import InputError, SimulationError
-from ..model import expressions
+from ..model import expressions, velocity
 from ..model.structure import Model, assemble
 from ..model.symbols import Symbols
 from .quantities import trajectory_from
@@ -67,6 +70,8 @@ class ReducedModel:
     ``energies(q, q̇, t) -> (T, V, U)``, ``mass_rhs(q, q̇, t) -> (M, rhs)``,
     ``acceleration(q, q̇, t) -> q̈``, ``lagrange_residual(q, q̇, q̈, t) -> M q̈ − rhs``,
     ``momenta(q, q̇, t) -> p = ∂L/∂q̇``, ``hamiltonian(q, q̇, t) -> H = p·q̇ − L``,
+    with velocity constraints ``velocity_multipliers(q, q̇, t) -> μ`` (then M q̈ − rhs = Ãᵀμ,
+    and the rates are brought onto Ã q̇ + b̃ = 0 by ``consistent_rates``),
     ``lagrangian_gradient(q, q̇, t) -> ∂L/∂q``, ``nonconservative_force(q, q̇, t) -> Q − ∂R/∂q̇``.
     """
 
@@ -150,8 +155,12 @@ class ReducedModel:
         dLdq = ca.gradient(L, q)
         rhs = dLdq - ca.mtimes(ca.jacobian(p, q), qd) - ca.jacobian(p, t) + Q
         H = ca.dot(p, qd) - L
+        # velocity constraints in q: c(q, q̇, t) = Ã q̇ + b̃ = 0, with multipliers μ (Lagrange–d'Alembert)
+        rows = [e for c in system.constraints if getattr(c, "level", "") == "velocity" for e, _ in c.rows(s)]
+        c_q = subst(ca.vertcat(*rows)) if rows else ca.SX(0, 1)
+        self.n_velocity_rows = c_q.numel()
         self.expressions = {"x": xq, "x_dot": xdot, "T": T, "V": V, "U": U, "R": R, "L": L,
-                            "Q": Q, "p": p, "M": M, "rhs": rhs, "H": H, "dL_dq": dLdq}
+                            "Q": Q, "p": p, "M": M, "rhs": rhs, "H": H, "dL_dq": dLdq, "velocity_rows": c_q}
         self.rheonomic = bool(ca.depends_on(xq, t))
         self.active_terms = frozenset(k for k, v in slots.items() if v)
         if symbolic_parameters:  # expressions in the parameters' names, for printing: no Functions
@@ -172,7 +181,14 @@ class ReducedModel:
         self.hamiltonian = ca.Function("hamiltonian", args, [H], names, ["H"])
         self.lagrangian_gradient = ca.Function("lagrangian_gradient", args, [dLdq], names, ["dL_dq"])
         self.nonconservative_force = ca.Function("nonconservative_force", args, [Q], names, ["Q"])
-        if n <= 3:  # small: a symbolic solve in SX is cheapest to evaluate
+        if rows:  # M q̈ = rhs + Ãᵀμ, Ã q̈ + γ̃ = 0: the bordered system, solved symbolically
+            acc, mu = velocity.lagrange_dalembert(M, rhs, c_q, q, qd, t)
+            self.acceleration = ca.Function("acceleration", args, [acc], names, ["q_ddot"])
+            self.velocity_multipliers = ca.Function("velocity_multipliers", args, [mu], names, ["mu"])
+            self._velocity_level = ca.Function("velocity_level", args, [
+                ca.jacobian(c_q, qd), ca.substitute(c_q, qd, ca.SX.zeros(n)), M])
+            self.rates = self.consistent_rates(self.initial, self.rates, self.t0)
+        elif n <= 3:  # small: a symbolic solve in SX is cheapest to evaluate
             acc = ca.solve(M, rhs)
             self.acceleration = ca.Function("acceleration", args, [acc], names, ["q_ddot"])
         else:
@@ -253,6 +269,16 @@ class ReducedModel:
                 rows.append(ca.SX(expressions.parse(e, names, where=f"reduced.map.{pname}[{k}]")))
         return ca.vertcat(*rows)
 
+    def consistent_rates(self, q, q_dot, t: float) -> np.ndarray:
+        """q̇ brought onto the velocity constraints Ã q̇ + b̃ = 0, the change M(q)-weighted (the
+        Cartesian start's mass-weighted projection, in q); as it is without velocity rows."""
+        qd = np.asarray(q_dot, float).ravel()
+        if not self.n_velocity_rows:
+            return qd
+        A, b, M = (np.asarray(a, float) for a in self._velocity_level(q, qd, t))
+        MiAt = np.linalg.solve(M, A.T)
+        return qd - MiAt @ np.linalg.lstsq(A @ MiAt, A @ qd + b.ravel(), rcond=1e-12)[0]
+
     # --- checks of the map -----------------------------------------------------------------
     def sample_states(self, samples: int = 20, seed: int = 0):
         """Random (q, q̇, t) near the initial values: q = q0 + U(−½, ½)·max(1, |q0|),
@@ -277,13 +303,16 @@ class ReducedModel:
         ex = self.expressions
         L, Q, T, V, U = ex["L"], ex["Q"], ex["T"], ex["V"], ex["U"]
         q, qd, t = self.q, self.q_dot, self.t
+        c = ex["velocity_rows"]  # their forces work at the rate −μ·b̃: none when b̃ = c(q̇ = 0) = 0
+        b, Aqd = ca.substitute(c, qd, ca.SX.zeros(self.n)), ca.mtimes(ca.jacobian(c, qd), qd)
         probe = ca.Function("jacobi_probe", [q, qd, t], [
-            ca.jacobian(L, t), Q, ca.fabs(T) + ca.fabs(V) + ca.fabs(U) + ca.norm_1(ca.gradient(L, qd))])
+            ca.jacobian(L, t), Q, ca.fabs(T) + ca.fabs(V) + ca.fabs(U) + ca.norm_1(ca.gradient(L, qd)),
+            ca.norm_1(b) - rtol * (1 + ca.norm_1(Aqd))])
         ok = True
         for qs, qds, ts in zip(*self.sample_states(samples, seed), strict=True):
-            dLdt, Qnc, scale = (np.asarray(v, float).ravel() for v in probe(qs, qds, ts))
+            dLdt, Qnc, scale, works = (np.asarray(v, float).ravel() for v in probe(qs, qds, ts))
             size = max(float(scale[0]), 1e-300)
-            if abs(float(dLdt[0])) > rtol * size or np.any(np.abs(Qnc) > rtol * size):
+            if abs(float(dLdt[0])) > rtol * size or np.any(np.abs(Qnc) > rtol * size) or works[0] > 0:
                 ok = False
                 break
         self._jacobi = ok
@@ -312,7 +341,7 @@ class ReducedModel:
                 f"but the map has {self.n} ({', '.join(self.coordinates)})",
                 where="reduced.coordinates",
             )
-        if self.model.n_constraints:
+        if self.model.n_position_rows:
             worst, worst_k = -1.0, 0
             for k, (x, t) in enumerate(zip(X, Ts, strict=True)):
                 f = np.abs(np.asarray(self.model.constraint(x, t)).ravel())
@@ -383,7 +412,7 @@ class ReducedModel:
         if t_end <= t0:
             raise InputError(f"t_end ({t_end:g} s) must be later than t_start ({t0:g} s)")
         q0 = self.initial if initial is None else self._vector(initial, "initial")
-        qd0 = self.rates if rates is None else self._vector(rates, "rates")
+        qd0 = self.consistent_rates(q0, self.rates if rates is None else self._vector(rates, "rates"), t0)
         if t_eval is not None:
             t_eval = np.asarray(t_eval, float).ravel()
         ode = self._ode

@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+import difflib
+import functools
+import inspect
 import math
 import time
+import warnings
 from collections.abc import Iterable
 
 import casadi as ca
 import numpy as np
 
 from .. import interrupt
-from ..errors import InputError, RunInterrupted, SimulationError
+from ..errors import InitialStateWarning, InputError, RunInterrupted, SimulationError
 from ..manifold import diagnostics
 from ..manifold.manifold import structural_call
 from ..model.structure import Model, assemble
+from ..model.system import require_system
 from ..solvers import DEFAULT_METHOD, METHODS
 from ..solvers.base import Event, Status
 from ..threads import one_blas_thread
@@ -25,9 +30,6 @@ from .start import consistent_start, consistent_state  # noqa: F401  (consistent
 from .trajectory import QUANTITIES, Trajectory
 from .unilateral import has_one_sided
 from .user_events import user_events
-
-#: An interrupted run with more samples than this keeps t, x, v only (see ``simulate``).
-INTERRUPTED_QUANTITY_SAMPLES = 5000
 
 
 def simulate(
@@ -61,8 +63,13 @@ def simulate(
     is then "terminal event"). A system with one-sided constraints runs in segments between
     releases, contacts and impacts (constrained.hybrid).
     """
+    require_system(system, "simulate")
     if method not in METHODS:
-        raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})")
+        close = difflib.get_close_matches(str(method), sorted(METHODS), n=1)
+        raise InputError(f"unknown method {method!r} (choose from {', '.join(sorted(METHODS))})"
+                         + (f"; did you mean '{close[0]}'?" if close else ""))
+    if options:
+        _check_keywords(method, options)
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
@@ -70,14 +77,23 @@ def simulate(
         raise InputError(f"t_end ({t_end:g} s) must be later than t_start ({t_start:g} s)")
     if not (isinstance(max_initial_correction, int | float) and max_initial_correction >= 0):
         raise InputError(f"max_initial_correction must be >= 0, got {max_initial_correction!r}")
-    wanted = OUTPUT_NAMES if outputs is None else set(outputs)
+    try:
+        wanted = OUTPUT_NAMES if outputs is None else set(outputs)
+        if isinstance(outputs, str) or not all(isinstance(name, str) for name in wanted):
+            raise TypeError
+    except TypeError:
+        raise InputError(f"outputs must be a list of names (of {', '.join(sorted(OUTPUT_NAMES))}), "
+                         f"got {outputs!r:.80}") from None
     unknown = wanted - OUTPUT_NAMES
     if unknown:
         raise InputError(
             f"unknown output(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(OUTPUT_NAMES))})"
         )
     if t_eval is not None:
-        t_eval = np.asarray(list(t_eval), dtype=float).ravel()
+        try:
+            t_eval = np.asarray(list(t_eval), dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise InputError(f"t_eval must be a list of times in seconds, got {t_eval!r:.80}") from None
         if t_eval.size == 0 or not np.all(np.isfinite(t_eval)):
             raise InputError("t_eval must be a non-empty list of finite times")
         if np.any(np.diff(t_eval) <= 0):
@@ -104,6 +120,7 @@ def simulate(
         max_correction=max_initial_correction, size=system.size(),
     )
     x0, v0, correction = start.x, start.v, start.correction
+    _warn_if_corrected(correction, system.velocities, system.size())
     _refuse_nonfinite_start(model, x0, v0, float(t_start))
     started = time.perf_counter()
     solver = METHODS[method](start.manifold, rtol=rtol, atol=atol, dt=dt, **options)
@@ -113,18 +130,21 @@ def simulate(
         # Ctrl-C becomes a request the solver honours after its current step or chunk
         with interrupt.watch():
             solution = solver.run(x0, v0, float(t_start), float(t_end), t_eval, events=events)
+            # Ctrl-C in the run's last step (or while its step loop was compiled) stops it too
+            interrupted = solution.status is Status.INTERRUPTED or interrupt.requested()
         wall = time.perf_counter() - started
         stats = {**solution.stats, "wall_time_s": wall, "build_time_s": build_time,
                  "setup_time_s": setup_time, "method": method}
-        interrupted = solution.status is Status.INTERRUPTED
         ended_by_event = solution.status is Status.EVENT
-        if interrupted and len(solution.t) > INTERRUPTED_QUANTITY_SAMPLES:
-            # the derived quantities cost ~30 µs a sample: a stop must be prompt, so a long
-            # interrupted run keeps t, x, v (plot/analysis can derive the rest later)
+        skipped = []
+        try:
+            traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
+        except KeyboardInterrupt:
+            if not interrupted:
+                raise
+            # a second Ctrl-C while the stopped run's quantities are computed: keep t, x, v
             skipped, wanted = sorted(wanted & set(QUANTITIES)), set()
-        else:
-            skipped = []
-        traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
+            traj = trajectory_from(model, solution.t, solution.x, solution.v, wanted, stats)
         if "action" in wanted and len(traj.t) >= 2:
             traj.action = action(model, traj).cumulative
     reached = float(traj.t[-1]) if len(traj.t) else float(t_start)
@@ -138,7 +158,8 @@ def simulate(
             "active_terms": sorted(model.active_terms),
             "status": "interrupted" if interrupted else ("stopped" if solution.failure and not ended_by_event
                                                          else "completed"),
-            "stop": solution.status.value,  # solvers.base.Status: how the run ended
+            # solvers.base.Status: how the run ended
+            "stop": Status.INTERRUPTED.value if interrupted else solution.status.value,
             "t_end": float(t_end),
             "t_end_reached": reached,
             "events": [{"t": hit.t, "name": hit.event.name, "x": hit.x, "v": hit.v}
@@ -146,16 +167,18 @@ def simulate(
         }
     )
     if not start.manifold.redundant:  # independent rows at the start: rank C, as constraint_report says
-        traj.info["degrees_of_freedom"] = model.n_coordinates - model.n_constraints
+        traj.info["degrees_of_freedom"] = model.n_coordinates - model.n_position_rows  # configuration
+        if model.n_position_rows < model.n_constraints:
+            traj.info["velocity_degrees_of_freedom"] = model.n_coordinates - model.n_constraints
     traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
                                np.reshape(hit.v, (-1, 3))) for hit in solution.events]
     if interrupted:
-        note = (f" (the derived quantities {', '.join(skipped)} were not computed for its "
-                f"{len(traj.t)} samples)" if skipped else "")
+        note = (f" (a second Ctrl-C: the derived quantities {', '.join(skipped)} were not computed)"
+                if skipped else "")
         if skipped:
             traj.info["quantities_skipped"] = skipped
-        traj.info["message"] = (f"the run was {solution.failure} (Ctrl-C) before t_end = {t_end:g} s; "
-                                f"what was computed is kept{note}")
+        traj.info["message"] = (f"the run was interrupted (Ctrl-C) at t = {reached:.6g} s of t_end = "
+                                f"{t_end:g} s; what was computed is kept{note}")
         raise RunInterrupted(traj.info["message"], trajectory=traj)
     if ended_by_event:  # which event, when (Trajectory.message)
         traj.info["message"] = str(solution.failure)
@@ -177,6 +200,50 @@ def simulate(
         traj.info["message"] = f"the run stopped early: {failure}; the last good state is at {last}{cause}"
         raise SimulationError(traj.info["message"], trajectory=traj)
     return traj
+
+
+def _warn_if_corrected(correction: dict, v0, size: float) -> None:
+    """An InitialStateWarning when the start was changed beyond round-off (as ``constrained run``
+    prints it): the user's velocity had components the constraints forbid, or the positions
+    were off the constraints (within max_initial_correction)."""
+    speed = max(1.0, float(np.max(np.abs(np.asarray(v0, float)), initial=0.0)))
+    dx, dv = correction["position"], correction["velocity"]
+    changed = []
+    if dx > 1e-9 * size:
+        changed.append(f"positions moved by {dx:.3g} m (the worst violation was "
+                       f"{correction['max_residual_before']:.3g} m, of '{correction['worst_constraint']}')")
+    if dv > 1e-9 * speed:
+        changed.append(f"velocities changed by {dv:.3g} m/s (their components along the constrained "
+                       "directions removed)")
+    if changed:
+        warnings.warn(InitialStateWarning("the initial state was made consistent with the constraints: "
+                                          + "; ".join(changed) + " (trajectory.info['initial_correction'])"),
+                      stacklevel=3)
+
+
+#: Keywords every run takes besides simulate's own and its method's OPTIONS (the solvers' common
+#: ones, and a run with one-sided constraints' own).
+COMMON_KEYWORDS = ("compiled", "progress", "rest_speed", "max_events")
+
+
+@functools.cache
+def _own_keywords() -> tuple[str, ...]:
+    return tuple(name for name in inspect.signature(simulate).parameters if name not in ("system", "options"))
+
+
+def _check_keywords(method: str, options: dict) -> None:
+    """Refuse a keyword no run takes, with the one meant (did you mean 'rtol'?) or the methods
+    that take it; keywords some run takes are checked by the method itself."""
+    takes = {*_own_keywords(), *COMMON_KEYWORDS, *METHODS[method].OPTIONS}
+    for key in sorted(set(options) - takes):
+        elsewhere = sorted(m for m, cls in METHODS.items() if key in cls.OPTIONS)
+        if elsewhere:
+            raise InputError(f"method '{method}' does not take the option {key!r}; "
+                             f"{', '.join(elsewhere)} take{'s' if len(elsewhere) == 1 else ''} it")
+        close = difflib.get_close_matches(key, sorted(takes), n=1)
+        raise InputError(f"simulate() got an unknown keyword {key!r}"
+                         + (f"; did you mean '{close[0]}'?" if close else
+                            f" (it takes {', '.join(sorted(takes))})"))
 
 
 def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: float, stats: dict) -> str:

@@ -32,7 +32,7 @@ class Start:
 def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: float = 1e-3,
                      size: float | None = None, policy: RankPolicy = RANK,
                      compiled: bool = False) -> Start:
-    """Project (x0, v0) onto f = 0 and J v + f_t = 0 (minimum mass-weighted change).
+    """Project (x0, v0) onto f = 0 and J v + f_t = 0, A v + b = 0 (minimum mass-weighted change).
 
     Refuses with InconsistentStateError when the position correction exceeds
     ``max_correction × size`` or when the constraints cannot all hold.
@@ -47,7 +47,7 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
     # residuals and tolerances in metres: each row divided by its scale (constrained.residual)
-    scales = residual.row_scales(model, x0, t0) if model.n_constraints else np.ones(0)
+    scales = residual.row_scales(model, x0, t0)[:model.n_position_rows] if model.n_constraints else np.ones(0)
     f0 = f0 / scales if np.all(np.isfinite(scales)) and np.all(scales > 0) else f0
     worst = int(np.argmax(np.abs(f0))) if f0.size else 0
     s_min = float(np.min(scales)) if scales.size and np.isfinite(np.min(scales)) else 1.0
@@ -134,7 +134,7 @@ def _refuse_taut_self_stress(manifold: Manifold, x, v, t: float) -> None:
     if not size > 0 or not np.isfinite(size):
         return
     algebra = manifold.algebra
-    J = algebra.matrix(model.jacobian(x, t)[1])
+    J = algebra.matrix(model.velocity_terms(x, t)[0])  # every row of γ (velocity rows' A after J)
     ones = np.ones(model.n_coordinates)
     y = algebra.schur_solve(J, ones, c, full_rank=False)
     r = c - J @ (J.T @ y)  # the part of c outside range(J): along null(Jᵀ)

@@ -294,6 +294,21 @@ class Trajectory:
         if t.ndim != 1 or x.ndim != 3 or x.shape[0] != len(t) or x.shape[2:] != (3,) or v.shape != x.shape:
             raise InputError(f"{path}: the arrays t {t.shape}, x {x.shape}, v {v.shape} do not have the "
                              "shapes of a trajectory (T,), (T, N, 3), (T, N, 3)")
+        T, N = x.shape[:2]
+        shapes = {"multipliers": (T, None), "constraint_forces": (T, N, 3), "energy": (T,),
+                  "constraint_residual": (T,), "velocity_residual": (T,), "action": (T,)}
+        for name in ("t", "x", "v", *QUANTITIES):
+            a = arrays.get(name)
+            if a is None:
+                continue
+            want = shapes.get(name)
+            wrong = want is not None and (a.ndim != len(want) or any(
+                w is not None and w != n for w, n in zip(want, a.shape, strict=False)))
+            if a.dtype.kind not in "fiu" or wrong:
+                shape = "(" + ", ".join("C" if w is None else str(w) for w in want) + ") " if want else ""
+                raise InputError(f"{path}: the array {name} has shape {a.shape} and type {a.dtype}, not the "
+                                 f"{shape}numbers its t {t.shape} and x {x.shape} need; the file is "
+                                 "damaged: run the scene again to write it")
         return cls(
             **{k: arrays.get(k) for k in ("t", "x", "v", *QUANTITIES)},
             particle_names=meta.get("particle_names", []),
@@ -321,7 +336,7 @@ def atomic_write(path: Path, write) -> None:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
         with os.fdopen(fd, "wb") as f:
             write(f)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the mode open() would
+        os.chmod(tmp, file_mode())  # mkstemp makes 0600; give the mode open() would
         os.replace(tmp, path)
     except BaseException as exc:
         if tmp is not None and os.path.exists(tmp):
@@ -332,10 +347,12 @@ def atomic_write(path: Path, write) -> None:
         raise
 
 
-def _umask() -> int:
+def file_mode() -> int:
+    """The mode ``open()`` gives a new file (0o666 less the umask): what a file written through a
+    temporary (mkstemp makes 0600) is given before it is renamed into place."""
     mask = os.umask(0)
     os.umask(mask)
-    return mask
+    return 0o666 & ~mask
 
 
 def _jsonable(value):

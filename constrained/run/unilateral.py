@@ -25,6 +25,16 @@ with ``v⁺ = v⁻ + M⁻¹ Jᵀ P`` and ``c⁺_a = 0``, ``c⁺_c = −e c⁻_c`
 
 — the minimum kinetic-energy change that stops (e = 0) or reverses (e > 0) the approach, so
 momentum in every direction the constraints do not touch is kept.
+
+The energy an impact dissipates is measured in the frame of the constraint (a moving wall's):
+with ΔT = T⁺ − T⁻ the change in the fixed frame and A = J M⁻¹ Jᵀ,
+
+    E_lost = −ΔT − f_tᵀ P = −½ Pᵀ (c⁺ + c⁻) ≥ 0   (e ≤ 1),
+
+which for one row is ½ (1 − e²) m_eff u², u the approach speed relative to the surface and
+m_eff = 1/A (a particle on a plane: its mass). In a frame moving with the surface (J w + f_t = 0)
+it is exactly the kinetic energy lost there. ΔT itself is kept too: a moving wall does work,
+so in the fixed frame an impact may even add kinetic energy.
 """
 
 from __future__ import annotations
@@ -63,7 +73,9 @@ def one_sided(model: Model) -> OneSided:
         owner = model.constraint_owner
         rows = tuple(int(k) for k in range(model.n_constraints) if constraints[owner[k]].unilateral)
         side = np.array([float(constraints[owner[k]].side) for k in range(model.n_constraints)])
-        e = np.array([constraints[owner[k]].restitution for k in range(model.n_constraints)], float)
+        values = model.system.parameter_values  # (restitution may be a formula of them)
+        e = np.array([constraints[owner[k]].coefficient_of_restitution(values) if k in rows else 0.0
+                      for k in range(model.n_constraints)], float)
         return OneSided(rows, side, e)
 
     return built_once(model, "one_sided", build)
@@ -154,13 +166,18 @@ def holding_set(model: Model, rows, x, v, t, tol: float) -> tuple[ActiveSet, lis
 class Impact:
     """The outcome of an impact: the new velocity ``v``, the impulse on each closing row
     (``impulse``: row -> N·s along the row's unit normal, ≥ 0 in the allowed direction),
-    ``energy_lost`` (J, ≥ 0 for e ≤ 1), and ``released`` (active one-sided rows the impulse
-    would have had to pull on, which leave instead)."""
+    ``energy_lost`` (J, ≥ 0 for e ≤ 1: in the frame of the constraint, ½(1 − e²) m u² for one
+    particle meeting a surface at relative speed u), ``released`` (active one-sided rows the
+    impulse would have had to pull on, which leave instead) and ``kinetic_energy_change`` (the
+    fixed frame's T⁺ − T⁻)."""
 
     v: np.ndarray
     impulse: dict
     energy_lost: float
     released: tuple[int, ...]
+    #: T⁺ − T⁻ in the fixed frame (J): −energy_lost on a fixed constraint; on a moving one it
+    #: also holds the work of the constraint's motion.
+    kinetic_energy_change: float = 0.0
 
 
 def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Impact:
@@ -170,8 +187,9 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
     sign is released and the jump recomputed without it."""
     info = one_sided(model)
     x, v = np.asarray(x, float), np.asarray(v, float)
-    J = np.asarray(model.velocity_terms(x, t)[0], float)
-    c = constraint_velocities(model, x, v, t)
+    J, f_t = (np.asarray(o, float) for o in model.velocity_terms(x, t))
+    f_t = f_t.ravel()
+    c = J @ v + f_t
     s = scales(model, x, t)
     held = [k for k in active_rows if k not in closing]
     released = []
@@ -190,9 +208,10 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
         held.remove(worst)
         released.append(worst)
     v_new = v + model.inverse_masses * (J[rows].T @ P)
-    kinetic = float(model.kinetic(v)) - float(model.kinetic(v_new))
+    change = float(model.kinetic(v_new)) - float(model.kinetic(v))
+    lost = max(0.0, -change - float(f_t[rows] @ P))  # in the constraint's frame (see the module)
     impulse = {int(k): float(info.side[k] * P[i] * s[k]) for i, k in enumerate(rows) if k in closing}
-    return Impact(v_new, impulse, kinetic, tuple(released))
+    return Impact(v_new, impulse, lost, tuple(released), change)
 
 
 # --- the start -----------------------------------------------------------------------------------

@@ -85,7 +85,8 @@ class FormulaEvent:
         import casadi as ca
 
         g = symbols.parse(self.expr, f"{self.where or 'events'}.expr", velocities=True)
-        function = ca.Function(f"event_{self.name}", [symbols.t, symbols.x, symbols.v], [g])
+        # (not named after the event: CasADi allows only identifiers, an event may be "half way")
+        function = ca.Function("user_event", [symbols.t, symbols.x, symbols.v], [g])
 
         def value(t, x, v, _f=function):
             return float(_f(t, x, v))

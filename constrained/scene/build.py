@@ -16,11 +16,12 @@ from ..manifold.vectorized import graphs as vectorized
 from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
 from ..model.effects import EFFECT_TYPES
-from ..model.parameters import RESERVED_NAMES
+from ..model.parameters import RESERVED_NAMES, check_name
 from ..model.regularity import undefined_items
 from ..model.structure import Model, kept_structure
 from ..model.symbols import Symbols
 from ..model.system import Particle, System
+from ..model.velocity import VELOCITY_TYPES
 from .keys import (
     CONSTRAINT_KEYS,
     EFFECT_KEYS,
@@ -78,6 +79,9 @@ class SceneBuilder(RunSections):
         effects = [self.item(i, item, "effects") for i, item in enumerate(self.array_of_tables("effects"))]
         try:
             system = System(particles, constraints, effects, parameters, name, definitions)
+            for c in system.constraints:  # a formula's value in [0, 1] (sweeps check theirs per run)
+                if c.unilateral:
+                    c.coefficient_of_restitution(system.parameter_values)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
         structure = self.structure(system)
@@ -171,6 +175,13 @@ class SceneBuilder(RunSections):
                 names |= {f"{axis}_{p}", f"v{axis}_{p}"}
         return names
 
+    def name_for_formulas(self, name: str, key: str, what: str) -> None:
+        """Refuse a name no formula could use (a keyword of the syntax, e, a function), saying why."""
+        try:
+            check_name(name, key, what=what)
+        except InputError as exc:
+            self.fail(key, exc.reason)
+
     def parameters(self) -> dict[str, float]:
         table = self.raw.get("parameters", {})
         reserved = self.reserved_for_formulas()
@@ -178,6 +189,7 @@ class SceneBuilder(RunSections):
         for k, v in table.items():
             key = _join("parameters", k)
             self.identifier(k, key, "a parameter name")
+            self.name_for_formulas(k, key, "parameter")
             if k in reserved:
                 self.fail(
                     key,
@@ -193,6 +205,7 @@ class SceneBuilder(RunSections):
         for k, v in table.items():
             key = _join("definitions", k)
             self.identifier(k, key, "a definition name")
+            self.name_for_formulas(k, key, "definition")
             if k in reserved or k in parameters:
                 what = "a parameter" if k in parameters else "it already means something in formulas"
                 self.fail(key, f"the definition name '{k}' is taken ({what})")
@@ -203,7 +216,7 @@ class SceneBuilder(RunSections):
         """One [[constraints]] or [[effects]] entry -> the library object."""
         key = _join(section, i)
         kind = "constraint" if section == "constraints" else "effect"
-        types = CONSTRAINT_TYPES if section == "constraints" else EFFECT_TYPES
+        types = {**CONSTRAINT_TYPES, **VELOCITY_TYPES} if section == "constraints" else EFFECT_TYPES
         schema = CONSTRAINT_KEYS if section == "constraints" else EFFECT_KEYS
         if "type" not in item:
             self.fail(
@@ -237,12 +250,21 @@ class SceneBuilder(RunSections):
             if not isinstance(v, bool):
                 self.fail(key, f"must be true (a one-sided constraint) or false, got {_describe(v)}")
             return v
-        if k == "restitution":
-            return self.number(v, key, "a coefficient of restitution from 0 to 1")
+        if k == "restitution":  # a number, or a formula of the parameters (swept like any)
+            if isinstance(v, str):
+                return self.formula(v, key)
+            return self.number(v, key, "a coefficient of restitution from 0 to 1, or a formula of the "
+                               "parameters")
         if k in ("a", "b", "particle"):
             return self.particle(v, key)
         if k == "particles":
             return self.particle_list(v, key)
+        if k in ("across", "along"):  # a knife edge's direction: two particles
+            pair = self.particle_list(v, key)
+            if len(pair) != 2:
+                self.fail(key, f"must be a list of two particle names (the direction from the first to "
+                               f"the second), got {len(pair)}")
+            return pair
         if k in ("point", "normal", "g", "A"):
             return self.vector(v, key)
         if k == "expr":

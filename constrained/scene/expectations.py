@@ -179,7 +179,8 @@ def _by_construction(c, symbols: Symbols, tr, method: str | None) -> str:
     except InputError:
         return ""
     # one-sided constraints are not held throughout: a function of them is evidence
-    rows = [e for con in symbols.system.constraints if not con.unilateral for e, _ in con.rows(symbols)]
+    rows = [e for con in symbols.system.constraints if not con.unilateral and con.level == "position"
+            for e, _ in con.rows(symbols)]  # (velocity rows hold no function of x alone)
     if not rows or ca.depends_on(expr, symbols.v) or ca.depends_on(expr, symbols.t) or expr.is_constant():
         return ""
     f = ca.vertcat(*rows)

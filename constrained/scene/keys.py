@@ -88,6 +88,9 @@ CONSTRAINT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "surface": (("particles", "expr"), ()),
     "curve": (("particles", "expr"), ()),
     "custom": (("expr",), ()),
+    "velocity": (("expr",), ()),
+    "knife_edge": (("particle",), ("across", "along", "normal")),
+    "rolling": (("particle", "normal"), ("radius", "a", "b")),
 }
 EFFECT_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "gravity": (("g",), ("particles",)),

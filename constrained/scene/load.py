@@ -256,6 +256,23 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
     return _copied(scene)
 
 
+#: What a TOML nested beyond what the reader (recursive) takes is told.
+NESTED_TOO_DEEPLY = "its arrays or tables are nested too deeply"
+#: The deepest nesting of tables and arrays a scene may have (a scene needs 4: the copies and
+#: checks of its data recurse once per level).
+MAX_NESTING = 64
+
+
+def refuse_deep_nesting(raw: dict, file: str) -> None:
+    """SceneError when tables and arrays nest deeper than MAX_NESTING (counted without recursion:
+    TOML's dotted table names, [a.a.a...], nest without limit)."""
+    stack = [(raw, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if depth > MAX_NESTING:
+            raise SceneError(f"{NESTED_TOO_DEEPLY} (more than {MAX_NESTING} levels)", file=file)
+        children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+        stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
 #: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
 #: again (a sweep, a fresh call) skips the validation and formula checks (about 1 ms). Each
 #: caller gets its own copies of the mutable parts.
@@ -282,6 +299,9 @@ def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool]:
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
+    except RecursionError:  # (Python's TOML reader recurses once per level)
+        raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
+    refuse_deep_nesting(raw, file)
     particles = raw.get("particles")
     if isinstance(particles, list) and len(particles) > KEPT_PARTICLES:
         return raw, False

@@ -75,7 +75,7 @@ def _parse_value(text: str):
         return [_parse_value(entry.strip()) for entry in text.strip()[1:-1].split(",") if entry.strip()]
     try:
         return tomllib.loads(f"value = {text}")["value"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):
         pass
     try:
         return float(text) if any(c in text for c in ".eE") or text.lower() in ("inf", "nan") else int(text)

@@ -191,6 +191,8 @@ class Solver:
     refines_events = True
     #: Whether the method is explicit (the driver then samples h·ρ(∂f/∂y) for stiffness).
     explicit = False
+    #: Why the method cannot take velocity constraints (model/velocity.py), or None: it can.
+    refuses_velocity_rows: str | None = None
 
     def __init__(self, manifold, *, rtol: float = 1e-8, atol: float = 1e-10, dt: float | None = None,
                  compiled="auto", progress=None, max_steps: int | None = None,
@@ -217,6 +219,10 @@ class Solver:
         #: This run's view of the constraints (row set, KKT solve, counters).
         self.manifold: Manifold = manifold
         self.model: Model = manifold.model
+        if self.refuses_velocity_rows and self.model.n_position_rows < self.model.n_constraints:
+            raise InputError(f"method '{self.name}' cannot take velocity constraints: "
+                             f"{self.refuses_velocity_rows}; use another method (dopri, projection, "
+                             "baumgarte, idas, ggl, pantelides)")
         #: The constraint rows the method's own equations use (an independent set).
         self.rows: list[int] = (list(range(manifold.model.n_constraints)) if manifold.rows is None
                                 else list(manifold.rows))

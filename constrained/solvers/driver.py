@@ -31,7 +31,7 @@ from .watches import CollapseWatch, SingularWatch, past_a_limit
 STEP_SAMPLES = 20_000
 #: The step limit when none is given (accepted plus rejected steps; a fixed-step method gets
 #: at least twice the steps its span needs).
-DEFAULT_MAX_STEPS = 2_000_000
+DEFAULT_MAX_STEPS = 20_000_000
 
 #: Failures of a step that a limit position passed during it may explain.
 STEP_FAILURES = (Status.PROJECTION_FAILED, Status.STEP_SIZE_COLLAPSED, Status.SOLVER_FAILED)

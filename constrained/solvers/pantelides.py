@@ -50,7 +50,10 @@ class Pantelides(Stepper):
         lam, t = ca.SX.sym("lam", C), ca.SX.sym("t")
         F, J, _ = m.dynamics(x, v, t)
         J = J[self.rows, :]
-        blocks = [m.constraint(x, t)[self.rows], ca.DM(m.masses) * dv - F - ca.mtimes(J.T, lam), dx - v]
+        # rows of f, then the velocity rows A v + b = 0 (model/velocity.py) as they are
+        G, c0 = m.velocity_terms(x, t)
+        held = ca.vertcat(m.constraint(x, t), (ca.mtimes(G, v) + c0)[m.n_position_rows:])[self.rows]
+        blocks = [held, ca.DM(m.masses) * dv - F - ca.mtimes(J.T, lam), dx - v]
         last = None
         for order in itertools.permutations(range(3)):
             dae = {"x_impl": ca.vertcat(x, v), "dx_impl": ca.vertcat(dx, dv), "z": lam,

@@ -55,6 +55,8 @@ class Rattle(Stepper):
     order = 2
     OPTIONS = ("newton_tol", "newton_iterations", *DRIVER_OPTIONS)
     refines_events = False  # its step is fixed: events are located on the dense output
+    refuses_velocity_rows = ("its step keeps f = 0 by a Newton iteration in the multipliers, and a "
+                             "velocity row has no f (a discrete non-holonomic integrator is another method)")
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
                  newton_iterations: int = 4, **options):

@@ -50,7 +50,7 @@ class SingularWatch:
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
-        J = self.model.jacobian(x, t)[1]
+        J = self.model.velocity_terms(x, t)[0]  # every row: J, then velocity rows' A
         rows, cols = J.sparsity().get_triplet()
         J = sp.csr_matrix((np.asarray(J.nonzeros()).ravel(), (rows, cols)), shape=J.shape)[self.rows]
         norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=1)).ravel())

@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 
-from .. import interrupt
 from ..scene.expectations import drift, expect_requirements, period  # the [expect] checks' own measures
 from .per_run import (
     cached_model,
@@ -110,7 +109,7 @@ def run_batch(task: dict) -> dict:
                             rtol=options.rtol, atol=options.atol, model=model, compiled=task["compiled"],
                             max_initial_correction=options.max_initial_correction,
                             progress=task.get("progress"), threads=task.get("threads"), **kwargs)
-        interrupted = "interrupted" in ens.status or interrupt.requested()
+        interrupted = "interrupted" in ens.status or ens.stats.get("interrupted", False)
         P = np.tile(np.asarray(model.parameter_vector, float), (len(ids), 1))
         for name, values in table.items():
             P[:, model.parameter_names.index(name)] = values

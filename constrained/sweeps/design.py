@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..extras import install_hint
-from ..scene.load import SceneError, parse_override
+from ..scene.load import NESTED_TOO_DEEPLY, SceneError, parse_override, refuse_deep_nesting
 
 #: The most runs one design may have (values of one spec, and grid x samples): a larger
 #: design is refused before it is built (it would take minutes and gigabytes to list).
@@ -150,7 +150,7 @@ def parse_spec(key: str, text: str) -> Spec:
         return Spec(key, text, fn, (a, b))
     try:
         value = tomllib.loads(f"value = {text}")["value"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):
         raise InputError(
             f"cannot read the spec {text!r}: give a list [1, 2, 3], lin(start, stop, n), "
             "log(start, stop, n), "
@@ -393,6 +393,10 @@ def parse_summary(text: str) -> Summary:
 def load_raw(scene_text: str, file: str) -> dict:
     """The scene's TOML as a dict; a SceneError names the file when it is not TOML."""
     try:
-        return tomllib.loads(scene_text)
+        raw = tomllib.loads(scene_text)
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
+    except RecursionError:
+        raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
+    refuse_deep_nesting(raw, file)
+    return raw

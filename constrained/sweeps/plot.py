@@ -138,7 +138,7 @@ def save_sweep_figure(result, path, *, column: str | None = None, boundary: str 
     fig, ax = plt.subplots(figsize=(6.4, 4.8), constrained_layout=True)
     if len(specs) == 1:
         s = specs[0]
-        x = np.array([r[s.key] for r in result.rows], float)
+        x = np.asarray(result.column(s.key), float)
         order = np.argsort(x)
         ax.plot(x[order], z[order], "o-", ms=3)
         ax.set_xlabel(axis_label(s.key, units))
@@ -149,8 +149,8 @@ def save_sweep_figure(result, path, *, column: str | None = None, boundary: str 
     else:
         sx, sy = specs[1], specs[0]  # the second key across, the first up
         if sx.scattered or sy.scattered:
-            xs = np.array([r[sx.key] for r in result.rows], float)
-            ys = np.array([r[sy.key] for r in result.rows], float)
+            xs = np.asarray(result.column(sx.key), float)
+            ys = np.asarray(result.column(sy.key), float)
             im = ax.scatter(xs, ys, c=z, cmap="viridis", s=20)
             gx = np.linspace(xs.min(), xs.max(), 200)
             gy = np.linspace(ys.min(), ys.max(), 200)
@@ -158,8 +158,8 @@ def save_sweep_figure(result, path, *, column: str | None = None, boundary: str 
             Z = np.full((len(sy.values), len(sx.values)), np.nan)
             jx = {v: j for j, v in enumerate(sx.values)}
             iy = {v: i for i, v in enumerate(sy.values)}
-            for r, val in zip(result.rows, z, strict=True):
-                Z[iy[r[sy.key]], jx[r[sx.key]]] = val
+            for x_, y_, val in zip(result.column(sx.key), result.column(sy.key), z, strict=True):
+                Z[iy[y_], jx[x_]] = val
             ex, ey = cell_edges(sx.values, sx.log), cell_edges(sy.values, sy.log)
             finite = Z[np.isfinite(Z)]
             norm = None
@@ -186,7 +186,7 @@ def save_sweep_figure(result, path, *, column: str | None = None, boundary: str 
             ax.set_xscale("log")
         if sy.log:
             ax.set_yscale("log")
-    ax.set_title(f"sweep: {column} ({len(result.rows)} runs)" + (f"\n({why})" if why else ""), fontsize=10)
+    ax.set_title(f"sweep: {column} ({result.finished} runs)" + (f"\n({why})" if why else ""), fontsize=10)
     path = Path(path)
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
     plt.close(fig)

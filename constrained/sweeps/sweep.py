@@ -53,9 +53,10 @@ from .per_run import _MODEL_CACHE, CACHE_STATS, MODEL_CACHE_SIZE, _settings_kwar
 from .plot import axis_label, boundary_function, cell_edges, save_sweep_figure
 from .store import (
     check_manifest,
-    read_chunks,
+    read_done,
     read_legacy_records,
-    table,
+    summary_columns,
+    summary_rows,
     write_chunk,
     write_json,
     write_table,
@@ -93,20 +94,21 @@ SUMMARY_EVERY_S = 10.0
 class SweepResult:
     """A finished (or stopped) sweep: the table and what was done.
 
-    ``rows`` (list of dicts, design order, only runs that have a result), ``columns``,
+    ``rows`` (list of dicts, design order, only runs that have a result) and ``columns`` are
+    read from the chunk files in DIR when first asked for (a sweep holds no rows while it
+    runs: its memory is flat in the number of variants); ``column(name)`` streams one
+    column. ``finished`` (runs with a result), ``failed`` (those whose status is not ``ok``),
     ``computed`` (runs computed by this call), ``skipped`` (results found in DIR and reused),
-    ``failed`` (rows whose status is not ``ok``), ``total`` (runs in the design),
-    ``paths`` (files written), ``wall_time_s``, ``specs``, ``design``; ``batched`` and
-    ``per_run``: how many of the computed runs took each path; ``where``: what ran the
-    chunks and why (``where.mode``, ``where.reason``); ``notes``: why variants ran per run;
-    ``warnings``: chunk files found unreadable (their variants were computed again).
+    ``total`` (runs in the design), ``paths`` (files written), ``wall_time_s``, ``specs``,
+    ``design``; ``batched`` and ``per_run``: how many of the computed runs took each path;
+    ``where``: what ran the chunks and why (``where.mode``, ``where.reason``); ``notes``: why
+    variants ran per run; ``warnings``: chunk files found unreadable (their variants were
+    computed again).
     """
 
     out_dir: Path
     specs: list[Spec]
     design: list[dict]
-    rows: list[dict]
-    columns: list[str]
     computed: int
     skipped: int
     wall_time_s: float
@@ -117,24 +119,56 @@ class SweepResult:
     where: Where | None = None
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    finished: int = 0
+    failed: int = 0
+    #: where the rows are: (varied keys, {chunk file: first design index}, {run id: design index})
+    source: tuple = field(default=((), {}, {}), repr=False)
+    _rows: list[dict] | None = field(default=None, repr=False)
+    _columns: list[str] | None = field(default=None, repr=False)
 
     @property
     def total(self) -> int:
         return len(self.design)
 
     @property
-    def failed(self) -> int:
-        return sum(1 for r in self.rows if r.get("status") != "ok")
+    def complete(self) -> bool:
+        return self.finished == len(self.design)
 
     @property
-    def complete(self) -> bool:
-        return len(self.rows) == len(self.design)
+    def rows(self) -> list[dict]:
+        if self._rows is None:
+            summary = self.out_dir / "summary.parquet"
+            if summary in self.paths and summary.is_file():  # the table as written
+                import pyarrow.parquet as pq
+
+                table = pq.read_table(summary)
+                self._rows, self._columns = table.to_pylist(), table.column_names
+            else:
+                keys, files, index_of = self.source
+                self._rows = list(summary_rows(list(keys), self.design, files, index_of))
+        return self._rows
+
+    @property
+    def columns(self) -> list[str]:
+        if self._columns is None:
+            keys, files, _ = self.source
+            self._columns = summary_columns(list(keys), files)[0]
+        return self._columns
 
     def column(self, name: str) -> np.ndarray:
         """One column as an array (floats where possible; NaN where a run has no value)."""
         if name not in self.columns:
             raise InputError(f"no column '{name}' in the sweep table (columns: {', '.join(self.columns)})")
-        values = [r.get(name) for r in self.rows]
+        summary = self.out_dir / "summary.parquet"
+        if self._rows is not None:
+            values = [r.get(name) for r in self._rows]
+        elif summary in self.paths and summary.is_file():  # one column of the table as written
+            import pyarrow.parquet as pq
+
+            values = pq.read_table(summary, columns=[name]).column(name).to_pylist()
+        else:  # streamed: one column in memory, not the table
+            keys, files, index_of = self.source
+            values = [r.get(name) for r in summary_rows(list(keys), self.design, files, index_of)]
         try:
             return np.array([np.nan if v is None else v for v in values], dtype=float)
         except (TypeError, ValueError):
@@ -195,9 +229,11 @@ def sweep(
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     overrides = list(overrides)
-    if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int)
-                                   or chunk_size < 1):
-        raise InputError(f"--chunk-size must be a whole number >= 1, got {chunk_size!r}")
+    for option, value, least in (("--chunk-size", chunk_size, 1), ("--workers", workers, 1),
+                                 ("--limit", limit, 0), ("--samples", samples, 1)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < least):
+            raise InputError(f"{option} must be a whole number >= {least}, got {value!r}"
+                             + (" (0: compute none of the missing runs)" if option == "--limit" else ""))
     if not vary and design_file is None:
         raise InputError("give at least one --vary KEY=SPEC, or --design FILE")
     specs = [parse_vary(v) for v in vary]
@@ -225,13 +261,16 @@ def sweep(
     ids = [run_id(p) for p in points]
     if len(set(ids)) != len(ids):
         raise InputError("the design has repeated points (the same values twice); remove the duplicates")
-    wanted = set(ids)
-    done, warnings = read_chunks(chunks_dir, wanted)
-    for rid, rec in read_legacy_records(runs_dir, [i for i in ids if i not in done]).items():
-        done[rid] = rec
+    index_of = {rid: i for i, rid in enumerate(ids)}
+    done, files, warnings = read_done(chunks_dir, index_of)  # {run id: ok}: no rows held
+    legacy = read_legacy_records(runs_dir, [i for i in ids if i not in done])
+    if legacy:  # an earlier version's records, written once as a chunk file of today's layout
+        chunks_dir.mkdir(parents=True, exist_ok=True)
+        files[write_chunk(chunks_dir, legacy, index_of, {"path": "per-run"})] = min(map(index_of.get, legacy))
+        done.update({rid: rec["status"] == "ok" for rid, rec in legacy.items()})
+        del legacy
     if save_trajectories:  # a run without its trajectory file is computed again
-        done = {rid: rec for rid, rec in done.items()
-                if rec["status"] != "ok" or (runs_dir / f"{rid}.npz").is_file()}
+        done = {rid: ok for rid, ok in done.items() if not ok or (runs_dir / f"{rid}.npz").is_file()}
     todo = [i for i, rid in enumerate(ids) if rid not in done]
     if limit is not None:
         todo = todo[: max(int(limit), 0)]
@@ -248,7 +287,6 @@ def sweep(
                  "save_trajectory": bool(save_trajectories)}, points, ids, todo,
                 blocker=lambda shared: _blocker(base_raw, file, shared, save_trajectories, batch),
                 batch_chunk=chunk_size, run_chunk=1 if scheduler == "sequential" else RUN_CHUNK)
-    index_of = {rid: i for i, rid in enumerate(ids)}
     last_write = [time.monotonic()]
 
     def record(chunk: Chunk, result: dict) -> None:
@@ -260,28 +298,29 @@ def sweep(
                 rec["row"]["path"] = chunk.path
             meta = {"path": chunk.path, "worker": result.get("worker"),
                     "wall_time_s": result.get("wall_time_s"), "evaluation": result.get("evaluation")}
-            write_chunk(chunks_dir, rows, index_of, meta)
-            for rid, rec in rows.items():
-                done[rid] = {**rec, "meta": meta}
+            path = write_chunk(chunks_dir, rows, index_of, meta)
+            files[path] = min(files.get(path, len(ids)), *(index_of[rid] for rid in rows))
+            for rid, rec in rows.items():  # (the rows live in the chunk file from here on)
+                done[rid] = rec["status"] == "ok"
         if result.get("interrupted"):
             raise KeyboardInterrupt
         if time.monotonic() - last_write[0] > SUMMARY_EVERY_S:
-            write_table(out, keys, points, ids, done, parquet=False)
+            write_table(out, keys, points, files, index_of, parquet=False)
             last_write[0] = time.monotonic()
 
     try:
         where = execute(work.chunks, record, scheduler, progress=progress, workers=workers)
     except BaseException:  # interrupted: the finished chunks are on disk; leave a table of them too
         if done:
-            write_table(out, keys, points, ids, done, parquet=False)
+            write_table(out, keys, points, files, index_of, parquet=False)
         raise
-    rows, columns = table(keys, points, ids, done, consume=True)  # (not held twice)
-    paths = write_table(out, keys, points, ids, done, parquet=True, rows_columns=(rows, columns))
-    result = SweepResult(out, specs, points, rows, columns, computed=len(todo), skipped=skipped,
+    paths = write_table(out, keys, points, files, index_of, parquet=True)
+    result = SweepResult(out, specs, points, computed=len(todo), skipped=skipped,
                          wall_time_s=0.0, paths=paths, workers=where.workers, batched=work.count("batched"),
                          per_run=work.count("per-run"), where=where, notes=work.notes,
-                         warnings=warnings)
-    if figure and result.rows:
+                         warnings=warnings, finished=len(done), failed=sum(not ok for ok in done.values()),
+                         source=(tuple(keys), files, index_of))
+    if figure and result.finished:
         try:
             fig = save_sweep_figure(result, out / "sweep.png", column=plot, boundary=boundary,
                                     scene_text=scene_text, file=file, overrides=overrides,

@@ -207,7 +207,7 @@ class VectorizedBuild:
         mb = mapped_build(structure)
         e = mb.e
         self.mapped, self.e = mb, e
-        self.n3, self.n_rows = structure.n_coordinates, structure.n_constraints
+        self.n3, self.n_rows = structure.n_coordinates, structure.n_position_rows  # (no velocity rows)
         self.rheonomic = structure.rheonomic
         # the rest: one SX Function of (x, v, t, p), its J's nonzeros one stream
         f_rest = ca.vertcat(*[e.rows[k] for k in mb.rest_place]) if len(mb.rest_place) else ca.SX(0, 1)

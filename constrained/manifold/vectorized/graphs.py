@@ -19,8 +19,10 @@ VECTORIZED_FROM = 300
 
 def applies(model: Model, rows=None) -> bool:
     """Whether step loops of ``model`` on ``rows`` use the vectorized build: a plain Model (not
-    a held row subset) of VECTORIZED_FROM coordinates or more, solving with all its rows."""
-    return rows is None and getattr(model, "rows", None) is None and model.n_coordinates >= VECTORIZED_FROM
+    a held row subset) of VECTORIZED_FROM coordinates or more, solving with all its rows, with
+    no velocity rows (model/velocity.py)."""
+    return (rows is None and getattr(model, "rows", None) is None and model.n_coordinates >= VECTORIZED_FROM
+            and getattr(model, "n_position_rows", model.n_constraints) == model.n_constraints)
 
 
 class VectorizedView(ParametricView):
