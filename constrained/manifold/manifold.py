@@ -45,6 +45,7 @@ from .algebra import LinearAlgebra, algebra_for
 from .dense import independent_rows_after
 from .graph import acceleration_graph, position_step_graph, velocity_correction_graph
 from .rank_policy import RANK, RankPolicy
+from .vectorized import graphs as vectorized
 
 
 class ProjectionStatus(enum.Enum):
@@ -114,18 +115,23 @@ def constraint_values(model: Model):
 
 def structural_call(model: Model, key, build, *inputs: str):
     """A fast call ``(*inputs) -> [outputs]`` of the Function ``build(view, *symbols, P)``
-    (SX symbols for ``inputs``, each "x"/"v" of 3N, "t" a scalar; ``view`` the model's
+    (SX symbols for ``inputs``, each "x"/"v" of 3N, "lam" of C, "t" a scalar; ``view`` the model's
     ``ParametricView`` with P), built once per structure and called with the model's p."""
     cache, prefix = structure_cache(model)
     full_key = (*prefix, "structural", key)
     fast = cache.get(full_key)
     if fast is None:
         n3 = model.n_coordinates
-        # MX where pair potentials are mapped kernels (in SX they would be one term per pair)
-        kind = ca.MX if getattr(model.structure, "pairs", ()) else ca.SX
-        symbols = [kind.sym(name, n3 if name in ("x", "v") else 1) for name in inputs]
+        # MX where pair potentials are mapped kernels (in SX they would be one term per pair) or
+        # for a large model on the vectorized build (an SX graph of every row would be built)
+        large = vectorized.applies(model)
+        pairs = bool(getattr(model.structure, "pairs", ()))
+        kind = ca.MX if large or pairs else ca.SX
+        View = vectorized.VectorizedView if large else ParametricView
+        sizes = {"x": n3, "v": n3, "lam": model.n_constraints}
+        symbols = [kind.sym(name, sizes.get(name, 1)) for name in inputs]
         P = kind.sym("p", len(model.parameter_vector))
-        fast = cache[full_key] = FastCall(build(ParametricView(model, P), *symbols, P))
+        fast = cache[full_key] = FastCall(build(View(model, P), *symbols, P))
     p = model.parameter_vector
     potentials = getattr(model.structure, "pair_potentials", None)
     if "x" not in inputs or potentials is None or not any(term.size for term in potentials.terms):
@@ -139,6 +145,44 @@ def structural_call(model: Model, key, build, *inputs: str):
     return call
 
 
+def sparse_jacobian(model: Model):
+    """``(x, t) -> G`` (a sparse CasADi DM, C × 3N: J, then the velocity rows' A) with the
+    model's parameter values: the Model's ``velocity_terms``, or for a large model (no velocity
+    rows) one call of the vectorized build."""
+    if not vectorized.applies(model):
+        return lambda x, t: model.velocity_terms(x, t)[0]
+
+    def build(view, X, T, P):
+        return ca.Function("jacobian_nonzeros", [X, T, P], [ca.densify(view.jacobian(X, T)[1].nz[:])])
+
+    nonzeros = structural_call(model, "jacobian_nonzeros", build, "x", "t")
+    sparsity = vectorized.vectorized_build(model.structure).jacobian_sparsity
+    return lambda x, t: ca.DM(sparsity, nonzeros(np.asarray(x, float).ravel(), t)[0])
+
+
+def dynamics_values(model: Model):
+    """``(x, v, t) -> (F, J, γ)`` (F and γ flat NumPy, J a sparse CasADi DM) with the model's
+    parameter values: the Model's ``dynamics``, or for a large model the vectorized build."""
+    if not vectorized.applies(model):
+        def call(x, v, t):
+            F, J, gamma = model.dynamics(x, v, t)
+            return np.asarray(F, float).ravel(), J, np.asarray(gamma, float).ravel()
+        return call
+
+    def build(view, X, V, T, P):
+        F, J, gamma = view.dynamics(X, V, T)
+        return ca.Function("dynamics_nonzeros", [X, V, T, P], [ca.densify(F), ca.densify(J.nz[:]),
+                                                                ca.densify(gamma)])
+
+    values = structural_call(model, "dynamics_nonzeros", build, "x", "v", "t")
+    sparsity = vectorized.vectorized_build(model.structure).jacobian_sparsity
+
+    def call(x, v, t):
+        F, nz, gamma = values(np.asarray(x, float).ravel(), np.asarray(v, float).ravel(), t)
+        return F, ca.DM(sparsity, nz), gamma
+    return call
+
+
 def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tuple[int, ...] | None:
     """None when the rows of J(x, t) (and of the velocity rows' A) are independent; otherwise
     the independent subset to solve with (the others are implied by it), holding an
@@ -149,7 +193,7 @@ def redundant_rows(model: Model, x, t: float, policy: RankPolicy = RANK) -> tupl
     x = np.asarray(x, float).ravel()
     algebra = algebra_for(model.n_constraints)
     if algebra.name == "sparse":
-        J = model.velocity_terms(x, t)[0]  # CasADi-sparse: the O(N) factorization
+        J = sparse_jacobian(model)(x, t)  # CasADi-sparse (J, then A): the O(N) factorization
     else:
         J = dense_jacobian(model)(x, t)[0].reshape(model.n_coordinates, model.n_constraints).T
     if algebra.full_row_rank(J, model.inverse_masses, policy):
@@ -175,17 +219,8 @@ class _FastPaths:
     evaluation: str
 
 
-def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
-    """The acceleration, Newton step and velocity correction as one CasADi call each (sparse
-    LDLᵀ of the SPD A for the acceleration, sparse QR for the projections), with the
-    parameters p as their last input: built once per structure and row set (every parameter
-    value shares them, ``structure_cache``), optionally compiled."""
-    cache, prefix = structure_cache(model)
-    key = (*prefix, "fast", rows, bool(compiled))
-    with _lock:
-        cached = cache.get(key)
-    if cached is not None:
-        return cached
+def _graph_fast_paths(model: Model, rows) -> list[ca.Function]:
+    """The fast paths' Functions on the model's own (SX) Functions."""
     n3 = model.n_coordinates
     X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
     P = ca.MX.sym("p", len(model.parameter_vector))
@@ -198,9 +233,25 @@ def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
     else:
         a, lam = acceleration_graph(view, X, V, T)
         f, dx, dv = ca.MX(0, 1), ca.MX.zeros(n3), ca.MX.zeros(n3)
-    funcs = [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
-             ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
-             ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
+    return [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
+            ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
+            ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
+
+
+def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
+    """The acceleration, Newton step and velocity correction as one CasADi call each (sparse
+    LDLᵀ of the SPD A for the acceleration, sparse QR for the projections), with the
+    parameters p as their last input: built once per structure and row set (every parameter
+    value shares them, ``structure_cache``), optionally compiled."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "fast", rows, bool(compiled))
+    with _lock:
+        cached = cache.get(key)
+    if cached is not None:
+        return cached
+    # large: the vectorized build (whole columns of instances, J's products by index data)
+    vector = vectorized.applies(model, rows) and not compiled
+    funcs = vectorized.fast_path_functions(model) if vector else _graph_fast_paths(model, rows)
     evaluation = "virtual machine"
     if compiled:
         from ..codegen import compiled as compiled_evaluation

@@ -29,18 +29,14 @@ The numbers are those of the Structure's Functions up to the order of floating-p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import casadi as ca
 import numpy as np
 
 from ..model.cache import ParametricView, built_once, structure_cache
 from ..model.structure import Model, Structure, forces
 from .graph import acceleration_graph
+from .vectorized.grouping import MAX_KINDS, MIN_GROUP, Group, grouped, lifted, summands  # noqa: F401
 
-#: A repeated row or potential term becomes a mapped kernel from this many instances; fewer
-#: stay in the one SX graph of the rest.
-MIN_GROUP = 8
 #: dopri's compiled step loop is built on the mapped Functions from this many coordinates
 #: (a plain Model, not a held row subset). Below, the unrolled SX graph compiles in a second
 #: or two and runs faster (a 16-link chain's loop: 0.70 against 0.81 ms); from about 48 links
@@ -54,143 +50,6 @@ NAMES = ("constraint", "jacobian", "velocity_terms", "dynamics", "row_scales")
 _OUTPUTS = {"constraint": (("f",), False), "jacobian": (("f", "J"), False),
             "velocity_terms": (("J", "f_t"), False), "dynamics": (("J", "gamma"), True),
             "row_scales": (("scale",), False)}
-
-
-@dataclass
-class _Group:
-    """Instances of one local function: ``local`` (SX in ``xl``, ``c``, t, p), ``index`` (d, n)
-    the coordinates of each instance, ``sources`` (k, n) where each instance's value of ``c``
-    comes from: an index into [p; ``constants``], ``place`` (n,) each instance's row
-    (constraints), ``parts`` the particle of each local coordinate (0, 1, … in order of
-    appearance)."""
-
-    local: ca.SX
-    xl: ca.SX
-    c: ca.SX
-    index: np.ndarray
-    sources: np.ndarray
-    constants: np.ndarray
-    place: np.ndarray
-    parts: tuple
-
-    def data(self, P) -> ca.MX:
-        """C_g (k, n): the instances' values of ``c`` from p (an MX) and the constants."""
-        k, n = self.sources.shape
-        if k == 0:
-            return ca.MX(0, n)
-        values = ca.vertcat(P, ca.DM(self.constants)) if self.constants.size else P
-        return ca.reshape(values[self.sources.ravel(order="F").tolist()], k, n)
-
-
-def summands(term) -> list:
-    """The terms e_k of ``term`` = Σ ± e_k (sums, differences and negations unfolded)."""
-    out, stack = [], [(ca.SX(term), False)]
-    while stack:
-        e, negative = stack.pop()
-        if e.is_op(ca.OP_ADD):
-            stack += [(e.dep(1), negative), (e.dep(0), negative)]
-        elif e.is_op(ca.OP_SUB):
-            stack += [(e.dep(1), not negative), (e.dep(0), negative)]
-        elif e.is_op(ca.OP_NEG):
-            stack.append((e.dep(0), not negative))
-        else:
-            out.append(-e if negative else e)
-    return out
-
-
-def lifted(function: ca.Function, c: ca.SX, parameters: int | None = None) -> tuple[ca.SX, list] | None:
-    """The scalar output of the SX ``function`` with its k-th numeric constant, or k-th read
-    of an entry of its input number ``parameters`` (p), replaced by ``c[k]`` (the same
-    operations otherwise), and what each c[k] stands for: ``("c", value)`` or ``("p", j)``;
-    None when ``c`` is too short or an operation cannot be rebuilt (a call)."""
-    inputs = [function.sx_in(i) for i in range(function.n_in())]
-    work: dict[int, ca.SX] = {}
-    values: list[tuple] = []
-    out = None
-    for k in range(function.n_instructions()):
-        op, args = function.instruction_id(k), function.instruction_input(k)
-        res = function.instruction_output(k)
-        if op == ca.OP_INPUT and args[0] == parameters:
-            if len(values) == c.numel():
-                return None
-            work[res[0]] = c[len(values)]
-            values.append(("p", int(args[1])))
-        elif op == ca.OP_INPUT:
-            work[res[0]] = inputs[args[0]][args[1]]
-        elif op == ca.OP_OUTPUT:
-            out = work[args[0]]
-        elif op == ca.OP_CONST:
-            if len(values) == c.numel():
-                return None
-            work[res[0]] = c[len(values)]
-            values.append(("c", function.instruction_constant(k)))
-        elif len(args) == 1 and op != ca.OP_CALL:
-            work[res[0]] = ca.SX.unary(op, work[args[0]])
-        elif len(args) == 2 and op != ca.OP_CALL:
-            work[res[0]] = ca.SX.binary(op, work[args[0]], work[args[1]])
-        else:
-            return None
-    return (out if out is not None else ca.SX(0)), values
-
-
-#: Numbers lifted out of one row or term at most (more: the instance keeps its numbers).
-MAX_CONSTANTS = 16
-
-
-def _grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[_Group], list[int]]:
-    """Groups (MIN_GROUP instances or more) of the scalar ``exprs`` by local function, their
-    numbers lifted out as per-instance data, and the indices of the others (the rest).
-    ``symbols``: (name, size) -> the local symbol of that size."""
-    if not exprs:
-        return [], []
-    pattern = ca.jacobian_sparsity(ca.vertcat(*exprs), x).T
-    colind, row = pattern.colind(), pattern.row()
-    c = ca.SX.sym("c", MAX_CONSTANTS)
-    found: dict[tuple, list] = {}
-    rest = []
-    for k, e in enumerate(exprs):
-        index = row[colind[k]:colind[k + 1]]
-        if not index or e.numel() != 1:
-            rest.append(k)
-            continue
-        xl = symbols.setdefault(("xl", len(index)), ca.SX.sym("xl", len(index)))
-        try:
-            local = ca.Function("kernel", [xl, t, p], [ca.substitute(e, x[index], xl)])
-        except RuntimeError:  # it depends on more than x_l, t and p (velocities)
-            rest.append(k)
-            continue
-        lift = lifted(local, c, parameters=2)
-        if lift is None:
-            expr, numbers, cs = local.sx_out(0), [], ca.SX(0, 1)
-        else:
-            cs = symbols.setdefault(("c", len(lift[1])), ca.SX.sym("c", len(lift[1])))
-            expr, numbers = ca.substitute(lift[0], c[:len(lift[1])], cs), lift[1]
-        first: dict[int, int] = {}
-        parts = tuple(first.setdefault(i // 3, len(first)) for i in index)
-        key = (parts, ca.Function("kernel", [xl, cs, t, p], [expr]).serialize())
-        found.setdefault(key, [expr, xl, cs, parts, []])[4].append((k, index, numbers))
-    groups = []
-    for expr, xl, cs, parts, members in found.values():
-        if len(members) < MIN_GROUP:
-            rest += [k for k, _, _ in members]
-            continue
-        index = np.array([i for _, i, _ in members], dtype=np.int64).T  # (d, n)
-        sources, constants = _sources([v for _, _, v in members], p.numel())
-        groups.append(_Group(expr, xl, cs, index, sources, constants,
-                             np.array([k for k, _, _ in members]), parts))
-    return groups, sorted(rest)
-
-
-def _sources(members: list, n_p: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(sources, constants)`` of a group: for each lifted value (k) of each instance (n) its
-    index into [p (n_p entries); constants], and the constants (each distinct value once)."""
-    k = len(members[0])
-    sources = np.empty((k, len(members)), dtype=np.int64)
-    constants: dict[float, int] = {}
-    for j, values in enumerate(members):
-        for i, (kind, value) in enumerate(values):
-            sources[i, j] = value if kind == "p" else n_p + constants.setdefault(value, len(constants))
-    return sources, np.array(list(constants), dtype=float)
 
 
 def _row_scale(J_row, parts) -> ca.SX:
@@ -230,10 +89,10 @@ class MappedBuild:
         self.structure, self.e = structure, e
         self.n3, self.n_rows = structure.n_coordinates, structure.n_constraints
         symbols: dict[int, ca.SX] = {}
-        self.rows, rest_rows = _grouped(e.rows, e.x, e.t, e.p, symbols)
+        self.rows, rest_rows = grouped(e.rows, e.x, e.t, e.p, symbols)
         self.rest_place = np.array(rest_rows, dtype=np.int64)
         terms = [s for term in e.slots["potential"] for s in summands(term)]
-        self.terms, rest_terms = _grouped(terms, e.x, e.t, e.p, symbols)
+        self.terms, rest_terms = grouped(terms, e.x, e.t, e.p, symbols)
         self.rest_slots = {**e.slots, "potential": [terms[k] for k in rest_terms]}
         self._functions: dict[str, ca.Function] = {}
 
@@ -254,7 +113,7 @@ class MappedBuild:
         inputs = [e.x, e.v, e.t, e.p] if with_v else [e.x, e.t, e.p]
         return ca.Function("rest", inputs, out)
 
-    def _kernel(self, g: _Group, outputs: tuple, with_v: bool, name: str) -> ca.Function:
+    def _kernel(self, g: Group, outputs: tuple, with_v: bool, name: str) -> ca.Function:
         e, xl = self.e, g.xl
         vl = ca.SX.sym("vl", xl.numel())
         terms = _row_terms(g.local, xl, vl, e.t, lambda i: g.parts[i])
@@ -264,15 +123,15 @@ class MappedBuild:
         shared = [len(inputs) - 2, len(inputs) - 1]  # t and p: the same for every instance
         return kernel.map(f"{name}_map", "serial", g.index.shape[1], shared, [])
 
-    def _p(self, g: _Group) -> ca.SX:
+    def _p(self, g: Group) -> ca.SX:
         """The kernel's input p: the Structure's, or an empty one when every entry of p the
         kernel reads was lifted into its data (the usual case: the map then passes no p)."""
         return self.e.p if ca.depends_on(g.local, self.e.p) else ca.SX.sym("p", 0)
 
-    def _p_argument(self, g: _Group, P):
+    def _p_argument(self, g: Group, P):
         return P if ca.depends_on(g.local, self.e.p) else ca.MX(0, 1)
 
-    def _potential_kernel(self, g: _Group, name: str) -> ca.Function:
+    def _potential_kernel(self, g: Group, name: str) -> ca.Function:
         e = self.e
         gradient = ca.densify(ca.gradient(g.local, g.xl))
         kernel = ca.Function(f"{name}_kernel", [g.xl, g.c, e.t, self._p(g)], [gradient])

@@ -25,6 +25,7 @@ import numpy as np
 from ..codegen.fast_call import FastCall
 from ..model.cache import ParametricView, structure_cache
 from .graph import row_scales_expr
+from .vectorized import graphs as vectorized
 
 _CACHE_KEY = "residual_in_metres"
 
@@ -42,16 +43,19 @@ def functions(model) -> dict[str, ca.Function]:
 
 def _build(model) -> dict:
     n3 = model.n_coordinates
-    x, v, t = ca.SX.sym("x", n3), ca.SX.sym("v", n3), ca.SX.sym("t")
-    p = ca.SX.sym("p", len(model.parameter_vector))
-    view = ParametricView(model, p)
+    # a large model: MX on the vectorized build (an SX graph of every row would be built)
+    large = vectorized.applies(model)
+    kind = ca.MX if large else ca.SX
+    x, v, t = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
+    p = kind.sym("p", len(model.parameter_vector))
+    view = vectorized.VectorizedView(model, p) if large else ParametricView(model, p)
     f, J = view.jacobian(x, t)
     G, f_t = view.velocity_terms(x, t)  # every row (those of f first, then velocity rows)
     J = G if model.n_position_rows < model.n_constraints else J  # (else the same J: one graph)
-    s = row_scales_expr(J, model.n_particles)
+    s = view.row_scales(x, t) if large else row_scales_expr(J, model.n_particles)
     C_f = model.n_position_rows
-    position = ca.mmax(ca.fabs(f) / s[:C_f]) if C_f else ca.SX(0)
-    velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s) if model.n_constraints else ca.SX(0)
+    position = ca.mmax(ca.fabs(f) / s[:C_f]) if C_f else kind(0)
+    velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s) if model.n_constraints else kind(0)
     return {
         "scales": FastCall(ca.Function("row_scales", [x, t, p], [ca.densify(s)])),
         "position": ca.Function("residual_m", [x, t, p], [position]),

@@ -50,16 +50,18 @@ def _bad_rows(matrix: ca.DM) -> np.ndarray:
 
 
 def undefined_items(system: System, t0: float, built: tuple[Symbols, dict] | None = None, *,
-                    structure: Structure | None = None,
-                    numbers: np.ndarray | None = None) -> list[tuple[str, int, object]]:
+                    structure: Structure | None = None, numbers: np.ndarray | None = None,
+                    jacobian=None) -> list[tuple[str, int, object]]:
     """(section, index, item) of each constraint ("constraints") and effect ("effects") whose
     value or gradient is not finite at the system's initial state (positions, velocities) and
     time t0, in scene order. ``built``: the Symbols and {(section, index): rows or term}
     already made for this system (the scene's formula check), reused instead of built again;
     ``structure`` (and the system's plain ``numbers``, constrained.lifting): the system's
-    Structure, whose expressions are used instead (nothing built per call)."""
+    Structure, whose expressions are used instead (nothing built per call); ``jacobian``:
+    ``(x, t) -> (f, J)`` of the constraint rows to use instead of the Structure's (a large
+    model's vectorized build)."""
     if structure is not None:
-        return _undefined_in(system, t0, structure, numbers)
+        return _undefined_in(system, t0, structure, numbers, jacobian)
     s, done = built if built is not None else (Symbols(system), {})
     items, constraint_values, effect_values = [], [], []
     owner_c, owner_e = [], []  # row of the stacked vector -> index into items
@@ -102,7 +104,7 @@ def _start_check(structure: Structure) -> tuple[ca.Function, np.ndarray]:
     return built_once(structure, "start check", build)
 
 
-def _undefined_in(system: System, t0: float, structure: Structure, numbers) -> list:
+def _undefined_in(system: System, t0: float, structure: Structure, numbers, jacobian=None) -> list:
     numbers = lifting.numbers(system) if numbers is None else numbers
     p = np.concatenate([[system.parameters[k] for k in structure.parameter_names], numbers])
     x0 = np.asarray(system.positions, float).reshape(-1)
@@ -112,8 +114,13 @@ def _undefined_in(system: System, t0: float, structure: Structure, numbers) -> l
         bad = set()
         if structure.n_constraints:  # f and J, then the velocity level [J; A], [f_t; b]
             owner_c = np.asarray(structure.constraint_owner, dtype=int)
-            rows = [_bad_rows(m) for m in (*structure.function("jacobian")(x0, t0, p),
-                                           *structure.function("velocity_terms")(x0, t0, p))]
+            if jacobian is not None:  # (no velocity rows: a large model's own f and J)
+                vc, jc = jacobian(x0, t0)
+                matrices = (ca.DM(np.asarray(vc, float).reshape(-1, 1)), jc)
+            else:
+                matrices = (*structure.function("jacobian")(x0, t0, p),
+                            *structure.function("velocity_terms")(x0, t0, p))
+            rows = [_bad_rows(m) for m in matrices]
             bad |= {("constraints", int(k)) for k in owner_c[np.concatenate(rows)]}
         if owner_e.size:
             ve, jex, jev = effects(x0, v0, t0, p)

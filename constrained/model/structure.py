@@ -22,7 +22,8 @@ import numpy as np
 
 from ..errors import InputError
 from . import lifting, velocity
-from .effects import forces  # noqa: F401 (the slots' sum; mapped builds import it from here)
+from .constraints import constraint_rows
+from .effects import forces
 from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
 from .pairs.potentials import PairPotentials
 from .symbols import Symbols
@@ -68,9 +69,10 @@ class Structure:
         active = set()
 
         rows, labels, owners = ([], []), ([], []), ([], [])  # position rows, then velocity rows
+        built = constraint_rows(system.constraints, s)  # (runs of rods built together)
         for k, constraint in enumerate(system.constraints):
             level = int(getattr(constraint, "level", "position") == "velocity")
-            for expr, label in constraint.rows(s):
+            for expr, label in built[k]:
                 rows[level].append(expr)
                 labels[level].append(label)
                 owners[level].append(k)
@@ -83,22 +85,29 @@ class Structure:
         self.n_position_rows = len(rows)
         self.n_constraints = len(rows) + len(velocity_rows)
         f = ca.vertcat(*rows) if rows else ca.SX(0, 1)
-        J = ca.jacobian(f, x)
         self.rheonomic = bool(rows) and ca.depends_on(f, t)
         if rows:
             active.add("constraints")
         if self.rheonomic:
             active.add("rheonomic")
-            f_t = ca.jacobian(f, t)
-            c = ca.mtimes(J, v) + f_t
-            gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
-        else:
-            f_t = ca.SX(self.n_position_rows, 1)  # structurally zero: no f_t terms
-            c = ca.mtimes(J, v)
-            gamma = ca.jtimes(c, x, v)
-        # the velocity level, J v + f_t = 0 then A v + b = 0 (G = [J; A]), and its derivative
-        G, c0, gamma = velocity.velocity_level(system, velocity_rows, J, f_t, gamma, x, v, t)
+
+        @functools.cache
+        def kinematics() -> tuple:
+            """(J, G, c₀, γ), differentiated when a Function that needs them is first made (a
+            large model's runs use the vectorized build's instead: constrained.manifold)."""
+            J = ca.jacobian(f, x)
+            if self.rheonomic:
+                f_t = ca.jacobian(f, t)
+                c = ca.mtimes(J, v) + f_t
+                gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
+            else:
+                f_t = ca.SX(self.n_position_rows, 1)  # structurally zero: no f_t terms
+                gamma = ca.jtimes(ca.mtimes(J, v), x, v)
+            # the velocity level, J v + f_t = 0 then A v + b = 0 (G = [J; A]), and its derivative
+            return (J, *velocity.velocity_level(system, velocity_rows, J, f_t, gamma, x, v, t))
+
         if velocity_rows:
+            kinematics()  # now: its refusals name the scene's items (and its numbers, not tokens)
             active.add("velocity_constraints")
 
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
@@ -151,9 +160,10 @@ class Structure:
             self._parts[name] = (inputs, in_names, outputs, out_names)
 
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
-        function("jacobian", [x, t], ["x", "t"], [f, J], ["f", "J"])
-        function("velocity_terms", [x, t], ["x", "t"], [G, c0], ["J", "f_t"])
-        function("dynamics", [x, v, t], ["x", "v", "t"], [F, G, gamma], ["F", "J", "gamma"])
+        function("jacobian", [x, t], ["x", "t"], lambda: [f, kinematics()[0]], ["f", "J"])
+        function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[1:3]), ["J", "f_t"])
+        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F, kinematics()[1], kinematics()[3]],
+                 ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
         function("kinetic", [v], ["v"], [T], ["T"])
@@ -168,6 +178,7 @@ class Structure:
         key = name if lists or not pairs else (name, "every pair")
         if key not in self._functions:
             inputs, in_names, outputs, out_names = self._parts[name]
+            outputs = outputs() if callable(outputs) else outputs
             function = ca.Function(name, [*inputs, self._p], outputs, [*in_names, "p"], out_names)
             self._functions[key] = (self.pair_potentials.with_pairs(name, function, lists=lists) if pairs
                                     else function)
@@ -183,6 +194,7 @@ class Structure:
         for every parameter value, shared by all Models of this structure), else None."""
         if name not in self._fixed:
             inputs, in_names, outputs, out_names = self._parts[name]
+            outputs = outputs() if callable(outputs) else outputs
             p = self._p
             free = not p.numel() or not any(o.numel() and ca.depends_on(o, p) for o in outputs)
             free = free and not (self.pairs and name in _PAIR_OUTPUTS)  # (those: MX of the full p)
@@ -194,6 +206,7 @@ class Structure:
         uses = self._used
         if name not in uses:
             inputs, _, outputs, _ = self._parts[name]  # (the SX graph's; the pairs' below)
+            outputs = outputs() if callable(outputs) else outputs
             fun = ca.Function(name, [*inputs, self._p], outputs)
             last = fun.n_in() - 1
             used = {int(c) for i in range(fun.n_out()) if fun.nnz_out(i) and fun.nnz_in(last)

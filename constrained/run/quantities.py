@@ -15,7 +15,15 @@ import numpy as np
 from ..codegen.fast_call import FastCall
 from ..manifold import residual
 from ..manifold.algebra import algebra_for
-from ..manifold.manifold import RANK, RankPolicy, acceleration_function, redundant_rows
+from ..manifold.manifold import (
+    RANK,
+    RankPolicy,
+    acceleration_function,
+    dynamics_values,
+    redundant_rows,
+    structural_call,
+)
+from ..manifold.vectorized import graphs as vectorized
 from ..model.cache import built_once
 from ..model.structure import Model
 from .trajectory import QUANTITIES, Trajectory
@@ -39,6 +47,9 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
     )
     if n == 0:
         return traj
+    if vectorized.applies(model):  # large: one call of the vectorized build per sample
+        _along_vectorized(model, traj, X.reshape(n, -1), V.reshape(n, -1), t, wanted)
+        return traj
     if "multipliers" in wanted or "constraint_forces" in wanted:
         lam = multipliers_along(model, X, V, t)
         if "multipliers" in wanted:
@@ -52,6 +63,49 @@ def trajectory_from(model: Model, t, X, V, wanted, stats=None) -> Trajectory:
     if "velocity_residual" in wanted:  # in m/s
         traj.velocity_residual = residual.velocity_residual_along(model, X, V.reshape(n, -1), t)
     return traj
+
+
+def _along_vectorized(model: Model, traj: Trajectory, X: np.ndarray, V: np.ndarray, t: np.ndarray,
+                      wanted) -> None:
+    """The quantities ``wanted`` of a large model, sample by sample from one call of
+    ``vectorized.quantities_function`` each: the multipliers by the sparse LDLᵀ where its check
+    holds (else, and for dependent rows, the minimum-norm solve of ``multipliers_along``), the
+    constraint forces Jᵀλ, the energy and the residuals."""
+    n, C = len(t), model.n_constraints
+    kkt = bool({"multipliers", "constraint_forces"} & set(wanted)) and C > 0
+    full_rank = kkt and redundant_rows(model, X[0], float(t[0])) is None
+    names = tuple(k for k in vectorized.QUANTITY_OUTPUTS
+                  if (k in ("multipliers", "check", "constraint_forces") and full_rank) or k in wanted
+                  and k in ("energy", "constraint_residual", "velocity_residual"))
+    out = {}
+    if names:
+        fast = FastCall(vectorized.quantities_function(model, names))
+        sizes = {"multipliers": C, "constraint_forces": model.n_coordinates}
+        out = {k: np.empty((n, sizes.get(k, 1))) for k in names}
+        p = model.parameter_vector
+        for k in range(n):
+            for name, value in zip(names, fast(X[k], V[k], t[k], p), strict=True):
+                out[name][k] = value
+    if kkt:
+        lam = out["multipliers"] if full_rank else np.full((n, C), np.nan)
+        forces = out["constraint_forces"] if full_rank else np.full((n, model.n_coordinates), np.nan)
+        good = np.zeros(n, bool)
+        if full_rank:
+            good = (out["check"][:, 0] <= 1e-9) & np.all(np.isfinite(lam), axis=1)
+        redo = np.flatnonzero(~good)
+        if len(redo):
+            lam[redo] = _minimum_norm(model, X, V, t, redo, RANK, full_rank)
+            forces[redo] = constraint_forces_along(model, X[redo], t[redo], lam[redo]).reshape(len(redo), -1)
+        if "multipliers" in wanted:
+            traj.multipliers = lam
+        if "constraint_forces" in wanted:
+            traj.constraint_forces = forces.reshape(n, model.n_particles, 3)
+    if "energy" in wanted:
+        traj.energy = out["energy"].ravel()
+    if "constraint_residual" in wanted:
+        traj.constraint_residual = out["constraint_residual"].ravel()
+    if "velocity_residual" in wanted:
+        traj.velocity_residual = out["velocity_residual"].ravel()
 
 
 # --- along a trajectory ---------------------------------------------------------------------------
@@ -124,40 +178,51 @@ def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray,
             good = np.asarray(residual, float).ravel() <= 1e-9
             lam[block] = np.where(good[:, None], np.asarray(values, float).T, np.nan)
     redo = np.flatnonzero(~np.all(np.isfinite(lam), axis=1))
+    lam[redo] = _minimum_norm(model, X, V, t, redo, policy, full_rank)
+    return lam
+
+
+def _minimum_norm(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, redo: np.ndarray,
+                  policy: RankPolicy, full_rank: bool) -> np.ndarray:
+    """λ (len(redo), C) at the samples ``redo`` by ``schur_solve`` (minimum-norm, accurate
+    whatever the spread of the masses): on the dense J in blocks of samples, or beyond
+    ``algebra.SPARSE_FROM`` rows sample by sample on the sparse J."""
+    C, n3 = model.n_constraints, model.n_coordinates
+    lam = np.full((len(redo), C), np.nan)
     minv = model.inverse_masses
     algebra = algebra_for(C)
     if algebra.name == "sparse":  # one sample at a time with J sparse
-        for k in redo:
-            F, J, gamma = model.dynamics(X[k], V[k], float(t[k]))
+        dynamics = dynamics_values(model) if len(redo) else None
+        for i, k in enumerate(redo):
+            F, J, gamma = dynamics(X[k], V[k], float(t[k]))
             J = algebra.matrix(J)
-            F, gamma = np.asarray(F, float).ravel(), np.asarray(gamma, float).ravel()
-            lam[k] = algebra.schur_solve(J, minv, -gamma - J @ (minv * F), policy=policy, full_rank=full_rank)
+            lam[i] = algebra.schur_solve(J, minv, -gamma - J @ (minv * F), policy=policy, full_rank=full_rank)
         return lam
     per_block = max(1, BLOCK_FLOATS // (C * n3))
     for start in range(0, len(redo), per_block):
         rows = redo[start:start + per_block]
         F, Jcat, gamma = model.evaluate(model.dynamics, X[rows], V[rows], t[rows])
         J = Jcat.reshape(C, len(rows), n3).transpose(1, 0, 2)
-        for i, k in enumerate(rows):
-            lam[k] = algebra.schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
-                                 policy=policy, full_rank=full_rank)
+        for i in range(len(rows)):
+            lam[start + i] = algebra.schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
+                                                 policy=policy, full_rank=full_rank)
     return lam
 
 
 def _constraint_force_function(model: Model) -> ca.Function:
     """``(x, t, λ) -> Jᵀλ`` (3N,) with J kept sparse inside: O(nnz J) per sample, built once
-    (with velocity rows, J is [J; A] and λ is [λ; μ]: ``velocity_terms``)."""
-    def build():
-        X, T, L = ca.MX.sym("x", model.n_coordinates), ca.MX.sym("t"), ca.MX.sym("lam", model.n_constraints)
-        J, _ = model.velocity_terms(X, T)
-        return ca.Function("constraint_force", [X, T, L], [ca.densify(ca.mtimes(J.T, L))])
+    per structure (with velocity rows, J is [J; A] and λ is [λ; μ]: ``velocity_terms``)."""
+    def build(view, X, T, L, P):
+        J, _ = view.velocity_terms(X, T)
+        return ca.Function("constraint_force", [X, T, L, P], [ca.densify(ca.mtimes(J.T, L))])
 
-    return built_once(model, "constraint_force", build)
+    fast = structural_call(model, "constraint_force", build, "x", "t", "lam")
+    return lambda x, t, lam: fast(x, t, lam)[0]
 
 
 def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """(Jᵀλ)_i for each particle, (T, N, 3): the sparse product mapped over blocks of samples
-    (never a dense J). Samples whose λ is not finite give NaN forces."""
+    """(Jᵀλ)_i for each particle, (T, N, 3): the sparse product sample by sample (never a
+    dense J). Samples whose λ is not finite give NaN forces."""
     t = np.asarray(t, float)
     n, C, n3 = len(t), model.n_constraints, model.n_coordinates
     out = np.zeros((n, model.n_particles, 3))
@@ -166,7 +231,6 @@ def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.
     X = np.asarray(X, float).reshape(n, n3)
     lam = np.asarray(lam, float).reshape(n, C)
     force = _constraint_force_function(model)
-    for block in _blocks(n, 2 * (C + n3)):
-        (values,) = model.evaluate(force, X[block], t[block], lam[block])
-        out[block] = np.asarray(values, float).T.reshape(-1, model.n_particles, 3)
+    for k in range(n):
+        out[k] = force(X[k], t[k], lam[k]).reshape(-1, 3)
     return out

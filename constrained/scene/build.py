@@ -11,12 +11,14 @@ import functools
 import numpy as np
 
 from ..errors import InputError
+from ..manifold.manifold import constraint_values, sparse_jacobian
+from ..manifold.vectorized import graphs as vectorized
 from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
 from ..model.effects import EFFECT_TYPES
 from ..model.parameters import RESERVED_NAMES, check_name
 from ..model.regularity import undefined_items
-from ..model.structure import kept_structure
+from ..model.structure import Model, kept_structure
 from ..model.symbols import Symbols
 from ..model.system import Particle, System
 from ..model.velocity import VELOCITY_TYPES
@@ -365,7 +367,13 @@ class SceneBuilder(RunSections):
         (constrained.regularity: one sparse evaluation for the whole system, of a Function
         built once per structure). ``structure``: ``(Structure, numbers)`` of the system."""
         structure, numbers = structure if structure is not None else self.structure(system)
-        for section, i, obj in undefined_items(system, t0, structure=structure, numbers=numbers)[:1]:
+        jacobian = None
+        model = Model(system, structure=structure, numbers=numbers)
+        if vectorized.applies(model):  # large: the run's vectorized build, not an SX Jacobian
+            f, J = constraint_values(model), sparse_jacobian(model)
+            jacobian = lambda x, t: (f(x, t)[0], J(x, t))  # noqa: E731
+        undefined = undefined_items(system, t0, structure=structure, numbers=numbers, jacobian=jacobian)
+        for section, i, obj in undefined[:1]:
             what = "constraint" if section == "constraints" else "effect"
             self.fail(_join(section, i), f"this {what} ({obj.label}) is undefined at the initial state "
                       f"(t = {t0:g} s): its value or its gradient is not finite there"

@@ -229,8 +229,11 @@ def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scen
     values = _parameter_values(overrides, plain, file)
     if values is not None:  # only new parameter values for a scene read before
         return _with_parameter_values(plain, values, file)
-    raw = _parsed(data, digest, file)
-    raw, set_paths = _apply_overrides(raw, overrides, file) if overrides else (data_copy(raw), [])
+    raw, kept = _parsed(data, digest, file)
+    if overrides:
+        raw, set_paths = _apply_overrides(raw, overrides, file)
+    else:  # the kept parse is copied; a big one is not kept, and is this call's own
+        raw, set_paths = (data_copy(raw) if kept else raw), []
     key = (*digest, tuple(overrides))
     try:
         scene = build_scene(raw, path=path)
@@ -282,25 +285,31 @@ _LOADED_LOCK = threading.Lock()
 _SEEN: collections.OrderedDict = collections.OrderedDict()
 
 
-def _parsed(data: bytes, digest: tuple, file: str) -> dict:
-    """The TOML of a scene file, parsed once per content (kept: callers copy it)."""
+def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool]:
+    """The TOML of a scene file, parsed once per content, and whether it is kept (then callers
+    copy it). A scene of more than KEPT_PARTICLES particles is not kept: copying it costs a
+    good part of parsing it."""
     with _LOADED_LOCK:
         raw = _PARSED.get(digest)
-    if raw is None:
-        try:
-            raw = tomllib.loads(data.decode("utf-8"))
-        except UnicodeDecodeError as exc:
-            raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
-        except tomllib.TOMLDecodeError as exc:
-            raise SceneError(f"not valid TOML: {exc}", file=file) from None
-        except RecursionError:  # (Python's TOML reader recurses once per level)
-            raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
-        refuse_deep_nesting(raw, file)
-        with _LOADED_LOCK:
-            _PARSED[digest] = raw
-            while len(_PARSED) > SCENES_KEPT:
-                _PARSED.popitem(last=False)
-    return raw
+    if raw is not None:
+        return raw, True
+    try:
+        raw = tomllib.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"not valid TOML: {exc}", file=file) from None
+    except RecursionError:  # (Python's TOML reader recurses once per level)
+        raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
+    refuse_deep_nesting(raw, file)
+    particles = raw.get("particles")
+    if isinstance(particles, list) and len(particles) > KEPT_PARTICLES:
+        return raw, False
+    with _LOADED_LOCK:
+        _PARSED[digest] = raw
+        while len(_PARSED) > SCENES_KEPT:
+            _PARSED.popitem(last=False)
+    return raw, True
 
 
 #: Parsed scene files by (path, SHA-256 of the content): ``--set`` overrides apply to a copy.

@@ -177,6 +177,12 @@ class Validator:
         return out
 
     def finite_everywhere(self, value, key: str) -> None:
+        """Refuse a number that is not finite, or too large, anywhere in ``value`` (naming its key)."""
+        if _all_moderate(value):  # the usual case: one quick walk, no keys formatted
+            return
+        self._finite_everywhere(value, key)
+
+    def _finite_everywhere(self, value, key: str) -> None:
         if isinstance(value, float) and not math.isfinite(value):
             self.fail(key, f"the number {value!r} is not finite (inf and nan are not accepted)")
         if _is_number(value) and abs(value) > expressions.MAX_MAGNITUDE:
@@ -185,10 +191,10 @@ class Validator:
                       "that keep the numbers moderate")
         if isinstance(value, dict):
             for k, v in value.items():
-                self.finite_everywhere(v, _join(key, k))
+                self._finite_everywhere(v, _join(key, k))
         elif isinstance(value, list):
             for i, v in enumerate(value):
-                self.finite_everywhere(v, _join(key, i))
+                self._finite_everywhere(v, _join(key, i))
 
     def array_of_tables(self, name: str) -> list[dict]:
         value = self.raw.get(name, [])
@@ -199,3 +205,22 @@ class Validator:
         for i, item in enumerate(value):
             self.table(item, _join(name, i), f"a table (one [[{name}]] entry)")
         return value
+
+
+def _all_moderate(value) -> bool:
+    """Whether every number in the nested dicts and lists ``value`` is finite and at most
+    ``expressions.MAX_MAGNITUDE`` in size."""
+    stack = [value]
+    limit = expressions.MAX_MAGNITUDE
+    while stack:
+        item = stack.pop()
+        if isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+        elif isinstance(item, float):
+            if not -limit <= item <= limit:  # (NaN fails too)
+                return False
+        elif isinstance(item, int) and not isinstance(item, bool) and abs(item) > limit:
+            return False
+    return True

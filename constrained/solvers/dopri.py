@@ -38,6 +38,7 @@ from ..errors import InputError
 from ..manifold import diagnostics, mapped, residual
 from ..manifold.graph import projection_graph
 from ..manifold.manifold import acceleration_function
+from ..manifold.vectorized import graphs as vectorized
 from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .dense import hermite
@@ -133,14 +134,21 @@ class Dopri(Stepper):
         symbolic = len(self.rows) <= SYMBOLIC_MAX_CONSTRAINTS and not self.model.structure.pairs
         # compiled and large: repeated rows and terms as mapped kernels (constrained.mapped),
         # so the generated code, and the compile time, does not grow with the model
+        # in the virtual machine and large: the vectorized build (whole columns of instances)
+        vector = not self.compiled and not symbolic and vectorized.applies(self.model, rows)
         if self.compiled and not symbolic and mapped.applies(self.model):
             m, with_p = mapped.MappedView(self.model, P), mapped.acceleration_function(self.model, rows)
+        elif vector:  # m⁻¹ (and forces of p alone) once per step, shared by its accelerations
+            m = ParametricView(self.model, P)
+            with_p = vectorized.acceleration_function(self.model, statics=True)
+            minv, forces = vectorized.statics(m)
+            shared = [minv] if forces is None else [minv, forces]
         else:
             m = ParametricView(self.model, P)
             with_p = acceleration_function(self.model, rows, symbolic=symbolic, parametric=True)
 
         def accel(X, V, T):
-            return with_p(X, V, T, P)
+            return with_p(X, V, T, P, *shared) if vector else with_p(X, V, T, P)
 
         linsol = "symbolicqr" if symbolic else "ldl"
         done = t >= t_target  # (then the attempt is skipped: see the end)
@@ -151,6 +159,9 @@ class Dopri(Stepper):
         Kx, Kv = [v], [a]
 
         def combine(K, w):
+            if vector:  # Σ w_j K_j over the nonzero weights, column by column (no copies of K)
+                terms = [float(wj) * Kj for wj, Kj in zip(w, K, strict=False) if wj != 0]
+                return sum(terms[1:], terms[0]) if terms else ca.MX.zeros(K[0].shape)
             return ca.mtimes(ca.horzcat(*K), ca.DM(np.asarray(w, float)))
 
         for i in range(1, tab.stages):
@@ -162,7 +173,9 @@ class Dopri(Stepper):
         x1 = x + hh * combine(Kx, tab.B)
         v1 = v + hh * combine(Kv, tab.B)
         t1 = ca.if_else(clipped, t_target, t + hh)
-        if m.n_constraints:
+        if m.n_constraints and vector:
+            x1, v1, residual = vectorized.projection_graph(m, x1, v1, t1, minv=minv)
+        elif m.n_constraints:
             x1, v1, residual = projection_graph(m, x1, v1, t1, rows=rows, linsol=linsol)
         else:
             residual = ca.MX(0)

@@ -1,0 +1,346 @@
+"""The vectorized build: the groups of ``constrained.manifold.mapped`` (each repeated row or
+potential term one SX kernel, with index and number data) evaluated as whole columns, and the
+products with J the KKT solve needs written on J's nonzeros by index data.
+
+J is held as *streams*: for group g and local coordinate j the column J_gj (n_g, 1) of
+∂φ_g/∂x_l[j] over the group's instances, at rows ``place_g`` and columns ``index_g[j]``;
+the rows the kernels do not cover (the rest) give one more stream, their nonzeros. Then
+
+    (J y)_r   = Σ over the entries (r, c) of J_rc y_c            (Summation by rows)
+    (Jᵀ λ)_c  = Σ over the entries (r, c) of J_rc λ_r            (Summation by columns)
+    A = J M⁻¹ Jᵀ:  A_rs = Σ over the coordinates c of J_rc J_sc / m_c,
+
+the last from the products of every pair of entries in one column (the diagonal from each
+entry with itself; each off-diagonal product once, summed into A_rs and A_sr), grouped by the
+pair of streams they come from, so that a chain's thousands of products are a few column
+operations. The numbers are those of the mapped and unrolled builds up to the order of
+floating-point sums (tests/test_vectorized.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ...model.cache import built_once
+from ...model.structure import Structure, forces
+from ..mapped import _row_terms, mapped_build
+from .columns import Summation, on_columns, take
+
+#: The outputs of a row kernel, in order ("J" is d entries, the others one each).
+ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
+
+
+@dataclass
+class Jacobian:
+    """J at one state as streams (MX columns) over the build's index data."""
+
+    build: VectorizedBuild
+    streams: list
+
+    def times(self, y):
+        """J y (C,) for a column y (3N,)."""
+        b = self.build
+        return b.by_rows([J * take(y, c) for J, c in zip(self.streams, b.cols, strict=True)])
+
+    def transpose_times(self, lam):
+        """Jᵀ λ (3N,) for a column λ (C,)."""
+        b = self.build
+        return b.by_cols([J * take(lam, r) for J, r in zip(self.streams, b.rows, strict=True)])
+
+    def gram(self, inverse_masses):
+        """A = J M⁻¹ Jᵀ (C, C), sparse, for the inverse masses per coordinate (3N,)."""
+        return self.build.gram(self.streams, _column(inverse_masses))
+
+    def solve(self, inverse_masses, B):
+        """Λ with (J M⁻¹ Jᵀ) Λ = B (C, k) by CasADi's sparse LDLᵀ. Rows with one coordinate
+        each (``VectorizedBuild``'s ``single``: a plane along an axis, a pin's) are eliminated
+        first: with S those rows, c_s their coordinates, j_s their entries, R the others,
+
+            Σ_{c ∉ {c_s}} J_rc J_r'c / m_c · Λ_R = B_R − Σ_s J_{r c_s} B_s / j_s,
+            Λ_s = (m_{c_s} B_s / j_s − Σ_r J_{r c_s} Λ_r) / j_s,
+
+        the Schur complement of the diagonal block of S: the same Λ, from a system of R's
+        rows alone (a chain in a plane: half the rows, and A's couplings through z gone)."""
+        b, minv = self.build, _column(inverse_masses)
+        if b.single is None:
+            return ca.solve(self.gram(minv), B, "ldl")
+        e = b.single
+        J = self.streams
+        j = e.by_single([take(J[s], p) for s, p, _ in e.entries])
+        columns = ca.horzsplit(B)
+        reduced = []
+        for Bi in columns:
+            y = take(Bi, e.rows) / j
+            coupled = e.by_coupled_rows([take(J[s], p) * take(y, q) for s, p, _, q in e.coupling])
+            reduced.append(take(Bi, e.others) - coupled)
+        if len(e.others):
+            lam = ca.solve(e.gram(J, minv), ca.horzcat(*reduced), "ldl")
+        else:
+            lam = ca.MX(0, len(columns))
+        out = []
+        for i, Bi in enumerate(columns):
+            w = e.by_coupled_cols([take(J[s], p) * take(lam[:, i], r) for s, p, r, _ in e.coupling])
+            lam_s = (take(Bi, e.rows) / (take(minv, e.cols) * j) - w) / j
+            out.append(e.by_split([lam[:, i], lam_s]))
+        return ca.horzcat(*out)
+
+    def matrix(self):
+        """J as a sparse MX matrix (C, 3N): for generic products; the methods above are cheaper."""
+        b = self.build
+        return ca.MX(b.jacobian_sparsity, b.by_nonzero(self.streams)) if b.n_rows else ca.MX(0, b.n3)
+
+
+def _column(values):
+    """Inverse masses as a column usable in MX products (an MX as it is)."""
+    return values if isinstance(values, ca.MX) else ca.DM(np.asarray(values, float))
+
+
+class _Gram:
+    """Index data of A = J M⁻¹ Jᵀ restricted to some rows (``label``: row -> its index in A,
+    −1 to leave out) and to the coordinates not ``dropped`` (3N,): the products of every pair
+    of kept entries in one column — the diagonal from each entry with itself, each
+    off-diagonal product once, summed into A_rs and A_sr — grouped by the pair of streams
+    they come from."""
+
+    def __init__(self, rows: list, cols: list, label: np.ndarray, n: int, dropped: np.ndarray):
+        kept = [np.flatnonzero((label[r] >= 0) & ~dropped[c]) for r, c in zip(rows, cols, strict=True)]
+        none = [np.zeros(0, np.int64)]
+        sid = np.concatenate([np.full(len(k), s) for s, k in enumerate(kept)] or none)
+        pos = np.concatenate(kept or none)
+        row = np.concatenate([label[r[k]] for r, k in zip(rows, kept, strict=True)] or none)
+        col = np.concatenate([c[k] for c, k in zip(cols, kept, strict=True)] or none)
+        order = np.lexsort((pos, sid, col))
+        sid, pos, row, col = sid[order], pos[order], row[order], col[order]
+        first, second = [], []  # off-diagonal pairs of entries (indices into the sorted entries)
+        for d in range(1, int(np.bincount(col).max(initial=1))):
+            same = np.flatnonzero(col[:-d] == col[d:])
+            first.append(same)
+            second.append(same + d)
+        first = np.concatenate(first) if first else np.zeros(0, np.int64)
+        second = np.concatenate(second) if second else np.zeros(0, np.int64)
+        key = np.unique(np.concatenate([row * n + row, row[second] * n + row[first],
+                                        row[first] * n + row[second]]))  # compressed-column order
+        self.sparsity = ca.Sparsity.triplet(n, n, (key % max(n, 1)).tolist(), (key // max(n, 1)).tolist())
+
+        def entry(r, c):
+            return np.searchsorted(key, c * n + r)
+
+        # the diagonal products (one per stream), then the pairs grouped by streams
+        self.diagonal = [(s, k) for s, k in enumerate(kept) if len(k)]
+        targets = [entry(label[rows[s][k]], label[rows[s][k]]) for s, k in self.diagonal]
+        self.sources = list(range(len(self.diagonal)))
+        self.pairs = []
+        pair_key = sid[first] * len(rows) + sid[second]
+        for k in np.unique(pair_key):
+            members = np.flatnonzero(pair_key == k)
+            i1, i2 = first[members], second[members]
+            self.pairs.append((int(sid[i1[0]]), pos[i1], int(sid[i2[0]]), pos[i2]))
+            product = len(self.diagonal) + len(self.pairs) - 1
+            self.sources += [product, product]
+            targets += [entry(row[i1], row[i2]), entry(row[i2], row[i1])]
+        self.by_gram = Summation([len(t) for t in targets], targets, len(key))
+        self.cols = cols
+
+    def __call__(self, streams: list, minv):
+        weighted = {}  # J_s ∘ m⁻¹ at its coordinates, for the streams used
+
+        def g(s):
+            if s not in weighted:
+                weighted[s] = streams[s] * take(minv, self.cols[s])
+            return weighted[s]
+
+        products = [take(streams[s], k) * take(g(s), k) for s, k in self.diagonal]
+        products += [take(streams[s1], p1) * take(g(s2), p2) for s1, p1, s2, p2 in self.pairs]
+        return ca.MX(self.sparsity, self.by_gram([products[k] for k in self.sources]))
+
+
+class _Elimination:
+    """Rows with one coordinate each, at distinct coordinates (``Jacobian.solve``): ``rows``
+    (S, scene order), their ``cols``, ``others`` (R); ``entries`` (stream, positions, index in
+    S) of S's entries; ``coupling`` (stream, positions, index in R, index in S) of R's entries at
+    S's coordinates; the reduced ``gram`` over R and the other coordinates."""
+
+    def __init__(self, rows: list, cols: list, n_rows: int, n3: int):
+        count = np.bincount(np.concatenate(rows), minlength=n_rows) if rows else np.zeros(n_rows, np.int64)
+        single = np.zeros(n_rows, bool)
+        single[count == 1] = True
+        at = np.full(n_rows, -1, np.int64)  # each single row's coordinate
+        for r, c in zip(rows, cols, strict=True):
+            one = single[r]
+            at[r[one]] = c[one]
+        taken = np.bincount(at[single], minlength=n3)  # two single rows on one coordinate: kept whole
+        single &= (at >= 0) & (taken[np.maximum(at, 0)] == 1)
+        self.rows, self.others = np.flatnonzero(single), np.flatnonzero(~single)
+        self.cols = at[self.rows]
+        in_s = np.full(n_rows, -1, np.int64)
+        in_s[self.rows] = np.arange(len(self.rows))
+        in_r = np.full(n_rows, -1, np.int64)
+        in_r[self.others] = np.arange(len(self.others))
+        s_at = np.full(n3, -1, np.int64)
+        s_at[self.cols] = np.arange(len(self.rows))
+        self.entries, self.coupling = [], []
+        for s, (r, c) in enumerate(zip(rows, cols, strict=True)):
+            mine = np.flatnonzero(in_s[r] >= 0)
+            if len(mine):
+                self.entries.append((s, mine, in_s[r[mine]]))
+            cross = np.flatnonzero((in_r[r] >= 0) & (s_at[c] >= 0))
+            if len(cross):
+                self.coupling.append((s, cross, in_r[r[cross]], s_at[c[cross]]))
+        n_s, n_r = len(self.rows), len(self.others)
+        self.by_single = Summation([len(p) for _, p, _ in self.entries], [q for _, _, q in self.entries], n_s)
+        lengths = [len(p) for _, p, _, _ in self.coupling]
+        self.by_coupled_rows = Summation(lengths, [r for _, _, r, _ in self.coupling], n_r)
+        self.by_coupled_cols = Summation(lengths, [q for _, _, _, q in self.coupling], n_s)
+        self.by_split = Summation([n_r, n_s], [self.others, self.rows], n_rows)
+        dropped = np.zeros(n3, bool)
+        dropped[self.cols] = True
+        self.gram = _Gram(rows, cols, in_r, n_r, dropped)
+
+
+class VectorizedBuild:
+    """The index data of a structure's vectorized evaluation (``vectorized_build``)."""
+
+    def __init__(self, structure: Structure):
+        mb = mapped_build(structure)
+        e = mb.e
+        self.mapped, self.e = mb, e
+        self.n3, self.n_rows = structure.n_coordinates, structure.n_position_rows  # (no velocity rows)
+        self.rheonomic = structure.rheonomic
+        # the rest: one SX Function of (x, v, t, p), its J's nonzeros one stream
+        f_rest = ca.vertcat(*[e.rows[k] for k in mb.rest_place]) if len(mb.rest_place) else ca.SX(0, 1)
+        terms = _row_terms(f_rest, e.x, e.v, e.t, lambda i: i // 3)
+        r, c = terms["J"].sparsity().get_triplet()
+        rest_J = ca.vertcat(*terms["J"].nonzeros()) if terms["J"].nnz() else ca.SX(0, 1)
+        F_rest = forces(mb.rest_slots, e.x, e.v, e.t)[0]
+        #: Whether the rest has forces (else F is the potential terms' alone).
+        self.rest_forces = F_rest.nnz() > 0 and not F_rest.is_zero()
+        F_rest = ca.densify(F_rest)
+        self.rest = {k: terms[k] for k in ("f", "f_t", "gamma", "scale")}
+        self.rest["J"], self.rest["F"] = rest_J, F_rest
+        self._rest_functions: dict = {}
+        rows = [np.repeat(g.place[None], g.index.shape[0], axis=0) for g in mb.rows]
+        self.rows = [row for g_rows in rows for row in g_rows] + [mb.rest_place[np.asarray(r, np.int64)]]
+        self.cols = [col for g in mb.rows for col in g.index] + [np.asarray(c, np.int64)]
+        lengths = [len(k) for k in self.rows]
+        self.by_rows = Summation(lengths, self.rows, self.n_rows)
+        self.by_cols = Summation(lengths, self.cols, self.n3)
+        # values per row (f, γ, f_t, scales): each group's instances, then the rest, to scene order
+        self.places = [g.place for g in mb.rows] + [mb.rest_place]
+        self.by_place = Summation([len(p) for p in self.places], self.places, self.n_rows)
+        self.by_force = Summation([g.index.shape[1] for g in mb.terms for _ in g.index],
+                                  [col for g in mb.terms for col in g.index], self.n3)
+        everything = np.arange(self.n_rows)
+        self.gram = _Gram(self.rows, self.cols, everything, self.n_rows, np.zeros(self.n3, bool))
+        #: Rows with one coordinate each, eliminated in ``Jacobian.solve`` (None: there are none).
+        self.single = _Elimination(self.rows, self.cols, self.n_rows, self.n3) if self.n_rows else None
+        if self.single is not None and not len(self.single.rows):
+            self.single = None
+        self._jacobian_pattern(lengths)
+        self._kernels: dict = {}
+        _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
+        self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
+
+    def _jacobian_pattern(self, lengths: list[int]) -> None:
+        """J's sparsity (C, 3N) and where each stream's entries go in its nonzeros."""
+        n = self.n_rows
+        key = [c * n + r for r, c in zip(self.rows, self.cols, strict=True)]
+        every = np.unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
+        self.jacobian_sparsity = ca.Sparsity.triplet(n, self.n3, (every % max(n, 1)).tolist(),
+                                                     (every // max(n, 1)).tolist())
+        self.by_nonzero = Summation(lengths, [np.searchsorted(every, k) for k in key], len(every))
+
+    # --- evaluation at one state ------------------------------------------------------------
+    def _kernel(self, g, outputs: tuple) -> ca.Function:
+        key = (id(g), outputs)
+        if key not in self._kernels:
+            e, xl = self.e, g.xl
+            vl = ca.SX.sym("vl", xl.numel())
+            terms = _row_terms(g.local, xl, vl, e.t, lambda i: g.parts[i])
+            # γ = ∂c/∂x v (+ ∂c/∂t), c = J v + f_t: by forward differentiation twice (a rod's
+            # kernel: 48 operations where the product with the Jacobian row gives 61)
+            c = ca.jtimes(g.local, xl, vl) + terms["f_t"]
+            terms["gamma"] = ca.jtimes(c, xl, vl) + (ca.jacobian(c, e.t) if ca.depends_on(c, e.t) else 0)
+            out = [ca.densify(ca.vec(terms[k])) for k in outputs]
+            self._kernels[key] = ca.Function("kernel", [xl, vl, g.c, e.t, e.p], out, {"cse": True})
+        return self._kernels[key]
+
+    def _gradient_kernel(self, g) -> ca.Function:
+        key = (id(g), "gradient")
+        if key not in self._kernels:
+            e, xl = self.e, g.xl
+            gradient = ca.densify(ca.gradient(g.local, xl))
+            vl = ca.SX.sym("vl", xl.numel())
+            self._kernels[key] = ca.Function("gradient", [xl, vl, g.c, e.t, e.p], [gradient], {"cse": True})
+        return self._kernels[key]
+
+    def _rest_function(self, outputs: tuple) -> ca.Function:
+        if outputs not in self._rest_functions:
+            e = self.e
+            self._rest_functions[outputs] = ca.Function(
+                "rest", [e.x, e.v, e.t, e.p], [self.rest[k] for k in outputs], {"cse": True})
+        return self._rest_functions[outputs]
+
+    def _columns(self, g, kernel, X, V, T, P) -> list:
+        n = g.index.shape[1]
+        values = ca.vertcat(P, ca.DM(g.constants)) if g.constants.size else P
+        # gathers made when the kernel reads them (each input element is read once)
+        inputs = [lambda j: take(X, g.index[j]), lambda j: take(V, g.index[j]),
+                  lambda j: take(values, g.sources[j]), [T], lambda j: P[j]]
+        return on_columns(kernel, inputs, n)
+
+    def evaluate(self, X, V, T, P, outputs: tuple, forces_too: bool = False) -> dict:
+        """The ``outputs`` (names in ROW_OUTPUTS; "J" a ``Jacobian``) at (X, V, T) with the
+        parameters P, MX columns; ``forces_too``: also "F" (3N,)."""
+        mb = self.mapped
+        rows = {k: [] for k in outputs}
+        for g in mb.rows:
+            out = self._columns(g, self._kernel(g, outputs), X, V, T, P)
+            for k, values in zip(outputs, out, strict=True):
+                rows[k] += values
+        rest_outputs = (*outputs, "F") if forces_too and (self.rest_forces or not mb.terms) else outputs
+        rest = []
+        if rest_outputs:
+            rest = self._rest_function(rest_outputs)(X, V if V is not None else ca.MX.zeros(self.n3), T, P)
+            rest = rest if isinstance(rest, list | tuple) else [rest]
+        result = {}
+        if forces_too and "F" not in rest_outputs:
+            rest_outputs, rest = (*rest_outputs, "F"), [*rest, None]
+        for k, value in zip(rest_outputs, rest, strict=True):
+            if k == "J":
+                result["J"] = Jacobian(self, rows["J"] + [value])
+            elif k == "F":
+                gradients = [col for g in mb.terms
+                             for col in self._columns(g, self._gradient_kernel(g), X, V, T, P)[0]]
+                if not gradients:
+                    result["F"] = value
+                elif self.rest_forces:
+                    result["F"] = value - self.by_force(gradients)
+                else:  # every force a potential term's: no dense zeros to subtract from
+                    result["F"] = -self.by_force(gradients)
+            else:
+                result[k] = self.by_place(rows[k] + [value])
+        return result
+
+
+    def _value_kernel(self, g) -> ca.Function:
+        key = (id(g), "value")
+        if key not in self._kernels:
+            e, xl = self.e, g.xl
+            vl = ca.SX.sym("vl", xl.numel())
+            self._kernels[key] = ca.Function("value", [xl, vl, g.c, e.t, e.p], [g.local], {"cse": True})
+        return self._kernels[key]
+
+    def energy(self, X, V, T, P, masses):
+        """The energy function h = T + V + U − v·∂U/∂v (the Structure's ``energy``), MX scalar."""
+        total = 0.5 * ca.dot(masses * V, V) + self._rest_function(("E",))(X, V, T, P)
+        for g in self.mapped.terms:
+            total = total + ca.sum1(self._columns(g, self._value_kernel(g), X, V, T, P)[0][0])
+        return total
+
+
+def vectorized_build(structure: Structure) -> VectorizedBuild:
+    """The structure's VectorizedBuild, built once and kept beside it."""
+    return built_once(structure, "vectorized build", lambda: VectorizedBuild(structure))

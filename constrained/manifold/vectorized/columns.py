@@ -1,0 +1,122 @@
+"""Whole-column arithmetic for CasADi MX graphs: a small SX kernel evaluated on columns of
+instances, and sums of many columns into targets by index data.
+
+``on_columns(kernel, inputs)`` replays the instructions of an SX Function with every scalar
+replaced by a column (n, 1) of n instances (or a scalar shared by all): one MX node per
+instruction, each a loop over n numbers in CasADi's virtual machine, where ``kernel.map(n)``
+would interpret the whole instruction list once per instance.
+
+``Summation`` adds entries of several columns ("streams") into targets, y[t] = Σ s_k[i_k]
+over the (stream, position) pairs that name target t. Targets with the same sequence of
+streams (a *signature*: on a chain, every inner rod's row of J v sums the same six streams)
+are summed together as gathers and additions of whole columns, and one permutation puts them
+in target order: O(entries) work in a few nodes, where a product with a constant 0/1 matrix
+would cost an indexed update per entry.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+#: Beyond this many signatures a Summation is a product with a constant sparse 0/1 matrix.
+MAX_SIGNATURES = 256
+
+
+def take(column, index: np.ndarray):
+    """column[index] (MX), the column itself when index is 0, 1, …, n − 1."""
+    index = np.asarray(index, dtype=np.int64)
+    if index.size == column.numel() and np.array_equal(index, np.arange(index.size)):
+        return column
+    return column[index.tolist()]
+
+
+def on_columns(kernel: ca.Function, inputs: list, n: int) -> list[list]:
+    """The outputs of the SX ``kernel`` evaluated on columns: ``inputs[i]`` is a list (or a
+    callable j -> value) giving, for each element j of input i, an MX column (n, 1) or a
+    scalar shared by every instance. Returns, for each output, a list of MX columns (n, 1)."""
+    work: dict[int, object] = {}
+    outputs = [[None] * kernel.nnz_out(i) for i in range(kernel.n_out())]
+    for k in range(kernel.n_instructions()):
+        op, args, res = kernel.instruction_id(k), kernel.instruction_input(k), kernel.instruction_output(k)
+        if op == ca.OP_CONST:
+            work[res[0]] = ca.MX(kernel.instruction_constant(k))
+        elif op == ca.OP_INPUT:
+            source = inputs[args[0]]
+            work[res[0]] = source(args[1]) if callable(source) else source[args[1]]
+        elif op == ca.OP_OUTPUT:
+            outputs[res[0]][res[1]] = work[args[0]]
+        elif op == ca.OP_CALL or len(args) not in (1, 2):
+            raise ValueError(f"{kernel.name()}: instruction {op} cannot be evaluated on columns")
+        elif len(args) == 1:
+            work[res[0]] = ca.MX.unary(op, work[args[0]])
+        else:
+            work[res[0]] = ca.MX.binary(op, work[args[0]], work[args[1]])
+    for out in outputs:
+        for j, value in enumerate(out):
+            if value is None:  # a structural zero
+                out[j] = ca.MX.zeros(n, 1)
+            elif value.numel() == 1 and n != 1:  # shared by every instance (a constant, t, p)
+                out[j] = ca.repmat(value, n, 1)
+    return outputs
+
+
+class Summation:
+    """y (n_targets,) with y[t] = Σ streams[s][i] over the entries (s, i) whose target is t,
+    for columns ``streams`` of the given ``lengths`` and ``targets`` (one index array per
+    stream, an entry per element); targets nobody names are 0. Index data only: built once,
+    applied to any columns of those lengths (``__call__``)."""
+
+    def __init__(self, lengths: list[int], targets: list[np.ndarray], n_targets: int):
+        self.lengths, self.n_targets = [int(k) for k in lengths], int(n_targets)
+        sid = np.repeat(np.arange(len(lengths)), lengths).astype(np.int64)
+        pos = np.concatenate([np.arange(k) for k in lengths] or [np.zeros(0, np.int64)]).astype(np.int64)
+        tgt = np.concatenate([np.asarray(t, np.int64) for t in targets] or [np.zeros(0, np.int64)])
+        self.matrix = None
+        order = np.lexsort((pos, sid, tgt))  # by target, then stream, then position
+        sid, pos, tgt = sid[order], pos[order], tgt[order]
+        counts = np.bincount(tgt, minlength=self.n_targets)
+        width = int(counts.max(initial=0))
+        rank = np.arange(tgt.size) - np.repeat(np.cumsum(counts) - counts, counts)
+        signature = np.full((self.n_targets, max(width, 1)), -1, dtype=np.int64)
+        where = np.full((self.n_targets, max(width, 1)), -1, dtype=np.int64)
+        signature[tgt, rank], where[tgt, rank] = sid, pos
+        kinds, inverse = np.unique(signature, axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        if len(kinds) > MAX_SIGNATURES:  # irregular: one sparse product
+            flat = np.concatenate([[0], np.cumsum(self.lengths)])[sid] + pos
+            self.matrix = ca.DM(ca.Sparsity.triplet(self.n_targets, int(sum(self.lengths)), tgt.tolist(),
+                                                    flat.tolist()), 1.0)
+            return
+        by_kind = np.argsort(inverse, kind="stable")
+        bounds = np.searchsorted(inverse[by_kind], np.arange(len(kinds) + 1))
+        self.groups, placed, zeros = [], [], None
+        # signatures in the order of their first target: where each covers a range of targets
+        # (a chain's rows: the rest, the rods, the planes) no permutation is needed at the end
+        for u in sorted(range(len(kinds)), key=lambda u: by_kind[bounds[u]]):
+            kind, members = kinds[u], by_kind[bounds[u]:bounds[u + 1]]
+            if kind[0] < 0:  # targets nobody names
+                zeros = members
+                continue
+            self.groups.append([(int(s), where[members, r]) for r, s in enumerate(kind) if s >= 0])
+            placed.append(members)
+        self.zeros = 0 if zeros is None else len(zeros)
+        order = np.concatenate([*placed, zeros] if zeros is not None else placed or [np.zeros(0, np.int64)])
+        self.permutation = np.empty(self.n_targets, dtype=np.int64)
+        self.permutation[order] = np.arange(self.n_targets)
+
+    def __call__(self, streams: list):
+        if self.n_targets == 0:
+            return ca.MX(0, 1)
+        if self.matrix is not None:
+            return ca.mtimes(self.matrix, ca.vertcat(*streams))
+        parts = []
+        for terms in self.groups:
+            total = None
+            for s, positions in terms:
+                value = take(streams[s], positions)
+                total = value if total is None else total + value
+            parts.append(total)
+        if self.zeros:
+            parts.append(ca.MX.zeros(self.zeros, 1))
+        return take(ca.vertcat(*parts), self.permutation)

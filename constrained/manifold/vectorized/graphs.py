@@ -1,0 +1,202 @@
+"""The KKT acceleration and the projections of ``manifold.graph`` on the vectorized build:
+the same formulas (A λ = −γ − J M⁻¹ F, a = M⁻¹ (F + Jᵀ λ); two Newton steps x ← x − M⁻¹ Jᵀ A⁻¹ f,
+the second sharing its factorization with the velocity projection), J's products written on
+its nonzeros (``build.Jacobian``) and A factorized by CasADi's sparse LDLᵀ."""
+
+from __future__ import annotations
+
+import casadi as ca
+
+from ...model.cache import ParametricView, structure_cache
+from ...model.structure import Model
+from .build import vectorized_build
+
+#: dopri's step loop in CasADi's virtual machine is built on the vectorized build from this
+#: many coordinates (a plain Model, all rows independent). Below, a group's columns are short
+#: and the per-node cost of the virtual machine outweighs what the columns save.
+VECTORIZED_FROM = 300
+
+
+def applies(model: Model, rows=None) -> bool:
+    """Whether step loops of ``model`` on ``rows`` use the vectorized build: a plain Model (not
+    a held row subset) of VECTORIZED_FROM coordinates or more, solving with all its rows, with
+    no velocity rows (model/velocity.py) and no mapped pair kernels (model/pairs/: MX of their own)."""
+    return (rows is None and getattr(model, "rows", None) is None and model.n_coordinates >= VECTORIZED_FROM
+            and getattr(model, "n_position_rows", model.n_constraints) == model.n_constraints
+            and not getattr(getattr(model, "structure", None), "pairs", ()))
+
+
+class VectorizedView(ParametricView):
+    """``ParametricView`` whose Functions are the vectorized build's (MX): ``constraint``,
+    ``jacobian``, ``velocity_terms``, ``dynamics`` (J a sparse MX matrix), ``energy`` and
+    ``row_scales``, for graphs that take the model generically (``manifold.structural_call``)."""
+
+    def __init__(self, model: Model, P):
+        super().__init__(model, P)
+        self.build = vectorized_build(model.structure)
+
+    def _at(self, X, V, T, outputs: tuple, forces_too: bool = False) -> dict:
+        return self.build.evaluate(X, V, T, self.P, outputs, forces_too)
+
+    def constraint(self, X, T):
+        return self._at(X, None, T, ("f",))["f"]
+
+    def jacobian(self, X, T):
+        out = self._at(X, None, T, ("f", "J"))
+        return out["f"], out["J"].matrix()
+
+    def velocity_terms(self, X, T):
+        out = self._at(X, None, T, ("J", "f_t"))
+        return out["J"].matrix(), out["f_t"]
+
+    def dynamics(self, X, V, T):
+        out = self._at(X, V, T, ("J", "gamma"), forces_too=True)
+        return out["F"], out["J"].matrix(), out["gamma"]
+
+    def energy(self, X, V, T):
+        return self.build.energy(X, V, T, self.P, self.masses)
+
+    def row_scales(self, X, T):
+        return self._at(X, None, T, ("scale",))["scale"]
+
+
+def statics(view: ParametricView) -> tuple:
+    """``(m⁻¹, F)``: the inverse masses (3N,) and, when they depend on p alone (gravity, fixed
+    loads), the forces (3N,; else None) — what every acceleration of a step shares, computed
+    once per step and handed to ``acceleration_function(model, statics=True)``."""
+    b = vectorized_build(view._model.structure)
+    X, V, T = ca.MX.sym("x", b.n3), ca.MX.sym("v", b.n3), ca.MX.sym("t")
+    F = b.evaluate(X, V, T, view.P, (), forces_too=True)["F"]
+    return view.inverse_masses, (None if ca.depends_on(F, ca.vertcat(X, V, T)) else F)
+
+
+def acceleration_graph(view: ParametricView, X, V, T, *, minv=None, forces=None):
+    """(a, λ) at (X, V, T) with the view's parameters: ``manifold.graph.acceleration_graph``;
+    ``minv``, ``forces``: the ``statics`` of the step, when given."""
+    b = vectorized_build(view._model.structure)
+    out = b.evaluate(X, V, T, view.P, ("J", "gamma"), forces_too=forces is None)
+    minv = view.inverse_masses if minv is None else minv
+    F, J = out["F"] if forces is None else forces, out["J"]
+    if not b.n_rows:
+        return minv * F, ca.MX(0, 1)
+    lam = J.solve(minv, -out["gamma"] - J.times(minv * F))
+    return minv * (F + J.transpose_times(lam)), lam
+
+
+def position_step_graph(view: ParametricView, X, T):
+    """(f, dx) with x ← x − dx one mass-weighted Newton step: ``manifold.graph.position_step_graph``."""
+    b = vectorized_build(view._model.structure)
+    out = b.evaluate(X, None, T, view.P, ("f", "J"))
+    minv, J = view.inverse_masses, out["J"]
+    if not b.n_rows:
+        return ca.MX(0, 1), ca.MX.zeros(b.n3)
+    return out["f"], minv * J.transpose_times(J.solve(minv, out["f"]))
+
+
+def velocity_correction_graph(view: ParametricView, X, V, T):
+    """dv with v ← v − dv the nearest velocity with J v + f_t = 0: ``manifold.graph``'s."""
+    b = vectorized_build(view._model.structure)
+    if not b.n_rows:
+        return ca.MX.zeros(b.n3)
+    out = b.evaluate(X, None, T, view.P, ("J", "f_t") if b.rheonomic else ("J",))
+    minv, J = view.inverse_masses, out["J"]
+    c = J.times(V) + out["f_t"] if b.rheonomic else J.times(V)
+    return minv * J.transpose_times(J.solve(minv, c))
+
+
+def projection_graph(view: ParametricView, x, v, t, *, minv=None):
+    """(x, v, residual before the last Newton step in metres): ``manifold.graph.projection_graph``."""
+    b = vectorized_build(view._model.structure)
+    P, minv = view.P, view.inverse_masses if minv is None else minv
+    first = b.evaluate(x, None, t, P, ("f", "J"))
+    J = first["J"]
+    x = x - minv * J.transpose_times(J.solve(minv, first["f"]))
+    out = b.evaluate(x, None, t, P, ("f", "J", "f_t", "scale") if b.rheonomic else ("f", "J", "scale"))
+    J = out["J"]
+    velocity = J.times(v) + out["f_t"] if b.rheonomic else J.times(v)
+    sol = J.solve(minv, ca.horzcat(out["f"], velocity))
+    residual = ca.mmax(ca.fabs(out["f"]) / out["scale"])
+    return x - minv * J.transpose_times(sol[:, 0]), v - minv * J.transpose_times(sol[:, 1]), residual
+
+
+def acceleration_function(model: Model, *, statics: bool = False) -> ca.Function:
+    """``(x, v, t, p) -> (a, λ)`` on the vectorized build, built once per structure;
+    ``statics``: ``(x, v, t, p, m⁻¹[, F]) -> (a, λ)`` taking what ``statics`` gives (F when the
+    forces depend on p alone)."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "acceleration", "vectorized", statics)
+    if key not in cache:
+        X, V, T, P = _symbols(model)
+        view = ParametricView(model, P)
+        inputs, extra = [X, V, T, P], {}
+        if statics:
+            extra["minv"] = ca.MX.sym("minv", model.n_coordinates)
+            if globals()["statics"](view)[1] is not None:
+                extra["forces"] = ca.MX.sym("F", model.n_coordinates)
+        a, lam = acceleration_graph(view, X, V, T, **extra)
+        cache[key] = ca.Function("acceleration", [*inputs, *extra.values()], [a, lam])
+    return cache[key]
+
+
+def _symbols(model: Model):
+    n3 = model.n_coordinates
+    P = ca.MX.sym("p", len(model.parameter_vector))
+    return ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t"), P
+
+
+def fast_path_functions(model: Model) -> list[ca.Function]:
+    """The manifold's fast paths on the vectorized build (dense outputs, p last):
+    ``acceleration(x, v, t, p) -> (a, λ)``, ``newton_step(x, t, p) -> (f, dx)``,
+    ``velocity_correction(x, v, t, p) -> dv``."""
+    X, V, T, P = _symbols(model)
+    view = ParametricView(model, P)
+    a, lam = acceleration_graph(view, X, V, T)
+    f, dx = position_step_graph(view, X, T)
+    dv = velocity_correction_graph(view, X, V, T)
+    d = ca.densify
+    return [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
+            ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
+            ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
+
+
+#: The quantities ``quantities_function`` can give, in order.
+QUANTITY_OUTPUTS = ("multipliers", "check", "constraint_forces", "energy", "constraint_residual",
+                    "velocity_residual")
+
+
+def quantities_function(model: Model, wanted: tuple) -> ca.Function:
+    """``(x, v, t, p) -> [...]`` the quantities ``wanted`` (names in QUANTITY_OUTPUTS, in that
+    order) at one state: the multipliers λ of the KKT system (sparse LDLᵀ), their ``check``
+    r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) (``run.quantities``), the constraint forces Jᵀλ,
+    the energy, the position and velocity residuals in metres (max_i |f_i| / s_i, |J_i v + f_t,i| / s_i).
+    Built once per structure and choice."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "quantities", "vectorized", wanted)
+    if key in cache:
+        return cache[key]
+    X, V, T, P = _symbols(model)
+    view = ParametricView(model, P)
+    b = vectorized_build(model.structure)
+    minv = view.inverse_masses
+    kkt = bool({"multipliers", "check", "constraint_forces"} & set(wanted))
+    names = ["f", "J", *(["f_t"] if b.rheonomic else []), *(["gamma"] if kkt else []), "scale"]
+    out = b.evaluate(X, V, T, P, tuple(names), forces_too=True)
+    J, outputs = out["J"], {}
+    if kkt:
+        F, gamma = out["F"], out["gamma"]
+        load = J.times(minv * F)
+        lam = J.solve(minv, -gamma - load) if b.n_rows else ca.MX(0, 1)
+        a = minv * (F + J.transpose_times(lam))
+        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
+        outputs["multipliers"] = lam
+        outputs["check"] = ca.mmax(ca.fabs(J.times(a) + gamma)) / scale if b.n_rows else ca.MX(0)
+        outputs["constraint_forces"] = J.transpose_times(lam)
+    if "energy" in wanted:
+        outputs["energy"] = b.energy(X, V, T, P, view.masses)
+    if "constraint_residual" in wanted:
+        outputs["constraint_residual"] = ca.mmax(ca.fabs(out["f"]) / out["scale"]) if b.n_rows else ca.MX(0)
+    if "velocity_residual" in wanted:
+        velocity = J.times(V) + out["f_t"] if b.rheonomic else J.times(V)
+        outputs["velocity_residual"] = ca.mmax(ca.fabs(velocity) / out["scale"]) if b.n_rows else ca.MX(0)
+    cache[key] = ca.Function("quantities", [X, V, T, P], [ca.densify(outputs[k]) for k in wanted])
+    return cache[key]

@@ -1,0 +1,326 @@
+"""Repeated rows and terms found (issue 16, 28): every constraint row and every summand of the
+potential cut out with the coordinates it depends on, its numbers lifted out as data
+(``lifted``), and the instances with the same operations gathered into one ``Group`` — the
+kernel that the mapped build (``manifold.mapped``: CasADi ``map`` in compiled step loops) and
+the vectorized build (``vectorized.build``: whole columns in the virtual machine) evaluate.
+
+Rows of one shape (as many local coordinates, the same particles, as many entries of p read)
+are compared with a candidate kernel all at once — the kernel applied to every one of them
+symbolically and both evaluated at two random points: a row is the kernel's instance when
+the values agree to the last bit at both (the same operations in the same order always do;
+two different formulas never do, barring a coincidence of measure zero — and a row that
+computes the same function another way would be that function anyway) — so the work per row
+is a few array operations, linear whatever the expressions' sharing; only rows that fit
+none of MAX_KINDS candidates are cut out one by one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+#: A repeated row or potential term becomes a mapped kernel from this many instances; fewer
+#: stay in the one SX graph of the rest.
+MIN_GROUP = 8
+
+
+@dataclass
+class Group:
+    """Instances of one local function: ``local`` (SX in ``xl``, ``c``, t, p), ``index`` (d, n)
+    the coordinates of each instance, ``sources`` (k, n) where each instance's value of ``c``
+    comes from: an index into [p; ``constants``], ``place`` (n,) each instance's row
+    (constraints), ``parts`` the particle of each local coordinate (0, 1, … in order of
+    appearance)."""
+
+    local: ca.SX
+    xl: ca.SX
+    c: ca.SX
+    index: np.ndarray
+    sources: np.ndarray
+    constants: np.ndarray
+    place: np.ndarray
+    parts: tuple
+
+    def data(self, P) -> ca.MX:
+        """C_g (k, n): the instances' values of ``c`` from p (an MX) and the constants."""
+        k, n = self.sources.shape
+        if k == 0:
+            return ca.MX(0, n)
+        values = ca.vertcat(P, ca.DM(self.constants)) if self.constants.size else P
+        return ca.reshape(values[self.sources.ravel(order="F").tolist()], k, n)
+
+
+def summands(term) -> list:
+    """The terms e_k of ``term`` = Σ ± e_k (sums, differences and negations unfolded)."""
+    out, stack = [], [(ca.SX(term), False)]
+    while stack:
+        e, negative = stack.pop()
+        if e.is_op(ca.OP_ADD):
+            stack += [(e.dep(1), negative), (e.dep(0), negative)]
+        elif e.is_op(ca.OP_SUB):
+            stack += [(e.dep(1), not negative), (e.dep(0), negative)]
+        elif e.is_op(ca.OP_NEG):
+            stack.append((e.dep(0), not negative))
+        else:
+            out.append(-e if negative else e)
+    return out
+
+
+def lifted(function: ca.Function, c: ca.SX, parameters: int | None = None) -> tuple[ca.SX, list] | None:
+    """The scalar output of the SX ``function`` with its k-th numeric constant, or k-th read
+    of an entry of its input number ``parameters`` (p), replaced by ``c[k]`` (the same
+    operations otherwise), and what each c[k] stands for: ``("c", value)`` or ``("p", j)``;
+    None when ``c`` is too short or an operation cannot be rebuilt (a call)."""
+    inputs = [function.sx_in(i) for i in range(function.n_in())]
+    work: dict[int, ca.SX] = {}
+    values: list[tuple] = []
+    out = None
+    for k in range(function.n_instructions()):
+        op, args = function.instruction_id(k), function.instruction_input(k)
+        res = function.instruction_output(k)
+        if op == ca.OP_INPUT and args[0] == parameters:
+            if len(values) == c.numel():
+                return None
+            work[res[0]] = c[len(values)]
+            values.append(("p", int(args[1])))
+        elif op == ca.OP_INPUT:
+            work[res[0]] = inputs[args[0]][args[1]]
+        elif op == ca.OP_OUTPUT:
+            out = work[args[0]]
+        elif op == ca.OP_CONST:
+            if len(values) == c.numel():
+                return None
+            work[res[0]] = c[len(values)]
+            values.append(("c", function.instruction_constant(k)))
+        elif len(args) == 1 and op != ca.OP_CALL:
+            work[res[0]] = ca.SX.unary(op, work[args[0]])
+        elif len(args) == 2 and op != ca.OP_CALL:
+            work[res[0]] = ca.SX.binary(op, work[args[0]], work[args[1]])
+        else:
+            return None
+    return (out if out is not None else ca.SX(0)), values
+
+
+#: Numbers lifted out of one row or term at most (more: the instance keeps its numbers).
+MAX_CONSTANTS = 16
+
+
+#: A bucket of rows with the same shape (local coordinates, particles, entries of p read) tries
+#: this many different local functions by whole-bucket comparison; the rows left are cut out
+#: one by one.
+MAX_KINDS = 8
+#: The points (x, t, p drawn from this seed) at which a candidate kernel's instances and the
+#: rows are compared.
+PROBE_SEED = 20_280
+
+
+@dataclass
+class _Kind:
+    """One local function: ``expr`` in ``xl``, ``cs``, t (and p when it keeps its own entries of p:
+    ``used``, else None), with ``numbers`` what each entry of cs stands for in the instance it
+    was cut from: ("p", position in that instance's reads of p) or ("c", constant)."""
+
+    key: tuple
+    expr: ca.SX
+    xl: ca.SX
+    cs: ca.SX
+    numbers: list
+    used: tuple | None
+
+
+def _kind(e, x, t, p, index, used, symbols: dict, c) -> _Kind | None:
+    """The local function of the scalar ``e`` reading x[index] and p[used] (None: it depends on
+    more, e.g. velocities)."""
+    xl = symbols.setdefault(("xl", len(index)), ca.SX.sym("xl", len(index)))
+    pl = symbols.setdefault(("pl", len(used)), ca.SX.sym("pl", len(used)))
+    try:
+        e_local = ca.substitute([e], [x[index.tolist()], p[used.tolist()]], [xl, pl])[0]
+        local = ca.Function("kernel", [xl, t, pl], [e_local])
+    except RuntimeError:  # it depends on more than x_l, t and p (velocities)
+        return None
+    parts = tuple(first_parts(index.tolist()))
+    lift = lifted(local, c, parameters=2)
+    if lift is None:  # the instance keeps its own entries of p
+        expr = ca.substitute(local.sx_out(0), pl, p[used.tolist()])
+        return _Kind((parts, tuple(used.tolist()), local.serialize()), expr, xl, ca.SX(0, 1), [],
+                     tuple(used.tolist()))
+    cs = symbols.setdefault(("c", len(lift[1])), ca.SX.sym("c", len(lift[1])))
+    expr = ca.substitute(lift[0], c[:len(lift[1])], cs)
+    key = (parts, ca.Function("kernel", [xl, cs, t], [expr]).serialize())
+    return _Kind(key, expr, xl, cs, list(lift[1]), None)
+
+
+def _instances(kind: _Kind, p, reads: np.ndarray) -> tuple[list, ca.SX]:
+    """The numbers of instances whose reads of p are ``reads`` (n_p, n): per entry of cs
+    ("p", indices into p (n,)) or ("c", value); and cs as SX (k, n)."""
+    n = reads.shape[1]
+    numbers = [("p", reads[value]) if what == "p" else ("c", value) for what, value in kind.numbers]
+    if not numbers:
+        return numbers, ca.SX(0, n)
+    rows = [ca.reshape(p[value.tolist()], 1, n) if what == "p" else ca.SX(ca.DM.ones(1, n) * value)
+            for what, value in numbers]
+    return numbers, ca.vertcat(*rows)
+
+
+def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np.ndarray,
+          x, t, p) -> np.ndarray:
+    """Which rows ``ks`` (coordinates ``index`` (d, n), reads of p ``reads`` (n_p, n)) are ``kind``
+    applied to their own coordinates and numbers: the kernel applied to all of them at once
+    and compared with the rows node by node."""
+    same = np.ones(len(ks), bool)
+    if kind.used is not None:  # its own entries of p: only rows reading exactly those
+        same &= np.all(reads == np.asarray(kind.used)[:, None], axis=0) if reads.size else same
+    if not same.any():
+        return same
+    ks, index, reads = ks[same], index[:, same], reads[:, same]
+    n = len(ks)
+    X = ca.reshape(x[index.ravel(order="F").tolist()], index.shape[0], n)
+    if kind.used is None:
+        _, C = _instances(kind, p, reads)
+        applied = ca.Function("kernel", [kind.xl, kind.cs, t], [kind.expr]).map(n)(X, C, t)
+    else:
+        applied = ca.Function("kernel", [kind.xl, t, p], [kind.expr]).map(n)(X, t, p)
+    applied = ca.vec(applied)
+    original = ca.vertcat(*[exprs[k] for k in ks])
+    try:
+        both = ca.Function("probe", [x, t, p], [applied, original])
+    except RuntimeError:  # some row reads more than x, t and p: none is taken here
+        return np.zeros_like(same)
+    rng = np.random.default_rng(PROBE_SEED)
+    equal = np.ones(n, bool)
+    for _ in range(2):
+        point = (rng.uniform(0.5, 1.5, x.numel()), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, p.numel()))
+        with np.errstate(all="ignore"):
+            a, b = (np.asarray(o, float).ravel() for o in both(*point))
+        equal &= (a == b) & np.isfinite(a)  # (a value that is not finite proves nothing)
+    out = np.zeros_like(same)
+    out[np.flatnonzero(same)[equal]] = True
+    return out
+
+
+def _buckets(colind: np.ndarray, row: np.ndarray, read_colind: np.ndarray) -> list[np.ndarray]:
+    """Rows with the same shape: as many local coordinates, the same particle of each (numbered
+    in order of appearance), as many entries of p read. In order of their first row."""
+    counts, reads = np.diff(colind), np.diff(read_colind)
+    out = []
+    for d in np.unique(counts):
+        ks = np.flatnonzero(counts == d)
+        if d == 0:
+            out.append(ks)
+            continue
+        particle = row[colind[ks][:, None] + np.arange(d)] // 3  # (n, d)
+        first = np.argmax(particle[:, :, None] == particle[:, None, :], axis=2)  # first equal position
+        if d * np.log2(max(d, 2)) + np.log2(int(reads[ks].max(initial=0)) + 2) < 62:
+            # one integer per row: the reads, then the positions in base d (a 1-D unique is fast)
+            key = reads[ks].astype(np.int64)
+            for j in range(d):
+                key = key * d + first[:, j]
+            _, inverse = np.unique(key, return_inverse=True)
+        else:
+            _, inverse = np.unique(np.concatenate([first, reads[ks][:, None]], axis=1), axis=0,
+                                   return_inverse=True)
+        inverse = inverse.ravel()
+        order = np.argsort(inverse, kind="stable")
+        bounds = np.searchsorted(inverse[order], np.arange(int(inverse.max()) + 2))
+        out += [ks[order[bounds[u]:bounds[u + 1]]] for u in range(len(bounds) - 1)]
+    return sorted(out, key=lambda ks: ks[0])
+
+
+def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]]:
+    """Groups (MIN_GROUP instances or more) of the scalar ``exprs`` by local function, their
+    numbers lifted out as per-instance data, and the indices of the others (the rest).
+    ``symbols``: (name, size) -> the local symbol of that size.
+
+    Rows of one shape (``_buckets``) are tried against the local function of their first row
+    all at once (``_same``); only rows that match none of MAX_KINDS functions are cut out one
+    by one, so the work per row is a few array operations."""
+    if not exprs:
+        return [], []
+    if any(e.numel() != 1 for e in exprs):
+        raise ValueError("the rows and terms of the mapped build are scalars")
+    stacked = ca.vertcat(*exprs)
+    pattern = ca.jacobian_sparsity(stacked, x).T
+    colind, row = np.array(pattern.colind(), np.int64), np.array(pattern.row(), np.int64)
+    # the entries of p each row reads: a row's kernel takes those alone (pl), so that its work
+    # does not grow with the length of p (one number per rod of a 10,000-link chain)
+    if p.numel():
+        reads = ca.jacobian_sparsity(stacked, p).T
+        read_colind, read_row = np.array(reads.colind(), np.int64), np.array(reads.row(), np.int64)
+    else:
+        read_colind, read_row = np.zeros(len(exprs) + 1, np.int64), np.zeros(0, np.int64)
+    c = ca.SX.sym("c", MAX_CONSTANTS)
+    found: dict[tuple, list] = {}
+    rest = []
+
+    def gathered(ks, colind, row, width):  # (width, len(ks)): each row's entries as a column
+        if not width:
+            return np.zeros((0, len(ks)), np.int64)
+        return row[colind[ks][None, :] + np.arange(width)[:, None]]
+
+    for ks in _buckets(colind, row, read_colind):
+        d, n_p = int(colind[ks[0] + 1] - colind[ks[0]]), int(read_colind[ks[0] + 1] - read_colind[ks[0]])
+        if d == 0:
+            rest += ks.tolist()
+            continue
+        index, reads = gathered(ks, colind, row, d), gathered(ks, read_colind, read_row, n_p)
+        left = np.ones(len(ks), bool)
+        for _ in range(MAX_KINDS):
+            if not left.any():
+                break
+            first = int(np.argmax(left))
+            kind = _kind(exprs[ks[first]], x, t, p, index[:, first], reads[:, first], symbols, c)
+            if kind is None:
+                rest.append(int(ks[first]))
+                left[first] = False
+                continue
+            todo = np.flatnonzero(left)
+            same = _same(kind, exprs, ks[todo], index[:, todo], reads[:, todo], x, t, p)
+            same[0] = True  # (the row it was cut from, whatever the comparison says)
+            members = todo[same]
+            numbers, _ = _instances(kind, p, reads[:, members])
+            chunk = (ks[members], index[:, members], (len(members), numbers))
+            found.setdefault(kind.key, [kind, []])[1].append(chunk)
+            left[members] = False
+        for i in np.flatnonzero(left):  # one by one
+            kind = _kind(exprs[ks[i]], x, t, p, index[:, i], reads[:, i], symbols, c)
+            if kind is None:
+                rest.append(int(ks[i]))
+                continue
+            numbers, _ = _instances(kind, p, reads[:, [i]])
+            found.setdefault(kind.key, [kind, []])[1].append((ks[[i]], index[:, [i]], (1, numbers)))
+    groups = []
+    for kind, chunks in found.values():
+        place = np.concatenate([k for k, _, _ in chunks])
+        if len(place) < MIN_GROUP:
+            rest += place.tolist()
+            continue
+        order = np.argsort(place, kind="stable")  # instances in the order of their rows
+        index = np.concatenate([i for _, i, _ in chunks], axis=1)[:, order]
+        sources, constants = _sources([numbers for _, _, numbers in chunks], p.numel())
+        groups.append(Group(kind.expr, kind.xl, kind.cs, index, sources[:, order], constants, place[order],
+                             kind.key[0]))
+    groups.sort(key=lambda g: g.place[0])
+    return groups, sorted(rest)
+
+
+def first_parts(index) -> list[int]:
+    """The particle of each local coordinate, numbered 0, 1, … in order of appearance."""
+    first: dict[int, int] = {}
+    return [first.setdefault(i // 3, len(first)) for i in index]
+
+
+def _sources(chunks: list, n_p: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(sources, constants)`` of a group from its chunks of instances, each ``(n, numbers)``
+    with ``numbers`` a list over the lifted values of ("p", indices into p (n,)) or ("c",
+    value): for each lifted value (k) of each instance its index into [p (n_p entries);
+    constants], and the constants (each distinct value once)."""
+    constants: dict[float, int] = {}
+    blocks = []
+    for n, numbers in chunks:
+        rows = [np.asarray(value, np.int64) if what == "p"
+                else np.full(n, n_p + constants.setdefault(float(value), len(constants)), np.int64)
+                for what, value in numbers]
+        blocks.append(np.stack(rows) if rows else np.zeros((0, n), np.int64))
+    return np.concatenate(blocks, axis=1), np.array(list(constants), dtype=float)
