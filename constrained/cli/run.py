@@ -292,8 +292,11 @@ def _summary(scene: Scene, file: str, tr: Trajectory, written: list[Path]) -> No
         conserving = conserving and not any(r.energy_lost > 0 for r in tr.events)
         if conserving:
             text = f"energy drift: max |E - E0| = {drift:.3g} J"
-            if tr.energy[0] != 0:
-                text += f" (relative {drift / abs(float(tr.energy[0])):.3g})"
+            e0 = abs(float(tr.energy[0]))
+            if 0 < drift <= e0:
+                text += f" (relative {drift / e0:.3g})"
+            elif drift:  # E0 ~ 0 where the potential's zero is the start: a ratio would mean nothing
+                text += f" (|E0| = {e0:.3g} J, below the drift: no relative figure)"
         else:  # damping, driving or applied forces change E: that is physics, not drift
             text = (f"energy change: E(end) - E0 = {float(tr.energy[-1] - tr.energy[0]):.6g} J "
                     "(not conserved in this scene: damping, driving, applied forces or impacts)")
