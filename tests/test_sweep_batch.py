@@ -174,9 +174,9 @@ def test_bad_parquet_designs_and_file_types_exit_2(scene, tmp_path, capsys):
 
 
 def test_what_cannot_be_batched_runs_per_run_and_says_why(tmp_path, capsys):
-    # the bundled scene has [expect] checks and method projection: one run each
+    # the bundled scene has [expect] checks; with method projection: one run each
     code = main(["sweep", str(PARAMETRIC), "--vary", "parameters.m1=[1.0, 1.5]", "--set",
-                 "simulate.t_end=0.2", "--out", str(tmp_path / "p")])
+                 "simulate.t_end=0.2", "--set", "simulate.method=projection", "--out", str(tmp_path / "p")])
     out = capsys.readouterr().out
     assert code == 0
     assert "0 batched" in out and "2 one run each" in out and "method 'projection'" in out
