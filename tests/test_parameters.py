@@ -459,3 +459,26 @@ def test_parameter_overrides_of_a_scene_read_before_match_reading_it_anew(tmp_pa
     assert quick.system.parameters == fresh.system.parameters
     with pytest.raises(SceneError, match="mass"):
         C.load_scene(path, ["parameters.m1=-1"])
+
+
+def test_a_fresh_call_with_every_output_builds_no_kkt_graph_again(monkeypatch):
+    """The call README.md's speed sentence is about: the scene read again (a new Model of the
+    same structure, new values) and simulated with every derived quantity. The multipliers'
+    KKT graph is built once per structure: the second call builds no acceleration graph, and
+    its multipliers equal a run on a model assembled from scratch."""
+    import constrained.manifold.manifold as manifold
+
+    path = Path(__file__).resolve().parents[1] / "scenarios" / "double_pendulum_parametric.toml"
+    C.simulate(C.load_scene(path).system, 0.5)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the KKT graph was built again")
+
+    scene = C.load_scene(path, ["parameters.m1=1.3", "parameters.l2=0.7"])
+    with monkeypatch.context() as patch:
+        patch.setattr(manifold, "acceleration_graph", refuse)
+        tr = C.simulate(scene.system, 0.5)
+    fresh = C.simulate(scene.system, 0.5, model=assemble(scene.system, reuse=False), t_eval=tr.t)
+    assert np.all(np.isfinite(tr.multipliers))
+    assert np.allclose(tr.multipliers, fresh.multipliers, rtol=1e-8, atol=1e-10)
+    assert np.allclose(tr.action, fresh.action, rtol=1e-8, atol=1e-12)

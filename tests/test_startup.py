@@ -44,6 +44,15 @@ def test_cli_help_imports_nothing_heavy():
     assert not [h for h in (*HEAVY, "numpy") if h in names]
 
 
+def test_a_small_dopri_run_imports_no_scipy():
+    """The first call in a new process (docs/performance.md, "Fresh call"): a lean dopri run of
+    the double pendulum needs NumPy, CasADi and constrained only (the redundancy test at its
+    start once imported scipy.sparse to ask whether J was a SciPy matrix: 0.2 s)."""
+    names = _imported("import constrained as C\nsc = C.load_scene('scenarios/double_pendulum.toml')\n"
+                      "C.simulate(sc.system, 2.0, t_eval=[0, 2], outputs=set())")
+    assert "casadi" in names and "scipy" not in names, sorted(n for n in names if n.startswith("scipy"))[:5]
+
+
 def test_public_names_still_resolve_lazily():
     # every name of __all__ is reachable, simulate is the function even after its module loaded
     for name in C.__all__:

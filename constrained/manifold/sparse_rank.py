@@ -24,6 +24,8 @@ with the rows it depends on), as the dense QR names it.
 
 from __future__ import annotations
 
+import sys
+
 import casadi as ca
 import numpy as np
 
@@ -62,8 +64,9 @@ def as_scipy(J) -> sp.csr_matrix:
 
 
 def as_dense(J) -> np.ndarray:
-    """A CasADi DM, a SciPy sparse matrix or an array as a dense NumPy array."""
-    return J.toarray() if sp.issparse(J) else np.asarray(J, float)
+    """A CasADi DM, a SciPy sparse matrix or an array as a dense NumPy array (SciPy is not
+    imported to ask: a small model's start runs without it)."""
+    return J.toarray() if "scipy.sparse" in sys.modules and sp.issparse(J) else np.asarray(J, float)
 
 
 def scaled_rows(J, weights: np.ndarray | None = None) -> sp.csr_matrix:

@@ -48,6 +48,14 @@ def lagrangian_function(model: Model) -> ca.Function:
     cached = _L_CACHE.get(model)
     if cached is not None:
         return cached
+    if not getattr(model.structure, "pairs", ()) and "generalized_potential" not in model.active_terms:
+        # T − V from the Model's bound Functions: shared by Models of equal values (a fresh call
+        # of the same scene parses no effect again)
+        x, v, t = (ca.SX.sym(name, n) for name, n in (("x", model.n_coordinates), ("v", model.n_coordinates),
+                                                       ("t", 1)))
+        L = ca.Function("L", [x, v, t], [model.kinetic(v) - model.potential(x, t)], ["x", "v", "t"], ["L"])
+        _L_CACHE[model] = L
+        return L
     s = model.symbols
     V = ca.SX(0)
     U = ca.SX(0)

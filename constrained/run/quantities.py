@@ -24,7 +24,7 @@ from ..manifold.manifold import (
     structural_call,
 )
 from ..manifold.vectorized import graphs as vectorized
-from ..model.cache import built_once
+from ..model.cache import ParametricView, built_once, structure_cache
 from ..model.structure import Model
 from .trajectory import QUANTITIES, Trajectory
 
@@ -140,18 +140,41 @@ def energy_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray) -> n
 def _checked_multipliers(model: Model) -> ca.Function:
     """``(x, v, t) -> (λ, r)``: the sparse LDLᵀ multipliers and the relative residual
     r = |J a + γ|∞ / (|γ|∞ + |J M⁻¹ F|∞ + tiny) of the acceleration they give. A factorization
-    that met dependent rows gives large λ without a NaN; r shows it."""
-    def build():
-        n3 = model.n_coordinates
-        X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
-        a, lam = acceleration_function(model)(X, V, T)
-        F, J, gamma = model.dynamics(X, V, T)
-        load = ca.mtimes(J, ca.DM(model.inverse_masses) * F)
-        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
-        r = ca.mmax(ca.fabs(ca.mtimes(J, a) + gamma)) / scale
-        return ca.Function("checked_multipliers", [X, V, T], [lam, r])
+    that met dependent rows gives large λ without a NaN; r shows it.
 
-    return built_once(model, "checked_multipliers", build)
+    A model below ``VECTORIZED_FROM`` coordinates without pair kernels gets the graph built once
+    per structure with p an input, bound to its values (a fresh call assembles a new Model of
+    the same structure: it builds nothing again); others build it on the Model's Functions."""
+    def graph(view, X, V, T, acceleration):
+        F, J, gamma = view.dynamics(X, V, T)
+        inverse_masses = view.inverse_masses
+        inverse_masses = ca.DM(inverse_masses) if isinstance(inverse_masses, np.ndarray) else inverse_masses
+        load = ca.mtimes(J, inverse_masses * F)
+        scale = ca.mmax(ca.fabs(gamma)) + ca.mmax(ca.fabs(load)) + 1e-300
+        a, lam = acceleration
+        return lam, ca.mmax(ca.fabs(ca.mtimes(J, a) + gamma)) / scale
+
+    n3 = model.n_coordinates
+    X, V, T = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+    if getattr(model.structure, "pairs", ()) or n3 >= vectorized.VECTORIZED_FROM:
+        def build():
+            return ca.Function("checked_multipliers", [X, V, T],
+                               list(graph(model, X, V, T, acceleration_function(model)(X, V, T))))
+        return built_once(model, "checked_multipliers", build)
+
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "checked_multipliers")
+    if key not in cache:
+        P = ca.MX.sym("p", len(model.parameter_vector))
+        acceleration = acceleration_function(model, parametric=True)(X, V, T, P)
+        cache[key] = ca.Function("checked_multipliers", [X, V, T, P],
+                                 list(graph(ParametricView(model, P), X, V, T, acceleration)))
+    parametric = cache[key]
+
+    def bind():
+        return ca.Function("checked_multipliers", [X, V, T],
+                           parametric(X, V, T, ca.DM(model.parameter_vector)))
+    return built_once(model, "checked_multipliers", bind)
 
 
 def multipliers_along(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, *,
