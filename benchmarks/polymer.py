@@ -16,6 +16,8 @@ Peers (each run alternately, ``--repeats`` passes, the median kept):
 - ``constrained`` dopri (DOP853, compiled step loop, warm: the compile is cached on disk and
   done before timing) at rtol = atol·100 swept over ``--rtols``; the pairs are one mapped
   kernel (``pairwise`` with ``exclude_bonded``).
+- ``constrained-rattle`` (not by default): ``rattle`` at OpenMM's steps (``--steps``), its
+  CPU time per step printed beside OpenMM Reference's (issue 28's goal 4: ≤ 1.5×).
 - ``openmm-cpu`` / ``openmm-reference``: the same numbers in OpenMM's units (nm, ps, amu and
   kJ/mol form a consistent set: 1 kJ/mol = 1 amu nm² ps⁻²): ``addConstraint`` per bond,
   ``CustomNonbondedForce("eps*(sig/r)^12")`` with ``NoCutoff`` and the bonds excluded,
@@ -102,6 +104,20 @@ def run_constrained(system, model, x0, v0, rtol: float, compiled=True):
     return cpu, wall, tr.x[-1], int(tr.stats["steps"])
 
 
+def run_rattle(system, model, x0, v0, steps: int):
+    """constrained's ``rattle`` (RATTLE: Verlet with the bonds solved to ``newton_tol`` each
+    step) at OpenMM's step, T / steps: issue 28's goal 4 compares its CPU time per step with
+    OpenMM Reference's."""
+    import constrained as C
+
+    s = system.with_state(x0, v0)
+    cpu, wall = time.process_time(), time.perf_counter()
+    tr = C.simulate(s, T_END, model=model, method="rattle", dt=T_END / steps, t_eval=[0.0, T_END],
+                    outputs=set())
+    cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+    return cpu, wall, tr.x[-1], int(tr.stats["steps"])
+
+
 class OpenMM:
     """One OpenMM Context of the polymer on ``platform``, built once."""
 
@@ -151,7 +167,8 @@ def main(argv=None) -> int:
     parser.add_argument("--rtols", type=float, nargs="+", default=[1e-3, 1e-4, 1e-5, 1e-6, 1e-7])
     parser.add_argument("--steps", type=int, nargs="+",
                         default=[100, 200, 300, 400, 600, 800, 1200, 1600, 3200])
-    parser.add_argument("--peers", default="constrained,openmm-cpu,openmm-reference")
+    parser.add_argument("--peers", default="constrained,openmm-cpu,openmm-reference",
+                        help="also: constrained-rattle (RATTLE at OpenMM's steps, issue 28's goal 4)")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     import constrained as C
@@ -174,6 +191,11 @@ def main(argv=None) -> int:
             run_constrained(system, model, x0, v0, rtol)  # warm: compiles once, then cached
             settings.append(("constrained dopri", f"rtol {rtol:g}",
                              lambda rtol=rtol: run_constrained(system, model, x0, v0, rtol)))
+    if "constrained-rattle" in peers:
+        for steps in args.steps:
+            run_rattle(system, model, x0, v0, steps)  # warm: the step loop built once per structure
+            settings.append(("constrained rattle", f"{steps} steps",
+                             lambda steps=steps: run_rattle(system, model, x0, v0, steps)))
     for peer, platform in (("openmm-cpu", "CPU"), ("openmm-reference", "Reference")):
         if peer not in peers:
             continue
@@ -211,7 +233,17 @@ def main(argv=None) -> int:
     for peer, (cpu, setting, error) in best.items():
         ratio = f"{cpu / base:.2f}" if base else "—"
         print(f"| {peer} | {setting} | {error:.1e} | {cpu:.4f} | {ratio} |")
-    missing = [p for p in ("constrained dopri", *peers[1:]) if p not in best]
+    names = {"constrained": "constrained dopri", "constrained-rattle": "constrained rattle"}
+    missing = [names.get(p, p) for p in peers if names.get(p, p) not in best]
+    fixed = ("constrained rattle", "openmm-reference")
+    steps = [k for k, (peer, _, _) in enumerate(settings) if peer in fixed]
+    if steps:
+        print("\nCPU time per step (median), RATTLE against OpenMM Reference at the same steps:\n")
+        print("| peer | steps | CPU ms per step |\n|---|---|---|")
+        for k in steps:
+            runs = results[k]
+            per_step = 1e3 * statistics.median(r[0] for r in runs) / runs[0][3]
+            print(f"| {settings[k][0]} | {runs[0][3]} | {per_step:.3f} |")
     if missing:
         print(f"\n(no run reached the target: {', '.join(missing)}; widen --rtols / --steps)")
     return 0
