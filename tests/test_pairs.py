@@ -350,3 +350,32 @@ def test_a_few_pairs_are_written_out_with_the_same_cutoff_and_exclusions():
     V, F = pair_parts(model, x)
     assert V - V_trap == pytest.approx(float(V_ref[0]), rel=1e-12)
     np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-10, atol=1e-11 * np.abs(F_ref).max())
+
+
+@pytest.mark.parametrize("n", [20, 400])  # written out pair by pair; one mapped kernel
+def test_two_particles_on_one_point_are_named_by_the_run_and_the_scene(n, tmp_path, capsys):
+    """A pair potential singular at r = 0 with two of N particles started on one point (an
+    unfriendly start: a lattice with one bead placed twice). The refusal names the two
+    particles, from Python and from a scene file, whichever way the sum is built."""
+    from constrained.cli.main import main
+
+    positions = [[0.01 * (i % 20), 0.01 * (i // 20), 0.0] for i in range(n)]
+    system = C.System(name="lattice")
+    for i, x in enumerate(positions):
+        system.add_particle(f"c{i}", 1e-3, x)
+    system.add_particle("twice", 1e-3, positions[7])
+    system.add(C.Pairwise("1e-9/r**6"))
+    with pytest.raises(C.SimulationError) as stop:
+        C.simulate(system, 0.01)
+    assert "particles 'c7' and 'twice', 0 m apart" in str(stop.value), str(stop.value)
+
+    particles = "\n".join(f'[[particles]]\nname = "c{i}"\nmass = 1e-3\nposition = {x}\n'
+                          for i, x in enumerate(positions))
+    scene = tmp_path / "lattice.toml"
+    scene.write_text(f'[scene]\nname = "lattice"\n{particles}\n[[particles]]\nname = "twice"\nmass = 1e-3\n'
+                     f'position = {positions[7]}\n[[effects]]\ntype = "pairwise"\nexpr = "1e-9/r**6"\n'
+                     '[simulate]\nt_end = 0.01\n[outputs]\nplots = []\n')
+    capsys.readouterr()
+    assert main(["check", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "effects[0]" in err and "particles 'c7' and 'twice', start at the same position" in err, err

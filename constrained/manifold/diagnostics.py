@@ -307,7 +307,8 @@ def nonfinite_cause(model, x, v, t: float) -> str:
                 what = {"potential": "potential energy or its force", "applied_force": "force",
                         "dissipation": "damping force", "generalized_potential": "generalized potential"}
                 found.append(f"effect {k} ('{effect.label}') gives a non-finite "
-                             f"{what.get(effect.slot, 'term')} ({values[0]:.3g})")
+                             f"{what.get(effect.slot, 'term')} ({values[0]:.3g})"
+                             + _closest_pair(model, effect, x))
         if not found and model.n_constraints:
             f, J = (np.asarray(a) for a in model.jacobian(x, t))
             rows = np.flatnonzero(~np.all(np.isfinite(np.hstack([f, J])), axis=1))
@@ -471,6 +472,16 @@ class StiffnessWatch:
                 f"the run of {length:g} s{pace}. Its stretch is {e.stretch:.2g} m of {e.rest:g} m: "
                 f"{e.constraint_advice()}; or, to keep the spring, use a method that steps over the "
                 'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
+
+
+def _closest_pair(model, effect, x) -> str:
+    """For a pair potential (``pairwise``): "; closest pair: particles 'a' and 'b', d m apart"
+    (where φ(r) is most likely singular); else ""."""
+    closest = effect.closest_pair(model.system, x) if hasattr(effect, "closest_pair") else None
+    if closest is None:
+        return ""
+    a, b, d = closest
+    return f"; closest pair: particles '{a}' and '{b}', {d:.3g} m apart"
 
 
 def _pair_values(model, x, t) -> dict:

@@ -172,6 +172,23 @@ class Pairwise(Effect):
         cut = f", cutoff {_fmt(self.cutoff)} m" if self.cutoff is not None else ""
         return self.name or f"pairwise V(r) = {self.expr} over {over}{cut}"
 
+    def closest_pair(self, system, x) -> tuple[str, str, float] | None:
+        """(a, b, |x_a − x_b|) of the closest two of the effect's particles at positions ``x``
+        (3N): where φ(r) is most likely singular (two particles on one point). None for fewer
+        than two particles."""
+        names = [q.name for q in system.particles]
+        index = {name: k for k, name in enumerate(names)}
+        rows = np.array([index[p] for p in (self.particles or names) if p in index], dtype=np.int64)
+        if len(rows) < 2:
+            return None
+        from scipy.spatial import cKDTree
+
+        points = np.asarray(x, float).reshape(-1, 3)[rows]
+        distance, neighbour = cKDTree(points).query(points, k=2)
+        i = int(np.argmin(distance[:, 1]))
+        a, b = sorted((int(rows[i]), int(rows[int(neighbour[i, 1])])))
+        return names[a], names[b], float(distance[i, 1])
+
     def _parsed(self, s):
         """(names, r, φ(r)) of the effect, its particles checked."""
         where = self._where()

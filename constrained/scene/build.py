@@ -35,6 +35,12 @@ from .validate import _describe, _join, _name_or_value, _suggest
 def _why_singular(obj, system: System, t0: float) -> str:
     """The likely reason an item is undefined at the start: two ends at one place."""
     a, b, point = (getattr(obj, k, None) for k in ("a", "b", "point"))
+    closest = obj.closest_pair(system, system.positions) if hasattr(obj, "closest_pair") else None
+    if closest is not None:
+        a, b, d = closest
+        where = "at the same position" if d == 0 else f"{d:.3g} m apart"
+        return (f": its closest pair, particles '{a}' and '{b}', start {where}, where V(r) is singular "
+                "(e.g. r = 0 in the formula); move one of them")
     if not isinstance(a, str):
         return "; move the particles away from the singular point (e.g. r = 0 in a formula)"
     names = [p.name for p in system.particles]
