@@ -482,3 +482,9 @@ def test_a_fresh_call_with_every_output_builds_no_kkt_graph_again(monkeypatch):
     assert np.all(np.isfinite(tr.multipliers))
     assert np.allclose(tr.multipliers, fresh.multipliers, rtol=1e-8, atol=1e-10)
     assert np.allclose(tr.action, fresh.action, rtol=1e-8, atol=1e-12)
+    assert np.allclose(tr.constraint_forces, fresh.constraint_forces, rtol=1e-8, atol=1e-10)
+    # and Jᵀλ is J's transpose times λ at each sample (J of the model at those values)
+    model = assemble(scene.system, reuse=False)
+    for k in (0, len(tr.t) // 2, len(tr.t) - 1):
+        J = np.asarray(model.jacobian(tr.x[k].ravel(), tr.t[k])[1])
+        assert np.allclose(tr.constraint_forces[k].ravel(), J.T @ tr.multipliers[k], rtol=1e-10, atol=1e-12)

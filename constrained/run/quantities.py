@@ -253,7 +253,28 @@ def constraint_forces_along(model: Model, X: np.ndarray, t: np.ndarray, lam: np.
         return out
     X = np.asarray(X, float).reshape(n, n3)
     lam = np.asarray(lam, float).reshape(n, C)
+    if n3 < vectorized.VECTORIZED_FROM and not getattr(model.structure, "pairs", ()):
+        for block in _blocks(n, 2 * n3 + C):  # a small model: all samples in one mapped call
+            forces = model.evaluate(_bound_constraint_force(model), X[block], t[block], lam[block])[0]
+            out[block] = np.asarray(forces, float).T.reshape(-1, model.n_particles, 3)
+        return out
     force = _constraint_force_function(model)
     for k in range(n):
         out[k] = force(X[k], t[k], lam[k]).reshape(-1, 3)
     return out
+
+
+def _bound_constraint_force(model: Model) -> ca.Function:
+    """``(x, t, λ) -> Jᵀλ`` of a small model for mapping over samples: the SX graph built once
+    per structure with p an input, bound to the model's values (a fresh call builds no graph)."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "constraint_force_sx")
+    n3, C = model.n_coordinates, model.n_constraints
+    X, T, L = ca.SX.sym("x", n3), ca.SX.sym("t"), ca.SX.sym("lam", C)
+    if key not in cache:
+        P = ca.SX.sym("p", len(model.parameter_vector))
+        J, _ = ParametricView(model, P).velocity_terms(X, T)
+        cache[key] = ca.Function("constraint_force", [X, T, L, P], [ca.densify(ca.mtimes(J.T, L))])
+    parametric = cache[key]
+    return built_once(model, "constraint_force_sx", lambda: ca.Function(
+        "constraint_force", [X, T, L], [parametric(X, T, L, ca.DM(model.parameter_vector))]))
