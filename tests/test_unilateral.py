@@ -462,3 +462,20 @@ def test_ball_into_a_corner_meets_both_walls_at_once():
     assert traj.events[0].t == pytest.approx(1.0, abs=1e-12) and traj.events[1].t == traj.events[0].t
     np.testing.assert_allclose(traj.events[-1].v[0], [-1.0, -1.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(traj.x[-1, 0], [0.5, 0.5, 0.0], atol=1e-10)
+
+
+def test_a_hybrid_start_whose_velocity_the_rods_forbid_warns_as_a_two_sided_run_does():
+    """A pendulum (a rod, two-sided) swinging over a one-sided floor, started with a velocity
+    that has a component along its rod: the start removes it and says so with an
+    InitialStateWarning, as a run without one-sided rows does (it was silent)."""
+    from constrained.errors import InitialStateWarning
+
+    s = System(name="pendulum over a floor")
+    s.add_particle("b", 0.2, [0.8, 0.5, 0.0], [0.3, 0.4, 0.0])  # 0.3 m/s along the rod
+    s.add(Distance("b", point=[0.0, 0.5, 0.0], length=0.8), Plane("b", [0, 1, 0], 0, unilateral=True),
+          Gravity([0, -9.81, 0]))
+    with pytest.warns(InitialStateWarning, match="velocities changed by 0.3 m/s"):
+        tr = simulate(s, 0.3)
+    assert "segments" in tr.stats  # the hybrid route
+    assert tr.info["initial_correction"]["velocity"] == pytest.approx(0.3, rel=1e-12)
+    assert np.allclose(tr.v[0].ravel(), [0.0, 0.4, 0.0], atol=1e-12)

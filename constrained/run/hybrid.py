@@ -125,6 +125,8 @@ class HybridRun:
     failure: str | None = None
     stopped_by: str | None = None  # a terminal user event's name
     nfev: int = 0
+    #: the start's projection onto the rows held there: largest change of a coordinate (m, m/s)
+    start_correction: tuple[float, float] = (0.0, 0.0)
 
 
 class _Watch:
@@ -208,9 +210,11 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     # the start: one-sided rows touching (within `touch`) are candidates, as at a contact
     g = gaps(model, x, t) / scales(model, x, t)
     rows = [k for k in range(model.n_constraints) if k not in info.rows or g[k] <= touch]
-    x_given = x
+    x_given, v_given = x, v
     x, v, err = ActiveSet(model, rows).project(x, v, t, tol)
     _check_start(model, x_given, x, t, rows, err, size, max_correction)
+    start_correction = (float(np.max(np.abs(x - x_given), initial=0.0)),
+                        float(np.max(np.abs(v - v_given), initial=0.0)))
     touching = [k for k in info.rows if k in rows]
     rows = [k for k in rows if k not in touching]
     history = _Impacts(max(ZENO_TIME, 1e3 * np.finfo(float).eps * abs(t_end)))
@@ -280,7 +284,7 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
             break
     n3 = model.n_coordinates
     return HybridRun(np.array(T), np.array(X).reshape(-1, n3), np.array(V).reshape(-1, n3), segments,
-                     records, failure, stopped_by, nfev)
+                     records, failure, stopped_by, nfev, start_correction)
 
 
 def _also_closing(model: Model, x, v, t, held, closing, touch) -> list[int]:
@@ -436,7 +440,8 @@ def simulate_hybrid(model: Model, system, t_start: float, t_end: float, *, metho
         traj.action = action(model, traj).cumulative
     reached = float(traj.t[-1]) if len(traj.t) else t_start
     traj.info.update({
-        "initial_correction": {"position": correction},
+        "initial_correction": {"position": correction, "velocity": result.start_correction[1],
+                               "projection": result.start_correction[0]},
         "system": system.name, "method": method, "rtol": rtol, "atol": atol,
         "active_terms": sorted(model.active_terms),
         "status": ("interrupted" if result.failure == "interrupted" else

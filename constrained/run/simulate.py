@@ -109,10 +109,14 @@ def simulate(
     build_time = time.perf_counter() - started
     events = user_events(system, events)
     if has_one_sided(model):
-        return hybrid.simulate_hybrid(
+        traj = hybrid.simulate_hybrid(
             model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
             wanted=wanted, events=events, max_initial_correction=max_initial_correction,
             build_time=build_time, options={"dt": dt, **options})
+        start = traj.info["initial_correction"]  # the projection at the start (not an impact there)
+        _warn_if_corrected({"position": start["projection"], "velocity": start["velocity"]},
+                           system.velocities, system.size())
+        return traj
     # what only contacts use means nothing without one-sided constraints
     options = {k: v for k, v in options.items() if k not in ("rest_speed", "max_events")}
     start = consistent_start(
@@ -210,8 +214,9 @@ def _warn_if_corrected(correction: dict, v0, size: float) -> None:
     dx, dv = correction["position"], correction["velocity"]
     changed = []
     if dx > 1e-9 * size:
-        changed.append(f"positions moved by {dx:.3g} m (the worst violation was "
-                       f"{correction['max_residual_before']:.3g} m, of '{correction['worst_constraint']}')")
+        worst = (f" (the worst violation was {correction['max_residual_before']:.3g} m, of "
+                 f"'{correction['worst_constraint']}')" if "worst_constraint" in correction else "")
+        changed.append(f"positions moved by {dx:.3g} m{worst}")
     if dv > 1e-9 * speed:
         changed.append(f"velocities changed by {dv:.3g} m/s (their components along the constrained "
                        "directions removed)")
