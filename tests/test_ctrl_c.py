@@ -321,3 +321,38 @@ def test_a_compilation_inside_a_run_ends_at_once_on_ctrl_c(tmp_path, monkeypatch
     assert time.monotonic() - started < 10.0  # not the compiler's minute
     assert g is f and "interrupted" in compiled.last_error
     assert not list((tmp_path / "cache").glob("*.so"))
+
+
+@needs_cc
+def test_a_step_loop_whose_compilation_ctrl_c_cut_is_compiled_by_the_next_run(tmp_path, monkeypatch):
+    """Ctrl-C during the compile of dopri's step loop, where a Ctrl-C is a stop request (inside
+    the CLI's watch, as in `constrained bench` or a sweep), stops the run; the uncompiled loop
+    that served the stopped run is not kept in the process: the next run compiles (it used to
+    run in the virtual machine for the rest of the process)."""
+    import threading
+
+    import constrained as C
+    from constrained import interrupt
+    from constrained.errors import RunInterrupted
+
+    env, marker = _slow_compiler(tmp_path)
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    name = f"bob_{uuid.uuid4().hex[:8]}"  # a structure no other test has built
+    system = C.System(name="pendulum")
+    system.add_particle(name, 0.3, [0.6, -0.8, 0.0])
+    system.add(C.Distance(name, point=[0, 0, 0], length=1.0), C.Gravity([0, -9.81, 0]))
+
+    def press_once_compiling():
+        while not marker.exists():
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=press_once_compiling, daemon=True).start()
+    started = time.monotonic()
+    with interrupt.watch(), pytest.raises(RunInterrupted):
+        C.simulate(system, 1.0, method="dopri", compiled=True)
+    assert time.monotonic() - started < 30.0
+    monkeypatch.delenv("CC")  # the machine's own compiler for the next run
+    run = C.simulate(system, 1.0, method="dopri", compiled=True)
+    assert run.stats["evaluation"] == "compiled"

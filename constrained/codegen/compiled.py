@@ -86,6 +86,15 @@ def compile_function(function: ca.Function, *, flags=("-O2",)) -> ca.Function:
     return compile_functions([function], flags=flags)[0]
 
 
+INTERRUPTED = "the compilation was interrupted (Ctrl-C)"
+
+
+def cut_short() -> bool:
+    """Whether the last compilation was cut by Ctrl-C: its uncompiled fallback serves the
+    stopped run but is not to be kept for the next run in this process (which compiles)."""
+    return last_error == INTERRUPTED
+
+
 def compile_functions(functions: list[ca.Function], *, flags=("-O2",)) -> list[ca.Function]:
     """Several Functions compiled into one shared library (one compiler run; subfunctions they
     share are generated once). Each comes back compiled, or all unchanged on failure.
@@ -396,7 +405,7 @@ def _compile(command: list[str]) -> str | None:
         try:
             while proc.poll() is None:
                 if interrupt.pending():
-                    return "the compilation was interrupted (Ctrl-C)"
+                    return INTERRUPTED
                 time.sleep(0.02)
         finally:
             if proc.poll() is None:

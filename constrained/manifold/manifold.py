@@ -260,6 +260,8 @@ def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
         if all(f.class_name() == "External" for f in machine):
             funcs, evaluation = machine, "compiled"
     paths = _FastPaths(*(FastCall(f) for f in funcs), evaluation)
+    if compiled and compiled_evaluation.cut_short():  # a compile cut by Ctrl-C: not kept
+        return paths
     with _lock:
         cache[key] = paths
     return paths

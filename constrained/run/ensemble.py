@@ -178,8 +178,16 @@ def _start_block(model: Model, system, dopri: Dopri, width: int) -> FastCall:
         start = ca.Function("ensemble_start", [P, T, XG, VG], [x0, x, v, a]).map(width)
         if dopri.compiled:
             start = compiled_evaluation.compile_function(start)
-        cache[key] = FastCall(start)
+        return _kept(cache, key, FastCall(start), dopri.compiled)
     return cache[key]
+
+
+def _kept(cache: dict, key, value, compiled: bool):
+    """``value``, kept in ``cache`` unless its compilation (``compiled``) was cut by Ctrl-C (the
+    uncompiled fallback serves the stopped run; the next run in this process compiles)."""
+    if not (compiled and compiled_evaluation.cut_short()):
+        cache[key] = value
+    return value
 
 
 def _mapped_acceleration(dopri: Dopri, width: int) -> FastCall:
@@ -195,7 +203,7 @@ def _mapped_acceleration(dopri: Dopri, width: int) -> FastCall:
         accel = ca.Function("ensemble_acceleration", [X, V, T, P], [a]).map(width)
         if dopri.compiled:
             accel = compiled_evaluation.compile_function(accel)
-        cache[key] = FastCall(accel)
+        return _kept(cache, key, FastCall(accel), dopri.compiled)
     return cache[key]
 
 
@@ -229,12 +237,14 @@ def _mapped_chunk(dopri: Dopri, block: int, threads: int) -> tuple[FastCall, str
             machine = compiled_evaluation.compile_function(folded)
             if machine.class_name() == "External":
                 folded, evaluation = machine, "compiled"
-        cache[key] = (folded, evaluation)
-    folded, evaluation = cache[key]
+        if not (dopri.compiled and compiled_evaluation.cut_short()):
+            cache[key] = (folded, evaluation)
+    else:
+        folded, evaluation = cache[key]
     mapped_key = (*key, block, threads)
     if mapped_key not in cache:  # the columns shared out over ``threads`` threads
         mapped = folded.map(block, "thread", threads) if threads > 1 else folded.map(block)
-        cache[mapped_key] = (FastCall(mapped), evaluation)
+        return _kept(cache, mapped_key, (FastCall(mapped), evaluation), key not in cache)
     return cache[mapped_key]
 
 

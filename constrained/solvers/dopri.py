@@ -222,7 +222,9 @@ class Dopri(Stepper):
         key = (*prefix, self.name, self.tableau.name, self.compiled, self.manifold.rows)
         cached = cache.get(key)
         if cached is None:
-            cached = cache[key] = self._build_functions()
+            cached = self._build_functions()
+            if not (self.compiled and compiled_evaluation.cut_short()):  # (cut by Ctrl-C: not kept)
+                cache[key] = cached
         self.stats["evaluation"] = cached[0]
         return cached[1]
 

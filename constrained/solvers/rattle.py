@@ -142,7 +142,9 @@ class Rattle(Stepper):
                 machine = compiled_evaluation.compile_functions(list(functions.values()))
                 if all(f.class_name() == "External" for f in machine):
                     functions = dict(zip(functions, machine, strict=True))
-            chunks = cache[key] = {k: FastCall(f) for k, f in functions.items()}
+            chunks = {k: FastCall(f) for k, f in functions.items()}
+            if not (self.compiled and compiled_evaluation.cut_short()):  # (cut by Ctrl-C: not kept)
+                cache[key] = chunks
         return chunks
 
     def prepare(self, t0, t_end, t_eval) -> None:
