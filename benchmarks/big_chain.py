@@ -46,8 +46,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -125,6 +127,24 @@ def cloth_scene(k: int, *, t_end: float = 0.5, rtol: float = 1e-6, atol: float =
     return "\n".join(lines)
 
 
+#: Seconds one run may take (``--timeout``); a longer one is killed and reported as unfinished.
+TIMEOUT = [900.0]
+
+
+def _run_within(cmd: list[str], env: dict, cwd: Path) -> subprocess.CompletedProcess | None:
+    """``cmd`` run to its end, or None when it takes more than TIMEOUT: then it is killed with
+    every process it started (its own session: /usr/bin/time's child too)."""
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd,
+                          start_new_session=True) as proc:
+        try:
+            out, err = proc.communicate(timeout=TIMEOUT[0])
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+            return None
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
 def run_once(scene: Path, out: Path, *, quiet: bool, code: Path = ROOT) -> dict:
     """One ``constrained run`` in a fresh process under /usr/bin/time -v, with the package at
     ``code`` (this checkout, or ``--before``'s)."""
@@ -132,7 +152,10 @@ def run_once(scene: Path, out: Path, *, quiet: bool, code: Path = ROOT) -> dict:
     cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "constrained.cli", "run", str(scene),
            "--out", str(out)] + (["--quiet"] if quiet else [])
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=code)
+    proc = _run_within(cmd, env, code)
+    if proc is None:  # (killed: said in the table, not waited for)
+        print(f"{scene.name}: did not finish in {TIMEOUT[0]:g} s (--timeout)", file=sys.stderr)
+        return dict(wall_s=math.inf, cpu_s=math.inf, peak_rss_mb=math.nan, stdout="", samples=None)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
@@ -237,8 +260,9 @@ print(json.dumps(dict(stages=stages, dof=dof, floor=floor)))
 def breakdown(scene: Path, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.run([sys.executable, "-c", BREAKDOWN, str(scene), str(out)], capture_output=True,
-                          text=True, env=env, cwd=ROOT)
+    proc = _run_within([sys.executable, "-c", BREAKDOWN, str(scene), str(out)], env, ROOT)
+    if proc is None:
+        return None
     if proc.returncode:
         raise RuntimeError(f"the instrumented run failed:\n{proc.stderr}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -271,7 +295,9 @@ def main(argv=None) -> int:
     ap.add_argument("--before", type=Path, metavar="DIR",
                     help="also run every case with the package of another checkout (e.g. `git archive "
                          "main | tar -x -C DIR`), alternating with this one: before/after in one run")
+    ap.add_argument("--timeout", type=float, default=900.0, help="seconds one run may take (then killed)")
     args = ap.parse_args(argv)
+    TIMEOUT[0] = args.timeout
     ropes = args.n if args.n is not None else ([] if args.cloth else [1000, 3000, 10000])
     cases = [(f"rope{n}", dict(n=n)) for n in ropes] + [(f"cloth{k}", dict(cloth=k)) for k in args.cloth]
 
