@@ -291,12 +291,23 @@ def test_a_sequential_sweep_interrupted_says_one_line(tmp_path):
     assert "error" not in err.lower() and len(err.strip().splitlines()) == 1, err
 
 
+def _press_ctrl_c_once_compiling(marker: Path) -> None:
+    """In a thread: Ctrl-C (SIGINT to this process) once the slow compiler has started."""
+    import threading
+
+    def press():
+        while not marker.exists():
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=press, daemon=True).start()
+
+
 @needs_cc
 def test_a_compilation_inside_a_run_ends_at_once_on_ctrl_c(tmp_path, monkeypatch):
     """Inside a run Ctrl-C is only a request (the loop stops at its next step): the compiler
     must not be waited for — it is ended, the Function comes back uncompiled, and the request
     stays for the loop to see."""
-    import threading
 
     import casadi as ca
 
@@ -308,12 +319,7 @@ def test_a_compilation_inside_a_run_ends_at_once_on_ctrl_c(tmp_path, monkeypatch
     x = ca.SX.sym("x", 2)
     f = ca.Function("ctrlc_compile", [x], [ca.sin(x)])
 
-    def press_once_compiling():
-        while not marker.exists():
-            time.sleep(0.02)
-        os.kill(os.getpid(), signal.SIGINT)
-
-    threading.Thread(target=press_once_compiling, daemon=True).start()
+    _press_ctrl_c_once_compiling(marker)
     started = time.monotonic()
     with interrupt.watch():
         g = compiled.compile_function(f)
@@ -329,7 +335,6 @@ def test_a_step_loop_whose_compilation_ctrl_c_cut_is_compiled_by_the_next_run(tm
     the CLI's watch, as in `constrained bench` or a sweep), stops the run; the uncompiled loop
     that served the stopped run is not kept in the process: the next run compiles (it used to
     run in the virtual machine for the rest of the process)."""
-    import threading
 
     import constrained as C
     from constrained import interrupt
@@ -343,12 +348,7 @@ def test_a_step_loop_whose_compilation_ctrl_c_cut_is_compiled_by_the_next_run(tm
     system.add_particle(name, 0.3, [0.6, -0.8, 0.0])
     system.add(C.Distance(name, point=[0, 0, 0], length=1.0), C.Gravity([0, -9.81, 0]))
 
-    def press_once_compiling():
-        while not marker.exists():
-            time.sleep(0.02)
-        os.kill(os.getpid(), signal.SIGINT)
-
-    threading.Thread(target=press_once_compiling, daemon=True).start()
+    _press_ctrl_c_once_compiling(marker)
     started = time.monotonic()
     with interrupt.watch(), pytest.raises(RunInterrupted):
         C.simulate(system, 1.0, method="dopri", compiled=True)
