@@ -29,7 +29,7 @@ import numpy as np
 from ..codegen import compiled as compiled_evaluation
 from ..codegen.fast_call import FastCall
 from ..errors import InputError
-from ..manifold import diagnostics, residual
+from ..manifold import diagnostics, mapped, residual
 from ..manifold.graph import schur_solve_graph, velocity_correction_graph
 from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
@@ -69,19 +69,45 @@ class Rattle(Stepper):
         self.newton_iterations = newton_iterations
         # "auto" compiles the folded steps of models up to AUTO_COMPILE_COORDINATES coordinates:
         # there the one-time C compile takes seconds and the chunks run ~2.7x faster; beyond,
-        # the compiler's time grows steeply, so only compiled=True asks for it.
+        # the compiler's time grows steeply, so only compiled=True asks for it — except for pair
+        # potentials, whose O(N²) work is one mapped kernel of fixed code (as for dopri): in the
+        # virtual machine it costs ~10x the compiled kernel.
         self.compiled = compiled_evaluation.enabled(self.compiled_setting) and (
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
+            or bool(model.structure.pairs)
         )
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
         self.newton_tol = newton_tol
 
+    def _view(self, P) -> ParametricView:
+        """The model's Functions with p = P: the mapped build when compiled and large (repeated
+        rows and terms as mapped kernels, so the generated code and the compile time do not
+        grow with the model), else the Structure's."""
+        if self.compiled and mapped.applies(self.model):
+            return mapped.MappedView(self.model, P)
+        return ParametricView(self.model, P)
+
+    def carries_forces(self) -> bool:
+        """Whether the applied forces F are carried from one step to the next (state entries
+        after p): when F depends on x and t alone, F(x_{n+1}) of a step's second half-kick is
+        the next step's F(x_n), so a step evaluates the forces once (pair potentials: their
+        O(N²) kernel once, as velocity Verlet)."""
+        key = "_carries"
+        if not hasattr(self, key):
+            m = self.model
+            x, v, t = ca.MX.sym("x", m.n_coordinates), ca.MX.sym("v", m.n_coordinates), ca.MX.sym("t")
+            P = ca.MX.sym("p", len(m.parameter_vector))
+            F = ParametricView(m, P).dynamics(x, v, t)[0]
+            setattr(self, key, not ca.depends_on(F, v))
+        return getattr(self, key)
+
     def _step(self) -> ca.Function:
-        """One RATTLE step on the state (x, v, t, λ, err, h, s, p) — err: running max of |f|
-        after Newton (in metres: each row over its scale s at the run's start); the step h, the
-        row scales s and the parameters p ride along as inputs, so one Function (one compile)
-        serves every step size, start and parameter value of the structure."""
+        """One RATTLE step on the state (x, v, t, λ, err, h, s, p[, F]) — err: running max of
+        |f| after Newton (in metres: each row over its scale s at the run's start); the step h,
+        the row scales s and the parameters p ride along as inputs, so one Function (one
+        compile) serves every step size, start and parameter value of the structure; F: the
+        forces at (x, t) when they do not depend on v (``carries_forces``)."""
         m = self.model
         rows = self.manifold.rows
         n3, C, n_all = m.n_coordinates, len(self.rows), m.n_constraints
@@ -89,9 +115,14 @@ class Rattle(Stepper):
         left, h = ca.MX.sym("left"), ca.MX.sym("h")
         lam, scales = ca.MX.sym("lam", C), ca.MX.sym("scales", n_all)
         P = ca.MX.sym("p", len(m.parameter_vector))
-        view = ParametricView(m, P)
+        view = self._view(P)
         minv = view.inverse_masses if isinstance(view.inverse_masses, ca.MX) else ca.DM(view.inverse_masses)
-        F0, J0, _ = view.dynamics(x, v, t)
+        carry = self.carries_forces()
+        if carry:
+            F0 = ca.MX.sym("F", n3)
+            J0 = view.jacobian(x, t)[1] if C else None
+        else:
+            F0, J0, _ = view.dynamics(x, v, t)
         t1 = t + h
         passed = [h, scales, P]
         counted = [left - 1, *passed]
@@ -112,14 +143,18 @@ class Rattle(Stepper):
             F1, _, _ = view.dynamics(x1, v_half, t1)
             v_pred = v_half + 0.5 * h * minv * F1
             v1 = v_pred - velocity_correction_graph(view, x1, v_pred, t1, rows=rows)
-            state = ca.vertcat(x, v, t, lam, err, left, *passed)
-            out = ca.vertcat(x1, v1, t1, lam_k, ca.fmax(err, residual), *counted)
+            state = [x, v, t, lam, err, left, *passed]
+            out = [x1, v1, t1, lam_k, ca.fmax(err, residual), *counted]
         else:
             v_half = v + 0.5 * h * minv * F0
             x1 = x + h * v_half
             F1, _, _ = view.dynamics(x1, v_half, t1)
-            state = ca.vertcat(x, v, t, err, left, *passed)
-            out = ca.vertcat(x1, v_half + 0.5 * h * minv * F1, t1, err, *counted)
+            state = [x, v, t, err, left, *passed]
+            out = [x1, v_half + 0.5 * h * minv * F1, t1, err, *counted]
+        if carry:
+            state.append(F0)
+            out.append(F1)
+        state, out = ca.vertcat(*state), ca.vertcat(*out)
         step = ca.Function("rattle_attempt", [state], [out])
         # once the steps asked for are done, a step is skipped (short-circuit: nearly free)
         S = ca.MX.sym("state", state.numel())
@@ -131,7 +166,8 @@ class Rattle(Stepper):
         row set and Newton iterations (``structure_cache``) and compiled together when asked:
         every dt, start and parameter value of the structure shares them."""
         cache, prefix = structure_cache(self.model)
-        key = (*prefix, "rattle", self.manifold.rows, self.newton_iterations, self.compiled)
+        key = (*prefix, "rattle", self.manifold.rows, self.newton_iterations, self.compiled,
+               self.carries_forces())
         chunks = cache.get(key)
         if chunks is None:
             step = self._step()
@@ -177,8 +213,12 @@ class Rattle(Stepper):
             self.row_scales = residual.row_scales(m, x0, t0) if C else np.zeros(0)
         lam0 = self.manifold.accelerations(x0, v0, t0)[1][self.rows] if C else np.zeros(0)
         scales = np.asarray(self.row_scales, float) if C else np.zeros(m.n_constraints)
-        return (round((t0 - self._t0) / self.h),
-                np.concatenate([x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, m.parameter_vector]))
+        carried = []
+        if self.carries_forces():
+            F0 = m.parametric("dynamics")(x0, v0, t0, m.parameter_vector)[0]
+            carried = [np.asarray(F0, float).ravel()]
+        state = [x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, m.parameter_vector, *carried]
+        return round((t0 - self._t0) / self.h), np.concatenate(state)
 
     def step(self, state, t_stop) -> Advance:
         """One chained call towards t_stop: the shortest chain that covers the steps left, else
