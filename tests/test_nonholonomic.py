@@ -316,6 +316,10 @@ def test_dof_counts_configuration_and_velocities_and_names_a_redundant_velocity_
     ("vx_p**2 - 1", "not linear in the velocities"),
     ("vx_p*vy_p", "not linear in the velocities"),
     ("x_p - 1", "involves no velocity"),
+    # derivative 0 in v, yet not a(x, t)·v + b: the step functions must not pass as linear
+    ("sign(vx_p) - 0.5", "not linear in the velocities"),
+    ("floor(vx_p)", "not linear in the velocities"),
+    ("vy_p + ceil(vx_p)*x_p", "not linear in the velocities"),
 ])
 def test_a_velocity_formula_must_be_linear_in_the_velocities(expr, words):
     system = C.System([C.Particle("p", 1.0, [0, 0, 0], [1, 0, 0])], [C.Velocity(expr)])
