@@ -268,6 +268,17 @@ def test_skate_across_a_slope_is_held_by_its_blade():
     assert C.virtual_work(system, eq.x) < 1e-9
 
 
+def test_skate_pointing_downhill_has_no_equilibrium_and_statics_says_so():
+    # along its blade nothing holds the skate: it slides, so there is no rest here; the
+    # IPOPT fallback minimizes V on the holonomic rows alone, runs downhill without bound and
+    # ends where a distance's gradient is 0/0: that must not crash the search (LinAlgError)
+    system, down, _, g_t = skate(heading=0.0)
+    with pytest.raises(C.InputError, match="no static equilibrium found"):
+        C.equilibrium(system)
+    tr = C.simulate(system, 0.5, rtol=1e-10, atol=1e-12, t_eval=[0.0, 0.5])
+    assert (tr.x[-1, 0] - tr.x[0, 0]) @ down > 0.1 * g_t * 0.5**2  # it does slide downhill
+
+
 def test_velocity_constraints_carry_no_force_at_a_holonomic_equilibrium():
     eq = C.equilibrium(sleigh())
     assert eq.multipliers[-1] == 0.0
