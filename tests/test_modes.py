@@ -8,6 +8,7 @@ the bead on a spinning hoop, the Foucault and Larmor splittings, a damped pendul
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -312,6 +313,25 @@ def test_bad_input_is_named():
         C.modes(string)
     with pytest.raises(C.InputError, match="scene.system"):
         C.modes(C.load_scene(ROOT / "scenarios" / "pendulum_fit.toml"))
+
+
+def test_velocity_constraints_are_refused_and_why():
+    """A skate held across a slope: its configuration has 3 degrees of freedom, its velocities
+    2. Linearized on null([J; A]) as if the blade were holonomic, it gave a nilpotent 4×4
+    system whose round-off roots (~1e-4) were reported as a growing mode and an oscillation of
+    period ~4 h. The true small motion is secular: turned by δθ, the skate (centre of mass on
+    the blade, no torque) keeps its heading and slides along the blade as s = ½ g_t sin δθ t²."""
+    from test_nonholonomic import skate
+
+    system, down, side, g_t = skate(heading=math.pi / 2, omega=0.0)  # across the slope, at rest
+    with pytest.raises(C.InputError, match="velocity constraints are not computed"):
+        C.modes(system)
+    dth = 1e-3
+    turned, *_ = skate(heading=math.pi / 2 - dth, omega=0.0)
+    tr = C.simulate(turned, 1.0, rtol=1e-11, atol=1e-13, t_eval=[0.0, 1.0])
+    blade = (tr.x[0, 2] - tr.x[0, 1]) / np.linalg.norm(tr.x[0, 2] - tr.x[0, 1])
+    s = (tr.x[-1, 0] - tr.x[0, 0]) @ blade
+    assert abs(s) == pytest.approx(0.5 * g_t * math.sin(dth), rel=1e-7)
 
 
 def test_modes_for_other_parameter_values_animate_with_those_values():

@@ -320,6 +320,13 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         raise InputError("normal modes of a system with one-sided constraints are not defined (their "
                          "force switches off or on at rest); make them two-sided for the modes about a "
                          "state where they hold", where="constraints")
+    if model.n_position_rows < model.n_constraints:
+        raise InputError("normal modes of a system with velocity constraints are not computed: its "
+                         "configuration has more freedom than its velocities (3N − rank J against "
+                         "3N − rank [J; A]), so small motions are not an eigenproblem on one tangent "
+                         "space, and its equilibria come in families whose zero roots are defective "
+                         "(a skate across a slope, turned by δθ, slides as t²); simulate it instead",
+                         where="constraints")
     omega, centre = frame_arrays(frame, model.n_particles)
     size = system.size()
     if x is None and frame is None:
