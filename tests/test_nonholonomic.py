@@ -243,6 +243,45 @@ def test_reduced_rates_off_the_constraint_are_brought_onto_it():
     assert check.max_position_difference < 1e-7
 
 
+def test_a_working_velocity_row_is_named_as_why_the_jacobi_integral_changes(tmp_path):
+    """L = T − V with no explicit t and no damping: only the belt's b(t) ≠ 0 changes h = T + V
+    (here h is the energy: the map is scleronomic), at the rate −μ·b. The cross-check's line
+    must name that cause, not only 'L depends on t or non-conservative forces act'."""
+    path = tmp_path / "belt.toml"
+    path.write_text("""
+[[particles]]
+name = "p"
+mass = 0.07
+position = [0.2, 0.1, 0.0]
+[[constraints]]
+type = "plane"
+particles = ["p"]
+normal = [0.0, 0.0, 1.0]
+[[constraints]]
+type = "velocity"
+expr = "vx_p + y_p*vy_p - 0.4*sin(2*t)"
+[[effects]]
+type = "spring"
+a = "p"
+point = [0.0, 0.0, 0.0]
+k = 3.0
+rest = 0.0
+[simulate]
+t_end = 1.0
+rtol = 1e-11
+atol = 1e-13
+[reduced]
+coordinates = ["X", "Y"]
+initial = { X = 0.2, Y = 0.1 }
+map = { p = ["X", "Y", "0"] }
+""")
+    check = C.cross_check(C.load_scene(path), t_end=1.0)
+    assert not check.reduced_model.jacobi_integral_conserved()
+    h = check.jacobi_integral
+    assert np.max(np.abs(h - h[0])) > 1e-3   # the belt does work
+    assert "a velocity constraint does work" in check.jacobi_integral_line()
+
+
 def test_hand_derived_sleigh_equations_check_with_multipliers():
     scene = C.load_scene("scenarios/chaplygin_sleigh.toml")
     # I th'' = −M a u th', u = X' cos th + Y' sin th (speed of P along the axis); μ eliminated
