@@ -33,6 +33,7 @@ from .linearization import (
     quadratic_roots,
     reduced_linearization,
     relative_equilibrium,
+    zero_root_chain,
 )
 from .statics import _flat, equilibrium
 
@@ -320,13 +321,6 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         raise InputError("normal modes of a system with one-sided constraints are not defined (their "
                          "force switches off or on at rest); make them two-sided for the modes about a "
                          "state where they hold", where="constraints")
-    if model.n_position_rows < model.n_constraints:
-        raise InputError("normal modes of a system with velocity constraints are not computed: its "
-                         "configuration has more freedom than its velocities (3N − rank J against "
-                         "3N − rank [J; A]), so small motions are not an eigenproblem on one tangent "
-                         "space, and its equilibria come in families whose zero roots are defective "
-                         "(a skate across a slope, turned by δθ, slides as t²); simulate it instead",
-                         where="constraints")
     omega, centre = frame_arrays(frame, model.n_particles)
     size = system.size()
     if x is None and frame is None:
@@ -352,6 +346,11 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     M = np.eye(n)
     s, Z, symmetric = quadratic_roots(M, C, K)
     mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, K, model.n_particles)
+    chain = [] if symmetric or not n else zero_root_chain(M, C, K)
+    if len(chain) > 2 and stable is not False:  # a Jordan chain at s = 0 longer than a free direction's
+        stable, stability = False, (f"UNSTABLE (the root s = 0 is defective, a Jordan chain of length "
+                                    f"{len(chain)}: small motions grow as t^{len(chain) - 1}, not "
+                                    "exponentially)")
     knorm = max(float(np.linalg.norm(K)), 1e-300)
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=float(t), frame=frame, multipliers=lam,
                  basis=T, M=M, G=0.5 * (C - C.T), D=0.5 * (C + C.T), K=K, eigenvalues=s, modes=mode_list,
