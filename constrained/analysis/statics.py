@@ -457,8 +457,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         if conservative_only:
             xi = _ipopt(kkt, x0)
             Fi, Ji = _forces_at_rest(model, xi, t) if xi is not None else (None, None)
-            # IPOPT may end (failing) where a constraint's gradient is 0/0 (a distance whose
-            # two particles meet, after V ran downhill without bound): nothing to start from
+            # (IPOPT may end where a gradient is 0/0, after V ran downhill without bound)
             if xi is not None and np.all(np.isfinite(Fi)) and np.all(np.isfinite(Ji)):
                 zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
                 zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
