@@ -107,3 +107,37 @@ def test_a_one_time_cost_of_the_first_run_is_its_own_column_not_solver_time(tmp_
         assert float(row["wall_time_s"]) < 0.3, row         # not in the solver's time
     md = (out / "bench.md").read_text()
     assert "first-run compile [s]" in md and "after a warm-up run" in md
+
+
+def test_the_reference_run_is_projection_and_leaves_dopris_compile_to_its_own_rows(tmp_path, monkeypatch):
+    """The reference is the method the notes name (projection at 1e-13), not the default
+    method: run with dopri, it took dopri's one-time C compile (here a pause of 0.4 s standing
+    for it), and the dopri rows showed ~0 in the compile column on a cold cache."""
+    import time
+
+    from constrained.analysis import bench
+    from constrained.codegen import compiled
+
+    real_simulate, real_compile, methods, paused = bench.simulate, compiled.compile_functions, [], []
+
+    def simulate(system, t_end, **kwargs):
+        methods.append(kwargs.get("method", "default"))
+        return real_simulate(system, t_end, **kwargs)
+
+    def compile_functions(functions, *args, **kwargs):
+        if not paused:  # the first compile of this process's measurement: a cold cache
+            paused.append(True)
+            time.sleep(0.4)
+        return real_compile(functions, *args, **kwargs)
+
+    monkeypatch.setattr(bench, "simulate", simulate)
+    monkeypatch.setattr(compiled, "compile_functions", compile_functions)
+    out = tmp_path / "bench"
+    assert main(["bench", str(SCENARIOS / "double_pendulum.toml"), "--set", "simulate.t_end=0.5",
+                 "--methods", "dopri", "--tolerances", "1e-6", "--repeats", "1",
+                 "--out", str(out), "--quiet"]) == 0
+    assert methods[0] == "projection"
+    assert "reference: projection at rtol 1e-13" in (out / "bench.md").read_text()
+    (row,) = csv.DictReader((out / "bench.csv").open())
+    if paused:  # (a machine without a C compiler compiles nothing)
+        assert float(row["compile_time_s"]) >= 0.35, row

@@ -146,6 +146,23 @@ def test_every_method_keeps_to_the_step_limit(method):
 
 
 @pytest.mark.parametrize("method", sorted(ACCURATE))
+def test_a_run_that_reached_t_end_is_never_reported_stopped_early_by_the_step_limit(method):
+    """dopri's compiled loop takes a chunk of steps per call: with max_steps = 5 it reached
+    t_end in one call of 17 steps and raised 'stopped early ... (at t = 5 s)', the whole run in
+    hand. Either the run ends before t_end at the limit, or it is complete and correct."""
+    t_end = 2.0
+    try:
+        tr = C.simulate(double_pendulum(), t_end, method=method, max_steps=5, **ACCURATE[method])
+    except C.SimulationError as err:
+        assert "max_steps = 5" in str(err)
+        assert err.trajectory.t[-1] < t_end
+        return
+    assert tr.success and tr.t[-1] == pytest.approx(t_end)
+    reference = C.simulate(double_pendulum(), t_end, method=method, **ACCURATE[method])
+    np.testing.assert_allclose(tr.x[-1], reference.x[-1], atol=1e-12)  # the same run, limit or not
+
+
+@pytest.mark.parametrize("method", sorted(ACCURATE))
 def test_every_method_stops_on_an_interrupt_keeping_what_it_computed(method):
     def stop(t):
         if t > 0.3:

@@ -8,6 +8,7 @@ the bead on a spinning hoop, the Foucault and Larmor splittings, a damped pendul
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -312,6 +313,39 @@ def test_bad_input_is_named():
         C.modes(string)
     with pytest.raises(C.InputError, match="scene.system"):
         C.modes(C.load_scene(ROOT / "scenarios" / "pendulum_fit.toml"))
+
+
+def test_a_defective_zero_root_is_zero_and_unstable_as_a_power_of_t():
+    """A skate held across a slope (velocities: along the blade, turning). Turned by δθ it
+    keeps its heading (centre of mass on the blade: no torque) and slides along the blade as
+    s = ½ g_t sin δθ t²: q̈_s = g_t q_θ, q̈_θ = 0, a nilpotent 4×4 first-order system. eig gave
+    its four zero roots as ~1e-4 (ε^(1/4)), reported as a growing mode and an oscillation of
+    period ~4 h; they are 0, and the state is unstable as t², not exponentially."""
+    from test_nonholonomic import skate
+
+    system, down, side, g_t = skate(heading=math.pi / 2, omega=0.0)  # across the slope, at rest
+    found = C.modes(system)
+    assert found.degrees_of_freedom == 2
+    assert np.all(found.eigenvalues == 0)
+    assert all(m.kind == "soft" for m in found.modes)
+    assert found.stable is False and "t^3" in found.stability  # chain of 4: a push δθ̇ gives t³
+    dth = 1e-3
+    turned, *_ = skate(heading=math.pi / 2 - dth, omega=0.0)
+    tr = C.simulate(turned, 1.0, rtol=1e-11, atol=1e-13, t_eval=[0.0, 1.0])
+    blade = (tr.x[0, 2] - tr.x[0, 1]) / np.linalg.norm(tr.x[0, 2] - tr.x[0, 1])
+    s = (tr.x[-1, 0] - tr.x[0, 0]) @ blade
+    assert abs(s) == pytest.approx(0.5 * g_t * math.sin(dth), rel=1e-7)
+
+
+def test_a_free_direction_with_damping_keeps_its_one_zero_root():
+    """The kernel chain must not swallow real roots: a damped bead on a line has s = 0 (once)
+    and s = −c/m; an undamped free one s = 0 twice (q = a + b t: neutral, not unstable)."""
+    for c, expected in ((0.3, [-0.3 / 0.5, 0.0]), (0.0, [0.0, 0.0])):
+        bead = C.System([C.Particle("b", 0.5, [0.0, 0.0, 0.0])],
+                        [C.Curve("b", ["y", "z"])] + ([C.Damping(c)] if c else []) + [C.Gravity([0, 0, -G])])
+        found = C.modes(bead, x=[[0.0, 0.0, 0.0]])
+        np.testing.assert_allclose(np.sort(found.eigenvalues.real), expected, atol=1e-12)
+        assert found.stable is None, found.stability
 
 
 def test_modes_for_other_parameter_values_animate_with_those_values():

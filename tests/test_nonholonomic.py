@@ -243,6 +243,45 @@ def test_reduced_rates_off_the_constraint_are_brought_onto_it():
     assert check.max_position_difference < 1e-7
 
 
+def test_a_working_velocity_row_is_named_as_why_the_jacobi_integral_changes(tmp_path):
+    """L = T − V with no explicit t and no damping: only the belt's b(t) ≠ 0 changes h = T + V
+    (here h is the energy: the map is scleronomic), at the rate −μ·b. The cross-check's line
+    must name that cause, not only 'L depends on t or non-conservative forces act'."""
+    path = tmp_path / "belt.toml"
+    path.write_text("""
+[[particles]]
+name = "p"
+mass = 0.07
+position = [0.2, 0.1, 0.0]
+[[constraints]]
+type = "plane"
+particles = ["p"]
+normal = [0.0, 0.0, 1.0]
+[[constraints]]
+type = "velocity"
+expr = "vx_p + y_p*vy_p - 0.4*sin(2*t)"
+[[effects]]
+type = "spring"
+a = "p"
+point = [0.0, 0.0, 0.0]
+k = 3.0
+rest = 0.0
+[simulate]
+t_end = 1.0
+rtol = 1e-11
+atol = 1e-13
+[reduced]
+coordinates = ["X", "Y"]
+initial = { X = 0.2, Y = 0.1 }
+map = { p = ["X", "Y", "0"] }
+""")
+    check = C.cross_check(C.load_scene(path), t_end=1.0)
+    assert not check.reduced_model.jacobi_integral_conserved()
+    h = check.jacobi_integral
+    assert np.max(np.abs(h - h[0])) > 1e-3   # the belt does work
+    assert "a velocity constraint does work" in check.jacobi_integral_line()
+
+
 def test_hand_derived_sleigh_equations_check_with_multipliers():
     scene = C.load_scene("scenarios/chaplygin_sleigh.toml")
     # I th'' = −M a u th', u = X' cos th + Y' sin th (speed of P along the axis); μ eliminated
@@ -266,6 +305,17 @@ def test_skate_across_a_slope_is_held_by_its_blade():
     assert eq.stable is None  # the energy method does not decide it
     assert eq.virtual_work_residual < 1e-9  # d'Alembert's virtual displacements (A δx = 0)
     assert C.virtual_work(system, eq.x) < 1e-9
+
+
+def test_skate_pointing_downhill_has_no_equilibrium_and_statics_says_so():
+    # along its blade nothing holds the skate: it slides, so there is no rest here; the
+    # IPOPT fallback minimizes V on the holonomic rows alone, runs downhill without bound and
+    # ends where a distance's gradient is 0/0: that must not crash the search (LinAlgError)
+    system, down, _, g_t = skate(heading=0.0)
+    with pytest.raises(C.InputError, match="no static equilibrium found"):
+        C.equilibrium(system)
+    tr = C.simulate(system, 0.5, rtol=1e-10, atol=1e-12, t_eval=[0.0, 0.5])
+    assert (tr.x[-1, 0] - tr.x[0, 0]) @ down > 0.1 * g_t * 0.5**2  # it does slide downhill
 
 
 def test_velocity_constraints_carry_no_force_at_a_holonomic_equilibrium():
@@ -316,6 +366,10 @@ def test_dof_counts_configuration_and_velocities_and_names_a_redundant_velocity_
     ("vx_p**2 - 1", "not linear in the velocities"),
     ("vx_p*vy_p", "not linear in the velocities"),
     ("x_p - 1", "involves no velocity"),
+    # derivative 0 in v, yet not a(x, t)·v + b: the step functions must not pass as linear
+    ("sign(vx_p) - 0.5", "not linear in the velocities"),
+    ("floor(vx_p)", "not linear in the velocities"),
+    ("vy_p + ceil(vx_p)*x_p", "not linear in the velocities"),
 ])
 def test_a_velocity_formula_must_be_linear_in_the_velocities(expr, words):
     system = C.System([C.Particle("p", 1.0, [0, 0, 0], [1, 0, 0])], [C.Velocity(expr)])

@@ -354,6 +354,36 @@ def test_animation_draws_the_curve_a_scene_holds_its_bead_on(tmp_path):
     assert gif.read_bytes()[:6] == b"GIF89a"
 
 
+def test_a_3d_animation_with_many_legend_entries_keeps_its_legend_inside_the_frame():
+    """Two particles, a wire and a surface, and the force arrows: five legend entries, which
+    legend() puts right of the axes — outside the GIF's fixed 640 px frame (cut off). The
+    legend must lie in the frame and clear of the frame's title."""
+    import constrained as C
+    from constrained.output.animation import animation_parts
+
+    system = C.System(
+        [C.Particle("b", 0.05, [0.4, 0.0, 0.0], [0.0, 1.0, 0.2]), C.Particle("c", 0.1, [0.4, 0.0, -0.5])],
+        [C.Curve("b", ["x - 0.4*cos(z/0.1)", "y - 0.4*sin(z/0.1)"]), C.Distance("b", "c", length=0.5),
+         C.Surface("c", "z + 0.5 - 0.2*(x - 0.4)")],
+        [C.Gravity([0, 0, -G])],
+    )
+    traj = C.simulate(system, 1.0, t_eval=np.linspace(0, 1, 31), outputs={"constraint_forces"})
+    fig, draw, n = animation_parts(traj, system, True, 20)
+    draw(n // 2)
+    renderer = fig.canvas.get_renderer()
+    fig.canvas.draw()
+    frame = fig.bbox
+    legends = [leg for leg in [*fig.legends, *(a.get_legend() for a in fig.axes)] if leg is not None]
+    assert sum(len(leg.get_texts()) for leg in legends) >= 5
+    boxes = [leg.get_window_extent(renderer) for leg in legends]
+    titles = [t.get_window_extent(renderer) for a in fig.axes
+              for t in (a.title, a._left_title, a._right_title) if t.get_text()]
+    for box in boxes:
+        assert frame.x0 - 1 <= box.x0 and box.x1 <= frame.x1 + 1, (box, frame)
+        assert frame.y0 - 1 <= box.y0 and box.y1 <= frame.y1 + 1, (box, frame)
+        assert not any(box.overlaps(title) for title in titles)
+
+
 def test_gif_frames_keep_their_colours():
     """One palette for the whole GIF, each frame mapped through a table: a rendered frame comes
     back with every pixel within a few levels of its colour."""

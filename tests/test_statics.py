@@ -402,3 +402,36 @@ def test_report_threshold_follows_each_rows_scale():
     assert abs(lam) < accuracy(eq)[1]
     row = next(ln for ln in format_equilibrium(eq).splitlines() if "1e12" in ln or "1e+12" in ln)
     assert float(row.split()[0]) == pytest.approx(lam, rel=1e-5), row
+
+
+def test_the_report_shows_round_off_eigenvalues_mode_components_and_energy_as_0():
+    """A skate held across a slope by its blade: along a translation in the plane V is
+    linear, so the tangent-space Hessian has a zero eigenvalue (a soft mode), and the shape's
+    component across the plane, and V with the blade particle at the origin, are 0 — in
+    floating point ~1e-15..1e-19. The report must say 0 for them (the accuracy said once),
+    and print the other eigenvalues as numbers."""
+    import re
+
+    from test_nonholonomic import skate
+
+    from constrained.analysis.statics_report import format_equilibrium
+
+    system, down, side, g_t = skate(heading=1.2)
+    eq = C.equilibrium(system)
+    text = format_equilibrium(eq)
+    eig = next(line for line in text.splitlines() if "tangent-space eigenvalues" in line)
+    w2 = next(line for line in text.splitlines() if "squared frequencies" in line)
+
+    def numbers(line):
+        return [float(v) for v in re.findall(r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?",
+                                             line.split(":", 1)[1].split("(zero")[0])]
+
+    soft = int(np.sum(np.abs(eq.frequencies_squared) <= eq.stability_tolerance))
+    assert soft >= 1
+    for line in (eig, w2):
+        values = numbers(line)
+        assert values.count(0.0) == soft, line          # the neutral directions: exactly "0"
+        assert all(v == 0 or abs(v) > 1e-6 for v in values), line  # no round-off printed
+    body = text.split("stability:")[1].split("virtual-work residual")[0]  # (residuals are residuals)
+    assert not re.search(r"\de-(1\d|[2-9]\d)", body), body  # nothing below 1e-10
+    assert "potential energy V = 0 J" in text  # the blade particle at the origin, V = 0 there

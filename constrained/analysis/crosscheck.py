@@ -118,7 +118,8 @@ class CrossCheck:
         if self.reduced_model.jacobi_integral_conserved():
             verdict = "conserved: L has no explicit t and no non-conservative force acts"
         else:
-            verdict = "not a constant here: L depends on t or non-conservative forces act"
+            verdict = ("not a constant here: L depends on t, non-conservative forces act, or a velocity "
+                       "constraint does work (b ≠ 0)")
         return (f"{'Jacobi integral h = p·q_dot − L':<34}h0 = {float(h[0]):.12g} J, "
                 f"max |h − h0| = {drift:.3e} J ({verdict})")
 

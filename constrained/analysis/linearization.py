@@ -41,7 +41,7 @@ from ..model.structure import Model
 from .statics import _newton
 
 __all__ = ["RotatingFrame", "frame_arrays", "linearize", "omega_velocity", "quadratic_roots",
-           "reduced_linearization", "relative_equilibrium"]
+           "reduced_linearization", "relative_equilibrium", "zero_root_chain"]
 
 #: The state must be at rest in the frame: tangential acceleration and frame velocity within
 #: this fraction of the system's acceleration and velocity scales.
@@ -223,7 +223,38 @@ def quadratic_roots(M: np.ndarray, C: np.ndarray, K: np.ndarray) -> tuple[np.nda
     A = np.block([[np.zeros((n, n)), np.eye(n)], [-K, -C]])
     B = np.block([[np.eye(n), np.zeros((n, n))], [np.zeros((n, n)), M]])
     s, Z = sla.eig(A, B)
+    # a zero root of multiplicity m (a defective one: a Jordan chain) comes out of eig as m
+    # roots of size ~(ε‖A‖)^(1/m), far above round-off: the kernel chain counts m, and they
+    # are zero
+    zero = (zero_root_chain(M, C, K) or [0])[-1]
+    if zero:
+        s = s.copy()
+        s[np.argsort(np.abs(s))[:zero]] = 0.0
     return s, Z[:n], False
+
+
+def zero_root_chain(M: np.ndarray, C: np.ndarray, K: np.ndarray, rtol: float = 1e-10) -> list[int]:
+    """``[d_1, d_2, …]``: the dimensions of null(A^j) of the first-order matrix A of
+    ``s² M + s C + K``, up to where they stop growing (empty: s = 0 is no root). The last is
+    the multiplicity of the root 0; the chain's length the size of its largest Jordan block:
+    2 for a free direction (q = a + b t), more when a displacement that no force restores
+    drives another one (a skate across a slope, turned, slides along its blade as t²).
+    Ranks by SVD relative to ‖A‖ after balancing time (s ↦ s/w, w² = ‖M⁻¹K‖)."""
+    n = M.shape[0]
+    MK, MC = np.linalg.solve(M, K), np.linalg.solve(M, C)
+    w = math.sqrt(max(float(np.linalg.norm(MK, 2)), float(np.linalg.norm(MC, 2)) ** 2, 1e-300))
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-MK / w, -MC / w]])  # (similar to A / w)
+    tol = rtol * max(float(np.linalg.norm(A, 2)), 1e-300)
+    dims, basis = [], np.zeros((2 * n, 0))
+    while len(dims) < 2 * n:
+        project = np.eye(2 * n) - basis @ basis.T
+        _, sv, vt = np.linalg.svd(project @ A)
+        null = vt[np.sum(sv > tol):].T  # {z : A z ∈ span(basis)}
+        if null.shape[1] <= basis.shape[1]:
+            break
+        basis = np.linalg.qr(null)[0]
+        dims.append(basis.shape[1])
+    return dims
 
 
 # --- the reduced route's linearization ----------------------------------------------------------

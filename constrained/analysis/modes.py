@@ -33,6 +33,7 @@ from .linearization import (
     quadratic_roots,
     reduced_linearization,
     relative_equilibrium,
+    zero_root_chain,
 )
 from .statics import _flat, equilibrium
 
@@ -345,6 +346,11 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     M = np.eye(n)
     s, Z, symmetric = quadratic_roots(M, C, K)
     mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, K, model.n_particles)
+    chain = [] if symmetric or not n else zero_root_chain(M, C, K)
+    if len(chain) > 2 and stable is not False:  # a Jordan chain at s = 0 longer than a free direction's
+        stable, stability = False, (f"UNSTABLE (the root s = 0 is defective, a Jordan chain of length "
+                                    f"{len(chain)}: small motions grow as t^{len(chain) - 1}, not "
+                                    "exponentially)")
     knorm = max(float(np.linalg.norm(K)), 1e-300)
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=float(t), frame=frame, multipliers=lam,
                  basis=T, M=M, G=0.5 * (C - C.T), D=0.5 * (C + C.T), K=K, eigenvalues=s, modes=mode_list,

@@ -456,8 +456,9 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         conservative_only = not ({"applied_force", "generalized_potential"} & model.active_terms)
         if conservative_only:
             xi = _ipopt(kkt, x0)
-            if xi is not None:
-                Fi, Ji = _forces_at_rest(model, xi, t)
+            Fi, Ji = _forces_at_rest(model, xi, t) if xi is not None else (None, None)
+            # (IPOPT may end where a gradient is 0/0, after V ran downhill without bound)
+            if xi is not None and np.all(np.isfinite(Fi)) and np.all(np.isfinite(Ji)):
                 zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
                 zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
                 if conv2 or method == "ipopt":

@@ -70,22 +70,32 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
     if eq.stable is None and eq.velocity_constraints:
         verdict = "not decided by the energy method (velocity constraints: see below)"
     out.append(f"stability: {verdict}")
+    # round-off here too: ω² below the verdict's tolerance is 0, and an eigenvalue of the
+    # tangent-space Hessian below the same fraction of the largest one
+    omega2 = np.asarray(eq.frequencies_squared if eq.frequencies_squared is not None else [], float)
+    eig = np.asarray(eq.eigenvalues, float)
+    relative = eq.stability_tolerance / max(float(np.max(np.abs(omega2), initial=0.0)), 1e-300)
+    eig_zero = min(relative, 1.0) * float(np.max(np.abs(eig), initial=0.0))
     out.append(
         "  tangent-space eigenvalues of ∇²(V − λ·f) [N/m]: "
-        + (", ".join(f"{e:.6g}" for e in eq.eigenvalues) or "none (no freedom)")
+        + (", ".join(_num(e, eig_zero) for e in eig) or "none (no freedom)")
     )
-    if eq.frequencies_squared is not None and len(eq.frequencies_squared):
+    if len(omega2):
         out.append(
             "  squared frequencies ω² of small oscillations [1/s²]: "
-            + ", ".join(f"{e:.6g}" for e in eq.frequencies_squared)
+            + ", ".join(_num(e, eq.stability_tolerance) for e in omega2)
             + f"  (zero below {eq.stability_tolerance:.2g})"
         )
-    for k, mode in enumerate(eq.soft_modes):
-        moving = [f"{names[i]} {_vec(mode[i])}" for i in range(len(mode)) if np.linalg.norm(mode[i]) > 1e-9]
+    for k, mode in enumerate(eq.soft_modes):  # unit shapes: components below 1e-9 are round-off
+        moving = [f"{names[i]} {_vec(mode[i], 1e-9)}" for i in range(len(mode))
+                  if np.linalg.norm(mode[i]) > 1e-9]
         out.append(f"  soft mode {k + 1}: " + "; ".join(moving))
     if eq.velocity_constraints:
         out.append(eq.velocity_constraints)
-    out.append(f"potential energy V = {eq.potential_energy:.10g} J")
+    # V is known to (largest force) × (position accuracy)
+    energy_zero = metres * max(float(np.max(np.abs(eq.applied_forces), initial=0.0)), newtons)
+    V = float(eq.potential_energy)
+    out.append(f"potential energy V = {'0' if abs(V) <= energy_zero else f'{V:.10g}'} J")
     out.append(
         f"virtual-work residual max|δW| (unit δx) = {eq.virtual_work_residual:.3g} J/m; "
         f"constraint forces' virtual work {eq.constraint_virtual_work_residual:.3g} J/m; "

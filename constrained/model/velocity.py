@@ -51,7 +51,32 @@ class VelocityConstraint(Constraint):
             raise InputError(f"'{label}' is not linear in the velocities (its derivative with respect to "
                              "them still depends on them): a velocity constraint must read "
                              "a(x, t)·v + b(x, t) = 0", where=where)
+        if not _affine_at_samples(expr, a, s.v):
+            raise InputError(f"'{label}' is not linear in the velocities (it jumps or steps with them, as "
+                             "sign, floor or ceil of a velocity do, whose derivative is 0): a velocity "
+                             "constraint must read a(x, t)·v + b(x, t) = 0", where=where)
         return expr
+
+
+def _affine_at_samples(expr, a, v) -> bool:
+    """``expr == a·v + expr(v = 0)`` at a few fixed pseudo-random points of all its symbols.
+
+    ∂c/∂v free of v is not enough: sign, floor and ceil have derivative 0, so ``sign(vx_p)``
+    passes that test while being no a(x, t)·v + b(x, t). Points where the formula is not
+    finite (a log or sqrt of a negative sample) say nothing and are skipped."""
+    symbols = ca.symvar(expr)
+    if not symbols:
+        return True
+    arg = ca.vertcat(*symbols)
+    residual = expr - ca.mtimes(a, v) - ca.substitute(expr, v, ca.SX.zeros(v.numel()))
+    scale = ca.fabs(expr) + ca.fabs(ca.substitute(expr, v, ca.SX.zeros(v.numel())))
+    f = ca.Function("affine_check", [arg], [residual, scale])
+    rng = np.random.default_rng(20261127)
+    for _ in range(6):
+        r, m = (float(z) for z in f(rng.uniform(-7.3, 9.1, arg.numel())))
+        if np.isfinite(r) and np.isfinite(m) and abs(r) > 1e-9 * (1.0 + m):
+            return False
+    return True
 
 
 class Velocity(VelocityConstraint):

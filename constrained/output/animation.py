@@ -168,6 +168,16 @@ def animation_parts(traj: Trajectory, system, forces: bool, max_frames: int, fra
     if dim == 2:  # below the axes: inside, it would cover the pivot or the path
         ax.legend(handles[:MAX_LEGEND], labels[:MAX_LEGEND], fontsize="small", loc="upper center",
                   bbox_to_anchor=(0.5, -0.1), ncol=min(3, len(handles)), frameon=False)
+    elif len(handles) > 4:  # legend()'s place for many entries, right of the axes, is outside
+        # this fixed frame: the figure's top left corner instead, which the 3-D box leaves free
+        if len(handles) > MAX_LEGEND:
+            more = len(handles) - MAX_LEGEND
+            handles = [*handles[:MAX_LEGEND], Line2D([], [], linestyle="none")]
+            labels = [*labels[:MAX_LEGEND], f"… ({more} more)"]
+        labels = [text if len(text) <= 44 else text[:43] + "…" for text in labels]
+        fig.legend(handles, labels, fontsize="small", loc="upper left", bbox_to_anchor=(0.005, 0.995),
+                   frameon=False)
+        title = ax.set_title("", fontsize="medium", loc="right")  # (beside it, not under it)
     else:
         legend(ax, handles, labels, loc="upper right")
     arrows = []
