@@ -326,6 +326,9 @@ def test_a_defective_zero_root_is_zero_and_unstable_as_a_power_of_t():
     system, down, side, g_t = skate(heading=math.pi / 2, omega=0.0)  # across the slope, at rest
     found = C.modes(system)
     assert found.degrees_of_freedom == 2
+    # the skate's configuration (x, y, heading) has 3 degrees of freedom; the table says both
+    assert found.configuration_degrees_of_freedom == 3
+    assert found.table().startswith("3 configuration degree(s) of freedom, 2 velocity degree(s)")
     assert np.all(found.eigenvalues == 0)
     assert all(m.kind == "soft" for m in found.modes)
     assert found.stable is False and "t^3" in found.stability  # chain of 4: a push δθ̇ gives t³

@@ -127,10 +127,21 @@ class Modes:
     residual: float = 0.0
     #: The parameter values the modes are for (``modes(..., parameters=...)`` included).
     parameters: dict = field(default_factory=dict)
+    #: With velocity constraints: 3N − rank J, the configuration's freedom (the modes live in
+    #: the velocity freedom, ``degrees_of_freedom``); None without them (the two are equal).
+    configuration_degrees_of_freedom: int | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
+        """The dimension of the space the modes live in: the tangent space of the constraints
+        (with velocity constraints, null([J; A]): the velocity degrees of freedom)."""
         return int(self.basis.shape[1])
+
+    def _freedom(self) -> str:
+        if self.configuration_degrees_of_freedom is None:
+            return f"{self.degrees_of_freedom} degree(s) of freedom"
+        return (f"{self.configuration_degrees_of_freedom} configuration degree(s) of freedom, "
+                f"{self.degrees_of_freedom} velocity degree(s) of freedom (the modes' space)")
 
     @property
     def frequencies(self) -> np.ndarray:
@@ -150,7 +161,7 @@ class Modes:
         """One line per mode: frequency, period, damping, what moves most."""
         frame = "" if self.frame is None else (f" in the frame turning at Ω = {_vec(self.frame.omega)} rad/s "
                                                f"about {_vec(self.frame.point)} m")
-        lines = [f"{self.degrees_of_freedom} degree(s) of freedom about the state at t = {self.t:g} s"
+        lines = [f"{self._freedom()} about the state at t = {self.t:g} s"
                  f"{frame}: {self.stability}"]
         names = self.particle_names or [f"p{i}" for i in range(len(self.x))]
         for k, m in enumerate(self.modes, 1):
@@ -171,7 +182,8 @@ class Modes:
         return {"t": self.t, "x": self.x.tolist(), "v": self.v.tolist(),
                 "frame": None if self.frame is None else {"omega": list(self.frame.omega),
                                                           "point": list(self.frame.point)},
-                "degrees_of_freedom": self.degrees_of_freedom, "stable": self.stable,
+                "degrees_of_freedom": self.degrees_of_freedom,
+                "configuration_degrees_of_freedom": self.configuration_degrees_of_freedom, "stable": self.stable,
                 "stability": self.stability, "conservative": self.conservative,
                 "stationarity_residual": self.residual, "particles": list(self.particle_names),
                 "multipliers": self.multipliers.tolist(),
@@ -352,10 +364,16 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
                                     f"{len(chain)}: small motions grow as t^{len(chain) - 1}, not "
                                     "exponentially)")
     knorm = max(float(np.linalg.norm(K)), 1e-300)
+    configuration = None
+    if model.n_position_rows < model.n_constraints:  # velocity rows: the two freedoms differ
+        J = model.jacobian(x_flat, float(t))[1]
+        J = np.asarray(J.full() if hasattr(J, "full") else J, float).reshape(-1, model.n_coordinates)
+        rank = np.linalg.matrix_rank(J[:model.n_position_rows]) if model.n_position_rows else 0
+        configuration = model.n_coordinates - int(rank)
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=float(t), frame=frame, multipliers=lam,
                  basis=T, M=M, G=0.5 * (C - C.T), D=0.5 * (C + C.T), K=K, eigenvalues=s, modes=mode_list,
                  stable=stable, stability=stability, particle_names=list(system.names),
                  conservative=bool(np.linalg.norm(K - K.T) <= 1e-9 * knorm), residual=residual,
-                 parameters=model.parameters)
+                 parameters=model.parameters, configuration_degrees_of_freedom=configuration)
 
 
