@@ -156,10 +156,21 @@ class Rattle(Stepper):
             out.append(F1)
         state, out = ca.vertcat(*state), ca.vertcat(*out)
         step = ca.Function("rattle_attempt", [state], [out])
-        # once the steps asked for are done, a step is skipped (short-circuit: nearly free)
+        # once the steps asked for are done, a step is skipped (short-circuit: nearly free); so
+        # are the steps after a pair potential's neighbour list went stale, for ``step`` to
+        # refresh it (the graph sums every pair where a list is stale: exact, but O(N²))
         S = ca.MX.sym("state", state.numel())
         done = S[2 * n3 + 1 + C + 1] <= 0
+        if m.structure.pairs:
+            start = self._p_offset()
+            stale = m.structure.pair_potentials.stale(S[:n3], S[start:start + P.numel()])
+            done = ca.logic_or(done, stale)
         return ca.Function("rattle_step", [S], [ca.if_else(done, S, step(S), True)])
+
+    def _p_offset(self) -> int:
+        """Where p starts in the state (x, v, t, λ, err, left, h, s, p[, F])."""
+        m = self.model
+        return 2 * m.n_coordinates + len(self.rows) + 4 + m.n_constraints
 
     def _chunks(self) -> dict[int, FastCall]:
         """The chained steps (CHUNKS, as many as one call may take), built once per structure,
@@ -231,8 +242,17 @@ class Rattle(Stepper):
         size = next((c for c in chunks if c >= left), max(chunks))
         k = min(left, size)
         y = y.copy()
-        y[2 * n3 + 2 + len(self.rows)] = k  # the steps this call takes
+        counter = 2 * n3 + 2 + len(self.rows)
+        if m.structure.pairs:  # neighbour lists rebuilt where particles moved far
+            start = self._p_offset()
+            p = m.structure.pair_potentials.refreshed(y[start:start + len(m.parameter_vector)], y[:n3])
+            if p is not None:
+                y[start:start + len(p)] = p
+        y[counter] = k  # the steps this call takes
         (new,) = chunks[size](y)
+        # (a call stops early where a neighbour list went stale: at least one step is taken,
+        # from the list refreshed above)
+        k -= max(0, round(float(new[counter]))) if np.isfinite(new[counter]) else 0
         t_new = self._t0 + (done + k) * self.h
         if abs(t_new - t_stop) <= 1e-9 * self.h:
             t_new = t_stop
