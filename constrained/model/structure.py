@@ -123,6 +123,9 @@ class Structure:
             slots[effect.slot] += [] if k in self.pair_owner else [terms[-1]]
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
+        #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
+        self.forces_depend_on_velocity = bool(slots["dissipation"] or slots["generalized_potential"]) or any(
+            ca.depends_on(term, v) for term in slots["applied_force"])
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)

@@ -93,14 +93,7 @@ class Rattle(Stepper):
         after p): when F depends on x and t alone, F(x_{n+1}) of a step's second half-kick is
         the next step's F(x_n), so a step evaluates the forces once (pair potentials: their
         O(N²) kernel once, as velocity Verlet)."""
-        key = "_carries"
-        if not hasattr(self, key):
-            m = self.model
-            x, v, t = ca.MX.sym("x", m.n_coordinates), ca.MX.sym("v", m.n_coordinates), ca.MX.sym("t")
-            P = ca.MX.sym("p", len(m.parameter_vector))
-            F = ParametricView(m, P).dynamics(x, v, t)[0]
-            setattr(self, key, not ca.depends_on(F, v))
-        return getattr(self, key)
+        return not self.model.structure.forces_depend_on_velocity
 
     def _step(self) -> ca.Function:
         """One RATTLE step on the state (x, v, t, λ, err, h, s, p[, F]) — err: running max of
