@@ -19,7 +19,7 @@ cache (the compiled step loop found on disk). Measure on a quiet machine.
 
     python benchmarks/pairs.py                                  # N = 1,000, all pairs
     python benchmarks/pairs.py --n 10000 --cutoff 0.025 --t-end 0.1
-        [--compiled auto|true|false] [--repeats 2] [--write-only DIR]
+        [--compiled auto|true|false] [--repeats 2] [--write-only DIR] [--method rattle --dt 0.001]
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ SPACING = 2 ** (1 / 6) * SIGMA
 
 
 def cluster_scene(n: int, *, cutoff: float | None, t_end: float, compiled: str = "auto",
-                  seed: int = 3) -> str:
+                  seed: int = 3, method: str | None = None, dt: float | None = None) -> str:
     rng = np.random.default_rng(seed)
     side = math.ceil(n ** (1 / 3))
     grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
@@ -62,7 +62,9 @@ def cluster_scene(n: int, *, cutoff: float | None, t_end: float, compiled: str =
     if cutoff:
         lines.append(f"cutoff = {cutoff}")
     lines += ["", "[simulate]", f"t_end = {t_end}", "rtol = 1e-6", "atol = 1e-8", "samples = 2",
-              f"compiled = {compiled}" if compiled != "auto" else "", "", "[outputs]", "plots = []", ""]
+              f"compiled = {compiled}" if compiled != "auto" else "",
+              f'method = "{method}"' if method else "", f"dt = {dt!r}" if dt else "",
+              "", "[outputs]", "plots = []", ""]
     return "\n".join(lines)
 
 
@@ -100,6 +102,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cutoff", type=float, default=None, help="m (default: every pair)")
     ap.add_argument("--t-end", type=float, default=1.0)
     ap.add_argument("--compiled", default="auto", choices=["auto", "true", "false"])
+    ap.add_argument("--method", help="[simulate] method (default: the default, dopri); e.g. rattle")
+    ap.add_argument("--dt", type=float, help="[simulate] dt for a fixed-step method (rattle: e.g. 0.001 s)")
     ap.add_argument("--repeats", type=int, default=2, help="the first on a cold compile cache")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--write-only", type=Path, metavar="DIR")
@@ -107,7 +111,8 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.n:
-            text = cluster_scene(n, cutoff=args.cutoff, t_end=args.t_end, compiled=args.compiled)
+            text = cluster_scene(n, cutoff=args.cutoff, t_end=args.t_end, compiled=args.compiled,
+                                 method=args.method, dt=args.dt)
             if args.write_only:
                 args.write_only.mkdir(parents=True, exist_ok=True)
                 (args.write_only / f"cluster{n}.toml").write_text(text)
@@ -123,7 +128,8 @@ def main(argv=None) -> int:
     if args.write_only:
         return 0
     what = f"cutoff {args.cutoff} m" if args.cutoff else "all pairs"
-    print(f"Lennard-Jones cluster, {what}, t_end {args.t_end} s, rtol 1e-6, compiled = {args.compiled}\n")
+    how = f"{args.method} at dt {args.dt:g} s" if args.dt else f"{args.method or 'dopri'} at rtol 1e-6"
+    print(f"Lennard-Jones cluster, {what}, t_end {args.t_end} s, {how}, compiled = {args.compiled}\n")
     print("| N | cache | whole run wall s | CPU s | peak RSS MB | steps (rejected) | solver s | setup s "
           "| solver s per 1,000 steps | evaluation |\n|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
