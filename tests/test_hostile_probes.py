@@ -311,6 +311,16 @@ def test_simulate_of_something_else_than_a_system(first, words):
         C.simulate_many(thing, 2.0, {})
 
 
+@pytest.mark.parametrize("entry", ["equilibrium", "constraint_report", "degrees_of_freedom"])
+@pytest.mark.parametrize("first", [None, "scene"])
+def test_the_other_entry_points_of_a_system_say_what_to_pass(entry, first):
+    """statics and the structural reports took None (or a Scene) to an AttributeError."""
+    thing = C.load_scene(SCENES / "simple_pendulum.toml") if first == "scene" else first
+    words = "pass its .system" if first == "scene" else f"{entry}() takes a System"
+    with pytest.raises(C.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        getattr(C, entry)(thing)
+
+
 @pytest.mark.parametrize("restitution, words", [
     (-0.5, "at least 0.*into the constraint"), (1.5, "at most 1.*create energy"), (True, "a number from 0"),
 ])
