@@ -225,6 +225,32 @@ def test_an_interrupted_run_keeps_every_quantity_and_draws_its_figures(tmp_path,
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
 
+def test_ctrl_c_as_the_figures_are_finished_names_every_file_it_keeps(tmp_path, monkeypatch, capsys):
+    """Ctrl-C reaches the run just as the helper has drawn the figures (whole, in the set) but
+    before its answer is read: the folder keeps them, and the one line names every file in it
+    (it named the npz and the csv only, while the figures were there too)."""
+    from constrained.cli.main import main
+    from constrained.output import figure_process
+
+    real_wait = figure_process.FigureProcess.wait
+
+    def drawn_then_ctrl_c(self, progress=None):
+        real_wait(self, progress)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figure_process.FigureProcess, "wait", drawn_then_ctrl_c)
+    out = tmp_path / "out"
+    code = main(["run", str(SCENES / "simple_pendulum.toml"), "--out", str(out),
+                 "--set", "simulate.t_end=0.5", "--set", 'outputs.plots=["trajectory", "energy"]',
+                 "--set", 'outputs.formats=["npz", "csv"]'])
+    err = capsys.readouterr().err
+    assert code == 130 and "Traceback" not in err and "error" not in err, err
+    kept = sorted(p.name for p in out.iterdir())
+    assert {"trajectory.npz", "trajectory.csv", "trajectory.png", "energy.png"} <= set(kept)
+    named = err.split("written: ")[1].strip().split(", ")
+    assert sorted(Path(p).name for p in named) == kept, err
+
+
 def test_ctrl_c_in_the_last_step_is_a_stop_not_a_lost_request(monkeypatch):
     """The request arrives while the run's last step is computed: the run is complete, and it
     is reported as interrupted (the caller stops), not silently dropped."""

@@ -69,8 +69,9 @@ def _run(args) -> int:
         message = f"scene file {file}: {stop}"
         if written:
             saved = outs.commit(written)
-            if isinstance(stop, RunInterrupted):
-                message += "; written: " + ", ".join(str(p) for p in saved)
+            if isinstance(stop, RunInterrupted):  # every file put in place: figures the helper
+                # finished before Ctrl-C reached it are whole and kept too, so named here
+                message += "; written: " + ", ".join(str(p) for p in outs.committed)
             else:
                 message += f"; what was computed up to t = {trajectory.t[-1]:.6g} s is saved in {saved[0]}"
         if isinstance(stop, RunInterrupted):  # asked for: one line, not an error
