@@ -251,6 +251,51 @@ def test_ctrl_c_as_the_figures_are_finished_names_every_file_it_keeps(tmp_path, 
     assert sorted(Path(p).name for p in named) == kept, err
 
 
+def test_a_second_ctrl_c_while_the_quantities_are_computed_keeps_the_run_and_its_other_files(
+        tmp_path, monkeypatch, capsys):
+    """Two Ctrl-C in quick succession: the first stops the run, the second arrives while its
+    multipliers and forces are computed, so the run keeps t, x, v only. The figures of the
+    quantities it does not have are left out; the rest of the set is written, exit 130 (it was
+    exit 2, "this trajectory has no multipliers", and nothing written)."""
+    from constrained.cli import run as cli_run
+    from constrained.cli.main import main
+    from constrained.run import simulate as run_simulate
+
+    real_progress, real_trajectory_from = cli_run._progress, run_simulate.trajectory_from
+    pressed = []
+
+    class FirstCtrlC(real_progress):
+        def __call__(self, t):
+            super().__call__(t)
+            if t >= 0.3 and not pressed:
+                pressed.append(t)
+                os.kill(os.getpid(), signal.SIGINT)
+
+    def second_ctrl_c(*args, **kwargs):
+        if len(pressed) == 1 and args[4]:  # the first call, asked for derived quantities
+            pressed.append("again")
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_trajectory_from(*args, **kwargs)
+
+    monkeypatch.setattr(cli_run, "_progress", FirstCtrlC)
+    monkeypatch.setattr(run_simulate, "trajectory_from", second_ctrl_c)
+    out = tmp_path / "out"
+    code = main(["run", str(SCENES / "double_pendulum.toml"), "--out", str(out), "--set", "simulate.t_end=50",
+                 "--set", 'outputs.plots=["trajectory", "multipliers", "energy", "phase"]',
+                 "--set", 'outputs.formats=["npz", "csv"]'])
+    err = capsys.readouterr().err
+    assert pressed == [pressed[0], "again"]
+    assert code == 130 and "Traceback" not in err and "error" not in err, err
+    assert "were not computed" in err and len(err.strip().splitlines()) == 1, err
+    kept = sorted(p.name for p in out.iterdir())
+    assert kept == ["phase.png", "trajectory.csv", "trajectory.npz", "trajectory.png"], kept
+    with np.load(out / "trajectory.npz") as data:
+        assert "multipliers" not in data.files and 0.3 <= data["t"][-1] < 50
+        # what was kept is the motion: both rods held to round-off
+        x = data["x"]
+        assert np.allclose(np.linalg.norm(x[:, 0], axis=1), 1.0, atol=1e-9)
+
+
 def test_ctrl_c_in_the_last_step_is_a_stop_not_a_lost_request(monkeypatch):
     """The request arrives while the run's last step is computed: the run is complete, and it
     is reported as interrupted (the caller stops), not silently dropped."""

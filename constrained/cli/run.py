@@ -55,6 +55,8 @@ def _run(args) -> int:
             if trajectory is not None and len(trajectory.t):
                 written.append(trajectory.save(outs.path("trajectory.npz"), quantities=quantities))
         elif trajectory is not None and len(trajectory.t):  # done, or interrupted: the whole set
+            # a second Ctrl-C left the derived quantities out: their figures cannot be drawn
+            kinds = [k for k in kinds if k not in trajectory.info.get("quantities_skipped", ())]
             try:
                 _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs, progress,
                                    written)
