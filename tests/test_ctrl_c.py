@@ -351,6 +351,34 @@ def test_the_exit_status_after_a_handled_ctrl_c_is_130_not_death_by_sigint(tmp_p
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
 
 
+def test_a_second_ctrl_c_as_the_command_ends_does_not_kill_it(tmp_path):
+    """Ctrl-C pressed twice: the second arrives while the command, having handled the first,
+    cleans up and exits. It is the same request: one line, exit status 130 (the process died by
+    SIGINT, or printed a KeyboardInterrupt traceback, depending on where the second landed)."""
+    module = tmp_path / "twice_probe"
+    module.mkdir()
+    (module / "__main__.py").write_text(
+        "import os, signal, sys\n"
+        "from constrained import interrupt\n"
+        "from constrained.cli import main as cli\n"
+        "from constrained.cli import verbs\n"
+        "def stopped(args):\n"
+        "    raise KeyboardInterrupt  # the first Ctrl-C, in the verb\n"
+        "verbs._check = stopped\n"
+        "forget = interrupt.forget_handled_keyboard_interrupt\n"
+        "def second():\n"
+        "    os.kill(os.getpid(), signal.SIGINT)  # the second, as the command ends\n"
+        "    forget()\n"
+        "interrupt.forget_handled_keyboard_interrupt = second\n"
+        f"sys.argv = ['constrained', 'check', {str(SCENES / 'simple_pendulum.toml')!r}]\n"
+        "sys.exit(cli.main())\n")
+    env = {**_env(), "PYTHONPATH": f"{ROOT}{os.pathsep}{tmp_path}"}
+    proc = subprocess.run([sys.executable, "-m", "twice_probe"], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert proc.stderr.strip() == "constrained: interrupted (Ctrl-C)", proc.stderr
+
+
 @pytest.mark.slow
 def test_a_sequential_sweep_interrupted_says_one_line(tmp_path):
     out = tmp_path / "sweep"
