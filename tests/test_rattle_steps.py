@@ -53,3 +53,17 @@ def test_a_new_step_size_or_parameter_value_compiles_nothing(monkeypatch):
                         outputs={"constraint_residual"})
         assert np.max(tr.constraint_residual) < 1e-12
     assert len(calls) <= 1
+
+
+def test_a_step_off_the_scenes_output_grid_says_which_key_to_change(tmp_path, capsys):
+    """The bundled four-bar writes every 0.01 s: --set simulate.dt=6.1e-4 does not divide it.
+    The refusal named t_eval, a Python argument the scene's user never wrote; it names the
+    scene key now, and a dt that divides output_dt runs."""
+    from constrained.cli.main import main
+
+    args = ["run", str(FOURBAR), "--out", str(tmp_path / "out"), "--quiet",
+            "--set", 'simulate.method="rattle"', "--set", "simulate.t_end=0.2"]
+    assert main([*args, "--set", "simulate.dt=6.1e-4"]) == 2
+    err = capsys.readouterr().err
+    assert "simulate.output_dt" in err and "multiple of dt" in err and "Traceback" not in err, err
+    assert main([*args, "--set", "simulate.dt=5e-4"]) == 0
