@@ -274,6 +274,9 @@ def test_a_cache_folder_others_can_write_is_not_used(tmp_path, mode, monkeypatch
         assert g is f and "is writable by" in compiled.last_error
     err = capsys.readouterr().err
     assert err.count("is not used") == 1 and str(cache) in err and "chmod 700" in err
+    # who can write it, as its mode says (0o757: others, not its group)
+    writers = {0o777: "group and others", 0o775: "its group", 0o757: "others"}[mode]
+    assert f"is writable by {writers};" in err, err
     assert list(cache.iterdir()) == []  # nothing written into it, nothing loaded from it
 
 
@@ -291,7 +294,9 @@ def test_a_cache_folder_of_another_user_is_not_used(tmp_path, monkeypatch, capsy
     monkeypatch.setattr(compiled, "_user", lambda: owner + 1)  # the same folder seen by another user
     assert compiled.compile_function(f) is f
     assert "belongs to another user" in compiled.last_error
-    assert "belongs to another user" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "belongs to another user" in err
+    assert "chmod" not in err  # another user's folder is not ours to chmod: only "a folder of your own"
 
 
 @needs_cc

@@ -225,6 +225,77 @@ def test_an_interrupted_run_keeps_every_quantity_and_draws_its_figures(tmp_path,
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
 
+def test_ctrl_c_as_the_figures_are_finished_names_every_file_it_keeps(tmp_path, monkeypatch, capsys):
+    """Ctrl-C reaches the run just as the helper has drawn the figures (whole, in the set) but
+    before its answer is read: the folder keeps them, and the one line names every file in it
+    (it named the npz and the csv only, while the figures were there too)."""
+    from constrained.cli.main import main
+    from constrained.output import figure_process
+
+    real_wait = figure_process.FigureProcess.wait
+
+    def drawn_then_ctrl_c(self, progress=None):
+        real_wait(self, progress)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figure_process.FigureProcess, "wait", drawn_then_ctrl_c)
+    out = tmp_path / "out"
+    code = main(["run", str(SCENES / "simple_pendulum.toml"), "--out", str(out),
+                 "--set", "simulate.t_end=0.5", "--set", 'outputs.plots=["trajectory", "energy"]',
+                 "--set", 'outputs.formats=["npz", "csv"]'])
+    err = capsys.readouterr().err
+    assert code == 130 and "Traceback" not in err and "error" not in err, err
+    kept = sorted(p.name for p in out.iterdir())
+    assert {"trajectory.npz", "trajectory.csv", "trajectory.png", "energy.png"} <= set(kept)
+    named = err.split("written: ")[1].strip().split(", ")
+    assert sorted(Path(p).name for p in named) == kept, err
+
+
+def test_a_second_ctrl_c_while_the_quantities_are_computed_keeps_the_run_and_its_other_files(
+        tmp_path, monkeypatch, capsys):
+    """Two Ctrl-C in quick succession: the first stops the run, the second arrives while its
+    multipliers and forces are computed, so the run keeps t, x, v only. The figures of the
+    quantities it does not have are left out; the rest of the set is written, exit 130 (it was
+    exit 2, "this trajectory has no multipliers", and nothing written)."""
+    from constrained.cli import run as cli_run
+    from constrained.cli.main import main
+    from constrained.run import simulate as run_simulate
+
+    real_progress, real_trajectory_from = cli_run._progress, run_simulate.trajectory_from
+    pressed = []
+
+    class FirstCtrlC(real_progress):
+        def __call__(self, t):
+            super().__call__(t)
+            if t >= 0.3 and not pressed:
+                pressed.append(t)
+                os.kill(os.getpid(), signal.SIGINT)
+
+    def second_ctrl_c(*args, **kwargs):
+        if len(pressed) == 1 and args[4]:  # the first call, asked for derived quantities
+            pressed.append("again")
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_trajectory_from(*args, **kwargs)
+
+    monkeypatch.setattr(cli_run, "_progress", FirstCtrlC)
+    monkeypatch.setattr(run_simulate, "trajectory_from", second_ctrl_c)
+    out = tmp_path / "out"
+    code = main(["run", str(SCENES / "double_pendulum.toml"), "--out", str(out), "--set", "simulate.t_end=50",
+                 "--set", 'outputs.plots=["trajectory", "multipliers", "energy", "phase"]',
+                 "--set", 'outputs.formats=["npz", "csv"]'])
+    err = capsys.readouterr().err
+    assert pressed == [pressed[0], "again"]
+    assert code == 130 and "Traceback" not in err and "error" not in err, err
+    assert "were not computed" in err and len(err.strip().splitlines()) == 1, err
+    kept = sorted(p.name for p in out.iterdir())
+    assert kept == ["phase.png", "trajectory.csv", "trajectory.npz", "trajectory.png"], kept
+    with np.load(out / "trajectory.npz") as data:
+        assert "multipliers" not in data.files and 0.3 <= data["t"][-1] < 50
+        # what was kept is the motion: both rods held to round-off
+        x = data["x"]
+        assert np.allclose(np.linalg.norm(x[:, 0], axis=1), 1.0, atol=1e-9)
+
+
 def test_ctrl_c_in_the_last_step_is_a_stop_not_a_lost_request(monkeypatch):
     """The request arrives while the run's last step is computed: the run is complete, and it
     is reported as interrupted (the caller stops), not silently dropped."""
@@ -278,6 +349,34 @@ def test_the_exit_status_after_a_handled_ctrl_c_is_130_not_death_by_sigint(tmp_p
     proc = subprocess.run([sys.executable, "-m", "ctrlc_probe"], env=env, capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 130, (proc.returncode, proc.stderr)
+
+
+def test_a_second_ctrl_c_as_the_command_ends_does_not_kill_it(tmp_path):
+    """Ctrl-C pressed twice: the second arrives while the command, having handled the first,
+    cleans up and exits. It is the same request: one line, exit status 130 (the process died by
+    SIGINT, or printed a KeyboardInterrupt traceback, depending on where the second landed)."""
+    module = tmp_path / "twice_probe"
+    module.mkdir()
+    (module / "__main__.py").write_text(
+        "import os, signal, sys\n"
+        "from constrained import interrupt\n"
+        "from constrained.cli import main as cli\n"
+        "from constrained.cli import verbs\n"
+        "def stopped(args):\n"
+        "    raise KeyboardInterrupt  # the first Ctrl-C, in the verb\n"
+        "verbs._check = stopped\n"
+        "forget = interrupt.forget_handled_keyboard_interrupt\n"
+        "def second():\n"
+        "    os.kill(os.getpid(), signal.SIGINT)  # the second, as the command ends\n"
+        "    forget()\n"
+        "interrupt.forget_handled_keyboard_interrupt = second\n"
+        f"sys.argv = ['constrained', 'check', {str(SCENES / 'simple_pendulum.toml')!r}]\n"
+        "sys.exit(cli.main())\n")
+    env = {**_env(), "PYTHONPATH": f"{ROOT}{os.pathsep}{tmp_path}"}
+    proc = subprocess.run([sys.executable, "-m", "twice_probe"], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 130, (proc.returncode, proc.stderr)
+    assert proc.stderr.strip() == "constrained: interrupted (Ctrl-C)", proc.stderr
 
 
 @pytest.mark.slow

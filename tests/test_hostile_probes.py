@@ -190,15 +190,19 @@ def test_a_cycle_in_the_definitions_is_named():
 
 
 # --- item 9: a damaged saved run is drawn where it can be ------------------------------------------
-@pytest.mark.parametrize("damage", ["some", "all"])
+@pytest.mark.parametrize("damage", ["some", "all", "no samples"])
 def test_plot_of_a_file_with_nan_positions(tmp_path, capsys, damage):
     system = C.load_scene(SCENES / "double_pendulum.toml").system
     tr = C.simulate(system, 1.0, t_eval=np.linspace(0, 1, 51))
     if damage == "some":
         tr.x[10:20] = np.nan
-    else:
+    elif damage == "all":
         tr.x[:] = np.nan
     saved = tr.save(tmp_path / "trajectory.npz")
+    if damage == "no samples":  # a hand-made or cut file: every per-sample array empty
+        with np.load(saved, allow_pickle=False) as z:
+            arrays = {k: z[k][:0] if z[k].ndim and len(z[k]) == len(tr.t) else z[k] for k in z.files}
+        np.savez(saved, **arrays)
     code = main(["plot", str(saved), "--out", str(tmp_path / "figs")])
     out, err = capsys.readouterr()
     assert "Traceback" not in err
@@ -305,6 +309,16 @@ def test_simulate_of_something_else_than_a_system(first, words):
         C.simulate(thing, 2.0)
     with pytest.raises(C.InputError, match="simulate_many"):
         C.simulate_many(thing, 2.0, {})
+
+
+@pytest.mark.parametrize("entry", ["equilibrium", "constraint_report", "degrees_of_freedom"])
+@pytest.mark.parametrize("first", [None, "scene"])
+def test_the_other_entry_points_of_a_system_say_what_to_pass(entry, first):
+    """statics and the structural reports took None (or a Scene) to an AttributeError."""
+    thing = C.load_scene(SCENES / "simple_pendulum.toml") if first == "scene" else first
+    words = "pass its .system" if first == "scene" else f"{entry}() takes a System"
+    with pytest.raises(C.InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        getattr(C, entry)(thing)
 
 
 @pytest.mark.parametrize("restitution, words", [

@@ -4,6 +4,7 @@ trajectory, never leaves files of two runs side by side in --out, nor a stray te
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import subprocess
@@ -175,6 +176,40 @@ def test_an_unwritable_output_folder_is_bad_input_exit_2_before_any_work(tmp_pat
     assert len(lines) == 1 and "cannot write the output folder" in lines[0]
     assert str(blocker / "sub") in lines[0]
     assert blocker.read_text() == "not a folder"
+
+
+def test_a_disk_that_fills_during_a_write_names_the_file_being_written(tmp_path, capsys, monkeypatch):
+    """A full disk shows in write(), whose OSError carries no file name: the message named the
+    --out folder, not the file that could not be written."""
+    import constrained.run.trajectory as trajectory
+
+    real_fdopen = trajectory.os.fdopen
+
+    class FillsUp:
+        def __init__(self, f):
+            self.f = f
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+            return False
+
+    monkeypatch.setattr(trajectory.os, "fdopen", lambda fd, mode: FillsUp(real_fdopen(fd, mode)))
+    out = tmp_path / "out"
+    code = main(["run", str(scene(tmp_path, PENDULUM)), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"cannot write {out / 'trajectory.npz'}: No space left on device" in err, err
+    assert not out.exists()
+    no_strays(tmp_path)
 
 
 def test_a_failed_write_names_the_users_file_not_the_hidden_temporary(tmp_path, capsys, monkeypatch):

@@ -127,3 +127,17 @@ def test_rattle_agrees_with_an_independent_rattle_with_pair_forces_and_gravity(c
     x, v = _numpy_rattle(x0, v0, masses, force, rods, dt, 200)
     assert np.max(np.abs(tr.x[-1].ravel() - x)) < 1e-10
     assert np.max(np.abs(tr.v[-1].ravel() - v)) < 1e-8
+
+
+def test_a_step_off_the_scenes_output_grid_says_which_key_to_change(tmp_path, capsys):
+    """The bundled four-bar writes every 0.01 s: --set simulate.dt=6.1e-4 does not divide it.
+    The refusal named t_eval, a Python argument the scene's user never wrote; it names the
+    scene key now, and a dt that divides output_dt runs."""
+    from constrained.cli.main import main
+
+    args = ["run", str(FOURBAR), "--out", str(tmp_path / "out"), "--quiet",
+            "--set", 'simulate.method="rattle"', "--set", "simulate.t_end=0.2"]
+    assert main([*args, "--set", "simulate.dt=6.1e-4"]) == 2
+    err = capsys.readouterr().err
+    assert "simulate.output_dt" in err and "multiple of dt" in err and "Traceback" not in err, err
+    assert main([*args, "--set", "simulate.dt=5e-4"]) == 0

@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..manifold import residual
 from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
+from ..model import system as _system
 from ..model import velocity
 from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
@@ -197,8 +198,7 @@ def generalized_forces(system, x, map_jacobian, t: float = 0.0, *, model: Model 
     (3N, n) (or (N, 3, n)), with F = all effects' forces at (x, v = 0, t).
 
     For potential forces Q_j = −∂V/∂q_j. Constraint forces are left out: when the map satisfies
-    the constraints identically, (∂x/∂q)ᵀ Jᵀ λ = 0 and they contribute nothing.
-    """
+    the constraints identically, (∂x/∂q)ᵀ Jᵀ λ = 0 and they contribute nothing."""
     model = model or assemble(system)
     xf = _flat(system, x)
     D = np.asarray(map_jacobian, dtype=float)
@@ -378,6 +378,7 @@ def equilibrium(
     wrong way is dropped and a slack row that the equilibrium would violate is added, until
     both hold; ``slack`` names the one-sided rows that do not hold (multiplier 0).
     """
+    _system.require_system(system, "equilibrium")
     model = model or (assemble(system) if system.n_particles else None)
     if model is None or not has_one_sided(model):
         return _equilibrium(system, x_guess, t, method=method, max_iter=max_iter,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import signal
 import sys
 import warnings
 from collections.abc import Sequence
@@ -341,12 +342,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    global _as_command
+    _as_command = argv is None
     code = _dispatch(args)
     if code == 130:  # Ctrl-C handled here: the exit status is 130, not a death by SIGINT
         from ..interrupt import forget_handled_keyboard_interrupt
 
+        _ignore_further_ctrl_c()
+
         forget_handled_keyboard_interrupt()
     return code
+
+
+#: Whether ``main`` runs as the command (its arguments from sys.argv), not called in-process.
+_as_command = False
+
+
+def _ignore_further_ctrl_c() -> None:
+    """Once the command has handled Ctrl-C and is ending: a second Ctrl-C (often pressed right
+    after the first) is the same request; it would otherwise interrupt the cleanup or the
+    interpreter's exit and end the process by SIGINT instead of with status 130. Not when
+    ``main`` is called in-process (tests, notebooks): their Ctrl-C stays theirs."""
+    if _as_command:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _dispatch(args) -> int:
@@ -380,6 +398,7 @@ def _dispatch(args) -> int:
                    + (f" ({hint})" if hint else ""))
         return 2
     except KeyboardInterrupt:  # asked for: one line, not called an error
+        _ignore_further_ctrl_c()
         print(f"{PROG}: interrupted (Ctrl-C)", file=sys.stderr)
         return 130
     finally:

@@ -55,6 +55,8 @@ def _run(args) -> int:
             if trajectory is not None and len(trajectory.t):
                 written.append(trajectory.save(outs.path("trajectory.npz"), quantities=quantities))
         elif trajectory is not None and len(trajectory.t):  # done, or interrupted: the whole set
+            # a second Ctrl-C left the derived quantities out: their figures cannot be drawn
+            kinds = [k for k in kinds if k not in trajectory.info.get("quantities_skipped", ())]
             try:
                 _write_run_outputs(scene, trajectory, quantities, kinds, viewer, figures, outs, progress,
                                    written)
@@ -69,8 +71,9 @@ def _run(args) -> int:
         message = f"scene file {file}: {stop}"
         if written:
             saved = outs.commit(written)
-            if isinstance(stop, RunInterrupted):
-                message += "; written: " + ", ".join(str(p) for p in saved)
+            if isinstance(stop, RunInterrupted):  # every file put in place: figures the helper
+                # finished before Ctrl-C reached it are whole and kept too, so named here
+                message += "; written: " + ", ".join(str(p) for p in outs.committed)
             else:
                 message += f"; what was computed up to t = {trajectory.t[-1]:.6g} s is saved in {saved[0]}"
         if isinstance(stop, RunInterrupted):  # asked for: one line, not an error

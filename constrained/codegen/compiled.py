@@ -130,8 +130,9 @@ def compile_functions(functions: list[ca.Function], *, flags=FLAGS) -> list[ca.F
         last_error = f"the compile cache {folder} is not used: {refusal}"
         if str(folder) not in _refused:
             _refused.add(str(folder))
+            chmod = "" if "another user" in refusal else ", or chmod 700 it"  # (not theirs to change)
             _notice(f"{last_error}; running without compiled code (use a folder of your own: "
-                    "CONSTRAINED_CACHE=DIR, or chmod 700 it)")
+                    f"CONSTRAINED_CACHE=DIR{chmod})")
         return list(functions)
     target = folder / f"{name}_{cache_key(functions, cc, flags)}.so"
     if target.exists():
@@ -232,7 +233,8 @@ def _not_private(st: os.stat_result, what: str) -> str | None:
     if st.st_uid != user:
         return f"{what} belongs to another user (uid {st.st_uid})"
     if st.st_mode & 0o022:
-        return f"{what} is writable by {'group and others' if st.st_mode & 0o002 else 'its group'}"
+        writers = {0o020: "its group", 0o002: "others"}.get(st.st_mode & 0o022, "group and others")
+        return f"{what} is writable by {writers}"
     return None
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..model.structure import Model, assemble
+from ..model.system import require_system
 from ..threads import one_blas_thread
 from .algebra import algebra_for
 from .manifold import RANK, redundant_rows
@@ -101,6 +102,7 @@ def constraint_report(system, x=None, t: float = 0.0, *, model: Model | None = N
     and the generic rank from ``samples`` random perturbations of x (seeded). Independent
     rows are shown by a cheap factorization; dependent ones are found by the pivoted QR of the
     dense J up to SPARSE_FROM rows, beyond by the sparse Gram factorization (sparse_rank)."""
+    require_system(system, "constraint_report")
     model = model or assemble(system)
     x = (system.positions if x is None else np.asarray(x, float)).ravel()
     report = _position_report(model, system, x, t, samples, seed)
@@ -185,6 +187,7 @@ def degrees_of_freedom(system, x=None, t: float = 0.0) -> int:
     is; ``constraint_report(...).velocity_degrees_of_freedom`` counts the velocities). Warns
     (SingularConfigurationWarning) when the configuration is singular, i.e. the rank is lower
     here than nearby and the count overstates the freedom."""
+    require_system(system, "degrees_of_freedom")
     report = constraint_report(system, x, t)
     if report.singular:
         warnings.warn(

@@ -139,6 +139,8 @@ def finite_samples(traj: Trajectory) -> tuple[Trajectory, int]:
     are not finite (a damaged or hand-made file) and how many were left out; InputError when
     no sample is left to draw."""
     n = len(traj.t)
+    if n == 0:  # (np.reshape of an empty x to (0, -1) would raise)
+        raise InputError("the trajectory has no samples: nothing to draw")
     ok = (np.isfinite(np.asarray(traj.t, float)) & np.all(np.isfinite(np.reshape(traj.x, (n, -1))), axis=1)
           & np.all(np.isfinite(np.reshape(traj.v, (n, -1))), axis=1))
     if ok.all():

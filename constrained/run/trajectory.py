@@ -341,8 +341,9 @@ def atomic_write(path: Path, write) -> None:
     except BaseException as exc:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
-        if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) != str(path):
-            # name the user's file, not the hidden temporary one (or its folder)
+        if isinstance(exc, OSError) and (exc.filename is None or str(exc.filename) != str(path)):
+            # name the user's file, not the hidden temporary one (or its folder), nor nothing
+            # (a write that fails, as on a full disk, raises an OSError without a file name)
             raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
 

@@ -11,6 +11,7 @@ both directions).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -66,7 +67,7 @@ def user_events(system, events) -> list[Event]:
     if taken:
         raise InputError(f"the event name(s) {', '.join(taken)} are the kinds of constraint events "
                          f"({', '.join(CONSTRAINT_KINDS)}); choose other names")
-    return out
+    return [dataclasses.replace(e, ignore_round_off=True) for e in out]
 
 
 @dataclass(frozen=True)

@@ -85,13 +85,17 @@ class Event:
 
     ``function(t, x, v) -> g`` with flat x and v; ``direction`` +1 takes only rising
     crossings (g from − to +), −1 only falling ones, 0 both; a ``terminal`` event ends the
-    run there (its state is the run's last sample).
+    run there (its state is the run's last sample). ``ignore_round_off`` (the user's events):
+    a sign change between two values both within the run's resolution (how much g moves when
+    the state moves by atol) is not a crossing: a quantity the constraints hold at zero only to
+    round-off flips sign from sample to sample.
     """
 
     name: str
     function: Callable[[float, np.ndarray, np.ndarray], float]
     direction: int = 0
     terminal: bool = True
+    ignore_round_off: bool = False
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:

@@ -170,7 +170,8 @@ class _Run:
         """Events crossed since the last sample, located and listed; the first terminal one."""
         g_now = [e.function(*sample) for e in self.events]
         crossed = [j for j, e in enumerate(self.events)
-                   if self.g_last[j] is not None and e.crossed(self.g_last[j], g_now[j])]
+                   if self.g_last[j] is not None and e.crossed(self.g_last[j], g_now[j])
+                   and not (e.ignore_round_off and self.round_off_flip(e, self.g_last[j], sample, g_now[j]))]
         self.g_last = [g if g != 0 or self.g_last[j] is not None else None for j, g in enumerate(g_now)]
         found = sorted((locate(self.stepper, self.events[j], self.last, sample, dense) for j in crossed),
                        key=lambda h: h.t)
@@ -179,6 +180,12 @@ class _Run:
             if hit.event.terminal:
                 return hit
         return None
+
+    def round_off_flip(self, event: Event, g_before: float, sample, g_after: float) -> bool:
+        """Whether a sign change of ``event`` lies within the run's resolution: both values no
+        larger than the change of g when the state moves by atol (see Event.ignore_round_off)."""
+        return all(abs(g) <= _resolution(event.function, self.stepper.atol, *state)
+                   for g, state in ((g_before, self.last), (g_after, sample)))
 
     def sample_stiffness(self, steps: int, h: float | None) -> None:
         """h·ρ(∂f/∂y) every STIFFNESS_EVERY accepted steps of an explicit method."""
@@ -207,6 +214,16 @@ def _default_step_limit(stepper: Solver, t0: float, t_end: float) -> int:
     dt = getattr(stepper, "dt", None)
     needed = int(np.ceil((t_end - t0) / dt)) if dt else 0
     return max(DEFAULT_MAX_STEPS, 2 * needed)
+
+
+def _resolution(g, atol: float, t: float, x, v) -> float:
+    """How much g(t, x, v) moves when x, or v, moves by about atol in every component (fixed
+    pseudo-random signs and sizes, so that no combination of coordinates cancels)."""
+    x, v = np.asarray(x, float), np.asarray(v, float)
+    u = atol * np.random.default_rng(20261127).uniform(0.5, 1.5, x.shape) * np.where(
+        np.arange(x.size).reshape(x.shape) % 2, -1.0, 1.0)
+    g0 = g(t, x, v)
+    return max(abs(g(t, x + u, v) - g0), abs(g(t, x, v + u) - g0))
 
 
 def _side(g: float) -> float | None:

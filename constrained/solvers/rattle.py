@@ -196,8 +196,9 @@ class Rattle(Stepper):
             k = (np.asarray(t_eval) - t0) / self.h
             if np.max(np.abs(k - np.rint(k)), initial=0.0) > 1e-6:
                 raise InputError(
-                    f"method 'rattle' outputs at multiples of its step ({self.h:.6g} s); "
-                    "give t_eval on that grid or omit it"
+                    f"method 'rattle' outputs at multiples of its step ({self.h:.6g} s: dt shortened "
+                    "to land on t_end); give output times on that grid (t_eval; in a scene, "
+                    "simulate.output_dt a multiple of dt) or none"
                 )
 
     def default_grid(self, t0, t_end):

@@ -25,7 +25,7 @@ from ... import interrupt
 from ...errors import InputError
 from ..base import DRIVER_OPTIONS, Advance, Status
 from ..driver import Stepper
-from .idas import CallSize
+from .idas import SPLIT, STEPS_PER_CALL, CallSize
 
 #: Output times of pantelides' first IDAS call (see idas.CallSize).
 PANTELIDES_FIRST_CALL_OUTPUTS = 50
@@ -99,7 +99,7 @@ class Pantelides(Stepper):
         t_prev, y, z, times = state
         seg, rest = list(times[:self._calls.size]), times[self._calls.size:]
         integ = ca.integrator("pantelides", "idas", self.semi_explicit, t_prev, seg, {
-            "abstol": self.atol, "reltol": self.rtol, "max_num_steps": 10_000_000})
+            "abstol": self.atol, "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL})
         called = time.perf_counter()
         try:
             with interrupt.external():
@@ -108,6 +108,16 @@ class Pantelides(Stepper):
             if self.stop_requested():
                 raise KeyboardInterrupt from None
             reason = str(exc).splitlines()[-1][:200]
+            # what a failed call computed is lost: retry it over fewer output times, then an
+            # interval that needs more than STEPS_PER_CALL steps in SPLIT parts, so that a
+            # failure (a collapse towards a singularity) is met in bounded work and reported
+            # from the last output before it, not from the start of a long call
+            if len(seg) > 1:
+                self._calls.size = max(1, len(seg) // 2)
+                return Advance.empty(state, n3)
+            if "TOO_MUCH_WORK" in reason and seg[0] - t_prev > 1e-9 * max(abs(seg[0]), 1e-300):
+                inner = tuple(float(tk) for tk in np.linspace(t_prev, seg[0], SPLIT + 1)[1:-1])
+                return Advance.empty((t_prev, y, z, inner + tuple(times)), n3)
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
                                  f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
         self._calls.took(time.perf_counter() - called)
