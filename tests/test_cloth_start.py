@@ -80,3 +80,21 @@ def test_the_same_cloth_pinned_at_two_diagonal_corners_runs():
     assert tr.x[-1, :, 2].min() < -0.1  # the free corners swing down
     scale = 64 * 0.01 * G * 0.1
     assert np.max(np.abs(tr.energy - tr.energy[0])) < 1e-8 * scale
+
+
+def test_a_failed_projection_keeps_the_steps_before_it():
+    """The same cloth with gravity along the pinned edge: the rest of the cloth, once swinging,
+    pulls the taut edge sideways, which no motion allows, and dopri's projection fails a few
+    hundredths of a second in. Before, the whole chained call was dropped, so the run reported
+    its last good state at t = 0; now the steps before the failing one are kept: the error's
+    trajectory ends next to the failure, on the constraints, with the cloth swinging."""
+    system = cloth(6)
+    system.effects[:] = [e for e in system.effects if not isinstance(e, C.Gravity)]
+    system.add(C.Gravity([-G, 0.0, 0.0]))
+    with pytest.raises(C.SimulationError, match="could not be kept on the constraints") as failed:
+        C.simulate(system, 0.5, outputs={"constraint_residual"})
+    tr = failed.value.trajectory
+    near = float(str(failed.value).split("near t = ")[1].split(" s")[0])
+    assert tr is not None and 0.5 * near < tr.t[-1] < near  # the failing step started there
+    assert np.max(tr.constraint_residual) < 1e-6  # (dopri accepts up to PROJECTION_FAIL)
+    assert np.max(np.abs(tr.v[-1])) > 0.05  # swinging: steps were kept, not only the start

@@ -345,9 +345,16 @@ class Dopri(Stepper):
                            message=f"non-finite state after t = {new[T]:.6g} s; "
                            + diagnostics.nonfinite_cause(self.model, new[:n], new[n:2 * n], new[T]))
         if new[RES] > PROJECTION_FAIL * self._scale:
-            return Advance.empty(state, n, Status.PROJECTION_FAILED,
-                                 f"the state could not be kept on the constraints near t = {new[T]:.6g} s "
-                                 f"(residual {new[RES]:.3g} m before the last Newton step): reduce rtol")
+            # RES is a running maximum: the attempts before the first above the limit are good
+            # (kept, so the last good state, and its diagnosis, is the one next to the failure)
+            bad = int(np.argmax(cols[:, RES] > PROJECTION_FAIL * self._scale))
+            before = cols[:bad][moved[:bad]]
+            samples = dict(t=before[:, T], x=before[:, :n], v=before[:, n:2 * n], a=before[:, 2 * n:3 * n],
+                           h=float(new[H]))
+            last = cols[bad - 1] if bad else state
+            return Advance(last, **samples, status=Status.PROJECTION_FAILED, message=(
+                f"the state could not be kept on the constraints near t = {cols[bad, T]:.6g} s (residual "
+                f"{cols[bad, RES]:.3g} m before the last Newton step): reduce rtol"))
         if new[T] < t_stop and new[H] < 1e-14 * max(1.0, abs(new[T])):
             return Advance(new, **samples, status=Status.STEP_SIZE_COLLAPSED,
                            message=(f"the step size collapsed at t = {new[T]:.6g} s (h = {new[H]:.3g} s); "
