@@ -376,8 +376,7 @@ def equilibrium(
     One-sided constraints (constrained.unilateral) hold only where their force has the
     allowed sign: starting from the rows touching at the guess, a row pulling (pushing) the
     wrong way is dropped and a slack row that the equilibrium would violate is added, until
-    both hold; ``slack`` names the one-sided rows that do not hold (multiplier 0).
-    """
+    both hold; ``slack`` names the one-sided rows that do not hold (multiplier 0)."""
     _system.require_system(system, "equilibrium")
     model = model or (assemble(system) if system.n_particles else None)
     if model is None or not has_one_sided(model):
