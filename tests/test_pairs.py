@@ -325,6 +325,7 @@ def test_the_energy_along_a_run_uses_each_samples_list():
     np.testing.assert_allclose(energy_along(model, X, V, t), every, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_an_ensemble_runs_a_gas_with_a_cutoff():
     """simulate_many over values of the pair formula's parameter: each variant carries its own
     neighbour list in p (the every-pair sum where it goes stale) and equals its own run."""

@@ -69,6 +69,7 @@ def test_rattle_is_second_order():
     assert 3.5 < errors[0] / errors[1] < 4.5
 
 
+@pytest.mark.slow
 def test_rattle_long_run_energy_stays_bounded():
     """1000 s of the chaotic double pendulum at dt = 1e-3: a million steps in compiled code."""
     tr = C.simulate(double_pendulum(), 1000.0, method="rattle", dt=1e-3,
