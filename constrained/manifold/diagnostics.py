@@ -138,11 +138,9 @@ def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: fl
 @dataclass
 class Incompatibility:
     """The least-squares closest state to the constraints and what stays violated there.
-
-    ``compatible`` is False when no state satisfies all constraints near the start:
-    ``residual`` is then the smallest max |f| found and ``labels`` the constraints still
-    violated at that state (a set that cannot hold together).
-    """
+    ``compatible`` is False when no state satisfies all constraints near the start: ``residual``
+    is then the smallest max |f| found and ``labels`` the constraints still violated at that
+    state (a set that cannot hold together)."""
 
     compatible: bool
     residual: float
@@ -256,10 +254,15 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
     try:
         manifold = manifold or Manifold.at(model, x, t)
         if model.n_constraints:
-            rank = model.n_constraints if manifold.rows is None else len(manifold.rows)
-            sing = singularity(model, x, t, rank=min(rank, model.n_coordinates))
+            n3, rank = model.n_coordinates, len(manifold.rows or range(model.n_constraints))
+            sing = singularity(model, x, t, rank=min(rank, n3))
             if sing.sigma < 1e-3:
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
+            full = manifold.rows is not None and singularity(model, x, t, rank=min(model.n_constraints, n3))
+            if full and full.sigma < 1e-3:  # rows dependent at the start, bent apart since
+                return (f"likely cause: a taut, self-stressed set bent by the motion at t = {t:.6g} s "
+                        f"(e.g. a straight edge pinned at both ends that the rest pulls sideways, which "
+                        f"it allows only by stretching): {full.describe()}; give the set slack")
         strongest = _strongest_effect(model, model.symbols, np.asarray(x, float).ravel(),
                                       np.asarray(v, float).ravel(), t)
         if strongest is not None and strongest[3] > 1e100:  # one step of it overflows the state
@@ -413,8 +416,7 @@ class StiffnessWatch:
     so far would take more than ``BUDGET_S`` seconds, the run is more than ``MIN_PERIODS``
     periods of the fastest spring long, the steps average less than that period, and the
     spring is barely stretched (a rigid link in disguise), ``check`` returns the diagnosis
-    (the run stops with it); otherwise None.
-    """
+    (the run stops with it); otherwise None."""
 
     AFTER_S = 2.0
     BUDGET_S = 15.0

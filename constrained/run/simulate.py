@@ -197,9 +197,11 @@ def simulate(
                          t_end_reached=float(kept.t[-1]) if k else float(t_start))
         raise SimulationError(message, trajectory=kept)
     if failure:
+        last_state = (traj.x[-1].ravel(), traj.v[-1].ravel(), float(traj.t[-1])) if len(traj.t) else None
         cause = ("" if "likely cause" in failure else
                  _stiff_spring_cause(model, traj, x0, float(t_start), float(t_end), stats) or
-                 " (likely cause: a singular configuration, stiffness, or forces that blow up)")
+                 (f" ({diagnostics.likely_cause(model, *last_state)})" if last_state else
+                  " (likely cause: a singular configuration, stiffness, or forces that blow up)"))
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         traj.info["message"] = f"the run stopped early: {failure}; the last good state is at {last}{cause}"
         raise SimulationError(traj.info["message"], trajectory=traj)
