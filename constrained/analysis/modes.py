@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..manifold.constraint_report import constraint_report
 from ..manifold.manifold import Manifold
 from ..model.structure import Model, assemble
 from ..run.trajectory import Trajectory
@@ -367,10 +368,7 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     knorm = max(float(np.linalg.norm(K)), 1e-300)
     configuration = None
     if model.n_position_rows < model.n_constraints:  # velocity rows: the two freedoms differ
-        J = model.jacobian(x_flat, float(t))[1]
-        J = np.asarray(J.full() if hasattr(J, "full") else J, float).reshape(-1, model.n_coordinates)
-        rank = np.linalg.matrix_rank(J[:model.n_position_rows]) if model.n_position_rows else 0
-        configuration = model.n_coordinates - int(rank)
+        configuration = constraint_report(system, x_flat, float(t), model=model, samples=0).degrees_of_freedom
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=float(t), frame=frame, multipliers=lam,
                  basis=T, M=M, G=0.5 * (C - C.T), D=0.5 * (C + C.T), K=K, eigenvalues=s, modes=mode_list,
                  stable=stable, stability=stability, particle_names=list(system.names),

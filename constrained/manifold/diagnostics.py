@@ -248,17 +248,17 @@ def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, ad
 
 
 def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str:
-    """The likely cause of a stopped run, from its last good state (x, v, t): a singular
-    configuration (a rank drop below the run's rank: redundant rows do not count), or the
-    particle whose acceleration blows up."""
+    """The likely cause of a stop at its last good state (x, v, t): a rank drop below the run's
+    rank, rows dropped as redundant at the start and bent apart since, or a particle's blow-up."""
     try:
         manifold = manifold or Manifold.at(model, x, t)
         if model.n_constraints:
-            n3, rank = model.n_coordinates, len(manifold.rows or range(model.n_constraints))
+            n3, rows = model.n_coordinates, manifold.rows
+            rank = model.n_constraints if rows is None else len(rows)
             sing = singularity(model, x, t, rank=min(rank, n3))
             if sing.sigma < 1e-3:
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
-            full = manifold.rows is not None and singularity(model, x, t, rank=min(model.n_constraints, n3))
+            full = rows is not None and singularity(model, x, t, rank=min(model.n_constraints, n3))
             if full and full.sigma < 1e-3:  # rows dependent at the start, bent apart since
                 return (f"likely cause: a taut, self-stressed set bent by the motion at t = {t:.6g} s "
                         f"(e.g. a straight edge pinned at both ends that the rest pulls sideways, which "

@@ -124,8 +124,7 @@ class Structure:
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
-        self.forces_depend_on_velocity = bool(slots["dissipation"] or slots["generalized_potential"]) or any(
-            ca.depends_on(term, v) for term in slots["applied_force"])
+        self.forces_depend_on_velocity = bool(ca.depends_on(F, v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)

@@ -153,17 +153,20 @@ class Rattle(Stepper):
         # are the steps after a pair potential's neighbour list went stale, for ``step`` to
         # refresh it (the graph sums every pair where a list is stale: exact, but O(N²))
         S = ca.MX.sym("state", state.numel())
-        done = S[2 * n3 + 1 + C + 1] <= 0
+        done = S[self._left_slot()] <= 0
         if m.structure.pairs:
             start = self._p_offset()
             stale = m.structure.pair_potentials.stale(S[:n3], S[start:start + P.numel()])
             done = ca.logic_or(done, stale)
         return ca.Function("rattle_step", [S], [ca.if_else(done, S, step(S), True)])
 
+    def _left_slot(self) -> int:
+        """Where the steps left of a call stand in the state (x, v, t, λ, err, left, h, s, p[, F])."""
+        return 2 * self.model.n_coordinates + len(self.rows) + 2
+
     def _p_offset(self) -> int:
-        """Where p starts in the state (x, v, t, λ, err, left, h, s, p[, F])."""
-        m = self.model
-        return 2 * m.n_coordinates + len(self.rows) + 4 + m.n_constraints
+        """Where p starts in the state: after left, h and the row scales s."""
+        return self._left_slot() + 2 + self.model.n_constraints
 
     def _chunks(self) -> dict[int, FastCall]:
         """The chained steps (CHUNKS, as many as one call may take), built once per structure,
@@ -236,7 +239,7 @@ class Rattle(Stepper):
         size = next((c for c in chunks if c >= left), max(chunks))
         k = min(left, size)
         y = y.copy()
-        counter = 2 * n3 + 2 + len(self.rows)
+        counter = self._left_slot()
         if m.structure.pairs:  # neighbour lists rebuilt where particles moved far
             start = self._p_offset()
             p = m.structure.pair_potentials.refreshed(y[start:start + len(m.parameter_vector)], y[:n3])
@@ -254,7 +257,7 @@ class Rattle(Stepper):
             cause = diagnostics.nonfinite_cause(m, y[:n3], y[n3:2 * n3], y[2 * n3])
             return Advance.empty(state, n3, Status.NON_FINITE,
                                  f"non-finite state between t = {y[2 * n3]:.6g} s and {t_new:.6g} s; {cause}")
-        err = new[2 * n3 + 1 + len(self.rows)]
+        err = new[counter - 1]  # (the running max of |f| stands just before left)
         if err > self.newton_tol * self.scale:
             return Advance.empty(state, n3, Status.PROJECTION_FAILED, (
                                f"Newton for the position multipliers did not converge between t = "
