@@ -145,3 +145,27 @@ def test_new_plain_numbers_do_not_compile_again(tmp_path, monkeypatch):
         reference = C.simulate(other, 0.5, **{**kw, "compiled": False}, model=constants(other))
         np.testing.assert_allclose(run.x[-1], reference.x[-1], rtol=0, atol=1e-10)
     assert len(builds) == 1, "a new plain number compiled the step loop again"
+
+
+def test_constrained_run_uses_the_structure_built_while_loading(monkeypatch):
+    """``Scene.loaded_model`` (what ``constrained run`` passes to ``run``): the Model of the
+    Structure built at load, so the run neither fingerprints nor builds again, and runs as
+    ``run()`` does; a scene whose system was replaced gets None."""
+    import dataclasses
+
+    from constrained.model import structure as structure_module
+
+    scene = C.load_scene(Path(__file__).parents[1] / "scenarios" / "double_pendulum.toml")
+    walks = []
+    original = structure_module._fingerprint
+    monkeypatch.setattr(structure_module, "_fingerprint", lambda s: walks.append(s) or original(s))
+    before = Structure.builds
+    loaded = scene.loaded_model()
+    assert loaded.structure is scene.structure[1]
+    fast = scene.run(model=loaded).trajectory
+    assert walks == [] and Structure.builds == before
+    plain_run = scene.run().trajectory
+    assert len(walks) == 1 and Structure.builds == before
+    assert np.array_equal(fast.t, plain_run.t) and np.array_equal(fast.x, plain_run.x)
+    replaced = dataclasses.replace(scene, system=scene.system.copy())
+    assert replaced.loaded_model() is None

@@ -293,3 +293,29 @@ def test_a_run_without_output_times_keeps_a_bounded_number_of_steps():
     assert len(tr.t) <= STEP_SAMPLES + 2 and tr.t[-1] == 2.0
     assert np.min(np.diff(tr.t)) > 0
     assert np.max(np.abs(tr.energy - tr.energy[0])) < 1e-8 * abs(tr.energy[0])
+
+
+def test_a_large_model_keeps_about_step_values_positions_by_default(monkeypatch):
+    """A run given no output times on a large model keeps its steps evenly thinned to about
+    STEP_VALUES position values (driver.step_samples), the last state included; a grid the
+    user asks for is not thinned. Checked on a 40-link rope with STEP_VALUES lowered so that
+    it stands for a 10,000-particle one."""
+    from constrained.solvers import driver
+
+    n = 40
+    s = C.System(name="rope")
+    for i in range(n):
+        s.add_particle(f"p{i}", 0.01, [0.01 * (i + 1), 0.0, 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=0.01), C.Plane("p0", [0, 0, 1]))
+    for i in range(1, n):
+        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=0.01), C.Plane(f"p{i}", [0, 0, 1]))
+    s.add(C.Gravity([0, -G, 0]))
+    monkeypatch.setattr(driver, "STEP_VALUES", 60 * 3 * n)
+    assert driver.step_samples(3 * n) == 60
+    tr = C.simulate(s, 1.0, outputs={"energy"})
+    assert tr.stats["steps"] > 120
+    assert 50 <= len(tr.t) <= 62 and tr.t[-1] == 1.0
+    assert np.min(np.diff(tr.t[:-1])) >= 1.0 / 60 * (1 - 1e-12)
+    full = C.simulate(s, 1.0, outputs={"energy"}, t_eval=np.linspace(0, 1, 121))
+    assert len(full.t) == 121
+    assert np.max(np.abs(tr.energy - tr.energy[0])) < 1e-5

@@ -31,7 +31,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from .. import interrupt
+from .. import interrupt, tomlparse
 from ..errors import InputError, RunInterrupted, SimulationError
 from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
@@ -485,8 +485,6 @@ def save_path_figure(result: PathResult, path) -> Path:
 def end_configuration(text: str, system) -> np.ndarray:
     """Positions (N, 3) from ``--to``: a trajectory ``.npz`` (its last positions) or inline
     ``"p1=[0,-1,0]; p2=[0,-2,0]"`` naming every particle."""
-    import tomllib
-
     text = str(text).strip()
     names = system.names
     if text.lower().endswith(".npz"):
@@ -506,9 +504,9 @@ def end_configuration(text: str, system) -> np.ndarray:
         if name not in names:
             raise InputError(f"--to names unknown particle {name!r} (particles: {', '.join(names)})")
         try:
-            vec = tomllib.loads(f"v = {value.strip()}")["v"]
+            vec = tomlparse.loads(f"v = {value.strip()}")["v"]
             vec = np.asarray(vec, float)
-        except (tomllib.TOMLDecodeError, TypeError, ValueError, RecursionError):
+        except (tomlparse.TOMLDecodeError, TypeError, ValueError, RecursionError):
             vec = None
         if vec is None or vec.shape != (3,) or not np.all(np.isfinite(vec)):
             raise InputError(f"--to: the position of {name!r} must be 3 numbers like [0, -1, 0], "

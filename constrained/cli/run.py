@@ -45,7 +45,7 @@ def _run(args) -> int:
             (FigureProcess() if kinds else _no_figures()) as figures, \
             _progress(args.quiet, s["t_start"], s["t_end"]) as progress:
         try:
-            result = scene.run(quantities=quantities, progress=progress)
+            result = scene.run(quantities=quantities, progress=progress, model=scene.loaded_model())
             trajectory = result.trajectory
         except SimulationError as exc:  # what was computed is written as the run's set
             stop, trajectory = exc, exc.trajectory

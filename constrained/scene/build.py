@@ -111,6 +111,7 @@ class SceneBuilder(RunSections):
             description=description,
             expectations=expectations,
             units=dict(self.raw.get("scene", {}).get("units", {})),
+            structure=(system, *structure),
         )
 
     def scene_section(self) -> tuple[str, str]:

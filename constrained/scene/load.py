@@ -15,14 +15,15 @@ import dataclasses
 import hashlib
 import math
 import threading
-import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .. import tomlparse
 from ..errors import InputError, SceneError
 from ..model.parameters import RESERVED_NAMES
+from ..model.structure import Model
 from ..model.system import System, sketch
 from .build import SceneBuilder
 from .expectations import (
@@ -85,6 +86,8 @@ class Scene:
     expectations: list | None = None
     #: [scene] units: name (a parameter, a sweep summary column) -> unit, for axis labels
     units: dict | None = None
+    #: (the System as loaded, its Structure, its plain numbers): built while loading
+    structure: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def __repr__(self) -> str:
         return f"Scene({self.name!r}, {self.system!r})"
@@ -105,6 +108,16 @@ class Scene:
         if self.expect:
             rows.append(("expect", ", ".join(self.expect)))
         return table(repr(self), rows)
+
+    def loaded_model(self) -> Model | None:
+        """The Model of ``system`` from the Structure built while loading the scene (None for
+        a scene built otherwise, or whose ``system`` was replaced since): ``run(model=...)``
+        then builds nothing and skips the structure's fingerprint (0.45 s at 10,000
+        particles). For a caller that has not changed the system in place since loading, as
+        ``constrained run``: such changes are not seen in the loaded Structure."""
+        if self.structure is None or self.structure[0] is not self.system:
+            return None
+        return Model(self.system, structure=self.structure[1], numbers=self.structure[2])
 
     def with_overrides(self, overrides: Iterable[str]) -> Scene:
         """A new Scene: this one's file contents with ``--set`` style ``"KEY=VALUE"`` overrides."""
@@ -294,10 +307,10 @@ def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool]:
     if raw is not None:
         return raw, True
     try:
-        raw = tomllib.loads(data.decode("utf-8"))
+        raw = tomlparse.loads(data.decode("utf-8"))
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
-    except tomllib.TOMLDecodeError as exc:
+    except tomlparse.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
     except RecursionError:  # (Python's TOML reader recurses once per level)
         raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
@@ -358,8 +371,11 @@ def _copied(scene: Scene, system=None, raw_update: dict | None = None) -> Scene:
     raw = data_copy(scene.raw)
     for table, entries in (raw_update or {}).items():
         raw.setdefault(table, {}).update(entries)
+    copied = scene.system.copy() if system is None else system
+    built = scene.structure
+    structure = (copied, *built[1:]) if system is None and built and built[0] is scene.system else None
     return dataclasses.replace(
-        scene, system=scene.system.copy() if system is None else system,
+        scene, system=copied, structure=structure,
         settings=data_copy(scene.settings),
         outputs=data_copy(scene.outputs), reduced=data_copy(scene.reduced),
         raw=raw, expect=data_copy(scene.expect),

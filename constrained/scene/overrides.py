@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import copy
 import re
-import tomllib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from .. import tomlparse
 from ..errors import SceneError
 
 
@@ -74,8 +74,8 @@ def _parse_value(text: str):
     if _NUMBERS_RE.fullmatch(text):  # a list of such numbers (a position, a vector)
         return [_parse_value(entry.strip()) for entry in text.strip()[1:-1].split(",") if entry.strip()]
     try:
-        return tomllib.loads(f"value = {text}")["value"]
-    except (tomllib.TOMLDecodeError, RecursionError):
+        return tomlparse.loads(f"value = {text}")["value"]
+    except (tomlparse.TOMLDecodeError, RecursionError):
         pass
     try:
         return float(text) if any(c in text for c in ".eE") or text.lower() in ("inf", "nan") else int(text)

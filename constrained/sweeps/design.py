@@ -20,7 +20,6 @@ import itertools
 import json
 import math
 import re
-import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import tomlparse
 from ..errors import InputError
 from ..extras import install_hint
 from ..scene.load import NESTED_TOO_DEEPLY, SceneError, parse_override, refuse_deep_nesting
@@ -149,8 +149,8 @@ def parse_spec(key: str, text: str) -> Spec:
             raise InputError("'loguniform' needs positive bounds", where=where)
         return Spec(key, text, fn, (a, b))
     try:
-        value = tomllib.loads(f"value = {text}")["value"]
-    except (tomllib.TOMLDecodeError, RecursionError):
+        value = tomlparse.loads(f"value = {text}")["value"]
+    except (tomlparse.TOMLDecodeError, RecursionError):
         raise InputError(
             f"cannot read the spec {text!r}: give a list [1, 2, 3], lin(start, stop, n), "
             "log(start, stop, n), "
@@ -393,8 +393,8 @@ def parse_summary(text: str) -> Summary:
 def load_raw(scene_text: str, file: str) -> dict:
     """The scene's TOML as a dict; a SceneError names the file when it is not TOML."""
     try:
-        raw = tomllib.loads(scene_text)
-    except tomllib.TOMLDecodeError as exc:
+        raw = tomlparse.loads(scene_text)
+    except tomlparse.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
     except RecursionError:
         raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
