@@ -16,7 +16,7 @@ from constrained.errors import SceneError
 from constrained.manifold import dense, graph, mapped
 from constrained.manifold.vectorized import build as vb
 from constrained.manifold.vectorized import graphs as vg
-from constrained.manifold.vectorized.columns import MAX_SIGNATURES, Summation, on_columns
+from constrained.manifold.vectorized.columns import MAX_SIGNATURES, Summation, on_columns, unique_rows
 from constrained.model.cache import ParametricView
 from constrained.model.constraints import constraint_rows
 from constrained.model.structure import Structure, assemble
@@ -306,3 +306,14 @@ def test_dense_checks_still_use_the_dense_route():
     VECTORIZED_FROM coordinates)."""
     model = assemble(rope(20))
     assert not vg.applies(model) and dense is not None
+
+
+@pytest.mark.parametrize("shape, top", [((20000, 3), 5), ((1000, 7), 40), ((50, 2), 2), ((0, 1), 1),
+                                        ((30, 40), 10**6)])
+def test_unique_rows_is_numpys_unique_of_rows(shape, top):
+    """The integer-key unique of the Summation's signatures equals np.unique(axis=0): the same
+    rows, in the same order, the same inverse (the last case too wide for one key)."""
+    a = np.random.default_rng(1).integers(-1, top, size=shape)
+    kinds, inverse = np.unique(a, axis=0, return_inverse=True)
+    got_kinds, got_inverse = unique_rows(a)
+    assert np.array_equal(kinds, got_kinds) and np.array_equal(inverse.ravel(), got_inverse)
