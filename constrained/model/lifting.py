@@ -56,6 +56,9 @@ class Number:
 
 
 def _is_number(value) -> bool:
+    kind = type(value)
+    if kind is float or kind is int:  # the common case, without the ABC check of np.number
+        return value != 0 and math.isfinite(value)
     return (not isinstance(value, bool) and isinstance(value, int | float | np.number)
             and math.isfinite(value) and value != 0)
 
@@ -63,6 +66,9 @@ def _is_number(value) -> bool:
 def _entries(value, out: list | None):
     """``value`` with each nonzero plain number replaced by a Number (appending its value
     to ``out``), or, when ``out`` is None, only the values (list of floats, in order)."""
+    if type(value) is float and value != 0 and math.isfinite(value):
+        out.append(value)
+        return Number(len(out) - 1)
     if isinstance(value, np.ndarray):
         value = value.tolist()
     if isinstance(value, list | tuple):
@@ -152,3 +158,29 @@ def shown(values: np.ndarray):
             raise
         where = fill(exc.where, values) if exc.where else None
         raise type(exc)(fill(exc.reason, values), where=where) from None
+
+
+class NotPlain(Exception):
+    """A value structure_fingerprint cannot describe exactly."""
+
+
+def plain_data(value):
+    """``value`` as JSON-able data that determines it exactly (floats by their repr)."""
+    kind = type(value)
+    if kind is float or kind is str or kind is int or value is None:
+        return value
+    if kind is list or kind is tuple:
+        return [plain_data(v) for v in value]
+    if isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, Number):
+        return ["number", value.index]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return ["ndarray", value.dtype.str, list(value.shape), value.tolist()]
+    if isinstance(value, list | tuple):
+        return [plain_data(v) for v in value]
+    if isinstance(value, Mapping):
+        return ["mapping", [[plain_data(k), plain_data(v)] for k, v in value.items()]]
+    raise NotPlain(type(value).__name__)

@@ -454,27 +454,6 @@ _largest: list = [None, None]
 _structures_lock = threading.Lock()
 
 
-class _NotPlain(Exception):
-    """A value structure_fingerprint cannot describe exactly."""
-
-
-def _plain(value):
-    """``value`` as JSON-able data that determines it exactly (floats by their repr)."""
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    if isinstance(value, lifting.Number):
-        return ["number", value.index]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return ["ndarray", value.dtype.str, list(value.shape), value.tolist()]
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, Mapping):
-        return ["mapping", [[_plain(k), _plain(v)] for k, v in value.items()]]
-    raise _NotPlain(type(value).__name__)
-
-
 def structure_fingerprint(system) -> str | None:
     """A hash of everything a Structure is built from: particle names and masses (numbers, or
     their formulas), each constraint and effect (its class and every attribute), the parameter
@@ -490,15 +469,16 @@ def _fingerprint(system) -> tuple[str | None, np.ndarray]:
     values: list[float] = []
     try:
         particles = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
-                      else _plain(lifting.lifted_mass(p, values))] for p in system.particles]
+                      else lifting.plain_data(lifting.lifted_mass(p, values))] for p in system.particles]
         items = []
         for item in (*system.constraints, *system.effects):
             lifted = lifting.lifted_fields(item, values)
             rest = {k: v for k, v in vars(item).items() if k not in lifted}
-            items.append([type(item).__module__, type(item).__qualname__, _plain(lifted), _plain(rest)])
-        data = [particles, items, list(system.parameters), _plain(system.definitions)]
+            items.append([type(item).__module__, type(item).__qualname__, lifting.plain_data(lifted),
+                          lifting.plain_data(rest)])
+        data = [particles, items, list(system.parameters), lifting.plain_data(system.definitions)]
         text = json.dumps(data)
-    except (_NotPlain, TypeError, ValueError):
+    except (lifting.NotPlain, TypeError, ValueError):
         return None, lifting.numbers(system)
     return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float)
 
