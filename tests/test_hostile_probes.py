@@ -311,7 +311,7 @@ def test_simulate_of_something_else_than_a_system(first, words):
         C.simulate_many(thing, 2.0, {})
 
 
-@pytest.mark.parametrize("entry", ["equilibrium", "constraint_report", "degrees_of_freedom"])
+@pytest.mark.parametrize("entry", ["equilibrium", "constraint_report", "degrees_of_freedom", "assemble"])
 @pytest.mark.parametrize("first", [None, "scene"])
 def test_the_other_entry_points_of_a_system_say_what_to_pass(entry, first):
     """statics and the structural reports took None (or a Scene) to an AttributeError."""

@@ -27,6 +27,7 @@ from .effects import forces
 from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
 from .pairs.potentials import PairPotentials
 from .symbols import Symbols
+from .system import require_system
 
 #: Functions bound to parameter values that a Structure keeps (the most recent), so that
 #: Models with equal values share them.
@@ -442,6 +443,7 @@ def assemble(system, parameters: Mapping[str, float] | None = None, *, reuse: bo
     parameter values and nonzero plain numbers — masses, lengths, constants — may differ)
     gets that Structure again instead of a new one
     (see ``structure_fingerprint`` and ``kept_structure``)."""
+    require_system(system, "assemble")
     structure, numbers = kept_structure(system) if reuse else (None, None)
     return Model(system, structure=structure, numbers=numbers).with_parameters(parameters)
 
