@@ -254,9 +254,11 @@ def shrinking_rod() -> C.System:
 
 
 @pytest.mark.parametrize("method", ["dopri", "projection", "baumgarte", "idas", "ggl", "pantelides"])
-def test_a_rod_driven_to_zero_length_stops_near_the_singularity_with_bounded_output(method):
+def test_a_rod_driven_to_zero_length_stops_near_the_singularity_with_bounded_output(method, capsys):
     with within(60), pytest.raises(C.SimulationError) as stopped:
         C.simulate(shrinking_rod(), 1.5, method=method, outputs={"energy"})
+    # SUNDIALS' own lines ("At t = ..., mxstep steps taken ...") stay off the terminal
+    assert "mxstep" not in capsys.readouterr().err
     kept = stopped.value.trajectory
     message = str(stopped.value)
     assert "collapsed" in message or "singular" in message
@@ -319,3 +321,22 @@ def test_a_large_model_keeps_about_step_values_positions_by_default(monkeypatch)
     full = C.simulate(s, 1.0, outputs={"energy"}, t_eval=np.linspace(0, 1, 121))
     assert len(full.t) == 121
     assert np.max(np.abs(tr.energy - tr.energy[0])) < 1e-5
+
+
+def test_sundials_messages_are_kept_from_the_calling_thread_only(capsys):
+    """``quiet()`` keeps what its thread writes to sys.stderr; another thread's writes pass
+    through, and sys.stderr is itself again afterwards."""
+    import sys
+    import threading
+
+    from constrained.solvers.sundials.messages import quiet
+
+    before = sys.stderr
+    with quiet() as kept:
+        sys.stderr.write("At t = 1, mxstep steps taken before reaching tout.\n")
+        other = threading.Thread(target=lambda: sys.stderr.write("another thread's line\n"))
+        other.start()
+        other.join()
+    assert sys.stderr is before
+    assert kept == ["At t = 1, mxstep steps taken before reaching tout.\n"]
+    assert capsys.readouterr().err == "another thread's line\n"

@@ -21,6 +21,7 @@ from ..manifold.manifold import Manifold
 from ..model.cache import per_model_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper
+from .sundials.messages import quiet
 
 #: "CVODES" is Adams with functional iteration (non-stiff, cheapest per step); "CVODES_BDF"
 #: is BDF with Newton iteration, for stiff scenes (springs with k/m = 1e8 beside constraints).
@@ -244,7 +245,7 @@ class Projection(Stepper):
         integ, call, names = self._integrator
         inputs = {"x0": y, "p": (t_a, t_b - t_a)}
         try:
-            with interrupt.external():
+            with interrupt.external(), quiet():
                 yb = call(*(inputs.get(name, ()) for name in names))[0]
         except KeyboardInterrupt:
             raise

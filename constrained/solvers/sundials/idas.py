@@ -31,6 +31,7 @@ from ...manifold import residual
 from ...model.cache import ParametricView, structure_cache
 from ..base import DRIVER_OPTIONS, Advance, Status
 from ..driver import Stepper
+from .messages import quiet
 
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
@@ -154,7 +155,7 @@ class _IdasBase(Stepper):
             if not self.needs_derivatives:
                 try:  # the integrator built once for these options (see _integrator)
                     integ = self._integrator(grid, span)
-                    with interrupt.external():
+                    with interrupt.external(), quiet():
                         res = integ(x0=y, z0=z, p=p)
                 except RuntimeError:
                     if self.stop_requested():
@@ -162,7 +163,7 @@ class _IdasBase(Stepper):
             if res is None:  # a call of its own, given the derivatives at its start
                 a_prev, _ = self.manifold.accelerations(y[:n3], y[n3:], t_prev)
                 integ = self._integrator(grid, span, init_xdot=span * np.concatenate([y[n3:], a_prev]))
-                with interrupt.external():
+                with interrupt.external(), quiet():
                     res = integ(x0=y, z0=z, p=p)
         except RuntimeError as exc:
             if self.stop_requested():

@@ -26,6 +26,7 @@ from ...errors import InputError
 from ..base import DRIVER_OPTIONS, Advance, Status
 from ..driver import Stepper
 from .idas import SPLIT, STEPS_PER_CALL, CallSize
+from .messages import quiet
 
 #: Output times of pantelides' first IDAS call (see idas.CallSize).
 PANTELIDES_FIRST_CALL_OUTPUTS = 50
@@ -102,7 +103,7 @@ class Pantelides(Stepper):
             "abstol": self.atol, "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL})
         called = time.perf_counter()
         try:
-            with interrupt.external():
+            with interrupt.external(), quiet():
                 sol = integ(x0=y, z0=z)
         except RuntimeError as exc:
             if self.stop_requested():
