@@ -188,3 +188,34 @@ def test_a_short_flight_lands_at_twice_the_rise_time(method):
     (hit,) = tr.info["events"]
     assert abs(hit["t"] - 2 * 0.03 / G) < ACCURACY[method]
     assert abs(hit["v"][1] + 0.03) < 1e3 * ACCURACY[method]  # it comes down as fast as it went up
+
+
+def test_the_sparse_singular_watch_of_a_large_model_agrees_with_the_dense_svd():
+    """Beyond DENSE_WATCH_MAX coordinates the watch takes σ of the row-normalized J by inverse
+    iteration on a sparse LU, its J from the vectorized build (``sparse_jacobian``): at a
+    rope's nearly straight-and-taut configuration (a 120-link rope between two pins, its
+    middle bead lifted by 1e-4 m) σ and the rows it names equal the dense SVD's."""
+    from constrained.manifold import diagnostics
+    from constrained.manifold.manifold import Manifold
+    from constrained.solvers import watches
+
+    n, link = 120, 0.01
+    s = C.System(name="taut rope")
+    for i in range(n):
+        lift = 1e-4 if i == n // 2 else 0.0
+        s.add_particle(f"p{i}", 0.01, [link * (i + 1), lift, 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=link))
+    for i in range(1, n):
+        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=float(np.hypot(link, 1e-4 if i in (n // 2, n // 2 + 1)
+                                                                       else 0.0))))
+    s.add(C.Distance(f"p{n - 1}", point=[link * (n + 1), 0, 0], length=link))
+    model = C.assemble(s)
+    assert model.n_coordinates > watches.DENSE_WATCH_MAX
+    rows = list(range(model.n_constraints))
+    watch = watches.SingularWatch(Manifold(model), rows, tol=1e-6)
+    assert not watch.dense
+    x = np.asarray(s.positions, float).ravel()
+    sparse = watch.singularity(x, 0.0)
+    dense = diagnostics.singularity(model, x, 0.0, rank=len(rows))
+    assert sparse.sigma == pytest.approx(dense.sigma, rel=1e-3) and dense.sigma < 1e-2
+    assert set(sparse.rows) == set(dense.rows)

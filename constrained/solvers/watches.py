@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from ..manifold import diagnostics
-from ..manifold.manifold import Manifold
+from ..manifold.manifold import Manifold, sparse_jacobian
 from .base import Solver
 
 #: Up to this many coordinates the singular watch takes the dense SVD of the row-normalized J.
@@ -50,7 +50,7 @@ class SingularWatch:
         import scipy.sparse as sp
         import scipy.sparse.linalg as spla
 
-        J = self.model.velocity_terms(x, t)[0]  # every row: J, then velocity rows' A
+        J = sparse_jacobian(self.model)(x, t)  # every row: J, then velocity rows' A (built once)
         rows, cols = J.sparsity().get_triplet()
         J = sp.csr_matrix((np.asarray(J.nonzeros()).ravel(), (rows, cols)), shape=J.shape)[self.rows]
         norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=1)).ravel())
