@@ -21,6 +21,7 @@ from ..model.structure import Model, assemble
 from ..model.system import require_system
 from ..solvers import DEFAULT_METHOD, METHODS
 from ..solvers.base import Event, Status
+from ..solvers.stiffness import StiffnessWatch
 from ..threads import one_blas_thread
 from . import hybrid
 from .action_integral import action
@@ -257,7 +258,7 @@ def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: fl
     """'; likely cause: stiffness: ...' when a barely stretched spring far faster than the run
     explains a stop the solver could not name (diagnostics.StiffnessWatch), else ''."""
     try:
-        watch = diagnostics.StiffnessWatch(model, x0, t0, t_end, method=stats.get("method", ""))
+        watch = StiffnessWatch(model, x0, t0, t_end, method=stats.get("method", ""))
         t = float(traj.t[-1]) if len(traj.t) else t0
         element = watch.fastest()  # as at the start: an unstable step stretches it later
         if element is None or not element.rigid_like:

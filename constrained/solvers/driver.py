@@ -24,6 +24,7 @@ import numpy as np
 from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
 from .events import locate
+from .stiffness import StiffnessWatch
 from .watches import CollapseWatch, SingularWatch, past_a_limit
 
 #: A run given no output times keeps its accepted steps, but at most one per this fraction of
@@ -70,7 +71,7 @@ class _Run:
         self.hits: list[EventHit] = []
         self.singular = SingularWatch(stepper.manifold, stepper.rows, stepper.singular_tol)
         self.collapse = CollapseWatch(t_end) if stepper.adaptive and stepper.dt is None else None
-        self.stiffness = diagnostics.StiffnessWatch(stepper.model, x0, t0, t_end, method=stepper.name)
+        self.stiffness = StiffnessWatch(stepper.model, x0, t0, t_end, method=stepper.name)
         self.h_rho, self.rho_max = [], 0.0
         self.sampled = diagnostics.STIFFNESS_MIN_STEPS // 2
 

@@ -1,0 +1,155 @@
+"""Stiff elements: springs much stiffer than the motion they carry (``stiff_springs``), and the
+watch that stops a run held down to such a spring's oscillation (``StiffnessWatch``, which
+names the spring and says to make it a rigid link)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ..model.effects import Spring
+
+#: A spring whose stretch is below this fraction of its length stands for a rigid link.
+RIGID_STRETCH = 1e-6
+
+
+@dataclass
+class StiffElement:
+    """A spring effect and its oscillation: ω² = k / m_reduced (m_a m_b / (m_a + m_b), or m_a
+    for a spring to a point), ``period`` = 2π/ω; ``stretch`` |ℓ − rest| at the state given."""
+
+    index: int
+    label: str
+    k: float
+    reduced_mass: float
+    omega: float
+    length: float
+    rest: float
+    stretch: float
+    ends: tuple
+
+    @property
+    def period(self) -> float:
+        return 2 * np.pi / self.omega
+
+    @property
+    def rigid_like(self) -> bool:
+        return self.stretch <= RIGID_STRETCH * max(self.rest, self.length, 1e-300)
+
+    def constraint_advice(self) -> str:
+        a, b = self.ends
+        other = f'b = "{b}"' if isinstance(b, str) else f"point = {list(b)}"
+        return (f'a spring that stiff stands for a rigid link: replace it by a constraint '
+                f'(type = "distance", a = "{a}", {other}, length = {self.rest:g})')
+
+
+def stiff_springs(model, x, t: float = 0.0) -> list[StiffElement]:
+    """The scene's springs with their oscillation at the state (x, t), fastest first (springs
+    whose stiffness or rest length are not plain numbers at t are evaluated there)."""
+    system = model.system
+    if not any(isinstance(effect, Spring) for effect in system.effects):
+        return []
+    s = model.symbols
+    x = np.asarray(x, float).reshape(-1, 3)
+    masses = system.masses  # (a property that builds the array: once, not per spring)
+
+    def at_t(value, where):  # a plain number as it is; a formula evaluated at t
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        return float(np.asarray(ca.Function("c", [s.t], [ca.SX(s.time_function(value, where))])(t),
+                                float).ravel()[0])
+
+    found = []
+    for index, effect in enumerate(system.effects):
+        if not isinstance(effect, Spring):
+            continue
+        try:
+            where = f"effects[{index}]"
+            k, rest = at_t(effect.k, where), at_t(effect.rest, where)
+            ia = s.index(effect.a, where)
+            ma = float(masses[ia])
+            if effect.b is not None:
+                ib = s.index(effect.b, where)
+                mb, xb, other = float(masses[ib]), x[ib], effect.b
+            else:
+                p = ca.Function("p", [s.t], [s.point(effect.point, where)])
+                mb, xb = np.inf, np.asarray(p(t), float).ravel()
+                other = tuple(float(c) for c in xb)
+        except Exception:  # a diagnosis only: a spring it cannot evaluate is left out
+            continue
+        if not (np.isfinite(k) and k > 0):
+            continue
+        m_red = ma if not np.isfinite(mb) else ma * mb / (ma + mb)
+        length = float(np.linalg.norm(x[ia] - xb))
+        found.append(StiffElement(index, effect.label, k, m_red, float(np.sqrt(k / m_red)), length, rest,
+                                  abs(length - rest), (effect.a, other)))
+    return sorted(found, key=lambda e: -e.omega)
+
+
+class StiffnessWatch:
+    """Watches a run for a spring that holds the steps down to its own oscillation.
+
+    The solvers call ``check(t, steps, x)`` after every step or chunk (it costs a clock read).
+    From ``AFTER_S`` seconds of wall time on, twice a second: when reaching t_end at the pace
+    so far would take more than ``BUDGET_S`` seconds, the run is more than ``MIN_PERIODS``
+    periods of the fastest spring long, the steps average less than that period, and the
+    spring is barely stretched (a rigid link in disguise), ``check`` returns the diagnosis
+    (the run stops with it); otherwise None."""
+
+    AFTER_S = 2.0
+    BUDGET_S = 15.0
+    MIN_PERIODS = 1e3
+
+    def __init__(self, model, x0, t0: float, t_end: float, *, method: str):
+        self._clock = time.perf_counter
+        self.model, self.t0, self.t_end, self.method = model, float(t0), float(t_end), method
+        length = self.t_end - self.t0
+        self.elements = [e for e in stiff_springs(model, x0, t0) if e.period * self.MIN_PERIODS < length]
+        self.started = self._clock()
+        self.next = self.started + self.AFTER_S
+
+    def check(self, t: float, steps: int, x=None) -> str | None:
+        if not self.elements:
+            return None
+        now = self._clock()
+        if now < self.next:
+            return None
+        self.next = now + 0.5
+        done = float(t) - self.t0
+        projected = np.inf if done <= 0 else (now - self.started) * (self.t_end - self.t0) / done
+        if projected < self.BUDGET_S:
+            return None
+        element = self.fastest(x, t)
+        if element is None or not element.rigid_like or (steps and done / steps > element.period):
+            return None
+        return self.describe(element, t, steps, projected)
+
+    def fastest(self, x=None, t: float | None = None) -> StiffElement | None:
+        """The fastest watched spring, re-measured at (x, t) when given."""
+        if not self.elements:
+            return None
+        if x is None:
+            return self.elements[0]
+        now = stiff_springs(self.model, x, self.t0 if t is None else t)
+        return next((e for e in now if e.index == self.elements[0].index), self.elements[0])
+
+    def describe(self, element: StiffElement, t: float, steps: int | None = None,
+                 projected: float | None = None) -> str:
+        e, length = element, self.t_end - self.t0
+        pace = ""
+        if steps:
+            h = (float(t) - self.t0) / steps
+            total = steps * length / max(float(t) - self.t0, 1e-300)
+            pace = (f"; {self.method} took {steps} steps to t = {float(t):.3g} s (mean step {h:.3g} s, "
+                    f"{e.period / h:.3g} per period): about {total:.3g} steps to t_end")
+            if projected is not None and np.isfinite(projected):
+                pace += f", {projected:.0f} s of wall time"
+        return (f"likely cause: stiffness: the spring '{e.label}' (effect {e.index}) has k = {e.k:.3g} N/m "
+                f"on a reduced mass of {e.reduced_mass:.3g} kg, so it oscillates with period "
+                f"2π/ω = {e.period:.3g} s (ω = {e.omega:.3g} rad/s), {length / e.period:.3g} periods in "
+                f"the run of {length:g} s{pace}. Its stretch is {e.stretch:.2g} m of {e.rest:g} m: "
+                f"{e.constraint_advice()}; or, to keep the spring, use a method that steps over the "
+                'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
