@@ -169,3 +169,36 @@ def test_constrained_run_uses_the_structure_built_while_loading(monkeypatch):
     assert np.array_equal(fast.t, plain_run.t) and np.array_equal(fast.x, plain_run.x)
     replaced = dataclasses.replace(scene, system=scene.system.copy())
     assert replaced.loaded_model() is None
+
+
+def test_springs_built_in_a_batch_equal_springs_built_one_by_one(monkeypatch):
+    """``Spring.batch_terms`` (runs of BATCH_FROM springs or more: a cloth's shear springs) gives
+    the energy and forces of each spring's own ``term``, at a random state, for a mix of
+    springs between particles (batched), to a point, with rest 0 and with k a formula
+    (built one by one)."""
+    from constrained.model import effects
+
+    rng = np.random.default_rng(3)
+    s = C.System(name="net", parameters={"kk": 2.0})
+    n = 40
+    for i in range(n):
+        s.add_particle(f"p{i}", 0.01 + 0.001 * i, rng.normal(size=3) * 0.1)
+    for i in range(n - 1):
+        for j in (i + 1, min(i + 3, n - 1)):
+            s.add(C.Spring(f"p{i}", f"p{j}", k=1.0 + 0.1 * i, rest=0.02 + 0.001 * j))
+    s.add(C.Spring("p0", point=[0, 0, 0.1], k=3.0, rest=0.05), C.Spring("p1", "p5", k="kk", rest=0.0),
+          C.Spring("p2", "p6", k="kk", rest=0.03))
+    assert sum(isinstance(e, C.Spring) for e in s.effects) >= effects.BATCH_FROM
+    built = []
+    original = C.Spring.batch_terms.__func__
+    monkeypatch.setattr(C.Spring, "batch_terms", classmethod(
+        lambda cls, items, sym: built.append(len(items)) or original(cls, items, sym)))
+    batched = Model(s, structure=Structure(s))
+    assert built
+    monkeypatch.setattr(effects, "BATCH_FROM", 10**9)
+    single = Model(s, structure=Structure(s))
+    x, v = rng.normal(size=3 * n) * 0.1, rng.normal(size=3 * n)
+    assert float(batched.energy(x, v, 0.0)) == pytest.approx(float(single.energy(x, v, 0.0)), rel=1e-13)
+    Fb = np.asarray(batched.dynamics(x, v, 0.0)[0]).ravel()
+    Fs = np.asarray(single.dynamics(x, v, 0.0)[0]).ravel()
+    assert np.allclose(Fb, Fs, rtol=1e-12, atol=1e-12 * np.abs(Fs).max())

@@ -18,7 +18,8 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from .constraints import Distance, Labelled, _as_list, _fmt, _three
+from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three
+from .lifting import Number
 
 
 class Effect(Labelled):
@@ -89,6 +90,29 @@ class Spring(Effect):
         if isinstance(self.rest, int | float) and self.rest == 0:
             return 0.5 * k * ca.dot(d, d)  # smooth at d = 0
         return 0.5 * k * (ca.sqrt(ca.dot(d, d)) - rest) ** 2
+
+    @classmethod
+    def batch_terms(cls, items: list, s) -> list:
+        """``[item.term(s) for item in items]`` for springs between two particles whose k and
+        rest are plain numbers (entries of p, constrained.lifting), as whole rows of CasADi
+        matrices: one call per operation instead of several per spring (a cloth's shear
+        springs); None for an item that has no such form (its ``term`` is called instead)."""
+        index = s._index
+        plain = [j for j, e in enumerate(items) if isinstance(e.a, str) and isinstance(e.b, str)
+                 and e.a in index and e.b in index and type(e.k) is Number and type(e.rest) is Number]
+        out: list = [None] * len(items)
+        if not plain:
+            return out
+        springs = [items[j] for j in plain]
+        X = ca.reshape(s.x, 3, s.x.numel() // 3)
+        d = X[:, [index[e.a] for e in springs]] - X[:, [index[e.b] for e in springs]]
+        squares = d * d
+        norms = ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :])
+        k = ca.vertcat(*[s.number(e.k) for e in springs]).T
+        rest = ca.vertcat(*[s.number(e.rest) for e in springs]).T
+        for j, term in zip(plain, ca.horzsplit(0.5 * k * (norms - rest) ** 2, 1), strict=True):
+            out[j] = term
+        return out
 
 
 class Potential(Effect):
@@ -326,6 +350,28 @@ class Electromagnetic(Effect):
             A = ca.vertcat(*[s.parse_field(a, f"{where}.A[{k}]", x) for k, a in enumerate(self.A)])
             U = U + q * (phi - ca.dot(v, A))
         return U
+
+
+def effect_terms(effects: list, s, skip=()) -> list:
+    """Each effect's ``term(s)`` in order (``ca.SX(0)`` for the indices in ``skip``); runs of
+    BATCH_FROM or more effects of one class through the class's ``batch_terms`` where it has
+    one (the same expressions, as ``constraints.constraint_rows``)."""
+    out, k = [], 0
+    while k < len(effects):
+        cls, j = type(effects[k]), k + 1
+        while j < len(effects) and type(effects[j]) is cls:
+            j += 1
+        run = [e for i, e in enumerate(effects[k:j], k) if i not in skip]
+        batch = cls.batch_terms(run, s) if len(run) >= BATCH_FROM and hasattr(cls, "batch_terms") else None
+        built = iter(batch if batch is not None else [None] * len(run))
+        for i in range(k, j):
+            if i in skip:
+                out.append(ca.SX(0))
+            else:
+                term = next(built)
+                out.append(term if term is not None else effects[i].term(s))
+        k = j
+    return out
 
 
 def forces(slots: dict, x, v, t) -> tuple:

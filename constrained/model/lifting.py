@@ -59,6 +59,8 @@ def _is_number(value) -> bool:
     kind = type(value)
     if kind is float or kind is int:  # the common case, without the ABC check of np.number
         return value != 0 and math.isfinite(value)
+    if value is None or kind is str:
+        return False
     return (not isinstance(value, bool) and isinstance(value, int | float | np.number)
             and math.isfinite(value) and value != 0)
 

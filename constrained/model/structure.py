@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import InputError
 from . import lifting, velocity
 from .constraints import constraint_rows
-from .effects import forces
+from .effects import effect_terms, forces
 from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
 from .pairs.potentials import PairPotentials
 from .symbols import Symbols
@@ -112,16 +112,15 @@ class Structure:
             active.add("velocity_constraints")
 
         slots = {"potential": [], "generalized_potential": [], "dissipation": [], "applied_force": []}
-        terms = []
         #: Pair potentials built as one mapped kernel each (constrained.model.pairs), apart from
         #: the SX graph: ``pairs`` (PairTerms), from the effects ``pair_owner``; p is the
         #: ``n_physical`` parameters and numbers, then their neighbour lists (``n_p`` in all).
         self.pair_potentials = PairPotentials(system, s, n3)
         self.pairs, self.pair_owner = self.pair_potentials.terms, self.pair_potentials.owners
         self.n_physical, self.n_p = self.pair_potentials.n_physical, self.pair_potentials.n_p
-        for k, effect in enumerate(system.effects):  # (a pair kernel's term is its own: 0 here)
-            terms.append(ca.SX(0) if k in self.pair_owner else effect.term(s))
-            slots[effect.slot] += [] if k in self.pair_owner else [terms[-1]]
+        terms = effect_terms(system.effects, s, skip=self.pair_owner)  # (a pair kernel's term: 0)
+        for k, effect in enumerate(system.effects):
+            slots[effect.slot] += [] if k in self.pair_owner else [terms[k]]
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
