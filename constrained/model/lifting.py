@@ -71,6 +71,8 @@ def _entries(value, out: list | None):
     if type(value) is float and value != 0 and math.isfinite(value):
         out.append(value)
         return Number(len(out) - 1)
+    if value is None or type(value) is str:  # (before the ABC checks below: a spring's point)
+        return value
     if isinstance(value, np.ndarray):
         value = value.tolist()
     if isinstance(value, list | tuple):
@@ -173,6 +175,10 @@ def plain_data(value):
         return value
     if kind is list or kind is tuple:
         return [plain_data(v) for v in value]
+    if kind is dict:
+        return ["mapping", [[plain_data(k), plain_data(v)] for k, v in value.items()]]
+    if kind is Number:
+        return ["number", value.index]
     if isinstance(value, bool | int | float | str):
         return value
     if isinstance(value, Number):
