@@ -475,3 +475,32 @@ def test_a_scene_read_again_is_checked_by_content_and_shares_nothing(tmp_path):
     path.write_text(pendulum_toml(1.0).replace("length = 1.0", "length = -1.0"))
     with pytest.raises(InputError, match="length"):
         load_scene(path)
+
+
+def test_reading_a_scene_leaves_the_garbage_collector_as_it_found_it(tmp_path):
+    """load_scene pauses Python's cyclic collector while it builds (constrained.bulk) and turns
+    it back on afterwards, also when the scene is refused; a caller that had it off keeps it
+    off; nested pauses end with the outer one."""
+    import gc
+
+    from constrained.bulk import collector_paused
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[particles]]\nname = "p"\nmass = -1.0\nposition = [0, 0, 0]\n')
+    assert gc.isenabled()
+    load_scene(SCENARIOS / "simple_pendulum.toml")
+    assert gc.isenabled()
+    with pytest.raises(SceneError):
+        load_scene(bad)
+    assert gc.isenabled()
+    with collector_paused():
+        with collector_paused():
+            assert not gc.isenabled()
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        load_scene(SCENARIOS / "double_pendulum.toml")
+        assert not gc.isenabled()
+    finally:
+        gc.enable()

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..bulk import collector_paused
 from ..errors import InputError
 from . import lifting, velocity
 from .constraints import constraint_rows
@@ -489,6 +490,11 @@ def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
     (None: the Model walks them). Up to STRUCTURE_CACHE_COORDINATES coordinates in all are
     kept, the most recent first; a larger system is kept alone, in a slot of its own, so that
     reading a big scene and running it build its Structure once."""
+    with collector_paused():  # (constrained.bulk: millions of objects for a large system)
+        return _kept_structure(system)
+
+
+def _kept_structure(system) -> tuple[Structure, np.ndarray | None]:
     big = 3 * system.n_particles > STRUCTURE_CACHE_COORDINATES
     key, numbers = _fingerprint(system)
     if key is None:

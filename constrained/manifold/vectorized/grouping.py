@@ -54,7 +54,7 @@ class Group:
 
 def summands(term) -> list:
     """The terms e_k of ``term`` = Σ ± e_k (sums, differences and negations unfolded)."""
-    out, stack = [], [(ca.SX(term), False)]
+    out, stack = [], [(term if isinstance(term, ca.SX) else ca.SX(term), False)]
     while stack:
         e, negative = stack.pop()
         if e.is_op(ca.OP_ADD):
