@@ -46,23 +46,23 @@ the sums, from a constant list (a few per particle).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from . import neighbours
-from .neighbours import BLOCK
+from .neighbours import CHUNK
 
+#: Particles per block of the all-pairs sum: a tile is BLOCK² pairs written out once (64 pairs,
+#: ~1.7k operations); larger tiles amortize the map's call more.
+BLOCK = 8
 #: Blocks a of the all-pairs sum per call of its outer map (whose shared inputs CasADi copies
 #: once per block: GROUP copies of the positions at a time).
 GROUP = 32
-#: Capacities of a neighbour list: blocks (compact blocks do not fill every place) and
-#: neighbour slots per block, this factor times the count at the first list (slots: plus
-#: CAPACITY_EXTRA); a list that needs more is not used (all pairs are summed instead).
+#: Capacity of a neighbour list: this factor times the pairs of the first list (plus a chunk);
+#: a list that needs more is not used (all pairs are summed instead).
 CAPACITY_FACTOR = 1.25
-CAPACITY_EXTRA = 2
 
 
 @dataclass(frozen=True)
@@ -165,18 +165,13 @@ class PairTerm:
         mask[:self.n] = 1.0
         self._mask = ca.DM(mask.reshape(self.n_blocks, BLOCK).T)
         self.offset = offset
-        #: Capacities of the neighbour list: blocks and neighbour slots per block.
-        self.block_capacity = self.slot_capacity = 0
-        if self.cutoff is not None:  # room for the blocks and slots the start needs, and more
-            y = self._listed(positions)
-            used = len(neighbours.blocks(y, 2 * self.n_blocks)) // BLOCK
-            self.block_capacity = min(self.n, math.ceil(CAPACITY_FACTOR * used) + 1)
-            _, slots = neighbours.neighbour_data(y, self.reach, self.block_capacity, None)
-            self.slot_capacity = int(min(self.block_capacity, math.ceil(CAPACITY_FACTOR * slots.shape[0])
-                                         + CAPACITY_EXTRA))
+        #: Capacity of the neighbour list: pairs (whole chunks of CHUNK).
+        self.capacity = 0
+        if self.cutoff is not None:  # room for the pairs the start needs, and more
+            count = len(neighbours.pairs_within(self._listed(positions), self.reach)[0])
+            self.capacity = neighbours.capacity_for(count, CAPACITY_FACTOR, self.n)
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
-        self.size = 0 if self.cutoff is None else \
-            1 + 4 * self.n + self.block_capacity * (BLOCK + self.slot_capacity)
+        self.size = 0 if self.cutoff is None else 1 + 3 * self.n + 2 * self.capacity
 
     @property
     def reach(self) -> float:
@@ -190,25 +185,18 @@ class PairTerm:
 
     def data(self, x) -> np.ndarray:
         """The neighbour list at positions ``x`` ((N, 3) or flat 3N), as the entries of p it
-        takes: [valid (1, or 0 for a list beyond the capacities: the graph then sums every
-        pair), x_ref (3n), the places (block_capacity·BLOCK: the particle in each place, n
-        for an empty one), each particle's place (n), the neighbour slots (slot_capacity per
-        block: a neighbour block + 1, 0 empty)]. All finite (a run checks its state is)."""
+        takes: [valid (1, or 0 for a list beyond the capacity: the graph then sums every
+        pair), x_ref (3n), I (capacity), J (capacity): the pairs (I_k, J_k) within r_c + skin,
+        then placeholder pairs (n, n + 1)]. All finite (a run checks its state is)."""
         if self.cutoff is None:
             return np.zeros(0)
         y = self._listed(x)
-        places, slots = neighbours.neighbour_data(y, self.reach, self.block_capacity, self.slot_capacity)
-        valid = places is not None and slots is not None
+        found = neighbours.pair_list(y, self.reach, self.capacity)
+        valid = found is not None
         ref = y.ravel() if valid else np.zeros(3 * self.n)
         if not valid:
-            places = np.concatenate([np.arange(self.n),
-                                     np.full(self.block_capacity * BLOCK - self.n, self.n)])
-            slots = np.zeros((self.slot_capacity, self.block_capacity))
-        places = np.asarray(places, dtype=float)
-        where = np.empty(self.n)
-        real = places < self.n
-        where[places[real].astype(np.int64)] = np.flatnonzero(real)
-        return np.concatenate([[float(valid)], ref, places, where, slots.ravel(order="F")])
+            found = np.full(self.capacity, float(self.n)), np.full(self.capacity, float(self.n + 1))
+        return np.concatenate([[float(valid)], ref, *found])
 
     def fresh(self, x, data, share: float = 1.0) -> bool:
         """Whether ``data`` still holds every pair within the cutoff at positions ``x`` (no
@@ -308,35 +296,33 @@ class PairTerm:
         return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
 
     def _listed_pairs(self, Xl, T, Pp, data) -> tuple[ca.MX, ca.MX]:
-        """The neighbour list's tiles: a map over the blocks a of a map over a's neighbour
-        slots (each tile once), a's forces summed by the inner map, the neighbours' added
-        back by the transposed gather."""
-        B, n, nbc, K = BLOCK, self.n, self.block_capacity, self.slot_capacity
+        """The neighbour list's pairs: the separations x_I − x_J gathered by index, a kernel
+        of CHUNK pairs mapped over the chunks, the forces added back on I and taken off J by
+        the transposed gathers (CasADi's AD of them). The placeholder pairs (n, n + 1) are two
+        points 4 r_c apart: beyond the cutoff, they count exactly nothing."""
+        n, cap = self.n, self.capacity
         start = 1 + 3 * n  # after valid and x_ref
-        places = data[start:start + nbc * B].T
-        where = data[start + nbc * B:start + nbc * B + n].T
-        slots = data[start + nbc * B + n:].T  # (1, K·nbc): block a's K slots together
-        columns = ca.horzcat(ca.reshape(Xl, 3, n), ca.MX.zeros(3, 1))[:, places]  # empty: the zero column n
-        XS = ca.reshape(columns, 3 * B, nbc)
-        MS = ca.reshape(places < n, B, nbc)
-        neighbour = ca.fmax(slots - 1, 0)
-        XN, MN = XS[:, neighbour], MS[:, neighbour]
-        xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
-        slot = ca.MX.sym("slot")
-        case = ca.if_else(slot == 0, 0, _case(a, slot - 1))
-        inner = ca.Function("pairs_slot", [xa, ma, a, xb, mb, slot, t, p],
-                            self._tile(case, xa, xb, ma, mb, t, p))
-        inner = inner.map("pairs_slots", "serial", K, [0, 1, 2, 6, 7], [0, 1])
-        XK, MK, SK = ca.MX.sym("XK", 3 * B, K), ca.MX.sym("MK", B, K), ca.MX.sym("SK", 1, K)
-        outer = ca.Function("pairs_block", [xa, ma, a, XK, MK, SK, t, p], inner(xa, ma, a, XK, MK, SK, t, p))
-        outer = outer.map("pairs_listed", "serial", nbc, [6, 7], [0])
-        index = ca.DM(np.arange(nbc, dtype=float)).T
-        V, FA, FB = outer(XS, MS, index, XN, MN, slots, T, Pp)
-        Y, G = ca.MX.sym("Y", 3 * B, nbc), ca.MX.sym("G", 3 * B, K * nbc)
-        S = ca.MX.sym("S", 1, K * nbc)
+        I, J = data[start:start + cap].T, data[start + cap:start + 2 * cap].T
+        spare = ca.DM([[0.0, 4 * self.cutoff], [0.0, 0.0], [0.0, 0.0]])
+        Xd = ca.horzcat(ca.reshape(Xl, 3, n), spare)
+        D = Xd[:, I] - Xd[:, J]  # (3, cap)
+        chunks = self._chunk().map("pairs_chunks", "serial", cap // CHUNK, [1, 2], [0])
+        V, F = chunks(ca.reshape(D, 3 * CHUNK, cap // CHUNK), T, Pp)
+        F = ca.reshape(F, 3, cap)
+        Y, G, S = ca.MX.sym("Y", 3, n + 2), ca.MX.sym("G", 3, cap), ca.MX.sym("S", 1, cap)
         back = ca.Function("pairs_reactions", [Y, S, G], [ca.gradient(ca.dot(Y[:, S], G), Y)])
-        F = FA + back(XS, neighbour, FB)  # (3B, nbc): the forces in the places
-        return V, ca.vec(ca.reshape(F, 3, nbc * B)[:, where])
+        F = back(Xd, I, F) - back(Xd, J, F)  # (3, n + 2): the forces, then the placeholders'
+        return V, ca.vec(F[:, :n])
+
+    def _chunk(self) -> ca.Function:
+        """The listed kernel: (D, t, p_φ) -> (V, F) for CHUNK separations d_k = x_i − x_j
+        (3·CHUNK), F the force on each pair's i (its j takes −F)."""
+        D, t, q = ca.SX.sym("d", 3 * CHUNK), ca.SX.sym("t"), ca.SX.sym("q", len(self._p_used))
+        V, F = ca.SX(0), []
+        for k in range(CHUNK):
+            v, f = self._pair(D[3 * k:3 * k + 3], ca.SX.zeros(3), t, q)
+            V, F = V + v, [*F, f]
+        return ca.Function("pairs_chunk", [D, t, q], [V, ca.vertcat(*F)], {"cse": True})
 
     def _excluded(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
         """The excluded pairs' own energy and forces (subtracted from the sums)."""
