@@ -168,7 +168,7 @@ def test_neighbour_list_is_rebuilt_when_particles_cross_cells():
     x1 = x0 + step.ravel()
     assert not term.fresh(x1, p0[term.offset:])
     start = term.offset + 1 + 3 * term.n  # the pairs: after valid and x_ref
-    end = start + 2 * term.capacity
+    end = start + (1 + pairs.ROW) * term.capacity
     pairs0 = p0[start:end]
     p1 = structure.pair_potentials.refreshed(p0, x1)
     assert p1 is not None and term.fresh(x1, p1[term.offset:])
@@ -227,7 +227,7 @@ def test_gas_with_a_cutoff_keeps_momentum_and_energy():
     moved = np.linalg.norm(traj.x[-1] - traj.x[0], axis=1)
     assert np.median(moved) > 10 * term.skin  # the list was rebuilt many times
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
-        patch.setattr(pairs.neighbours, "pair_list", lambda y, reach, capacity: None)
+        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity: None)
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), rtol=1e-9, atol=1e-9,
                            t_eval=np.linspace(0, 3, 31), outputs=set())
     np.testing.assert_allclose(traj.x, every.x, atol=1e-6)
@@ -410,7 +410,7 @@ def test_rattle_refreshes_the_neighbour_list_and_matches_every_pair():
     assert np.max(np.abs(P - P[0])) < 1e-13 * scale
     assert np.ptp(traj.energy) < 1e-3 * np.abs(traj.energy).max()  # O(dt²), not drifting
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
-        patch.setattr(pairs.neighbours, "pair_list", lambda y, reach, capacity: None)
+        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity: None)
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), method="rattle", dt=2e-3,
                            t_eval=np.linspace(0, 3, 31), outputs=set())
     np.testing.assert_allclose(traj.x, every.x, atol=1e-9)
@@ -446,7 +446,7 @@ def numpy_pair_sum(x, particles, cutoff, excluded=()):
 
 def test_the_pair_list_kernel_is_the_numpy_sum_within_the_cutoff():
     """A disordered gas (a subset of its particles, bonded pairs excluded) with a cutoff: the
-    forces through the pair list (chunks of CHUNK pairs, placeholder pairs at its end) equal a
+    forces through the pair list (rows of ROW pairs, padded, and empty rows at its end) equal a
     NumPy sum over the pairs within r_c; so do those through a list built before the particles
     moved less than skin/2 (still valid, not rebuilt) and more (stale: every pair summed)."""
     bonds = [(10, 11), (11, 12), (40, 41), (70, 90)]
@@ -456,9 +456,10 @@ def test_the_pair_list_kernel_is_the_numpy_sum_within_the_cutoff():
     (term,) = model.structure.pairs
     x0 = np.asarray(system.positions).ravel()
     data = term.data(x0)
-    n_pairs = int(np.sum(data[1 + 3 * term.n:1 + 3 * term.n + term.capacity] < term.n))
-    assert 0 < n_pairs < term.capacity < term.n * (term.n - 1) // 2  # a list, not every pair
-    assert term.capacity % pairs.CHUNK == 0
+    start = 1 + 3 * term.n + term.capacity  # the rows' neighbours J
+    n_pairs = int(np.sum(data[start:start + pairs.ROW * term.capacity] < term.n))
+    assert 0 < n_pairs < term.n * (term.n - 1) // 2  # a list, not every pair
+    assert term.capacity % pairs.GROUP_ROWS == 0 and data[start - 1] == term.n  # empty rows at the end
     rng = np.random.default_rng(11)
     step = rng.normal(size=(150, 3))
     step /= np.linalg.norm(step, axis=1, keepdims=True)

@@ -3,8 +3,8 @@ graph (``kernel``), the neighbour lists of a cutoff (``neighbours``), and a Stru
 potentials together (``potentials``)."""
 
 from .kernel import BLOCK, GROUP, PairSpec, PairTerm, effective
-from .neighbours import CHUNK, pair_list
+from .neighbours import GROUP_ROWS, ROW, pair_rows
 from .potentials import MAPPED_PAIRS_FROM, PairPotentials
 
-__all__ = ["BLOCK", "CHUNK", "GROUP", "MAPPED_PAIRS_FROM", "PairPotentials", "PairSpec", "PairTerm",
-           "effective", "pair_list"]
+__all__ = ["BLOCK", "GROUP", "MAPPED_PAIRS_FROM", "PairPotentials", "PairSpec", "PairTerm",
+           "effective", "pair_rows", "GROUP_ROWS", "ROW"]

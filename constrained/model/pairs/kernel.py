@@ -52,7 +52,7 @@ import casadi as ca
 import numpy as np
 
 from . import neighbours
-from .neighbours import CHUNK
+from .neighbours import GROUP_ROWS, ROW
 
 #: Particles per block of the all-pairs sum: a tile is BLOCK² pairs written out once (64 pairs,
 #: ~1.7k operations); larger tiles amortize the map's call more.
@@ -165,13 +165,14 @@ class PairTerm:
         mask[:self.n] = 1.0
         self._mask = ca.DM(mask.reshape(self.n_blocks, BLOCK).T)
         self.offset = offset
-        #: Capacity of the neighbour list: pairs (whole chunks of CHUNK).
+        #: Capacity of the neighbour list: rows of ROW pairs (whole groups of GROUP_ROWS).
         self.capacity = 0
-        if self.cutoff is not None:  # room for the pairs the start needs, and more
-            count = len(neighbours.pairs_within(self._listed(positions), self.reach)[0])
-            self.capacity = neighbours.capacity_for(count, CAPACITY_FACTOR, self.n)
+        if self.cutoff is not None:  # room for the rows the start needs, and more
+            i = neighbours.pairs_within(self._listed(positions), self.reach)[0]
+            self.capacity = neighbours.capacity_for(neighbours.rows_needed(i, self.n), CAPACITY_FACTOR,
+                                                    self.n)
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
-        self.size = 0 if self.cutoff is None else 1 + 3 * self.n + 2 * self.capacity
+        self.size = 0 if self.cutoff is None else 1 + 3 * self.n + (1 + ROW) * self.capacity
 
     @property
     def reach(self) -> float:
@@ -186,16 +187,17 @@ class PairTerm:
     def data(self, x) -> np.ndarray:
         """The neighbour list at positions ``x`` ((N, 3) or flat 3N), as the entries of p it
         takes: [valid (1, or 0 for a list beyond the capacity: the graph then sums every
-        pair), x_ref (3n), I (capacity), J (capacity): the pairs (I_k, J_k) within r_c + skin,
-        then placeholder pairs (n, n + 1)]. All finite (a run checks its state is)."""
+        pair), x_ref (3n), I (capacity), J (ROW·capacity): the pairs within r_c + skin in rows
+        (``neighbours.pair_rows``: row k holds the pairs (I_k, J_{ROW·k + s})), placeholders n
+        and n + 1 where empty]. All finite (a run checks its state is)."""
         if self.cutoff is None:
             return np.zeros(0)
         y = self._listed(x)
-        found = neighbours.pair_list(y, self.reach, self.capacity)
+        found = neighbours.pair_rows(y, self.reach, self.capacity)
         valid = found is not None
         ref = y.ravel() if valid else np.zeros(3 * self.n)
         if not valid:
-            found = np.full(self.capacity, float(self.n)), np.full(self.capacity, float(self.n + 1))
+            found = np.full(self.capacity, float(self.n)), np.full(ROW * self.capacity, float(self.n + 1))
         return np.concatenate([[float(valid)], ref, *found])
 
     def fresh(self, x, data, share: float = 1.0) -> bool:
@@ -296,33 +298,49 @@ class PairTerm:
         return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
 
     def _listed_pairs(self, Xl, T, Pp, data) -> tuple[ca.MX, ca.MX]:
-        """The neighbour list's pairs: the separations x_I − x_J gathered by index, a kernel
-        of CHUNK pairs mapped over the chunks, the forces added back on I and taken off J by
-        the transposed gathers (CasADi's AD of them). The placeholder pairs (n, n + 1) are two
-        points 4 r_c apart: beyond the cutoff, they count exactly nothing."""
-        n, cap = self.n, self.capacity
+        """The neighbour list's rows: the positions of each row's particle and of its ROW
+        neighbours gathered by index, a kernel of GROUP_ROWS rows mapped over the groups (a
+        group of empty rows skipped), the forces added back by the transposed gathers
+        (CasADi's AD of them). The placeholders n and n + 1 are two points 4 r_c apart and at
+        least that far from every particle: a pair with one of them counts exactly nothing."""
+        n, rows, G = self.n, self.capacity, GROUP_ROWS
         start = 1 + 3 * n  # after valid and x_ref
-        I, J = data[start:start + cap].T, data[start + cap:start + 2 * cap].T
-        spare = ca.DM([[0.0, 4 * self.cutoff], [0.0, 0.0], [0.0, 0.0]])
+        I, J = data[start:start + rows].T, data[start + rows:start + rows + ROW * rows].T
+        far = ca.mmax(Xl) + 4 * self.cutoff
+        spare = ca.vertcat(ca.horzcat(far, far + 4 * self.cutoff), ca.repmat(far, 2, 2))
         Xd = ca.horzcat(ca.reshape(Xl, 3, n), spare)
-        D = Xd[:, I] - Xd[:, J]  # (3, cap)
-        chunks = self._chunk().map("pairs_chunks", "serial", cap // CHUNK, [1, 2], [0])
-        V, F = chunks(ca.reshape(D, 3 * CHUNK, cap // CHUNK), T, Pp)
-        F = ca.reshape(F, 3, cap)
-        Y, G, S = ca.MX.sym("Y", 3, n + 2), ca.MX.sym("G", 3, cap), ca.MX.sym("S", 1, cap)
-        back = ca.Function("pairs_reactions", [Y, S, G], [ca.gradient(ca.dot(Y[:, S], G), Y)])
-        F = back(Xd, I, F) - back(Xd, J, F)  # (3, n + 2): the forces, then the placeholders'
+        XI = ca.reshape(Xd[:, I], 3 * G, rows // G)
+        XJ = ca.reshape(Xd[:, J], 3 * ROW * G, rows // G)
+        used = I[:, list(range(0, rows, G))] < n  # (the empty rows are last: a group is all empty)
+        groups = self._group().map("pairs_groups", "serial", rows // G, [3, 4], [0])
+        V, FI, FJ = groups(used, XI, XJ, T, Pp)
+        Y = ca.MX.sym("Y", 3, n + 2)
+        GI, GJ = ca.MX.sym("GI", 3, rows), ca.MX.sym("GJ", 3, ROW * rows)
+        SI, SJ = ca.MX.sym("SI", 1, rows), ca.MX.sym("SJ", 1, ROW * rows)
+        back = ca.Function("pairs_reactions", [Y, SI, GI, SJ, GJ],
+                           [ca.gradient(ca.dot(Y[:, SI], GI) + ca.dot(Y[:, SJ], GJ), Y)])
+        F = back(Xd, I, ca.reshape(FI, 3, rows), J, ca.reshape(FJ, 3, ROW * rows))
         return V, ca.vec(F[:, :n])
 
-    def _chunk(self) -> ca.Function:
-        """The listed kernel: (D, t, p_φ) -> (V, F) for CHUNK separations d_k = x_i − x_j
-        (3·CHUNK), F the force on each pair's i (its j takes −F)."""
-        D, t, q = ca.SX.sym("d", 3 * CHUNK), ca.SX.sym("t"), ca.SX.sym("q", len(self._p_used))
-        V, F = ca.SX(0), []
-        for k in range(CHUNK):
-            v, f = self._pair(D[3 * k:3 * k + 3], ca.SX.zeros(3), t, q)
-            V, F = V + v, [*F, f]
-        return ca.Function("pairs_chunk", [D, t, q], [V, ca.vertcat(*F)], {"cse": True})
+    def _group(self) -> ca.Function:
+        """The listed kernel: (used, X_I, X_J, t, p_φ) -> (V, F_I, F_J) for GROUP_ROWS rows, a
+        row's particle x_i (3) and its ROW neighbours x_j (3·ROW), the forces on each; nothing
+        when ``used`` is 0 (a group of empty rows)."""
+        G = GROUP_ROWS
+        XI, XJ = ca.SX.sym("xi", 3 * G), ca.SX.sym("xj", 3 * ROW * G)
+        t, q = ca.SX.sym("t"), ca.SX.sym("q", len(self._p_used))
+        V, FI, FJ = ca.SX(0), [], []
+        for g in range(G):
+            fi = ca.SX.zeros(3)
+            for s in range(ROW):
+                k = 3 * (ROW * g + s)
+                v, f = self._pair(XI[3 * g:3 * g + 3], XJ[k:k + 3], t, q)
+                V, fi, FJ = V + v, fi + f, [*FJ, -f]
+            FI.append(fi)
+        inputs = [XI, XJ, t, q]
+        full = ca.Function("pairs_group", inputs, [V, ca.vertcat(*FI), ca.vertcat(*FJ)], {"cse": True})
+        nothing = ca.Function("pairs_none", inputs, [ca.SX(0), ca.SX.zeros(3 * G), ca.SX.zeros(3 * ROW * G)])
+        return ca.Function.conditional("pairs_rows", [nothing], full)
 
     def _excluded(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
         """The excluded pairs' own energy and forces (subtracted from the sums)."""
