@@ -215,14 +215,16 @@ class PairTerm:
 
     # --- the graph -----------------------------------------------------------------------
     def energy_and_forces(self, X: ca.MX, T, P: ca.MX, n_physical: int, *,
-                          lists: bool = True) -> tuple[ca.MX, ca.MX]:
+                          lists: bool = True, want: str = "both") -> tuple[ca.MX, ca.MX]:
         """(V, F) as MX of the positions X (3N), t and the full p (the physical parameters are
         its first ``n_physical`` entries, this term's data at ``offset``): F = −∂V/∂x (3N).
         ``lists`` False: every pair, whatever the data (no neighbour list: the graph then
-        also evaluates with SX symbols, written out)."""
+        also evaluates with SX symbols, written out). ``want`` "force" or "energy": the
+        neighbour list's kernel computes that one alone (the other output is then not the
+        term's: 0 through the list)."""
         Pp = P[self._p_used] if self._p_used else ca.MX(0, 1)  # (the entries φ reads)
         Xl = X[self._coordinates.tolist()]
-        every, listed = self._sums()
+        every, listed = self._sums(want)
         if self.cutoff is None or not lists:
             V, F = every(Xl, T, Pp)
         else:
@@ -239,20 +241,21 @@ class PairTerm:
                                             list(range(3 * self.n))), 1.0)
         return V, ca.mtimes(scatter, F)
 
-    def _sums(self) -> tuple[ca.Function, ca.Function | None]:
+    def _sums(self, want: str = "both") -> tuple[ca.Function, ca.Function | None]:
         """(every, listed): the pair sums as Functions, built once and called by every Function
         of the Structure that holds them: ``every(x_l, t, p_φ) -> (V, F)`` over every pair and
-        (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list."""
+        (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list, which
+        computes only what ``want`` asks ("both", "force": V = 0, "energy": F = 0)."""
         if self._functions is None:
             Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
-            every = ca.Function("pairs_every", [Xl, T, Pp], list(self._all_pairs(Xl, T, Pp)))
-            listed = None
-            if self.cutoff is not None:
-                data = ca.MX.sym("data", self.size)
-                listed = ca.Function("pairs_listed", [Xl, T, Pp, data],
-                                     list(self._listed_pairs(Xl, T, Pp, data)))
-            self._functions = (every, listed)
-        return self._functions
+            self._functions = {"every": ca.Function("pairs_every", [Xl, T, Pp],
+                                                    list(self._all_pairs(Xl, T, Pp)))}
+        if self.cutoff is not None and want not in self._functions:
+            Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
+            data = ca.MX.sym("data", self.size)
+            self._functions[want] = ca.Function(f"pairs_listed_{want}", [Xl, T, Pp, data],
+                                                list(self._listed_pairs(Xl, T, Pp, data, want)))
+        return self._functions["every"], self._functions.get(want)
 
     def fresh_graph(self, X, P, share: float = 1.0):
         """MX: whether the neighbour list in P holds at positions X (``fresh``; false for a
@@ -297,7 +300,7 @@ class PairTerm:
             FA.append(FAg)
         return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
 
-    def _listed_pairs(self, Xl, T, Pp, data) -> tuple[ca.MX, ca.MX]:
+    def _listed_pairs(self, Xl, T, Pp, data, want: str = "both") -> tuple[ca.MX, ca.MX]:
         """The neighbour list's rows: the positions of each row's particle and of its ROW
         neighbours gathered by index, a kernel of GROUP_ROWS rows mapped over the groups (a
         group of empty rows skipped), the forces added back by the transposed gathers
@@ -312,7 +315,9 @@ class PairTerm:
         XI = ca.reshape(Xd[:, I], 3 * G, rows // G)
         XJ = ca.reshape(Xd[:, J], 3 * ROW * G, rows // G)
         used = I[:, list(range(0, rows, G))] < n  # (the empty rows are last: a group is all empty)
-        groups = self._group().map("pairs_groups", "serial", rows // G, [3, 4], [0])
+        groups = self._group(want).map("pairs_groups", "serial", rows // G, [3, 4], [0])
+        if want == "energy":
+            return groups(used, XI, XJ, T, Pp)[0], ca.MX.zeros(3 * n, 1)
         V, FI, FJ = groups(used, XI, XJ, T, Pp)
         Y = ca.MX.sym("Y", 3, n + 2)
         GI, GJ = ca.MX.sym("GI", 3, rows), ca.MX.sym("GJ", 3, ROW * rows)
@@ -322,10 +327,11 @@ class PairTerm:
         F = back(Xd, I, ca.reshape(FI, 3, rows), J, ca.reshape(FJ, 3, ROW * rows))
         return V, ca.vec(F[:, :n])
 
-    def _group(self) -> ca.Function:
+    def _group(self, want: str = "both") -> ca.Function:
         """The listed kernel: (used, X_I, X_J, t, p_φ) -> (V, F_I, F_J) for GROUP_ROWS rows, a
         row's particle x_i (3) and its ROW neighbours x_j (3·ROW), the forces on each; nothing
-        when ``used`` is 0 (a group of empty rows)."""
+        when ``used`` is 0 (a group of empty rows). ``want`` "force": V = 0 (not computed);
+        "energy": V alone."""
         G = GROUP_ROWS
         XI, XJ = ca.SX.sym("xi", 3 * G), ca.SX.sym("xj", 3 * ROW * G)
         t, q = ca.SX.sym("t"), ca.SX.sym("q", len(self._p_used))
@@ -338,8 +344,12 @@ class PairTerm:
                 V, fi, FJ = V + v, fi + f, [*FJ, -f]
             FI.append(fi)
         inputs = [XI, XJ, t, q]
-        full = ca.Function("pairs_group", inputs, [V, ca.vertcat(*FI), ca.vertcat(*FJ)], {"cse": True})
-        nothing = ca.Function("pairs_none", inputs, [ca.SX(0), ca.SX.zeros(3 * G), ca.SX.zeros(3 * ROW * G)])
+        outputs = [ca.SX(0) if want == "force" else V, ca.vertcat(*FI), ca.vertcat(*FJ)]
+        zeros = [ca.SX(0), ca.SX.zeros(3 * G), ca.SX.zeros(3 * ROW * G)]
+        if want == "energy":
+            outputs, zeros = outputs[:1], zeros[:1]
+        full = ca.Function("pairs_group", inputs, outputs, {"cse": True})
+        nothing = ca.Function("pairs_none", inputs, zeros)
         return ca.Function.conditional("pairs_rows", [nothing], full)
 
     def _excluded(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
