@@ -24,21 +24,25 @@ Cutoff r_c (shifted force, smoothed to second order): the pair term is
 continuous at r_c in energy, force and the force's derivative, so a run conserves the energy
 it reports (that of φ_c), and an error-controlled method crosses r_c without losing order
 (with the usual shifted force, φ'' jumps there: DOP853 on a small gas rejected every other
-step). Only pairs within r_c count, found outside the graph (``neighbour_data``): the
-particles sorted along a Morton curve and put in blocks of up to BLOCK that never straddle a
-cell of the curve's grid (compact blocks), and the pairs of blocks whose bounding boxes come
-within r_c + skin (SciPy's cKDTree on the block centres), each pair given to one of its two
-blocks (alternately, so every block has about as many). That list is *data*
-(``PairTerm.data``, appended to the Structure's p: every Function, the compiled step loops
-included, takes it as an input, and none is rebuilt when it changes): a map over each
-block's neighbour slots gathers the neighbours' columns by the indices it holds, the
-neighbours' reactions are added back by the transposed gather (CasADi's AD of it). The list
-is valid while no particle has moved more than skin/2 since it was built (the positions
-then, ``x_ref``, are in the data): every pair closer than r_c now was closer than r_c + skin
-then. The graph checks that itself and takes the all-pairs branch when it does not hold (a
-short-circuit conditional), so a stale list costs time, never accuracy; runs refresh it at
-half that distance, so the steps taken from a fresh list stay within it (``PairTerm.fresh``,
-``PairPotentials.refreshed``, ``REFRESH_SHARE``).
+step). Only pairs within r_c count, found outside the graph (``neighbours.pair_rows``): every
+pair (i, j), i < j, within r_c + skin (SciPy's cKDTree), held by i in *rows* of ROW neighbours
+(a particle with more has several rows, its last padded), the rows padded to a capacity in
+whole groups of GROUP_ROWS. That list is *data* (``PairTerm.data``, appended to the
+Structure's p: every Function, the compiled step loops included, takes it as an input, and
+none is rebuilt when it changes): the graph gathers the positions of each row's particle and
+of its neighbours by the indices it holds, maps a kernel of GROUP_ROWS rows (GROUP_ROWS · ROW
+pairs written out once) over the groups — a group of empty rows skipped by a conditional —
+and adds the forces back by the transposed gathers (CasADi's AD of them). A pair's work is
+then that of the pair alone (~40 operations), not of the 8 × 8 tile of two neighbouring blocks
+the list held before (most of whose pairs were beyond the cutoff: ~8x the work at N =
+10,000). The kernel computes only what its Function uses: the forces for ``dynamics``, the
+energy for ``energy`` and ``potential``. The list is valid while no particle has moved more
+than skin/2 since it was built (the positions then, ``x_ref``, are in the data): every pair
+closer than r_c now was closer than r_c + skin then. The graph checks that itself and takes
+the all-pairs branch when it does not hold (a short-circuit conditional), so a stale list
+costs time, never accuracy; runs refresh it at half that distance, so the steps taken from a
+fresh list stay within it (``PairTerm.fresh``, ``PairPotentials.refreshed``,
+``REFRESH_SHARE``).
 
 Excluded pairs (``exclude_bonded``: joined by a distance constraint) are subtracted after
 the sums, from a constant list (a few per particle).
