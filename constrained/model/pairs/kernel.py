@@ -312,44 +312,44 @@ class PairTerm:
         least that far from every particle: a pair with one of them counts exactly nothing."""
         n, rows, G = self.n, self.capacity, GROUP_ROWS
         start = 1 + 3 * n  # after valid and x_ref
-        I, J = data[start:start + rows].T, data[start + rows:start + rows + ROW * rows].T
+        # (column vectors of indices and (3, k) positions, laid out as the map's calls take
+        # them: no reshaped copies, and few distinct large shapes, which the compile cache's
+        # key serializes one by one)
+        I, J = data[start:start + rows], data[start + rows:start + rows + ROW * rows]
         far = ca.mmax(Xl) + 4 * self.cutoff
         spare = ca.vertcat(ca.horzcat(far, far + 4 * self.cutoff), ca.repmat(far, 2, 2))
         Xd = ca.horzcat(ca.reshape(Xl, 3, n), spare)
-        XI = ca.reshape(Xd[:, I], 3 * G, rows // G)
-        XJ = ca.reshape(Xd[:, J], 3 * ROW * G, rows // G)
-        used = I[:, list(range(0, rows, G))] < n  # (the empty rows are last: a group is all empty)
+        XI, XJ = Xd[:, I], Xd[:, J]  # (3, rows), (3, ROW·rows)
+        used = (I[list(range(0, rows, G))] < n).T  # (the empty rows are last: a group is all empty)
         groups = self._group(want).map("pairs_groups", "serial", rows // G, [3, 4], [0])
         if want == "energy":
             return groups(used, XI, XJ, T, Pp)[0], ca.MX.zeros(3 * n, 1)
         V, FI, FJ = groups(used, XI, XJ, T, Pp)
         Y = ca.MX.sym("Y", 3, n + 2)
         GI, GJ = ca.MX.sym("GI", 3, rows), ca.MX.sym("GJ", 3, ROW * rows)
-        SI, SJ = ca.MX.sym("SI", 1, rows), ca.MX.sym("SJ", 1, ROW * rows)
+        SI, SJ = ca.MX.sym("SI", rows), ca.MX.sym("SJ", ROW * rows)
         back = ca.Function("pairs_reactions", [Y, SI, GI, SJ, GJ],
                            [ca.gradient(ca.dot(Y[:, SI], GI) + ca.dot(Y[:, SJ], GJ), Y)])
-        F = back(Xd, I, ca.reshape(FI, 3, rows), J, ca.reshape(FJ, 3, ROW * rows))
-        return V, ca.vec(F[:, :n])
+        return V, ca.vec(back(Xd, I, FI, J, FJ)[:, :n])
 
     def _group(self, want: str = "both") -> ca.Function:
-        """The listed kernel: (used, X_I, X_J, t, p_φ) -> (V, F_I, F_J) for GROUP_ROWS rows, a
-        row's particle x_i (3) and its ROW neighbours x_j (3·ROW), the forces on each; nothing
-        when ``used`` is 0 (a group of empty rows). ``want`` "force": V = 0 (not computed);
-        "energy": V alone."""
+        """The listed kernel: (used, X_I, X_J, t, p_φ) -> (V, F_I, F_J) for GROUP_ROWS rows, the
+        rows' particles x_i (3, GROUP_ROWS) and their ROW neighbours each x_j (3, ROW·GROUP_ROWS),
+        the forces on each; nothing when ``used`` is 0 (a group of empty rows). ``want``
+        "force": V = 0 (not computed); "energy": V alone."""
         G = GROUP_ROWS
-        XI, XJ = ca.SX.sym("xi", 3 * G), ca.SX.sym("xj", 3 * ROW * G)
+        XI, XJ = ca.SX.sym("xi", 3, G), ca.SX.sym("xj", 3, ROW * G)
         t, q = ca.SX.sym("t"), ca.SX.sym("q", len(self._p_used))
         V, FI, FJ = ca.SX(0), [], []
         for g in range(G):
             fi = ca.SX.zeros(3)
             for s in range(ROW):
-                k = 3 * (ROW * g + s)
-                v, f = self._pair(XI[3 * g:3 * g + 3], XJ[k:k + 3], t, q)
+                v, f = self._pair(XI[:, g], XJ[:, ROW * g + s], t, q)
                 V, fi, FJ = V + v, fi + f, [*FJ, -f]
             FI.append(fi)
         inputs = [XI, XJ, t, q]
-        outputs = [ca.SX(0) if want == "force" else V, ca.vertcat(*FI), ca.vertcat(*FJ)]
-        zeros = [ca.SX(0), ca.SX.zeros(3 * G), ca.SX.zeros(3 * ROW * G)]
+        outputs = [ca.SX(0) if want == "force" else V, ca.horzcat(*FI), ca.horzcat(*FJ)]
+        zeros = [ca.SX(0), ca.SX.zeros(3, G), ca.SX.zeros(3, ROW * G)]
         if want == "energy":
             outputs, zeros = outputs[:1], zeros[:1]
         full = ca.Function("pairs_group", inputs, outputs, {"cse": True})
