@@ -473,3 +473,27 @@ def test_the_pair_list_kernel_is_the_numpy_sum_within_the_cutoff():
         V_ref, F_ref = numpy_pair_sum(x, range(5, 140), 1.7, excluded=set(bonds))
         assert V - V_trap == pytest.approx(V_ref, rel=1e-11)
         np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-9, atol=1e-10 * np.abs(F_ref).max())
+
+
+@pytest.mark.parametrize("n", [40, 700])  # pairs found by brute force; by cKDTree
+def test_the_pair_rows_hold_every_pair_within_reach_once(n):
+    """``neighbours.pair_rows`` on a random cloud: each pair closer than the reach is in exactly
+    one row (held by its lower index), no other pair is, a row holds at most ROW, the empty
+    places and rows hold the placeholders; a capacity too small gives None."""
+    from scipy.spatial.distance import pdist, squareform
+
+    rng = np.random.default_rng(n)
+    y = rng.random((n, 3)) * n ** (1 / 3)
+    reach = 1.3
+    rows_needed = pairs.neighbours.rows_needed(pairs.neighbours.pairs_within(y, reach)[0], n)
+    I, J = pairs.neighbours.pair_rows(y, reach, rows_needed + 5)
+    R = pairs.ROW
+    assert len(I) == rows_needed + 5 and len(J) == R * len(I)
+    assert np.all(I[rows_needed:] == n) and np.all(J[R * rows_needed:] == n + 1)
+    i = np.repeat(I, R).astype(int)
+    j = J.astype(int)
+    real = j < n
+    found = sorted(zip(i[real].tolist(), j[real].tolist(), strict=True))
+    near = np.argwhere(np.triu(squareform(pdist(y)) <= reach, 1))
+    assert found == sorted(map(tuple, near.tolist()))
+    assert pairs.neighbours.pair_rows(y, reach, rows_needed - 1) is None
