@@ -167,13 +167,13 @@ def test_neighbour_list_is_rebuilt_when_particles_cross_cells():
     step *= 0.7 / np.linalg.norm(step, axis=1, keepdims=True)  # every particle moves 0.7 m
     x1 = x0 + step.ravel()
     assert not term.fresh(x1, p0[term.offset:])
-    start = term.offset + 1 + 3 * term.n  # the places: after valid and x_ref
-    end = start + term.block_capacity * pairs.BLOCK
-    places0 = p0[start:end]
+    start = term.offset + 1 + 3 * term.n  # the pairs: after valid and x_ref
+    end = start + (1 + pairs.ROW) * term.capacity
+    pairs0 = p0[start:end]
     p1 = structure.pair_potentials.refreshed(p0, x1)
     assert p1 is not None and term.fresh(x1, p1[term.offset:])
-    places1 = p1[start:end]
-    assert not np.array_equal(places0, places1)  # particles changed blocks
+    pairs1 = p1[start:end]
+    assert not np.array_equal(pairs0, pairs1)  # other pairs are near
     ref = reference(system, lj_soft, cutoff=1.6)
     V_trap, F_trap = trap_parts(system, x1)
     V_ref, F_ref = (np.asarray(v).ravel() for v in ref(x1))
@@ -227,9 +227,7 @@ def test_gas_with_a_cutoff_keeps_momentum_and_energy():
     moved = np.linalg.norm(traj.x[-1] - traj.x[0], axis=1)
     assert np.median(moved) > 10 * term.skin  # the list was rebuilt many times
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
-        found = pairs.neighbour_data
-        patch.setattr(pairs.neighbours, "neighbour_data", lambda y, reach, blocks, slots: (
-            found(y, reach, blocks, slots) if slots is None else (None, None)))
+        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity: None)
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), rtol=1e-9, atol=1e-9,
                            t_eval=np.linspace(0, 3, 31), outputs=set())
     np.testing.assert_allclose(traj.x, every.x, atol=1e-6)
@@ -412,9 +410,90 @@ def test_rattle_refreshes_the_neighbour_list_and_matches_every_pair():
     assert np.max(np.abs(P - P[0])) < 1e-13 * scale
     assert np.ptp(traj.energy) < 1e-3 * np.abs(traj.energy).max()  # O(dt²), not drifting
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
-        found = pairs.neighbour_data
-        patch.setattr(pairs.neighbours, "neighbour_data", lambda y, reach, blocks, slots: (
-            found(y, reach, blocks, slots) if slots is None else (None, None)))
+        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity: None)
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), method="rattle", dt=2e-3,
                            t_eval=np.linspace(0, 3, 31), outputs=set())
     np.testing.assert_allclose(traj.x, every.x, atol=1e-9)
+
+
+def numpy_pair_sum(x, particles, cutoff, excluded=()):
+    """(V, F) of lj_soft shifted at the cutoff (φ_c of the module's docstring), summed over the
+    pairs of ``particles`` closer than the cutoff by NumPy, the bonded ``excluded`` left out."""
+    y = x.reshape(-1, 3)
+    listed = np.asarray(list(particles))
+    i, j = np.triu_indices(len(listed), 1)
+    i, j = listed[i], listed[j]
+    keep = np.array([(a, b) not in excluded and (b, a) not in excluded for a, b in zip(i, j, strict=True)])
+    i, j = i[keep], j[keep]
+    d = y[i] - y[j]
+    r = np.linalg.norm(d, axis=1)
+    near = r < cutoff
+    i, j, d, r = i[near], j[near], d[near], r[near]
+
+    def phi(r):
+        return 0.7 * (0.9 / r) ** 12
+
+    rc = cutoff
+    d1, d2 = -12 * phi(rc) / rc, 156 * phi(rc) / rc ** 2
+    V = np.sum(phi(r) - phi(rc) - (r - rc) * d1 - 0.5 * (r - rc) ** 2 * d2)
+    slope = -12 * phi(r) / r - d1 - (r - rc) * d2  # φ_c'(r)
+    f = -(slope / r)[:, None] * d  # on i; j takes −f
+    F = np.zeros_like(y)
+    np.add.at(F, i, f)
+    np.add.at(F, j, -f)
+    return V, F.ravel()
+
+
+def test_the_pair_list_kernel_is_the_numpy_sum_within_the_cutoff():
+    """A disordered gas (a subset of its particles, bonded pairs excluded) with a cutoff: the
+    forces through the pair list (rows of ROW pairs, padded, and empty rows at its end) equal a
+    NumPy sum over the pairs within r_c; so do those through a list built before the particles
+    moved less than skin/2 (still valid, not rebuilt) and more (stale: every pair summed)."""
+    bonds = [(10, 11), (11, 12), (40, 41), (70, 90)]
+    system = gas(150, cutoff=1.7, skin=0.3, jitter=0.25, particles=range(5, 140), bonds=bonds,
+                 exclude_bonded=True)
+    model = assemble(system, reuse=False)
+    (term,) = model.structure.pairs
+    x0 = np.asarray(system.positions).ravel()
+    data = term.data(x0)
+    start = 1 + 3 * term.n + term.capacity  # the rows' neighbours J
+    n_pairs = int(np.sum(data[start:start + pairs.ROW * term.capacity] < term.n))
+    assert 0 < n_pairs < term.n * (term.n - 1) // 2  # a list, not every pair
+    assert term.capacity % pairs.GROUP_ROWS == 0 and data[start - 1] == term.n  # empty rows at the end
+    rng = np.random.default_rng(11)
+    step = rng.normal(size=(150, 3))
+    step /= np.linalg.norm(step, axis=1, keepdims=True)
+    for moved, fresh in ((0.0, True), (0.1, True), (0.4, False)):  # skin/2 = 0.15 m
+        x = x0 + moved * step.ravel()
+        assert term.fresh(x, data) == fresh
+        p = model.parameter_vector.copy()
+        p[term.offset:term.offset + term.size] = data
+        V, F = pair_parts(model, x, p)
+        V_trap, F_trap = trap_parts(system, x)
+        V_ref, F_ref = numpy_pair_sum(x, range(5, 140), 1.7, excluded=set(bonds))
+        assert V - V_trap == pytest.approx(V_ref, rel=1e-11)
+        np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-9, atol=1e-10 * np.abs(F_ref).max())
+
+
+@pytest.mark.parametrize("n", [40, 700])  # pairs found by brute force; by cKDTree
+def test_the_pair_rows_hold_every_pair_within_reach_once(n):
+    """``neighbours.pair_rows`` on a random cloud: each pair closer than the reach is in exactly
+    one row (held by its lower index), no other pair is, a row holds at most ROW, the empty
+    places and rows hold the placeholders; a capacity too small gives None."""
+    from scipy.spatial.distance import pdist, squareform
+
+    rng = np.random.default_rng(n)
+    y = rng.random((n, 3)) * n ** (1 / 3)
+    reach = 1.3
+    rows_needed = pairs.neighbours.rows_needed(pairs.neighbours.pairs_within(y, reach)[0], n)
+    I, J = pairs.neighbours.pair_rows(y, reach, rows_needed + 5)
+    R = pairs.ROW
+    assert len(I) == rows_needed + 5 and len(J) == R * len(I)
+    assert np.all(I[rows_needed:] == n) and np.all(J[R * rows_needed:] == n + 1)
+    i = np.repeat(I, R).astype(int)
+    j = J.astype(int)
+    real = j < n
+    found = sorted(zip(i[real].tolist(), j[real].tolist(), strict=True))
+    near = np.argwhere(np.triu(squareform(pdist(y)) <= reach, 1))
+    assert found == sorted(map(tuple, near.tolist()))
+    assert pairs.neighbours.pair_rows(y, reach, rows_needed - 1) is None

@@ -175,7 +175,7 @@ class MappedBuild:
             if gradients:
                 F = F - ca.mtimes(self._scatter(), ca.vertcat(*gradients))
             for term in structure.pairs:  # each pair potential: its own mapped kernel
-                F = F + term.energy_and_forces(X, T, P_full, structure.n_physical)[1]
+                F = F + term.energy_and_forces(X, T, P_full, structure.n_physical, want="force")[1]
             outs, out_names = [ca.densify(F), *outs], ["F", *out_names]
         inputs, in_names = (([X, V, T, P_full], ["x", "v", "t", "p"]) if with_v
                             else ([X, T, P_full], ["x", "t", "p"]))

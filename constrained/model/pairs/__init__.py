@@ -2,9 +2,9 @@
 graph (``kernel``), the neighbour lists of a cutoff (``neighbours``), and a Structure's pair
 potentials together (``potentials``)."""
 
-from .kernel import GROUP, PairSpec, PairTerm, effective
-from .neighbours import BLOCK, neighbour_data
+from .kernel import BLOCK, GROUP, PairSpec, PairTerm, effective
+from .neighbours import GROUP_ROWS, ROW, pair_rows
 from .potentials import MAPPED_PAIRS_FROM, PairPotentials
 
-__all__ = ["BLOCK", "GROUP", "MAPPED_PAIRS_FROM", "PairPotentials", "PairSpec", "PairTerm", "effective",
-           "neighbour_data"]
+__all__ = ["BLOCK", "GROUP", "MAPPED_PAIRS_FROM", "PairPotentials", "PairSpec", "PairTerm",
+           "effective", "pair_rows", "GROUP_ROWS", "ROW"]

@@ -24,21 +24,25 @@ Cutoff r_c (shifted force, smoothed to second order): the pair term is
 continuous at r_c in energy, force and the force's derivative, so a run conserves the energy
 it reports (that of φ_c), and an error-controlled method crosses r_c without losing order
 (with the usual shifted force, φ'' jumps there: DOP853 on a small gas rejected every other
-step). Only pairs within r_c count, found outside the graph (``neighbour_data``): the
-particles sorted along a Morton curve and put in blocks of up to BLOCK that never straddle a
-cell of the curve's grid (compact blocks), and the pairs of blocks whose bounding boxes come
-within r_c + skin (SciPy's cKDTree on the block centres), each pair given to one of its two
-blocks (alternately, so every block has about as many). That list is *data*
-(``PairTerm.data``, appended to the Structure's p: every Function, the compiled step loops
-included, takes it as an input, and none is rebuilt when it changes): a map over each
-block's neighbour slots gathers the neighbours' columns by the indices it holds, the
-neighbours' reactions are added back by the transposed gather (CasADi's AD of it). The list
-is valid while no particle has moved more than skin/2 since it was built (the positions
-then, ``x_ref``, are in the data): every pair closer than r_c now was closer than r_c + skin
-then. The graph checks that itself and takes the all-pairs branch when it does not hold (a
-short-circuit conditional), so a stale list costs time, never accuracy; runs refresh it at
-half that distance, so the steps taken from a fresh list stay within it (``PairTerm.fresh``,
-``PairPotentials.refreshed``, ``REFRESH_SHARE``).
+step). Only pairs within r_c count, found outside the graph (``neighbours.pair_rows``): every
+pair (i, j), i < j, within r_c + skin (SciPy's cKDTree), held by i in *rows* of ROW neighbours
+(a particle with more has several rows, its last padded), the rows padded to a capacity in
+whole groups of GROUP_ROWS. That list is *data* (``PairTerm.data``, appended to the
+Structure's p: every Function, the compiled step loops included, takes it as an input, and
+none is rebuilt when it changes): the graph gathers the positions of each row's particle and
+of its neighbours by the indices it holds, maps a kernel of GROUP_ROWS rows (GROUP_ROWS · ROW
+pairs written out once) over the groups — a group of empty rows skipped by a conditional —
+and adds the forces back by the transposed gathers (CasADi's AD of them). A pair's work is
+then that of the pair alone (~40 operations), not of the 8 × 8 tile of two neighbouring blocks
+the list held before (most of whose pairs were beyond the cutoff: ~8x the work at N =
+10,000). The kernel computes only what its Function uses: the forces for ``dynamics``, the
+energy for ``energy`` and ``potential``. The list is valid while no particle has moved more
+than skin/2 since it was built (the positions then, ``x_ref``, are in the data): every pair
+closer than r_c now was closer than r_c + skin then. The graph checks that itself and takes
+the all-pairs branch when it does not hold (a short-circuit conditional), so a stale list
+costs time, never accuracy; runs refresh it at half that distance, so the steps taken from a
+fresh list stay within it (``PairTerm.fresh``, ``PairPotentials.refreshed``,
+``REFRESH_SHARE``).
 
 Excluded pairs (``exclude_bonded``: joined by a distance constraint) are subtracted after
 the sums, from a constant list (a few per particle).
@@ -46,23 +50,23 @@ the sums, from a constant list (a few per particle).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from . import neighbours
-from .neighbours import BLOCK
+from .neighbours import GROUP_ROWS, ROW
 
+#: Particles per block of the all-pairs sum: a tile is BLOCK² pairs written out once (64 pairs,
+#: ~1.7k operations); larger tiles amortize the map's call more.
+BLOCK = 8
 #: Blocks a of the all-pairs sum per call of its outer map (whose shared inputs CasADi copies
 #: once per block: GROUP copies of the positions at a time).
 GROUP = 32
-#: Capacities of a neighbour list: blocks (compact blocks do not fill every place) and
-#: neighbour slots per block, this factor times the count at the first list (slots: plus
-#: CAPACITY_EXTRA); a list that needs more is not used (all pairs are summed instead).
+#: Capacity of a neighbour list: this factor times the pairs of the first list (plus a chunk);
+#: a list that needs more is not used (all pairs are summed instead).
 CAPACITY_FACTOR = 1.25
-CAPACITY_EXTRA = 2
 
 
 @dataclass(frozen=True)
@@ -165,18 +169,14 @@ class PairTerm:
         mask[:self.n] = 1.0
         self._mask = ca.DM(mask.reshape(self.n_blocks, BLOCK).T)
         self.offset = offset
-        #: Capacities of the neighbour list: blocks and neighbour slots per block.
-        self.block_capacity = self.slot_capacity = 0
-        if self.cutoff is not None:  # room for the blocks and slots the start needs, and more
-            y = self._listed(positions)
-            used = len(neighbours.blocks(y, 2 * self.n_blocks)) // BLOCK
-            self.block_capacity = min(self.n, math.ceil(CAPACITY_FACTOR * used) + 1)
-            _, slots = neighbours.neighbour_data(y, self.reach, self.block_capacity, None)
-            self.slot_capacity = int(min(self.block_capacity, math.ceil(CAPACITY_FACTOR * slots.shape[0])
-                                         + CAPACITY_EXTRA))
+        #: Capacity of the neighbour list: rows of ROW pairs (whole groups of GROUP_ROWS).
+        self.capacity = 0
+        if self.cutoff is not None:  # room for the rows the start needs, and more
+            i = neighbours.pairs_within(self._listed(positions), self.reach)[0]
+            self.capacity = neighbours.capacity_for(neighbours.rows_needed(i, self.n), CAPACITY_FACTOR,
+                                                    self.n)
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
-        self.size = 0 if self.cutoff is None else \
-            1 + 4 * self.n + self.block_capacity * (BLOCK + self.slot_capacity)
+        self.size = 0 if self.cutoff is None else 1 + 3 * self.n + (1 + ROW) * self.capacity
 
     @property
     def reach(self) -> float:
@@ -190,25 +190,19 @@ class PairTerm:
 
     def data(self, x) -> np.ndarray:
         """The neighbour list at positions ``x`` ((N, 3) or flat 3N), as the entries of p it
-        takes: [valid (1, or 0 for a list beyond the capacities: the graph then sums every
-        pair), x_ref (3n), the places (block_capacity·BLOCK: the particle in each place, n
-        for an empty one), each particle's place (n), the neighbour slots (slot_capacity per
-        block: a neighbour block + 1, 0 empty)]. All finite (a run checks its state is)."""
+        takes: [valid (1, or 0 for a list beyond the capacity: the graph then sums every
+        pair), x_ref (3n), I (capacity), J (ROW·capacity): the pairs within r_c + skin in rows
+        (``neighbours.pair_rows``: row k holds the pairs (I_k, J_{ROW·k + s})), placeholders n
+        and n + 1 where empty]. All finite (a run checks its state is)."""
         if self.cutoff is None:
             return np.zeros(0)
         y = self._listed(x)
-        places, slots = neighbours.neighbour_data(y, self.reach, self.block_capacity, self.slot_capacity)
-        valid = places is not None and slots is not None
+        found = neighbours.pair_rows(y, self.reach, self.capacity)
+        valid = found is not None
         ref = y.ravel() if valid else np.zeros(3 * self.n)
         if not valid:
-            places = np.concatenate([np.arange(self.n),
-                                     np.full(self.block_capacity * BLOCK - self.n, self.n)])
-            slots = np.zeros((self.slot_capacity, self.block_capacity))
-        places = np.asarray(places, dtype=float)
-        where = np.empty(self.n)
-        real = places < self.n
-        where[places[real].astype(np.int64)] = np.flatnonzero(real)
-        return np.concatenate([[float(valid)], ref, places, where, slots.ravel(order="F")])
+            found = np.full(self.capacity, float(self.n)), np.full(ROW * self.capacity, float(self.n + 1))
+        return np.concatenate([[float(valid)], ref, *found])
 
     def fresh(self, x, data, share: float = 1.0) -> bool:
         """Whether ``data`` still holds every pair within the cutoff at positions ``x`` (no
@@ -225,14 +219,16 @@ class PairTerm:
 
     # --- the graph -----------------------------------------------------------------------
     def energy_and_forces(self, X: ca.MX, T, P: ca.MX, n_physical: int, *,
-                          lists: bool = True) -> tuple[ca.MX, ca.MX]:
+                          lists: bool = True, want: str = "both") -> tuple[ca.MX, ca.MX]:
         """(V, F) as MX of the positions X (3N), t and the full p (the physical parameters are
         its first ``n_physical`` entries, this term's data at ``offset``): F = −∂V/∂x (3N).
         ``lists`` False: every pair, whatever the data (no neighbour list: the graph then
-        also evaluates with SX symbols, written out)."""
+        also evaluates with SX symbols, written out). ``want`` "force" or "energy": the
+        neighbour list's kernel computes that one alone (the other output is then not the
+        term's: 0 through the list)."""
         Pp = P[self._p_used] if self._p_used else ca.MX(0, 1)  # (the entries φ reads)
         Xl = X[self._coordinates.tolist()]
-        every, listed = self._sums()
+        every, listed = self._sums(want)
         if self.cutoff is None or not lists:
             V, F = every(Xl, T, Pp)
         else:
@@ -249,20 +245,21 @@ class PairTerm:
                                             list(range(3 * self.n))), 1.0)
         return V, ca.mtimes(scatter, F)
 
-    def _sums(self) -> tuple[ca.Function, ca.Function | None]:
+    def _sums(self, want: str = "both") -> tuple[ca.Function, ca.Function | None]:
         """(every, listed): the pair sums as Functions, built once and called by every Function
         of the Structure that holds them: ``every(x_l, t, p_φ) -> (V, F)`` over every pair and
-        (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list."""
+        (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list, which
+        computes only what ``want`` asks ("both", "force": V = 0, "energy": F = 0)."""
         if self._functions is None:
             Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
-            every = ca.Function("pairs_every", [Xl, T, Pp], list(self._all_pairs(Xl, T, Pp)))
-            listed = None
-            if self.cutoff is not None:
-                data = ca.MX.sym("data", self.size)
-                listed = ca.Function("pairs_listed", [Xl, T, Pp, data],
-                                     list(self._listed_pairs(Xl, T, Pp, data)))
-            self._functions = (every, listed)
-        return self._functions
+            self._functions = {"every": ca.Function("pairs_every", [Xl, T, Pp],
+                                                    list(self._all_pairs(Xl, T, Pp)))}
+        if self.cutoff is not None and want not in self._functions:
+            Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
+            data = ca.MX.sym("data", self.size)
+            self._functions[want] = ca.Function(f"pairs_listed_{want}", [Xl, T, Pp, data],
+                                                list(self._listed_pairs(Xl, T, Pp, data, want)))
+        return self._functions["every"], self._functions.get(want)
 
     def fresh_graph(self, X, P, share: float = 1.0):
         """MX: whether the neighbour list in P holds at positions X (``fresh``; false for a
@@ -307,36 +304,57 @@ class PairTerm:
             FA.append(FAg)
         return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
 
-    def _listed_pairs(self, Xl, T, Pp, data) -> tuple[ca.MX, ca.MX]:
-        """The neighbour list's tiles: a map over the blocks a of a map over a's neighbour
-        slots (each tile once), a's forces summed by the inner map, the neighbours' added
-        back by the transposed gather."""
-        B, n, nbc, K = BLOCK, self.n, self.block_capacity, self.slot_capacity
+    def _listed_pairs(self, Xl, T, Pp, data, want: str = "both") -> tuple[ca.MX, ca.MX]:
+        """The neighbour list's rows: the positions of each row's particle and of its ROW
+        neighbours gathered by index, a kernel of GROUP_ROWS rows mapped over the groups (a
+        group of empty rows skipped), the forces added back by the transposed gathers
+        (CasADi's AD of them). The placeholders n and n + 1 are two points 4 r_c apart and at
+        least that far from every particle: a pair with one of them counts exactly nothing."""
+        n, rows, G = self.n, self.capacity, GROUP_ROWS
         start = 1 + 3 * n  # after valid and x_ref
-        places = data[start:start + nbc * B].T
-        where = data[start + nbc * B:start + nbc * B + n].T
-        slots = data[start + nbc * B + n:].T  # (1, K·nbc): block a's K slots together
-        columns = ca.horzcat(ca.reshape(Xl, 3, n), ca.MX.zeros(3, 1))[:, places]  # empty: the zero column n
-        XS = ca.reshape(columns, 3 * B, nbc)
-        MS = ca.reshape(places < n, B, nbc)
-        neighbour = ca.fmax(slots - 1, 0)
-        XN, MN = XS[:, neighbour], MS[:, neighbour]
-        xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
-        slot = ca.MX.sym("slot")
-        case = ca.if_else(slot == 0, 0, _case(a, slot - 1))
-        inner = ca.Function("pairs_slot", [xa, ma, a, xb, mb, slot, t, p],
-                            self._tile(case, xa, xb, ma, mb, t, p))
-        inner = inner.map("pairs_slots", "serial", K, [0, 1, 2, 6, 7], [0, 1])
-        XK, MK, SK = ca.MX.sym("XK", 3 * B, K), ca.MX.sym("MK", B, K), ca.MX.sym("SK", 1, K)
-        outer = ca.Function("pairs_block", [xa, ma, a, XK, MK, SK, t, p], inner(xa, ma, a, XK, MK, SK, t, p))
-        outer = outer.map("pairs_listed", "serial", nbc, [6, 7], [0])
-        index = ca.DM(np.arange(nbc, dtype=float)).T
-        V, FA, FB = outer(XS, MS, index, XN, MN, slots, T, Pp)
-        Y, G = ca.MX.sym("Y", 3 * B, nbc), ca.MX.sym("G", 3 * B, K * nbc)
-        S = ca.MX.sym("S", 1, K * nbc)
-        back = ca.Function("pairs_reactions", [Y, S, G], [ca.gradient(ca.dot(Y[:, S], G), Y)])
-        F = FA + back(XS, neighbour, FB)  # (3B, nbc): the forces in the places
-        return V, ca.vec(ca.reshape(F, 3, nbc * B)[:, where])
+        # (column vectors of indices and (3, k) positions, laid out as the map's calls take
+        # them: no reshaped copies, and few distinct large shapes, which the compile cache's
+        # key serializes one by one)
+        I, J = data[start:start + rows], data[start + rows:start + rows + ROW * rows]
+        far = ca.mmax(Xl) + 4 * self.cutoff
+        spare = ca.vertcat(ca.horzcat(far, far + 4 * self.cutoff), ca.repmat(far, 2, 2))
+        Xd = ca.horzcat(ca.reshape(Xl, 3, n), spare)
+        XI, XJ = Xd[:, I], Xd[:, J]  # (3, rows), (3, ROW·rows)
+        used = (I[list(range(0, rows, G))] < n).T  # (the empty rows are last: a group is all empty)
+        groups = self._group(want).map("pairs_groups", "serial", rows // G, [3, 4], [0])
+        if want == "energy":
+            return groups(used, XI, XJ, T, Pp)[0], ca.MX.zeros(3 * n, 1)
+        V, FI, FJ = groups(used, XI, XJ, T, Pp)
+        Y = ca.MX.sym("Y", 3, n + 2)
+        GI, GJ = ca.MX.sym("GI", 3, rows), ca.MX.sym("GJ", 3, ROW * rows)
+        SI, SJ = ca.MX.sym("SI", rows), ca.MX.sym("SJ", ROW * rows)
+        back = ca.Function("pairs_reactions", [Y, SI, GI, SJ, GJ],
+                           [ca.gradient(ca.dot(Y[:, SI], GI) + ca.dot(Y[:, SJ], GJ), Y)])
+        return V, ca.vec(back(Xd, I, FI, J, FJ)[:, :n])
+
+    def _group(self, want: str = "both") -> ca.Function:
+        """The listed kernel: (used, X_I, X_J, t, p_φ) -> (V, F_I, F_J) for GROUP_ROWS rows, the
+        rows' particles x_i (3, GROUP_ROWS) and their ROW neighbours each x_j (3, ROW·GROUP_ROWS),
+        the forces on each; nothing when ``used`` is 0 (a group of empty rows). ``want``
+        "force": V = 0 (not computed); "energy": V alone."""
+        G = GROUP_ROWS
+        XI, XJ = ca.SX.sym("xi", 3, G), ca.SX.sym("xj", 3, ROW * G)
+        t, q = ca.SX.sym("t"), ca.SX.sym("q", len(self._p_used))
+        V, FI, FJ = ca.SX(0), [], []
+        for g in range(G):
+            fi = ca.SX.zeros(3)
+            for s in range(ROW):
+                v, f = self._pair(XI[:, g], XJ[:, ROW * g + s], t, q)
+                V, fi, FJ = V + v, fi + f, [*FJ, -f]
+            FI.append(fi)
+        inputs = [XI, XJ, t, q]
+        outputs = [ca.SX(0) if want == "force" else V, ca.horzcat(*FI), ca.horzcat(*FJ)]
+        zeros = [ca.SX(0), ca.SX.zeros(3, G), ca.SX.zeros(3, ROW * G)]
+        if want == "energy":
+            outputs, zeros = outputs[:1], zeros[:1]
+        full = ca.Function("pairs_group", inputs, outputs, {"cse": True})
+        nothing = ca.Function("pairs_none", inputs, zeros)
+        return ca.Function.conditional("pairs_rows", [nothing], full)
 
     def _excluded(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
         """The excluded pairs' own energy and forces (subtracted from the sums)."""

@@ -56,8 +56,10 @@ class PairPotentials:
         out = rest.call([*inputs, P[:self.n_physical]])
         x, t = inputs[0], inputs[-1]
         energy, force = 0, 0
+        kinds = set(OUTPUTS[name].values())
+        want = "both" if len(kinds) > 1 else kinds.pop()  # (the list's kernel computes only that)
         for term in self.terms:
-            e, f = term.energy_and_forces(x, t, P, self.n_physical, lists=lists)
+            e, f = term.energy_and_forces(x, t, P, self.n_physical, lists=lists, want=want)
             energy, force = energy + e, force + f
         for i, kind in OUTPUTS[name].items():
             out[i] = out[i] + (force if kind == "force" else energy)
