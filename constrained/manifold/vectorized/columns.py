@@ -13,7 +13,7 @@ are summed together as gathers and additions of whole columns, and one permutati
 in target order: O(entries) work in a few nodes, where a product with a constant 0/1 matrix
 would cost an indexed update per entry.
 
-Within ``shared_nodes()`` (a graph of many evaluations at one state of the parameters, as a
+Within ``shared_nodes()`` (in this thread; a graph of many evaluations at one state of the parameters, as a
 dopri step with its dozen accelerations) ``take``, ``binary``, ``shared`` and the operations of
 ``on_columns`` return the node already built for the same operation on the same nodes: what
 depends on p and the masses alone (a plane's row of J, m⁻¹ at a stream's coordinates, their
@@ -23,6 +23,7 @@ same, but compares nodes by their serialized data and took 2 s on the 10,000-par
 
 from __future__ import annotations
 
+import threading
 from contextlib import contextmanager
 
 import casadi as ca
@@ -31,26 +32,35 @@ import numpy as np
 #: Beyond this many signatures a Summation is a product with a constant sparse 0/1 matrix.
 MAX_SIGNATURES = 256
 
-#: The node memos of the graphs being built (``shared_nodes``), innermost last.
-_MEMOS: list[dict] = []
+#: The node memos of the graphs this thread is building (``shared_nodes``), innermost last.
+_LOCAL = threading.local()
+
+
+def _memos() -> list[dict]:
+    memos = getattr(_LOCAL, "memos", None)
+    if memos is None:
+        memos = _LOCAL.memos = []
+    return memos
 
 
 @contextmanager
 def shared_nodes():
     """Within: the same operation on the same nodes gives the same node (see the module)."""
-    _MEMOS.append({})
+    memos = _memos()
+    memos.append({})
     try:
         yield
     finally:
-        _MEMOS.pop()
+        memos.pop()
 
 
 def shared(key: tuple, build, *keep):
     """build(), or the node built for ``key`` before within ``shared_nodes``; ``keep``: the
     objects whose identity ``key`` names, held so that it is not reused."""
-    if not _MEMOS:
+    memos = _memos()
+    if not memos:
         return build()
-    memo = _MEMOS[-1]
+    memo = memos[-1]
     if key not in memo:
         memo[key] = (build(), keep)
     return memo[key][0]
@@ -71,9 +81,10 @@ def take(column, index: np.ndarray):
     index = np.asarray(index, dtype=np.int64)
     if index.size == column.numel() and np.array_equal(index, np.arange(index.size)):
         return column
-    if _MEMOS:
+    memos = _memos()
+    if memos:
         key = ("take", hash(column), index.size, hash(index.tobytes()))
-        memo = _MEMOS[-1]
+        memo = memos[-1]
         hit = memo.get(key)
         if hit is not None and np.array_equal(hit[1][1], index):
             return hit[0]
