@@ -16,7 +16,15 @@ from constrained.errors import SceneError
 from constrained.manifold import dense, graph, mapped
 from constrained.manifold.vectorized import build as vb
 from constrained.manifold.vectorized import graphs as vg
-from constrained.manifold.vectorized.columns import MAX_SIGNATURES, Summation, on_columns, unique_rows
+from constrained.manifold.vectorized.columns import (
+    MAX_SIGNATURES,
+    Summation,
+    binary,
+    on_columns,
+    shared_nodes,
+    take,
+    unique_rows,
+)
 from constrained.model.cache import ParametricView
 from constrained.model.constraints import constraint_rows
 from constrained.model.structure import Structure, assemble
@@ -229,6 +237,27 @@ def test_on_columns_evaluates_a_kernel_as_its_map_does():
     ours = ca.Function("f", [X, Cm, T], [ca.horzcat(*cols[0])])(Xv, Cv, 0.7)
     theirs = kernel.map(11)(Xv, Cv, 0.7)
     _close(np.array(ours).T, np.array(theirs), 1e-15)
+
+
+def test_shared_nodes_give_one_node_per_operation_on_the_same_nodes():
+    """Within shared_nodes (dopri's step: a dozen accelerations at one p) the same gather or
+    operation of the same nodes is one node; a different index, or outside, is another; the
+    values are the gathers' (arithmetic progressions are slices)."""
+    x = ca.MX.sym("x", 12)
+    rng = np.random.default_rng(3)
+    xv = rng.standard_normal(12)
+    with shared_nodes():
+        a, b = take(x, np.arange(2, 12, 3)), take(x, np.array([2, 5, 8, 11]))
+        c = take(x, np.array([2, 5, 11, 8]))
+        assert hash(a) == hash(b) and hash(c) != hash(a)
+        assert hash(binary(ca.OP_MUL, a, c)) == hash(binary(ca.OP_MUL, a, c))
+        assert hash(binary(ca.OP_MUL, a, c)) != hash(binary(ca.OP_MUL, c, a))
+        both = take(ca.vertcat(x, 2 * x), np.arange(0, 24, 5))
+        out = ca.Function("f", [x], [ca.vertcat(a, c, binary(ca.OP_MUL, a, c), both)])(xv)
+    assert hash(take(x, np.arange(2, 12, 3))) != hash(take(x, np.arange(2, 12, 3)))
+    expected = np.r_[xv[[2, 5, 8, 11]], xv[[2, 5, 11, 8]], xv[[2, 5, 8, 11]] * xv[[2, 5, 11, 8]],
+                     np.r_[xv, 2 * xv][np.arange(0, 24, 5)]]
+    _close(np.array(out).ravel(), expected, 1e-15)
 
 
 @pytest.mark.parametrize("streams", [3, MAX_SIGNATURES + 40])

@@ -118,6 +118,10 @@ class Dopri(Stepper):
         return 3 * self.model.n_coordinates + len(SCALARS) + len(self.model.parameter_vector)
 
     def _step_function(self, stale_stops: bool = True) -> ca.Function:
+        with vectorized.shared_nodes():  # (what the accelerations of a step share, built once)
+            return self._step_graph(stale_stops)
+
+    def _step_graph(self, stale_stops: bool) -> ca.Function:
         """One attempted step on the state [x, v, a, *SCALARS, *p]: the parameters are part of
         the state (carried along unchanged), so one step loop serves every parameter value.
         ``stale_stops``: an attempt is skipped where a pair potential's neighbour list in p has
@@ -140,15 +144,16 @@ class Dopri(Stepper):
             m, with_p = mapped.MappedView(self.model, P), mapped.acceleration_function(self.model, rows)
         elif vector:  # m⁻¹ (and forces of p alone) once per step, shared by its accelerations
             m = ParametricView(self.model, P)
-            with_p = vectorized.acceleration_function(self.model, statics=True)
             minv, forces = vectorized.statics(m)
-            shared = [minv] if forces is None else [minv, forces]
         else:
             m = ParametricView(self.model, P)
             with_p = acceleration_function(self.model, rows, symbolic=symbolic, parametric=True)
 
         def accel(X, V, T):
-            return with_p(X, V, T, P, *shared) if vector else with_p(X, V, T, P)
+            if vector:  # written into the step's graph (no copies in and out of a call), where
+                # what depends on p alone is built once (``shared_nodes``: _step_function)
+                return vectorized.acceleration_graph(m, X, V, T, minv=minv, forces=forces)
+            return with_p(X, V, T, P)
 
         linsol = "symbolicqr" if symbolic else "ldl"
         done = t >= t_target  # (then the attempt is skipped: see the end)
@@ -164,14 +169,24 @@ class Dopri(Stepper):
                 return sum(terms[1:], terms[0]) if terms else ca.MX.zeros(K[0].shape)
             return ca.mtimes(ca.horzcat(*K), ca.DM(np.asarray(w, float)))
 
+        def advanced(y, K, w):
+            """y + hh Σ w_j K_j; vectorized: the scalars hh w_j first, one product per column
+            (no pass over the sum to scale it by hh)."""
+            if not vector:
+                return y + hh * combine(K, w)
+            for wj, Kj in zip(w, K, strict=False):
+                if wj != 0:
+                    y = y + (hh * float(wj)) * Kj
+            return y
+
         for i in range(1, tab.stages):
-            xi = x + hh * combine(Kx, tab.A[i, :i])
-            vi = v + hh * combine(Kv, tab.A[i, :i])
+            xi = advanced(x, Kx, tab.A[i, :i])
+            vi = advanced(v, Kv, tab.A[i, :i])
             ai, _ = accel(xi, vi, t + tab.C[i] * hh)
             Kx.append(vi)
             Kv.append(ai)
-        x1 = x + hh * combine(Kx, tab.B)
-        v1 = v + hh * combine(Kv, tab.B)
+        x1 = advanced(x, Kx, tab.B)
+        v1 = advanced(v, Kv, tab.B)
         t1 = ca.if_else(clipped, t_target, t + hh)
         if m.n_constraints and vector:
             x1, v1, residual = vectorized.projection_graph(m, x1, v1, t1, minv=minv)

@@ -27,7 +27,7 @@ import numpy as np
 from ...model.cache import built_once
 from ...model.structure import Structure, forces
 from ..mapped import _row_terms, mapped_build
-from .columns import Summation, on_columns, take
+from .columns import Summation, binary, on_columns, shared, take
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
@@ -43,12 +43,12 @@ class Jacobian:
     def times(self, y):
         """J y (C,) for a column y (3N,)."""
         b = self.build
-        return b.by_rows([J * take(y, c) for J, c in zip(self.streams, b.cols, strict=True)])
+        return b.by_rows([_times(J, take(y, c)) for J, c in zip(self.streams, b.cols, strict=True)])
 
     def transpose_times(self, lam):
         """Jᵀ λ (3N,) for a column λ (C,)."""
         b = self.build
-        return b.by_cols([J * take(lam, r) for J, r in zip(self.streams, b.rows, strict=True)])
+        return b.by_cols([_times(J, take(lam, r)) for J, r in zip(self.streams, b.rows, strict=True)])
 
     def gram(self, inverse_masses):
         """A = J M⁻¹ Jᵀ (C, C), sparse, for the inverse masses per coordinate (3N,)."""
@@ -74,7 +74,7 @@ class Jacobian:
         reduced = []
         for Bi in columns:
             y = take(Bi, e.rows) / j
-            coupled = e.by_coupled_rows([take(J[s], p) * take(y, q) for s, p, _, q in e.coupling])
+            coupled = e.by_coupled_rows([_times(take(J[s], p), take(y, q)) for s, p, _, q in e.coupling])
             reduced.append(take(Bi, e.others) - coupled)
         if len(e.others):
             lam = ca.solve(e.gram(J, minv), ca.horzcat(*reduced), "ldl")
@@ -82,8 +82,8 @@ class Jacobian:
             lam = ca.MX(0, len(columns))
         out = []
         for i, Bi in enumerate(columns):
-            w = e.by_coupled_cols([take(J[s], p) * take(lam[:, i], r) for s, p, r, _ in e.coupling])
-            lam_s = (take(Bi, e.rows) / (take(minv, e.cols) * j) - w) / j
+            w = e.by_coupled_cols([_times(take(J[s], p), take(lam[:, i], r)) for s, p, r, _ in e.coupling])
+            lam_s = (take(Bi, e.rows) / _times(take(minv, e.cols), j) - w) / j
             out.append(e.by_split([lam[:, i], lam_s]))
         return ca.horzcat(*out)
 
@@ -91,6 +91,11 @@ class Jacobian:
         """J as a sparse MX matrix (C, 3N): for generic products; the methods above are cheaper."""
         b = self.build
         return ca.MX(b.jacobian_sparsity, b.by_nonzero(self.streams)) if b.n_rows else ca.MX(0, b.n3)
+
+
+def _times(a, b):
+    """a ∘ b, one node for the same operands within ``columns.shared_nodes``."""
+    return binary(ca.OP_MUL, a, b)
 
 
 def _column(values):
@@ -149,11 +154,11 @@ class _Gram:
 
         def g(s):
             if s not in weighted:
-                weighted[s] = streams[s] * take(minv, self.cols[s])
+                weighted[s] = _times(streams[s], take(minv, self.cols[s]))
             return weighted[s]
 
-        products = [take(streams[s], k) * take(g(s), k) for s, k in self.diagonal]
-        products += [take(streams[s1], p1) * take(g(s2), p2) for s1, p1, s2, p2 in self.pairs]
+        products = [_times(take(streams[s], k), take(g(s), k)) for s, k in self.diagonal]
+        products += [_times(take(streams[s1], p1), take(g(s2), p2)) for s1, p1, s2, p2 in self.pairs]
         return ca.MX(self.sparsity, self.by_gram([products[k] for k in self.sources]))
 
 
@@ -285,10 +290,12 @@ class VectorizedBuild:
 
     def _columns(self, g, kernel, X, V, T, P) -> list:
         n = g.index.shape[1]
-        values = ca.vertcat(P, ca.DM(g.constants)) if g.constants.size else P
+        values = (shared(("values", id(g), hash(P)), lambda: ca.vertcat(P, ca.DM(g.constants)), g, P)
+                  if g.constants.size else P)
         # gathers made when the kernel reads them (each input element is read once)
         inputs = [lambda j: take(X, g.index[j]), lambda j: take(V, g.index[j]),
-                  lambda j: take(values, g.sources[j]), [T], lambda j: P[j]]
+                  lambda j: take(values, g.sources[j]), [T],
+                  lambda j: shared(("p", hash(P), j), lambda: P[j], P)]
         return on_columns(kernel, inputs, n)
 
     def evaluate(self, X, V, T, P, outputs: tuple, forces_too: bool = False) -> dict:

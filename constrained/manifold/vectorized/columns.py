@@ -12,9 +12,19 @@ streams (a *signature*: on a chain, every inner rod's row of J v sums the same s
 are summed together as gathers and additions of whole columns, and one permutation puts them
 in target order: O(entries) work in a few nodes, where a product with a constant 0/1 matrix
 would cost an indexed update per entry.
+
+Within ``shared_nodes()`` (in this thread; a graph of many evaluations at one state of the parameters, as a
+dopri step with its dozen accelerations) ``take``, ``binary``, ``shared`` and the operations of
+``on_columns`` return the node already built for the same operation on the same nodes: what
+depends on p and the masses alone (a plane's row of J, m⁻¹ at a stream's coordinates, their
+products) is computed once per call, not once per evaluation — CasADi's own ``cse`` finds the
+same, but compares nodes by their serialized data and took 2 s on the 10,000-particle rope.
 """
 
 from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
 
 import casadi as ca
 import numpy as np
@@ -22,12 +32,79 @@ import numpy as np
 #: Beyond this many signatures a Summation is a product with a constant sparse 0/1 matrix.
 MAX_SIGNATURES = 256
 
+#: The node memos of the graphs this thread is building (``shared_nodes``), innermost last.
+_LOCAL = threading.local()
+
+
+def _memos() -> list[dict]:
+    memos = getattr(_LOCAL, "memos", None)
+    if memos is None:
+        memos = _LOCAL.memos = []
+    return memos
+
+
+@contextmanager
+def shared_nodes():
+    """Within: the same operation on the same nodes gives the same node (see the module)."""
+    memos = _memos()
+    memos.append({})
+    try:
+        yield
+    finally:
+        memos.pop()
+
+
+def shared(key: tuple, build, *keep):
+    """build(), or the node built for ``key`` before within ``shared_nodes``; ``keep``: the
+    objects whose identity ``key`` names, held so that it is not reused."""
+    memos = _memos()
+    if not memos:
+        return build()
+    memo = memos[-1]
+    if key not in memo:
+        memo[key] = (build(), keep)
+    return memo[key][0]
+
+
+def _node(value) -> int:
+    """The identity of an MX node (what ``shared``'s keys name), or a number's value."""
+    return hash(value) if isinstance(value, ca.MX) else ("value", float(value))
+
+
+def binary(op: int, a, b):
+    """ca.MX.binary(op, a, b), shared within ``shared_nodes``."""
+    return shared((op, _node(a), _node(b)), lambda: ca.MX.binary(op, a, b), a, b)
+
 
 def take(column, index: np.ndarray):
     """column[index] (MX), the column itself when index is 0, 1, …, n − 1."""
     index = np.asarray(index, dtype=np.int64)
     if index.size == column.numel() and np.array_equal(index, np.arange(index.size)):
         return column
+    memos = _memos()
+    if memos:
+        key = ("take", hash(column), index.size, hash(index.tobytes()))
+        memo = memos[-1]
+        hit = memo.get(key)
+        if hit is not None and np.array_equal(hit[1][1], index):
+            return hit[0]
+        value = _gather(column, index)
+        if value.is_op(ca.OP_GETNONZEROS) and value.class_name().endswith("GetNonzerosSliceE"):
+            # a gather of a gather is one gather of the source: the same slice of it reached
+            # another way (λ's rows from the solve and from λ assembled) is the same node
+            source, where = value.dep(0), value.info()["slice"]
+            value = shared(("slice", hash(source), where["start"], where["stop"], where["step"]),
+                           lambda: value, source)
+        memo[key] = (value, (column, index))
+        return value
+    return _gather(column, index)
+
+
+def _gather(column, index: np.ndarray):
+    if index.size > 1:  # an arithmetic progression as a slice: the same node, built without a list
+        step = int(index[1] - index[0])
+        if step > 0 and np.all(np.diff(index) == step):
+            return column[int(index[0]):int(index[-1]) + 1:step]
     return column[index.tolist()]
 
 
@@ -40,7 +117,8 @@ def on_columns(kernel: ca.Function, inputs: list, n: int) -> list[list]:
     for k in range(kernel.n_instructions()):
         op, args, res = kernel.instruction_id(k), kernel.instruction_input(k), kernel.instruction_output(k)
         if op == ca.OP_CONST:
-            work[res[0]] = ca.MX(kernel.instruction_constant(k))
+            value = kernel.instruction_constant(k)
+            work[res[0]] = shared(("constant", value), lambda value=value: ca.MX(value))
         elif op == ca.OP_INPUT:
             source = inputs[args[0]]
             work[res[0]] = source(args[1]) if callable(source) else source[args[1]]
@@ -49,15 +127,16 @@ def on_columns(kernel: ca.Function, inputs: list, n: int) -> list[list]:
         elif op == ca.OP_CALL or len(args) not in (1, 2):
             raise ValueError(f"{kernel.name()}: instruction {op} cannot be evaluated on columns")
         elif len(args) == 1:
-            work[res[0]] = ca.MX.unary(op, work[args[0]])
+            a = work[args[0]]
+            work[res[0]] = shared((op, hash(a)), lambda op=op, a=a: ca.MX.unary(op, a), a)
         else:
-            work[res[0]] = ca.MX.binary(op, work[args[0]], work[args[1]])
+            work[res[0]] = binary(op, work[args[0]], work[args[1]])
     for out in outputs:
         for j, value in enumerate(out):
             if value is None:  # a structural zero
                 out[j] = ca.MX.zeros(n, 1)
             elif value.numel() == 1 and n != 1:  # shared by every instance (a constant, t, p)
-                out[j] = ca.repmat(value, n, 1)
+                out[j] = shared(("repmat", hash(value), n), lambda v=value: ca.repmat(v, n, 1), value)
     return outputs
 
 
@@ -130,8 +209,9 @@ class Summation:
             total = None
             for s, positions in terms:
                 value = take(streams[s], positions)
-                total = value if total is None else total + value
+                total = value if total is None else binary(ca.OP_ADD, total, value)
             parts.append(total)
         if self.zeros:
             parts.append(ca.MX.zeros(self.zeros, 1))
-        return take(ca.vertcat(*parts), self.permutation)
+        together = shared(("vertcat", *map(hash, parts)), lambda: ca.vertcat(*parts), *parts)
+        return take(together, self.permutation)

@@ -10,6 +10,8 @@ import casadi as ca
 from ...model.cache import ParametricView, structure_cache
 from ...model.structure import Model
 from .build import vectorized_build
+from .columns import binary
+from .columns import shared_nodes as shared_nodes  # (for step loops: many evaluations, one graph)
 
 #: dopri's step loop in CasADi's virtual machine is built on the vectorized build from this
 #: many coordinates (a plain Model, all rows independent). Below, a group's columns are short
@@ -63,7 +65,8 @@ class VectorizedView(ParametricView):
 def statics(view: ParametricView) -> tuple:
     """``(m⁻¹, F)``: the inverse masses (3N,) and, when they depend on p alone (gravity, fixed
     loads), the forces (3N,; else None) — what every acceleration of a step shares, computed
-    once per step and handed to ``acceleration_function(model, statics=True)``."""
+    once per step and handed to ``acceleration_graph`` (dopri's step: its accelerations are
+    written into its graph)."""
     b = vectorized_build(view._model.structure)
     X, V, T = ca.MX.sym("x", b.n3), ca.MX.sym("v", b.n3), ca.MX.sym("t")
     F = b.evaluate(X, V, T, view.P, (), forces_too=True)["F"]
@@ -79,7 +82,7 @@ def acceleration_graph(view: ParametricView, X, V, T, *, minv=None, forces=None)
     F, J = out["F"] if forces is None else forces, out["J"]
     if not b.n_rows:
         return minv * F, ca.MX(0, 1)
-    lam = J.solve(minv, -out["gamma"] - J.times(minv * F))
+    lam = J.solve(minv, -out["gamma"] - J.times(binary(ca.OP_MUL, minv, F)))
     return minv * (F + J.transpose_times(lam)), lam
 
 
@@ -117,25 +120,6 @@ def projection_graph(view: ParametricView, x, v, t, *, minv=None):
     sol = J.solve(minv, ca.horzcat(out["f"], velocity))
     residual = ca.mmax(ca.fabs(out["f"]) / out["scale"])
     return x - minv * J.transpose_times(sol[:, 0]), v - minv * J.transpose_times(sol[:, 1]), residual
-
-
-def acceleration_function(model: Model, *, statics: bool = False) -> ca.Function:
-    """``(x, v, t, p) -> (a, λ)`` on the vectorized build, built once per structure;
-    ``statics``: ``(x, v, t, p, m⁻¹[, F]) -> (a, λ)`` taking what ``statics`` gives (F when the
-    forces depend on p alone)."""
-    cache, prefix = structure_cache(model)
-    key = (*prefix, "acceleration", "vectorized", statics)
-    if key not in cache:
-        X, V, T, P = _symbols(model)
-        view = ParametricView(model, P)
-        inputs, extra = [X, V, T, P], {}
-        if statics:
-            extra["minv"] = ca.MX.sym("minv", model.n_coordinates)
-            if globals()["statics"](view)[1] is not None:
-                extra["forces"] = ca.MX.sym("F", model.n_coordinates)
-        a, lam = acceleration_graph(view, X, V, T, **extra)
-        cache[key] = ca.Function("acceleration", [*inputs, *extra.values()], [a, lam])
-    return cache[key]
 
 
 def _symbols(model: Model):
