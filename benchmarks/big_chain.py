@@ -286,7 +286,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cloth", type=int, nargs="*", default=[], help="cloth sides (100: 10,000 particles)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--quiet", action="store_true", help="pass --quiet (no printed report)")
-    ap.add_argument("--samples", type=int, help="output samples (default: every accepted step)")
+    ap.add_argument("--samples", type=int,
+                    help="output samples (default: the accepted steps, thinned on a large model)")
     ap.add_argument("--link", type=float, default=0.01, help="rope link length (m); issue 16's chain: 1")
     ap.add_argument("--mass", type=float, default=0.01, help="rope particle mass (kg); issue 16's chain: 1")
     ap.add_argument("--rtol", type=float, default=1e-6)
