@@ -340,3 +340,20 @@ def test_sundials_messages_are_kept_from_the_calling_thread_only(capsys):
     assert sys.stderr is before
     assert kept == ["At t = 1, mxstep steps taken before reaching tout.\n"]
     assert capsys.readouterr().err == "another thread's line\n"
+
+
+def test_rattle_keeps_about_step_values_positions_by_default_on_a_large_model(monkeypatch):
+    """rattle's own default grid (every step up to DEFAULT_SAMPLES) is thinned like the other
+    methods' on a large model (driver.step_samples): 400 steps of a model standing for a
+    10,000-particle one keep about 60 samples, evenly, the end included."""
+    from constrained.solvers import driver
+
+    s = C.System(name="pendulum")
+    s.add_particle("bob", 1.0, [1.0, 0.0, 0.0])
+    s.add(C.Distance("bob", point=[0, 0, 0], length=1.0), C.Gravity([0, -G, 0]))
+    monkeypatch.setattr(driver, "STEP_VALUES", 60 * 3)
+    tr = C.simulate(s, 0.4, method="rattle", dt=1e-3, outputs={"energy"})
+    assert tr.stats["steps"] == 400
+    assert 55 <= len(tr.t) <= 70 and tr.t[-1] == pytest.approx(0.4, abs=1e-15)
+    assert np.allclose(np.diff(tr.t[:-1]), tr.t[1] - tr.t[0])
+    assert np.max(np.abs(tr.energy - tr.energy[0])) < 1e-5 * G  # (m g L: the swing's energy)

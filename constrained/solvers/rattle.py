@@ -33,7 +33,7 @@ from ..manifold import diagnostics, mapped, residual
 from ..manifold.graph import schur_solve_graph, velocity_correction_graph
 from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
-from .driver import Stepper
+from .driver import Stepper, step_samples
 
 #: Under compiled="auto", RATTLE's folded steps are compiled for models up to this size.
 AUTO_COMPILE_COORDINATES = 90
@@ -205,7 +205,9 @@ class Rattle(Stepper):
                 )
 
     def default_grid(self, t0, t_end):
-        every = max(1, self._n_steps // DEFAULT_SAMPLES)
+        """Every step up to DEFAULT_SAMPLES of them (fewer on a large model: driver.step_samples)."""
+        samples = min(DEFAULT_SAMPLES, step_samples(self.model.n_coordinates))
+        every = max(1, self._n_steps // samples)
         steps = list(range(0, self._n_steps + 1, every))
         if steps[-1] != self._n_steps:
             steps.append(self._n_steps)
