@@ -190,21 +190,31 @@ class Distance(Constraint):
         """|x_a − x_b| − length of rods between two particles with lengths that are plain
         numbers (entries of p, constrained.lifting), as whole rows of CasADi matrices: one call
         per operation instead of several per rod (a 10,000-link chain)."""
-        index = s._index
-        plain = [k for k, c in enumerate(items) if isinstance(c.a, str) and isinstance(c.b, str)
-                 and c.a in index and c.b in index and type(c.length) is Number]
+        plain, norms = pair_distances(items, s, ("length",))
         out: list = [None] * len(items)
         if not plain:
             return out
         rods = [items[k] for k in plain]
-        X = ca.reshape(s.x, 3, s.x.numel() // 3)
-        d = X[:, [index[c.a] for c in rods]] - X[:, [index[c.b] for c in rods]]
-        squares = d * d  # sq(·): as norm_2 forms it
-        norms = ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :])  # norm_2, column by column
         lengths = ca.vertcat(*[s.number(c.length) for c in rods])
         for k, row, c in zip(plain, ca.vertsplit(norms.T - lengths, 1), rods, strict=True):
             out[k] = [(row, c.label)]
         return out
+
+
+def pair_distances(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], ca.SX | None]:
+    """For batches of items between two particles (attributes ``a``, ``b``): the positions in
+    ``items`` of those joining two particles of ``s`` whose ``fields`` are all plain numbers
+    (lifted: entries of p), and their distances |x_a − x_b| as one row (1, n), formed as
+    norm_2 forms them (sq of each entry, summed, sqrt), column by column."""
+    index = s._index
+    plain = [k for k, c in enumerate(items) if isinstance(c.a, str) and isinstance(c.b, str)
+             and c.a in index and c.b in index and all(type(getattr(c, f)) is Number for f in fields)]
+    if not plain:
+        return plain, None
+    X = ca.reshape(s.x, 3, s.x.numel() // 3)
+    d = X[:, [index[items[k].a] for k in plain]] - X[:, [index[items[k].b] for k in plain]]
+    squares = d * d
+    return plain, ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :])
 
 
 class Pin(Constraint):

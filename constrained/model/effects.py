@@ -18,8 +18,7 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three
-from .lifting import Number
+from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_distances
 
 
 class Effect(Labelled):
@@ -97,17 +96,11 @@ class Spring(Effect):
         rest are plain numbers (entries of p, constrained.lifting), as whole rows of CasADi
         matrices: one call per operation instead of several per spring (a cloth's shear
         springs); None for an item that has no such form (its ``term`` is called instead)."""
-        index = s._index
-        plain = [j for j, e in enumerate(items) if isinstance(e.a, str) and isinstance(e.b, str)
-                 and e.a in index and e.b in index and type(e.k) is Number and type(e.rest) is Number]
+        plain, norms = pair_distances(items, s, ("k", "rest"))
         out: list = [None] * len(items)
         if not plain:
             return out
         springs = [items[j] for j in plain]
-        X = ca.reshape(s.x, 3, s.x.numel() // 3)
-        d = X[:, [index[e.a] for e in springs]] - X[:, [index[e.b] for e in springs]]
-        squares = d * d
-        norms = ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :])
         k = ca.vertcat(*[s.number(e.k) for e in springs]).T
         rest = ca.vertcat(*[s.number(e.rest) for e in springs]).T
         for j, term in zip(plain, ca.horzsplit(0.5 * k * (norms - rest) ** 2, 1), strict=True):
