@@ -113,7 +113,7 @@ class Scene:
     def loaded_model(self) -> Model | None:
         """The Model of ``system`` from the Structure built while loading the scene (None for
         a scene built otherwise, or whose ``system`` was replaced since): ``run(model=...)``
-        then builds nothing and skips the structure's fingerprint (0.45 s at 10,000
+        then builds nothing and skips the structure's fingerprint (0.25 s at 10,000
         particles). For a caller that has not changed the system in place since loading, as
         ``constrained run``: such changes are not seen in the loaded Structure."""
         if self.structure is None or self.structure[0] is not self.system:
