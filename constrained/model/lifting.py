@@ -181,8 +181,6 @@ def plain_data(value):
         return ["number", value.index]
     if isinstance(value, bool | int | float | str):
         return value
-    if isinstance(value, Number):
-        return ["number", value.index]
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, np.ndarray):
