@@ -11,7 +11,7 @@ model when a flag says ``native``) — the same model on the same machine compil
 cached library has a record of its size and checksum beside it; a library that does not match
 it is rebuilt, never loaded.
 
-The cache is private (``_private_folder``): its folder is created 0700, and a folder not owned by
+The cache is private (``private_folder``): its folder is created 0700, and a folder not owned by
 the user or writable by group or others is not used (a warning, then the virtual machine): a
 library in it is code that runs in this process. Each record is signed (HMAC-SHA256) with a
 per-user key kept 0600 in the folder (``signing.key``), so a library and record copied in from
@@ -122,7 +122,7 @@ def compile_functions(functions: list[ca.Function], *, flags=FLAGS) -> list[ca.F
         return list(functions)
     name = functions[0].name()
     folder = cache_dir()
-    refusal = _private_folder(folder)
+    refusal = private_folder(folder)
     key = None if refusal else _signing_key(folder)
     if refusal is None and key is None:
         refusal = f"cannot keep the signing key {SIGNING_KEY} in it"
@@ -238,7 +238,7 @@ def _not_private(st: os.stat_result, what: str) -> str | None:
     return None
 
 
-def _private_folder(folder: Path) -> str | None:
+def private_folder(folder: Path) -> str | None:
     """None when ``folder`` can hold the cache (created 0700 when missing), else why not: a
     folder not owned by this user, or writable by group or others (another user could plant
     a library there)."""

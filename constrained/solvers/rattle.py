@@ -15,8 +15,9 @@ those terms) but is no longer symplectic.
 The whole step is one CasADi Function: Newton for λ is unrolled (``newton_iterations``
 iterations from the previous step's λ, which converge quadratically), and the last
 iteration's residual |f(x_{n+1})| is carried in the state as a running maximum, checked
-after every chunk. ``fold`` chains many steps per call, so no Python runs per step, and
-the chained steps can be compiled to machine code (``compiled``; see constrained.compiled).
+after every chunk. Many steps are chained per call (``_chained``), so no Python runs per
+step, and the chained steps can be compiled to machine code (``compiled``; see
+constrained.codegen.compiled).
 """
 
 from __future__ import annotations
@@ -41,8 +42,10 @@ AUTO_COMPILE_COORDINATES = 90
 #: Largest number of output samples when the caller gives no output grid.
 DEFAULT_SAMPLES = 2000
 #: Coordinate-steps per chained call at most (Ctrl-C waits for a call): 16384 steps of a
-#: 6-coordinate model.
-CHUNK_WORK = 6 << 14
+#: 32-coordinate model, 16 steps of 10,000 particles (~0.1 s with a pair potential's cutoff).
+CHUNK_WORK = 1 << 19
+#: Chains up to this many steps are written out call by call (p shared, not carried).
+UNROLLED_STEPS = 16
 #: Steps chained per call: the shortest that covers the steps to the next output is called;
 #: steps past the count asked for are skipped (nearly free). The same few Functions serve every
 #: dt, so a new step size compiles nothing.
@@ -79,6 +82,7 @@ class Rattle(Stepper):
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
         self.newton_tol = newton_tol
+        self._evaluation = "virtual machine"  # (until the chained steps are compiled)
 
     def _view(self, P) -> ParametricView:
         """The model's Functions with p = P: the mapped build when compiled and large (repeated
@@ -96,11 +100,14 @@ class Rattle(Stepper):
         return not self.model.structure.forces_depend_on_velocity
 
     def _step(self) -> ca.Function:
-        """One RATTLE step on the state (x, v, t, λ, err, h, s, p[, F]) — err: running max of
-        |f| after Newton (in metres: each row over its scale s at the run's start); the step h,
-        the row scales s and the parameters p ride along as inputs, so one Function (one
-        compile) serves every step size, start and parameter value of the structure; F: the
-        forces at (x, t) when they do not depend on v (``carries_forces``)."""
+        """One RATTLE step (state, p) -> state on the state (x, v, t, λ, err, left, h, s[, F]) —
+        err: running max of |f| after Newton (in metres: each row over its scale s at the run's
+        start); left: the steps a call has still to take; the step h and the row scales s ride
+        along in the state and the parameters p (with the pair potentials' neighbour lists:
+        most of the numbers at 10,000 particles) are a second input, read and never copied from
+        step to step, so one Function (one compile) serves every step size, start and parameter
+        value of the structure; F: the forces at (x, t) when they do not depend on v
+        (``carries_forces``)."""
         m = self.model
         rows = self.manifold.rows
         n3, C, n_all = m.n_coordinates, len(self.rows), m.n_constraints
@@ -117,7 +124,7 @@ class Rattle(Stepper):
         else:
             F0, J0, _ = view.dynamics(x, v, t)
         t1 = t + h
-        passed = [h, scales, P]
+        passed = [h, scales]
         counted = [left - 1, *passed]
         if C:
             J0 = J0 if rows is None else J0[list(rows), :]
@@ -148,25 +155,19 @@ class Rattle(Stepper):
             state.append(F0)
             out.append(F1)
         state, out = ca.vertcat(*state), ca.vertcat(*out)
-        step = ca.Function("rattle_attempt", [state], [out])
+        step = ca.Function("rattle_attempt", [state, P], [out])
         # once the steps asked for are done, a step is skipped (short-circuit: nearly free); so
         # are the steps after a pair potential's neighbour list went stale, for ``step`` to
         # refresh it (the graph sums every pair where a list is stale: exact, but O(N²))
-        S = ca.MX.sym("state", state.numel())
+        S, Ps = ca.MX.sym("state", state.numel()), ca.MX.sym("p", P.numel())
         done = S[self._left_slot()] <= 0
         if m.structure.pairs:
-            start = self._p_offset()
-            stale = m.structure.pair_potentials.stale(S[:n3], S[start:start + P.numel()])
-            done = ca.logic_or(done, stale)
-        return ca.Function("rattle_step", [S], [ca.if_else(done, S, step(S), True)])
+            done = ca.logic_or(done, m.structure.pair_potentials.stale(S[:n3], Ps))
+        return ca.Function("rattle_step", [S, Ps], [ca.if_else(done, S, step(S, Ps), True)])
 
     def _left_slot(self) -> int:
-        """Where the steps left of a call stand in the state (x, v, t, λ, err, left, h, s, p[, F])."""
+        """Where the steps left of a call stand in the state (x, v, t, λ, err, left, h, s[, F])."""
         return 2 * self.model.n_coordinates + len(self.rows) + 2
-
-    def _p_offset(self) -> int:
-        """Where p starts in the state: after left, h and the row scales s."""
-        return self._left_slot() + 2 + self.model.n_constraints
 
     def _chunks(self) -> dict[int, FastCall]:
         """The chained steps (CHUNKS, as many as one call may take), built once per structure,
@@ -179,16 +180,19 @@ class Rattle(Stepper):
         if chunks is None:
             step = self._step()
             n3 = self.model.n_coordinates
-            functions = {k: (step if k == 1 else step.fold(k))
+            functions = {k: (step if k == 1 else _chained(step, k))
                          for k in CHUNKS if k == 1 or k * n3 <= CHUNK_WORK}
+            evaluation = "virtual machine"
             if self.compiled:
                 machine = compiled_evaluation.compile_functions(list(functions.values()))
                 if all(f.class_name() == "External" for f in machine):
                     functions = dict(zip(functions, machine, strict=True))
-            chunks = {k: FastCall(f) for k, f in functions.items()}
+                    evaluation = "compiled"
+            chunks = evaluation, {k: FastCall(f) for k, f in functions.items()}
             if not (self.compiled and compiled_evaluation.cut_short()):  # (cut by Ctrl-C: not kept)
                 cache[key] = chunks
-        return chunks
+        self._evaluation = chunks[0]
+        return chunks[1]
 
     def prepare(self, t0, t_end, t_eval) -> None:
         """The fixed step: dt shortened slightly to land on t_end; t_eval must lie on its grid."""
@@ -227,7 +231,8 @@ class Rattle(Stepper):
         if self.carries_forces():
             F0 = m.parametric("dynamics")(x0, v0, t0, m.parameter_vector)[0]
             carried = [np.asarray(F0, float).ravel()]
-        state = [x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, m.parameter_vector, *carried]
+        state = [x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, *carried]
+        self._p = np.array(m.parameter_vector, float)  # (the neighbour lists refreshed in it)
         return round((t0 - self._t0) / self.h), np.concatenate(state)
 
     def step(self, state, t_stop) -> Advance:
@@ -243,12 +248,11 @@ class Rattle(Stepper):
         y = y.copy()
         counter = self._left_slot()
         if m.structure.pairs:  # neighbour lists rebuilt where particles moved far
-            start = self._p_offset()
-            p = m.structure.pair_potentials.refreshed(y[start:start + len(m.parameter_vector)], y[:n3])
+            p = m.structure.pair_potentials.refreshed(self._p, y[:n3])
             if p is not None:
-                y[start:start + len(p)] = p
+                self._p = p
         y[counter] = k  # the steps this call takes
-        (new,) = chunks[size](y)
+        (new,) = chunks[size](y, self._p)
         # (a call stops early where a neighbour list went stale: at least one step is taken,
         # from the list refreshed above)
         k -= max(0, round(float(new[counter]))) if np.isfinite(new[counter]) else 0
@@ -271,4 +275,22 @@ class Rattle(Stepper):
     def finish(self) -> None:
         done = self.stats["steps"]
         self.stats.update({"nfev": 2 * done, "dt": self.h,
-                           "evaluation": "compiled" if self.compiled else "virtual machine"})
+                           "evaluation": self._evaluation})
+
+
+def _chained(step: ca.Function, k: int) -> ca.Function:
+    """``step`` (state, p) -> state taken ``k`` times in one Function. Up to UNROLLED_STEPS
+    calls are written out, p shared by every call (read, never copied: at 10,000 particles with
+    a pair potential p is mostly the neighbour list, ~8x the state); longer chains are CasADi's
+    ``fold`` (one loop in the generated code, whose compile time does not grow with k), which
+    carries p in its state."""
+    S, P = ca.MX.sym("state", step.nnz_in(0)), ca.MX.sym("p", step.nnz_in(1))
+    if k <= UNROLLED_STEPS:
+        out = S
+        for _ in range(k):
+            out = step(out, P)
+        return ca.Function(f"chain_{k}_{step.name()}", [S, P], [out])
+    n = S.numel()
+    SP = ca.MX.sym("state_p", n + P.numel())
+    carried = ca.Function(f"{step.name()}_carrying_p", [SP], [ca.vertcat(step(SP[:n], SP[n:]), SP[n:])])
+    return ca.Function(f"fold_{k}_{step.name()}", [S, P], [carried.fold(k)(ca.vertcat(S, P))[:n]])

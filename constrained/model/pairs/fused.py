@@ -1,0 +1,202 @@
+"""The neighbour list's forces as ONE fused loop in C: gather, pair, scatter-add in a single
+pass over the list, no intermediate arrays (issue 28).
+
+The mapped kernel (constrained.model.pairs.kernel) gathers the positions of every listed pair
+into (3, ~ROW·rows) arrays, maps the pair over them and adds the forces back by transposed
+gathers: three passes over ~400,000 slots at 10,000 particles, most of a step's time. Here the
+same sum is one loop over the rows of the list (``neighbours.pair_rows``), written as the body
+of a CasADi ``Function.jit``: CasADi's code generator writes that body into a compiled step
+loop like any other Function's, and evaluates it outside one through the C compiler.
+
+The physics stays CasADi's: the pair's scalar
+
+    g(r) = −φ_c'(r) / r,     f_i = g(r_ij) (x_i − x_j),   f_j = −f_i,
+
+is derived symbolically (SX) and its algorithm translated to C statements one instruction at
+a time (``scalar_c``) from a whitelist of operations (``_C``); a φ with any other operation is
+not fused (the mapped kernel serves it). A pair at r ≥ r_c is skipped before the square root,
+which changes nothing: φ_c is 0 there.
+
+The fused Function has no derivatives (finite differences are turned off): what needs ∂F/∂x
+of a listed sum takes the every-pair Function (``lists=False``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import casadi as ca
+
+from ...codegen import compiled
+from .neighbours import ROW
+
+#: C for each whitelisted SX operation, from its operands a (and b).
+_C = {
+    ca.OP_ASSIGN: "{a}", ca.OP_ADD: "{a}+{b}", ca.OP_SUB: "{a}-{b}", ca.OP_MUL: "{a}*{b}",
+    ca.OP_DIV: "{a}/{b}", ca.OP_NEG: "-{a}", ca.OP_EXP: "exp({a})", ca.OP_LOG: "log({a})",
+    ca.OP_POW: "pow({a},{b})", ca.OP_CONSTPOW: "pow({a},{b})", ca.OP_SQRT: "sqrt({a})",
+    ca.OP_SQ: "{a}*{a}", ca.OP_TWICE: "2.*{a}", ca.OP_INV: "1./{a}",
+    ca.OP_SIN: "sin({a})", ca.OP_COS: "cos({a})", ca.OP_TAN: "tan({a})",
+    ca.OP_ASIN: "asin({a})", ca.OP_ACOS: "acos({a})", ca.OP_ATAN: "atan({a})",
+    ca.OP_SINH: "sinh({a})", ca.OP_COSH: "cosh({a})", ca.OP_TANH: "tanh({a})",
+    ca.OP_ASINH: "asinh({a})", ca.OP_ACOSH: "acosh({a})", ca.OP_ATANH: "atanh({a})",
+    ca.OP_ATAN2: "atan2({a},{b})", ca.OP_HYPOT: "hypot({a},{b})", ca.OP_ERF: "erf({a})",
+    ca.OP_LOG1P: "log1p({a})", ca.OP_EXPM1: "expm1({a})",
+    ca.OP_FABS: "fabs({a})", ca.OP_FLOOR: "floor({a})", ca.OP_CEIL: "ceil({a})",
+    ca.OP_FMOD: "fmod({a},{b})", ca.OP_FMIN: "fmin({a},{b})", ca.OP_FMAX: "fmax({a},{b})",
+    ca.OP_COPYSIGN: "copysign({a},{b})", ca.OP_SIGN: "({a}>0?1.:({a}<0?-1.:{a}))",
+    ca.OP_LT: "({a}<{b})", ca.OP_LE: "({a}<={b})", ca.OP_EQ: "({a}=={b})", ca.OP_NE: "({a}!={b})",
+    ca.OP_NOT: "(!{a})", ca.OP_AND: "({a}&&{b})", ca.OP_OR: "({a}||{b})",
+    ca.OP_IF_ELSE_ZERO: "({a}?{b}:0.)",
+}
+
+
+def scalar_c(function: ca.Function, inputs: list[str], outputs: list[str], prefix: str = "s",
+             reciprocals: dict[str, str] | None = None) -> str | None:
+    """C statements evaluating the SX Function ``function`` (its inputs the C variables
+    ``inputs``: a name ending in ``[]`` an array, read as ``name[k]``) into the C variables
+    ``outputs`` (declared by the caller), its work in locals ``{prefix}0, {prefix}1, …``; None
+    when it uses an operation outside ``_C``. ``reciprocals`` {input: C variable holding
+    1/input}: a division by that scalar input is written as a product with its reciprocal (one
+    division for all of them)."""
+    reciprocals = reciprocals or {}
+    holds: dict[int, str] = {}  # work slot -> the scalar input it holds unchanged
+    if not function.is_a("SXFunction"):
+        return None
+    work = function.sz_w()
+    lines = [f"casadi_real {', '.join(f'{prefix}{k}' for k in range(work))};"] if work else []
+
+    def operand(k: int) -> str:
+        return f"{prefix}{k}"
+
+    for k in range(function.n_instructions()):
+        op = function.instruction_id(k)
+        if op == ca.OP_INPUT:
+            index, nz = function.instruction_input(k)
+            name = inputs[index]
+            source = f"{name[:-2]}[{nz}]" if name.endswith("[]") else name
+            slot = function.instruction_output(k)[0]
+            lines.append(f"{operand(slot)} = {source};")
+            holds[slot] = source
+            continue
+        elif op == ca.OP_OUTPUT:
+            index, nz = function.instruction_output(k)
+            if function.nnz_out(index) != 1:
+                return None
+            lines.append(f"{outputs[index]} = {operand(function.instruction_input(k)[0])};")
+        elif op == ca.OP_CONST:
+            value = float(function.instruction_constant(k))
+            if not math.isfinite(value):
+                return None  # (no C literal)
+            lines.append(f"{operand(function.instruction_output(k)[0])} = {value!r};")
+        elif op in _C:
+            slots = function.instruction_input(k)
+            args = [operand(a) for a in slots]
+            if op == ca.OP_DIV and holds.get(slots[1]) in reciprocals:
+                expression = f"{args[0]}*{reciprocals[holds[slots[1]]]}"
+            else:
+                expression = _C[op].format(a=args[0], b=args[1] if len(args) > 1 else "")
+            lines.append(f"{operand(function.instruction_output(k)[0])} = {expression};")
+        else:
+            return None
+        for slot in function.instruction_output(k)[:1] if op != ca.OP_OUTPUT else ():
+            holds.pop(slot, None)
+    return "\n".join(lines)
+
+
+def force_body(r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, n: int, capacity: int, cutoff: float) -> str | None:
+    """The C body of the fused force sum: inputs ``x`` (3n), ``t``, ``q`` (φ's parameters),
+    ``data`` (the list: valid, x_ref (3n), I (capacity), J (ROW·capacity)); outputs ``V``
+    (0: the force Function computes no energy) and ``F`` (3n). ``g`` is −φ_c'(r)/r in the
+    symbols r, t and q. Its parts that depend on t and q alone (φ_c's shift: φ'(r_c), φ''(r_c))
+    are computed once before the loop (``casadi.extract_parametric``), not once per pair."""
+    per_pair, names, invariant = ca.extract_parametric(g, ca.vertcat(t, q))
+    e = ca.vertcat(*names) if names else ca.SX.sym("e", 0)
+    before = scalar_c(ca.Function("invariant", [t, q], list(invariant)), ["tt", "qv[]"],
+                      [f"e[{k}]" for k in range(len(invariant))], prefix="u") if names else ""
+    scalar = scalar_c(ca.Function("pair_scale", [r, t, q, e], [ca.cse(per_pair)]), ["r", "tt", "qv[]", "e[]"],
+                      ["gr"], reciprocals={"r": "rinv"})
+    if scalar is None or before is None:
+        return None
+    start, n_q, n_e = 1 + 3 * n, max(1, q.numel()), max(1, e.numel())
+    return f"""
+const casadi_int n = {n}, rows = {capacity}, row = {ROW};
+const casadi_real rc2 = {float(cutoff) ** 2!r};
+casadi_int k, s, c;
+if (V) V[0] = 0;
+if (!F) return 0;
+for (c = 0; c < 3 * n; ++c) F[c] = 0;
+if (!x || !data) return 0;
+/* locals: loads the compiler need not repeat for fear of the writes to F */
+const casadi_real tt = t ? t[0] : 0;
+casadi_real qv[{n_q}], e[{n_e}];
+for (c = 0; c < {q.numel()}; ++c) qv[c] = q ? q[c] : 0;
+{{
+{before}
+}}
+const casadi_real *I = data + {start}, *J = data + {start} + rows;
+for (k = 0; k < rows; ++k) {{
+  const casadi_real ik = I[k];
+  if (!(ik >= 0 && ik < n)) break;  /* the empty rows are last */
+  const casadi_int i = (casadi_int) ik;
+  const casadi_real xi0 = x[3 * i], xi1 = x[3 * i + 1], xi2 = x[3 * i + 2];
+  casadi_real fi0 = 0, fi1 = 0, fi2 = 0;
+  for (s = 0; s < row; ++s) {{
+    const casadi_real js = J[row * k + s];
+    if (!(js >= 0 && js < n)) break;  /* a row's empty places are last */
+    const casadi_int j = (casadi_int) js;
+    const casadi_real d0 = xi0 - x[3 * j], d1 = xi1 - x[3 * j + 1], d2 = xi2 - x[3 * j + 2];
+    const casadi_real r2 = d0 * d0 + d1 * d1 + d2 * d2;
+    if (r2 >= rc2) continue;  /* phi_c is 0 beyond the cutoff */
+    const casadi_real r = sqrt(r2), rinv = 1. / r;
+    casadi_real gr;
+    {{
+{scalar}
+    }}
+    fi0 += gr * d0; fi1 += gr * d1; fi2 += gr * d2;
+    F[3 * j] -= gr * d0; F[3 * j + 1] -= gr * d1; F[3 * j + 2] -= gr * d2;
+  }}
+  F[3 * i] += fi0; F[3 * i + 1] += fi1; F[3 * i + 2] += fi2;
+}}
+return 0;
+"""
+
+
+def fused_forces(name: str, r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, *, n: int, size: int, capacity: int,
+                 cutoff: float) -> ca.Function | None:
+    """(x (3n), t, q (n_q), data (size)) -> (V = 0, F (3n)): the listed pairs' forces in one C
+    loop (``force_body``), or None where that cannot be had: no C compiler, compiled code
+    turned off (``CONSTRAINED_COMPILE=0``), an operation of φ outside the whitelist, or a
+    failed compilation."""
+    if not compiled.enabled():
+        return None
+    body = force_body(r, t, q, g, n, capacity, cutoff)
+    if body is None:
+        return None
+    folder = jit_folder()
+    if folder is None:
+        return None
+    # (the folder is part of the Function's serialization, and so of the compile cache's key:
+    # a fixed one, so that a step loop holding this kernel is found again by the next run;
+    # CasADi names its files uniquely in it and removes them when the Function goes)
+    options = {"compiler": "shell", "buffered": False, "enable_fd": False,
+               "jit_options": {"compiler": compiled.compiler(), "directory": str(folder),
+                               "compiler_flags": ["-O2"]}}
+    sparsity_in = [ca.Sparsity.dense(3 * n, 1), ca.Sparsity.dense(1, 1), ca.Sparsity.dense(q.numel(), 1),
+                   ca.Sparsity.dense(size, 1)]
+    sparsity_out = [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(3 * n, 1)]
+    try:
+        return ca.Function.jit(name, body, ["x", "t", "q", "data"], ["V", "F"], sparsity_in,
+                               sparsity_out, options)
+    except RuntimeError:
+        return None
+
+
+def jit_folder() -> Path | None:
+    """``jit`` in the compile cache's folder, private as it is (the library compiled there is
+    loaded into this process), or None when it cannot be had."""
+    folder = compiled.cache_dir() / "jit"
+    if compiled.private_folder(compiled.cache_dir()) or compiled.private_folder(folder):
+        return None
+    return folder

@@ -1,0 +1,131 @@
+"""The neighbour list's forces as one fused C loop (constrained.model.pairs.fused): the same
+numbers as the mapped kernel and a NumPy sum, every whitelisted operation translated exactly,
+the mapped kernel where the loop cannot be had, and a compile-cache key that a new process
+finds again."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+from test_pairs import gas, numpy_pair_sum, pair_parts, trap_parts
+
+import constrained as C
+from constrained.codegen import compiled
+from constrained.model.pairs import fused, kernel
+from constrained.model.structure import assemble
+
+needs_compiler = pytest.mark.skipif(not compiled.enabled(), reason="no C compiler")
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+
+
+def _listed_forces(monkeypatch, use_fused: bool):
+    monkeypatch.setattr(kernel, "FUSED", use_fused)
+    bonds = [(10, 11), (11, 12), (40, 41)]
+    system = gas(150, cutoff=1.7, skin=0.3, jitter=0.25, particles=range(5, 140), bonds=bonds,
+                 exclude_bonded=True)
+    model = assemble(system, reuse=False)
+    (term,) = model.structure.pairs
+    x = np.asarray(system.positions).ravel() + 0.05 * np.random.default_rng(2).normal(size=450)
+    return model, term, x, pair_parts(model, x)
+
+
+@needs_compiler
+def test_the_fused_loop_gives_the_mapped_kernel_and_the_numpy_sum(monkeypatch):
+    """A disordered gas (a subset, bonded pairs excluded, parameters in φ): the
+    fused loop is what the force Function runs, and its forces equal the mapped kernel's and a
+    NumPy sum over the pairs within r_c."""
+    model, term, x, (V, F) = _listed_forces(monkeypatch, True)
+    assert term._sums("force")[1].class_name() == "JitFunction"
+    _, mapped_term, _, (V_m, F_m) = _listed_forces(monkeypatch, False)
+    assert mapped_term._sums("force")[1].class_name() == "MXFunction"
+    np.testing.assert_allclose(F, F_m, rtol=1e-12, atol=1e-13 * np.abs(F_m).max())
+    assert V == pytest.approx(V_m, rel=1e-13)  # (the energy is the mapped kernel's in both)
+    system = model.system
+    _, F_trap = trap_parts(system, x)
+    _, F_ref = numpy_pair_sum(x, range(5, 140), 1.7, excluded={(10, 11), (11, 12), (40, 41)})
+    np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-9, atol=1e-10 * np.abs(F_ref).max())
+
+
+def _whitelist_cases():
+    r = ca.SX.sym("r")
+    u = r / 2  # in (0.55, 0.95): asin, acos, atanh defined; acosh of r ≥ 1.1
+    pieces = [r + 1, r - 3, r * r, 1 / r, -r, ca.exp(-r), ca.log(r), r ** u, r ** 3, r ** 0.5,
+              ca.sqrt(r), 2 * r, ca.sin(r), ca.cos(r), ca.tan(u), ca.asin(u), ca.acos(u), ca.atan(r),
+              ca.sinh(r), ca.cosh(r), ca.tanh(r), ca.asinh(r), ca.acosh(r), ca.atanh(u),
+              ca.atan2(r, u), ca.hypot(r, u), ca.erf(u), ca.log1p(r), ca.expm1(-r), ca.fabs(u - 0.7),
+              ca.floor(3 * r), ca.ceil(3 * r), ca.fmod(7 * r, 1.3), ca.fmin(r, 1.5), ca.fmax(r, 1.5),
+              ca.copysign(r, u - 0.7), ca.sign(u - 0.7), r < 1.5, r <= 1.5, r == 1.5, r != 1.5,
+              ca.logic_not(r < 1.5), ca.logic_and(r < 1.8, r > 1.2), ca.logic_or(r < 1.2, r > 1.8),
+              ca.if_else(r < 1.5, ca.exp(r), ca.sin(r))]
+    return r, pieces
+
+
+@needs_compiler
+def test_every_whitelisted_operation_is_translated_to_the_same_number(tmp_path):
+    """Each SX operation the translation knows, written to C by ``scalar_c`` and compiled,
+    gives CasADi's own value (to rounding) at several r."""
+    r, pieces = _whitelist_cases()
+    f = ca.Function("pieces", [r], pieces)
+    ops = {f.instruction_id(k) for k in range(f.n_instructions())}
+    assert ops - {ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST} <= set(fused._C)
+    assert len(ops & set(fused._C)) >= 40  # (the whole whitelist but a few CasADi folds away)
+    code = fused.scalar_c(f, ["x0"], [f"y[{k}]" for k in range(len(pieces))])
+    assert code is not None
+    body = f"const casadi_real x0 = x[0];\n{{\n{code}\n}}\n"  # (no return: the outputs are copied after)
+    jit = ca.Function.jit("translated", body, ["x"], ["y"], [ca.Sparsity.dense(1, 1)],
+                          [ca.Sparsity.dense(len(pieces), 1)],
+                          {"compiler": "shell", "jit_options": {"directory": str(tmp_path)}})
+    for value in (1.13, 1.37, 1.5, 1.66, 1.91):
+        expected = np.array([float(o) for o in f(value)])
+        got = np.asarray(jit(value)).ravel()
+        np.testing.assert_allclose(got, expected, rtol=2e-15, atol=1e-300)
+
+
+def test_an_operation_outside_the_whitelist_is_not_translated():
+    r = ca.SX.sym("r")
+    assert fused.scalar_c(ca.Function("f", [r], [ca.erfinv(r / 3)]), ["r"], ["y"]) is None
+    assert fused.scalar_c(ca.Function("f", [r], [r + ca.inf]), ["r"], ["y"]) is None  # (no C literal)
+    t, q = ca.SX.sym("t"), ca.SX.sym("q", 0)
+    assert fused.fused_forces("f", r, t, q, ca.erfinv(r / 3), n=4, size=60, capacity=4, cutoff=1.0) is None
+
+
+def test_without_compiled_code_the_mapped_kernel_serves(monkeypatch):
+    """``CONSTRAINED_COMPILE=0``: no C compiled at run time, the fused loop included; the
+    forces are the mapped kernel's."""
+    monkeypatch.setenv("CONSTRAINED_COMPILE", "0")
+    _, term, _, _ = _listed_forces(monkeypatch, True)
+    assert term._sums("force")[1].class_name() == "MXFunction"
+
+
+@needs_compiler
+def test_the_fused_kernel_serializes_alike_when_built_again():
+    """Its serialization is part of the compile cache's key of every step loop that holds it:
+    two builds (as two runs make) must give the same text, so the next run finds the library."""
+    r, t, q = ca.SX.sym("r"), ca.SX.sym("t"), ca.SX.sym("q", 1)
+    g = -ca.jacobian(q[0] * (1 / r) ** 12, r) / r
+    built = [fused.fused_forces("pairs_fused_force", r, t, q, g, n=5, size=1 + 15 + 9 * 8, capacity=8,
+                                cutoff=1.0) for _ in range(2)]
+    assert built[0] is not None and built[0].serialize() == built[1].serialize()
+
+
+@needs_compiler
+def test_rattle_runs_its_chained_steps_compiled_and_says_so():
+    """The chained steps (several chain lengths, one library) compile under distinct names and
+    run as machine code: the stats say so only when they do, and the trajectory is the
+    virtual machine's."""
+    s = C.System()
+    s.add_particle("a", 1.0, [1.0, 0.0, 0.0])
+    s.add_particle("b", 2.0, [1.0, -1.0, 0.0], [0.3, 0.0, 0.1])
+    s.add(C.Distance("a", point=[0, 0, 0], length=1.0), C.Distance("a", "b", length=1.0),
+          C.Gravity([0, 0, -9.81]))
+    runs = {setting: C.simulate(s, 0.5, method="rattle", dt=1e-3, compiled=setting)
+            for setting in (True, False)}
+    assert compiled.last_error is None
+    assert runs[True].stats["evaluation"] == "compiled"
+    assert runs[False].stats["evaluation"] == "virtual machine"
+    np.testing.assert_allclose(runs[True].x, runs[False].x, rtol=0, atol=1e-12)
