@@ -32,10 +32,10 @@ def pairs_within(y: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
     found = cKDTree(y, balanced_tree=False, compact_nodes=False).query_pairs(reach, output_type="ndarray")
     if not len(found):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    i, j = np.minimum(found[:, 0], found[:, 1]), np.maximum(found[:, 0], found[:, 1])
+    i, j = found[:, 0], found[:, 1]  # (i < j: query_pairs' documented order within a pair)
     # (a stable sort of small integers is a radix sort: ~3x faster than a lexsort of both)
     order = np.argsort(i.astype(np.int16) if n < 2 ** 15 else i, kind="stable")
-    return i[order].astype(np.int64), j[order].astype(np.int64)
+    return i[order].astype(np.int64, copy=False), j[order].astype(np.int64, copy=False)
 
 
 def rows_needed(i: np.ndarray, n: int) -> int:
