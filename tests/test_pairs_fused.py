@@ -12,7 +12,7 @@ from test_pairs import gas, numpy_pair_sum, pair_parts, trap_parts
 
 import constrained as C
 from constrained.codegen import compiled
-from constrained.model.pairs import fused, kernel
+from constrained.model.pairs import fused, kernel, neighbours
 from constrained.model.structure import assemble
 
 needs_compiler = pytest.mark.skipif(not compiled.enabled(), reason="no C compiler")
@@ -129,3 +129,70 @@ def test_rattle_runs_its_chained_steps_compiled_and_says_so():
     assert runs[True].stats["evaluation"] == "compiled"
     assert runs[False].stats["evaluation"] == "virtual machine"
     np.testing.assert_allclose(runs[True].x, runs[False].x, rtol=0, atol=1e-12)
+
+
+def _cell_rows(y, reach, capacity, inner):
+    from constrained.codegen.fast_call import FastCall
+    from constrained.model.pairs import cells
+
+    out = FastCall(cells.rows_function(len(y), capacity, reach, inner))(y.ravel())[0]
+    if out[0] != 1:
+        return None
+    return out[1:1 + capacity], out[1 + capacity:]
+
+
+def _listed_pairs(I, J, n):
+    i = np.repeat(I, kernel.ROW).astype(int)
+    j = J.astype(int)
+    return i[j < n], j[j < n]
+
+
+CLOUDS = {
+    "uniform cube, 700": lambda rng: rng.random((700, 3)) * 700 ** (1 / 3),
+    "two far clusters (the grid coarsened)": lambda rng: np.concatenate(
+        [rng.random((300, 3)) * 6, 1e4 + rng.random((300, 3)) * 6]),
+    "a flat sheet, 400": lambda rng: np.column_stack([rng.random((400, 2)) * 20, np.zeros(400)]),
+}
+
+
+@needs_compiler
+@pytest.mark.parametrize("cloud", CLOUDS.values(), ids=CLOUDS.keys())
+def test_the_cell_list_writes_the_rows_of_the_tree(cloud):
+    """The C cell list's rows hold the same pairs as SciPy's tree and NumPy's (``neighbours.
+    pair_rows``), in the same rows (the same points, in order), each point's pairs within the
+    cutoff before its others; too small a capacity, or a point not finite, gives no list."""
+    rng = np.random.default_rng(7)
+    y = cloud(rng)
+    n, reach, inner = len(y), 1.3, 1.1
+    rows = neighbours.rows_needed(neighbours.pairs_within(y, reach)[0], n)
+    I0, J0 = neighbours.pair_rows(y, reach, rows + 4)
+    I1, J1 = _cell_rows(y, reach, rows + 4, inner)
+    np.testing.assert_array_equal(I1, I0)
+    i1, j1 = _listed_pairs(I1, J1, n)
+    assert sorted(zip(*_listed_pairs(I0, J0, n), strict=True)) == sorted(zip(i1, j1, strict=True))
+    assert len(i1) > n / 4  # (pairs there are)
+    far = np.linalg.norm(y[i1] - y[j1], axis=1) >= inner
+    for point in np.unique(i1):
+        mine = far[i1 == point]
+        assert not np.any(mine[:-1] > mine[1:])  # near, then far
+    assert _cell_rows(y, reach, rows - 1, inner) is None
+    y[5, 1] = np.nan
+    assert _cell_rows(y, reach, rows + 4, inner) is None
+
+
+@needs_compiler
+def test_a_term_builds_the_same_list_by_cells_as_by_the_tree(monkeypatch):
+    """A pair term's data (its reference positions and rows) is the same whichever builds it."""
+    system = gas(150, cutoff=1.7, skin=0.3, jitter=0.25, particles=range(5, 140))
+    data = {}
+    for use_cells in (True, False):
+        monkeypatch.setattr(kernel, "CELLS", use_cells)
+        (term,) = assemble(system, reuse=False).structure.pairs
+        data[use_cells] = term.data(np.asarray(system.positions))
+        assert (term._cell_rows is not False) == use_cells
+    start = 1 + 3 * term.n
+    np.testing.assert_array_equal(data[True][:start + term.capacity], data[False][:start + term.capacity])
+    listed = {k: _listed_pairs(v[start:start + term.capacity], v[start + term.capacity:], term.n)
+              for k, v in data.items()}
+    assert len(listed[True][0])
+    assert sorted(zip(*listed[True], strict=True)) == sorted(zip(*listed[False], strict=True))

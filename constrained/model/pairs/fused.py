@@ -174,7 +174,17 @@ def fused_forces(name: str, r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, *, n: int, s
     body = force_body(r, t, q, g, n, capacity, cutoff)
     if body is None:
         return None
-    folder = jit_folder()
+    sparsity_in = [ca.Sparsity.dense(3 * n, 1), ca.Sparsity.dense(1, 1), ca.Sparsity.dense(q.numel(), 1),
+                   ca.Sparsity.dense(size, 1)]
+    sparsity_out = [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(3 * n, 1)]
+    return jit(name, body, ["x", "t", "q", "data"], ["V", "F"], sparsity_in, sparsity_out)
+
+
+def jit(name: str, body: str, names_in: list[str], names_out: list[str], sparsity_in: list[ca.Sparsity],
+        sparsity_out: list[ca.Sparsity]) -> ca.Function | None:
+    """``Function.jit`` of ``body`` (unbuffered: a null input is all zeros, a null output not
+    wanted; no derivatives), compiled in ``jit_folder``, or None where it cannot be had."""
+    folder = jit_folder() if compiled.enabled() else None
     if folder is None:
         return None
     # (the folder is part of the Function's serialization, and so of the compile cache's key:
@@ -183,12 +193,8 @@ def fused_forces(name: str, r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, *, n: int, s
     options = {"compiler": "shell", "buffered": False, "enable_fd": False,
                "jit_options": {"compiler": compiled.compiler(), "directory": str(folder),
                                "compiler_flags": ["-O2"]}}
-    sparsity_in = [ca.Sparsity.dense(3 * n, 1), ca.Sparsity.dense(1, 1), ca.Sparsity.dense(q.numel(), 1),
-                   ca.Sparsity.dense(size, 1)]
-    sparsity_out = [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(3 * n, 1)]
     try:
-        return ca.Function.jit(name, body, ["x", "t", "q", "data"], ["V", "F"], sparsity_in,
-                               sparsity_out, options)
+        return ca.Function.jit(name, body, names_in, names_out, sparsity_in, sparsity_out, options)
     except RuntimeError:
         return None
 

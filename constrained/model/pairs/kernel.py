@@ -60,7 +60,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from . import fused, neighbours
+from ...codegen.fast_call import FastCall
+from . import cells, fused, neighbours
 from .neighbours import GROUP_ROWS, ROW
 
 #: Particles per block of the all-pairs sum: a tile is BLOCK² pairs written out once (64 pairs,
@@ -75,6 +76,9 @@ CAPACITY_FACTOR = 1.25
 #: Whether the listed forces run as one fused C loop where a C compiler allows
 #: (``fused.fused_forces``); False: the mapped kernel always (tests compare the two).
 FUSED = True
+#: Whether a list's rows are built by the cell list in C where a C compiler allows
+#: (``cells``); False: by SciPy's tree and NumPy always (tests compare the two).
+CELLS = True
 
 
 @dataclass(frozen=True)
@@ -174,6 +178,7 @@ class PairTerm:
         self._tile = _tiles(self._pair, t, q)
         self._coordinates = (3 * spec.particles[:, None] + np.arange(3)).ravel()
         self._functions = None
+        self._cell_rows = None  # (the cell list's FastCall, or False: NumPy's route)
         mask = np.zeros(self.n_blocks * BLOCK)
         mask[:self.n] = 1.0
         self._mask = ca.DM(mask.reshape(self.n_blocks, BLOCK).T)
@@ -206,12 +211,25 @@ class PairTerm:
         if self.cutoff is None:
             return np.zeros(0)
         y = self._listed(x)
-        found = neighbours.pair_rows(y, self.reach, self.capacity)
+        found = self._rows(y)
         valid = found is not None
         ref = y.ravel() if valid else np.zeros(3 * self.n)
         if not valid:
             found = np.full(self.capacity, float(self.n)), np.full(ROW * self.capacity, float(self.n + 1))
         return np.concatenate([[float(valid)], ref, *found])
+
+    def _rows(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """``neighbours.pair_rows`` of the points y (n, 3): by the cell list in C when it can
+        be had (compiled on the first call), else by SciPy and NumPy."""
+        if self._cell_rows is None:
+            function = cells.rows_function(self.n, self.capacity, self.reach, self.cutoff) if CELLS else None
+            self._cell_rows = FastCall(function) if function is not None else False
+        if self._cell_rows is False:
+            return neighbours.pair_rows(y, self.reach, self.capacity)
+        out = self._cell_rows(y.ravel())[0]
+        if out[0] != 1:
+            return None
+        return out[1:1 + self.capacity], out[1 + self.capacity:]
 
     def fresh(self, x, data, share: float = 1.0) -> bool:
         """Whether ``data`` still holds every pair within the cutoff at positions ``x`` (no
