@@ -35,11 +35,13 @@ class ParametricView:
     """``model`` with its parameters a CasADi symbol ``P``: the attributes the graph builders
     read (``dynamics(x, v, t)``, ``jacobian``, ``velocity_terms``, ``constraint``, sizes,
     masses), calling the parametric Functions with P. A step loop built on it takes p as an
-    input and serves every Model of the structure (``structure_cache``)."""
+    input and serves every Model of the structure (``structure_cache``). ``differentiable``:
+    for a graph that takes their derivatives (``Structure.function``)."""
 
-    def __init__(self, model: Model, P):
+    def __init__(self, model: Model, P, *, differentiable: bool = False):
         self.P = P
         self._model = model
+        self._differentiable = differentiable
         for name in ("n_coordinates", "n_constraints", "n_position_rows", "n_particles", "masses",
                      "inverse_masses", "rheonomic", "constraint_labels", "parameter_vector"):
             setattr(self, name, getattr(model, name))
@@ -50,7 +52,7 @@ class ParametricView:
             self.inverse_masses = 1 / self.masses
 
     def _call(self, name: str, *args):
-        return self._model.parametric(name)(*args, self.P)
+        return self._model.parametric(name, differentiable=self._differentiable)(*args, self.P)
 
     def constraint(self, X, T):
         return self._call("constraint", X, T)

@@ -31,11 +31,13 @@ class HeldRows(Model):
         self.position_rows = tuple(k for k in self.rows if k < model.n_position_rows)
         self.n_position_rows = len(self.position_rows)
 
-    def _selected(self, name: str, outputs: dict[int, str], *, parametric: bool = False) -> ca.Function:
+    def _selected(self, name: str, outputs: dict[int, str], *, parametric: bool = False,
+                  differentiable: bool = False) -> ca.Function:
         """The model's Function ``name`` (with p as its last input when ``parametric``) with the
         row-indexed outputs (index -> 'rows' for a column vector, 'matrix' for J) restricted
         to the held rows."""
-        f = self.full.parametric(name) if parametric else getattr(self.full, name)
+        f = (self.full.parametric(name, differentiable=differentiable) if parametric
+             else getattr(self.full, name))
         kind = ca.MX if f.is_a("MXFunction") else ca.SX  # (pair potentials: mapped kernels)
         inputs = [kind.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
         out = f.call(inputs)
@@ -52,12 +54,13 @@ class HeldRows(Model):
     def _restricted(self, name: str) -> ca.Function:
         return self._selected(name, _ROW_OUTPUTS[name])
 
-    def parametric(self, name: str) -> ca.Function:
+    def parametric(self, name: str, *, differentiable: bool = False) -> ca.Function:
         outputs = _ROW_OUTPUTS.get(name)
         if outputs is None:
-            return self.full.parametric(name)
-        return built_once(self.full.structure, ("held parametric", name, self.rows),
-                          lambda: self._selected(name, outputs, parametric=True))
+            return self.full.parametric(name, differentiable=differentiable)
+        return built_once(self.full.structure, ("held parametric", name, self.rows, differentiable),
+                          lambda: self._selected(name, outputs, parametric=True,
+                                                 differentiable=differentiable))
 
     def with_parameters(self, parameters=None) -> Model:
         if not parameters:

@@ -152,6 +152,10 @@ class Structure:
         energy = T + V + U - ca.dot(v, dU_dv)
         # The Functions are made when first asked for (making one sorts its whole graph).
         self._p = p
+        # every Function takes the whole p, the neighbour lists' entries after the physical ones
+        # (those of the pair outputs read them; the others ignore them)
+        self._p_input = p if self.n_p == self.n_physical else ca.vertcat(
+            p, ca.SX.sym("lists", self.n_p - self.n_physical))
         self._parts: dict[str, tuple] = {}
         self._functions: dict[str, ca.Function] = {}
         self._fixed: dict[str, ca.Function | None] = {}
@@ -173,18 +177,21 @@ class Structure:
         function("masses", [], [], [ca.SX(m3)], ["m"])  # (3N,): formulas of p, or numbers
         Structure.builds += 1
 
-    def function(self, name: str, *, lists: bool = True) -> ca.Function:
+    def function(self, name: str, *, lists: bool = True, differentiable: bool = False) -> ca.Function:
         """The parametric Function ``name``: the Model's inputs, then ``p``. ``lists`` False: the
         pair potentials summed over every pair, their neighbour lists unused (what a Model binds:
-        a list fixed in it would be stale wherever the particles move; SX symbols write it out)."""
+        a list fixed in it would be stale wherever the particles move; SX symbols write it out).
+        ``differentiable``: for a graph that takes derivatives of it (the forces through a
+        neighbour list are then the mapped kernel's, not the fused C loop's, which has none)."""
         pairs = bool(self.pairs) and name in _PAIR_OUTPUTS
-        key = name if lists or not pairs else (name, "every pair")
+        key = name if not pairs else (name, lists, lists and differentiable)
         if key not in self._functions:
             inputs, in_names, outputs, out_names = self._parts[name]
             outputs = outputs() if callable(outputs) else outputs
-            function = ca.Function(name, [*inputs, self._p], outputs, [*in_names, "p"], out_names)
-            self._functions[key] = (self.pair_potentials.with_pairs(name, function, lists=lists) if pairs
-                                    else function)
+            function = ca.Function(name, [*inputs, self._p_input], outputs, [*in_names, "p"], out_names)
+            self._functions[key] = (self.pair_potentials.with_pairs(name, function, lists=lists,
+                                                                    differentiable=differentiable)
+                                    if pairs else function)
         return self._functions[key]
 
     @property
@@ -360,11 +367,11 @@ class Model:
     def _bound(self, name: str) -> ca.Function:
         return self.structure.bind(name, self.parameter_vector)
 
-    def parametric(self, name: str) -> ca.Function:
+    def parametric(self, name: str, *, differentiable: bool = False) -> ca.Function:
         """The Function ``name`` with the parameter vector p as its last input (the
         structure's: shared by every Model of this structure, whatever the values; this
-        Model's p is ``parameter_vector``)."""
-        return self.structure.function(name)
+        Model's p is ``parameter_vector``); ``differentiable``: see ``Structure.function``."""
+        return self.structure.function(name, differentiable=differentiable)
 
     @property
     def masses_follow_parameters(self) -> bool:

@@ -77,7 +77,7 @@ class _Functions:
         kind = ca.MX if getattr(model.structure, "pairs", ()) else ca.SX
         X, V, T = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
         P = kind.sym("p", len(model.parameter_vector))
-        view = ParametricView(model, P)
+        view = ParametricView(model, P, differentiable=True)  # (∂F/∂x below)
         F, J, gamma = view.dynamics(X, V, T)
         if rows is not None:
             J, gamma = J[list(rows), :], gamma[list(rows)]

@@ -245,8 +245,8 @@ class PairTerm:
         return bool(data[0] == 1 and within)
 
     # --- the graph -----------------------------------------------------------------------
-    def energy_and_forces(self, X: ca.MX, T, P: ca.MX, n_physical: int, *,
-                          lists: bool = True, want: str = "both") -> tuple[ca.MX, ca.MX]:
+    def energy_and_forces(self, X: ca.MX, T, P: ca.MX, n_physical: int, *, lists: bool = True,
+                          want: str = "both", differentiable: bool = False) -> tuple[ca.MX, ca.MX]:
         """(V, F) as MX of the positions X (3N), t and the full p (the physical parameters are
         its first ``n_physical`` entries, this term's data at ``offset``): F = −∂V/∂x (3N).
         ``lists`` False: every pair, whatever the data (no neighbour list: the graph then
@@ -255,7 +255,7 @@ class PairTerm:
         term's: 0 through the list)."""
         Pp = P[self._p_used] if self._p_used else ca.MX(0, 1)  # (the entries φ reads)
         Xl = X[self._coordinates.tolist()]
-        every, listed = self._sums(want)
+        every, listed = self._sums(want, differentiable)
         if self.cutoff is None or not lists:
             V, F = every(Xl, T, Pp)
         else:
@@ -272,25 +272,35 @@ class PairTerm:
                                             list(range(3 * self.n))), 1.0)
         return V, ca.mtimes(scatter, F)
 
-    def _sums(self, want: str = "both") -> tuple[ca.Function, ca.Function | None]:
+    def _sums(self, want: str = "both",
+              differentiable: bool = False) -> tuple[ca.Function, ca.Function | None]:
         """(every, listed): the pair sums as Functions, built once and called by every Function
         of the Structure that holds them: ``every(x_l, t, p_φ) -> (V, F)`` over every pair and
         (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list, which
-        computes only what ``want`` asks ("both", "force": V = 0, "energy": F = 0)."""
+        computes only what ``want`` asks ("both", "force": V = 0, "energy": F = 0): the forces
+        by the fused C loop where it can be had and derivatives are not asked for
+        (``differentiable``)."""
         if self._functions is None:
             Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
             self._functions = {"every": ca.Function("pairs_every", [Xl, T, Pp],
                                                     list(self._all_pairs(Xl, T, Pp)))}
-        if self.cutoff is not None and want not in self._functions:
-            fused = self._fused() if want == "force" else None
+        if self.cutoff is None:
+            return self._functions["every"], None
+        key = (want, "fused") if want == "force" and not differentiable else want
+        if key not in self._functions:
+            fused = self._fused() if key == (want, "fused") else None
             if fused is not None:
-                self._functions[want] = fused
+                self._functions[key] = fused
             else:
-                Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
-                data = ca.MX.sym("data", self.size)
-                self._functions[want] = ca.Function(f"pairs_listed_{want}", [Xl, T, Pp, data],
-                                                    list(self._listed_pairs(Xl, T, Pp, data, want)))
-        return self._functions["every"], self._functions.get(want)
+                self._functions[key] = self._sums(want, True)[1] if key != want else self._mapped(want)
+        return self._functions["every"], self._functions[key]
+
+    def _mapped(self, want: str) -> ca.Function:
+        """The listed sum as the mapped graph (``_listed_pairs``)."""
+        Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
+        data = ca.MX.sym("data", self.size)
+        return ca.Function(f"pairs_listed_{want}", [Xl, T, Pp, data],
+                           list(self._listed_pairs(Xl, T, Pp, data, want)))
 
     def _fused(self) -> ca.Function | None:
         """The listed forces as one C loop (``fused.fused_forces``), or None where that cannot

@@ -46,20 +46,23 @@ class PairPotentials:
         self.parametric = any(ca.depends_on(term.spec.phi, s.p) for term in terms)
         self._values = None
 
-    def with_pairs(self, name: str, rest: ca.Function, *, lists: bool = True) -> ca.Function:
+    def with_pairs(self, name: str, rest: ca.Function, *, lists: bool = True,
+                   differentiable: bool = False) -> ca.Function:
         """The Function ``name`` (``OUTPUTS``), an MX Function of the full p, with the pair
         potentials' energy and forces added to its outputs: ``rest`` (the SX graph's, of the
         physical p) plus each PairTerm's mapped graph (``lists``: through its neighbour list;
-        else every pair, which also evaluates with SX symbols)."""
+        else every pair, which also evaluates with SX symbols; ``differentiable``: the list's
+        mapped kernel, never the fused loop)."""
         inputs = [ca.MX.sym(rest.name_in(i), rest.sparsity_in(i)) for i in range(rest.n_in() - 1)]
         P = ca.MX.sym("p", self.n_p)
-        out = rest.call([*inputs, P[:self.n_physical]])
+        out = rest.call([*inputs, P])
         x, t = inputs[0], inputs[-1]
         energy, force = 0, 0
         kinds = set(OUTPUTS[name].values())
         want = "both" if len(kinds) > 1 else kinds.pop()  # (the list's kernel computes only that)
         for term in self.terms:
-            e, f = term.energy_and_forces(x, t, P, self.n_physical, lists=lists, want=want)
+            e, f = term.energy_and_forces(x, t, P, self.n_physical, lists=lists, want=want,
+                                          differentiable=differentiable)
             energy, force = energy + e, force + f
         for i, kind in OUTPUTS[name].items():
             out[i] = out[i] + (force if kind == "force" else energy)

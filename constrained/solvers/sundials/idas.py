@@ -54,7 +54,7 @@ _lock = threading.Lock()
 def _inverse_masses(m):
     """M⁻¹ of a model view: numbers, or formulas of its parameters (ParametricView)."""
     inverse = m.inverse_masses
-    return inverse if isinstance(inverse, ca.SX) else ca.DM(inverse)
+    return inverse if isinstance(inverse, ca.SX | ca.MX) else ca.DM(inverse)
 
 
 class CallSize:
@@ -259,11 +259,13 @@ class _IdasBase(Stepper):
         key = (*prefix, self.name, "scaled dae", tuple(self.rows))
         if key not in cache:
             m = self.model
-            P = ca.SX.sym("p", len(m.parameter_vector))
-            W = ca.SX.sym("w", len(self._weights))
-            span = ca.SX.sym("span", 2)
-            tau = ca.SX.sym("tau")
-            dae = self.dae(ParametricView(m, P), W, span[0] + span[1] * tau)
+            kind = ca.MX if getattr(m.structure, "pairs", ()) else ca.SX  # (mapped pair kernels: MX)
+            P = kind.sym("p", len(m.parameter_vector))
+            W = kind.sym("w", len(self._weights))
+            span = kind.sym("span", 2)
+            tau = kind.sym("tau")
+            # (differentiable: IDAS takes its Jacobian)
+            dae = self.dae(ParametricView(m, P, differentiable=True), W, span[0] + span[1] * tau)
             cache[key] = {"x": dae["x"], "z": dae["z"], "p": ca.vertcat(span, W, P), "t": tau,
                           "ode": span[1] * dae["ode"], "alg": dae["alg"]}
         return cache[key]
@@ -280,8 +282,9 @@ class Idas(_IdasBase):
 
     def dae(self, m, w, t) -> dict:
         n3, C = m.n_coordinates, len(self.rows)
-        x, v = ca.SX.sym("x", n3), ca.SX.sym("v", n3)
-        lam = ca.SX.sym("lam", C)
+        kind = type(m.P)  # (MX where pair potentials are mapped kernels)
+        x, v = kind.sym("x", n3), kind.sym("v", n3)
+        lam = kind.sym("lam", C)
         F, J, gamma = m.dynamics(x, v, t)
         J, gamma = w * J[self.rows, :], w * gamma[self.rows]  # rows in metres
         a = _inverse_masses(m) * (F + ca.mtimes(J.T, lam))
@@ -302,15 +305,16 @@ class GGL(_IdasBase):
         """Velocity rows (model/velocity.py) are held at the velocity level only: μ is one per
         row of f (``_position``), and x' = v + M⁻¹Jᵀμ takes those rows of J."""
         n3, C = m.n_coordinates, len(self.rows)
-        x, v = ca.SX.sym("x", n3), ca.SX.sym("v", n3)
+        kind = type(m.P)  # (MX where pair potentials are mapped kernels)
+        x, v = kind.sym("x", n3), kind.sym("v", n3)
         pos = self._position()
-        lam, mu = ca.SX.sym("lam", C), ca.SX.sym("mu", len(pos))
+        lam, mu = kind.sym("lam", C), kind.sym("mu", len(pos))
         minv = _inverse_masses(m)
         F, J, _ = m.dynamics(x, v, t)
         _, f_t = m.velocity_terms(x, t)
         f = m.constraint(x, t)
         Jf, f = ((w[pos] * J[self.rows, :][pos, :], w[pos] * f[[self.rows[k] for k in pos]]) if pos
-                 else (ca.SX(0, n3), ca.SX(0, 1)))
+                 else (kind(0, n3), kind(0, 1)))
         J, f_t = w * J[self.rows, :], w * f_t[self.rows]  # rows in metres
         return {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu),
                 "ode": ca.vertcat(v + minv * ca.mtimes(Jf.T, mu), minv * (F + ca.mtimes(J.T, lam))),
