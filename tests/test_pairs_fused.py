@@ -226,3 +226,31 @@ def test_every_method_runs_pairs_with_a_cutoff_beside_constraints(bonded_gas, me
     moved = np.abs(reference.x[-1] - reference.x[0]).max()  # ~0.09 m
     # (a run without the pair forces lands ~0.05 m from the reference)
     assert np.abs(run.x[-1] - reference.x[-1]).max() < 1e-2 * moved
+
+
+@needs_compiler
+def test_two_fused_terms_one_of_time_in_a_compiled_run(monkeypatch):
+    """Two pairwise effects with cutoffs (one φ of t and a parameter, on a subset): each runs
+    its own fused loop; the forces at t = 0.7 s are the mapped kernels', and a compiled run
+    (both loops in one library) lands where the virtual machine's does."""
+    def system():
+        s = gas(80, cutoff=1.8)
+        s.add(C.Pairwise("0.3*exp(-r/s)*(1 + 0.5*sin(3*t))", [f"p{i}" for i in range(20, 80)], cutoff=1.5))
+        return s
+
+    forces = {}
+    for use_fused in (True, False):
+        monkeypatch.setattr(kernel, "FUSED", use_fused)
+        model = assemble(system(), reuse=False)
+        kinds = {term._sums("force")[1].class_name() for term in model.structure.pairs}
+        assert kinds == ({"JitFunction"} if use_fused else {"MXFunction"})
+        x = np.asarray(model.system.positions).ravel()
+        forces[use_fused] = np.asarray(model.structure.function("dynamics")(x, 0 * x, 0.7,
+                                                                            model.parameter_vector)[0]).ravel()
+    np.testing.assert_allclose(forces[True], forces[False], rtol=1e-12,
+                               atol=1e-13 * np.abs(forces[False]).max())
+    monkeypatch.setattr(kernel, "FUSED", True)
+    runs = [C.simulate(system(), 0.2, method="dopri", rtol=1e-11, atol=1e-13, compiled=setting,
+                       t_eval=[0, 0.2]) for setting in (True, False)]
+    assert runs[0].stats["evaluation"] == "compiled"
+    np.testing.assert_allclose(runs[0].x[-1], runs[1].x[-1], rtol=0, atol=1e-12)
