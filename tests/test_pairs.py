@@ -497,3 +497,20 @@ def test_the_pair_rows_hold_every_pair_within_reach_once(n):
     near = np.argwhere(np.triu(squareform(pdist(y)) <= reach, 1))
     assert found == sorted(map(tuple, near.tolist()))
     assert pairs.neighbours.pair_rows(y, reach, rows_needed - 1) is None
+
+
+def test_dopri_steps_stay_where_the_neighbour_list_holds():
+    """An explicit step's stages must not carry a particle past the list's margin (else its
+    forces sum every pair: exact, but O(N²)): at a loose tolerance, where dopri's own steps
+    would be longer, each accepted step is at most STEP_SHARE · (1 − REFRESH_SHARE) · skin/2
+    over the fastest particle's speed at its start, and that bound is what sets them."""
+    system = gas(64, cutoff=1.8)  # skin 0.18 m (0.1 r_c)
+    run = C.simulate(system, 1.0, method="dopri", rtol=1e-4, atol=1e-6)
+    h = np.diff(run.t)
+    speed = np.sqrt((run.v[:-1].reshape(len(h), -1, 3) ** 2).sum(-1).max(-1))
+    limit = pairs.potentials.STEP_SHARE * (1 - pairs.potentials.REFRESH_SHARE) * 0.18 / 2 / speed
+    assert np.all(h <= limit * (1 + 1e-9))
+    assert np.mean(np.isclose(h, limit, rtol=1e-9)) > 0.5
+    # and the run is the same motion as at a tight tolerance (the limit costs steps, not accuracy)
+    tight = C.simulate(system, 1.0, method="dopri", rtol=1e-10, atol=1e-12, t_eval=[0.0, 1.0])
+    assert np.abs(run.x[-1] - tight.x[-1]).max() < 1e-3

@@ -20,6 +20,10 @@ MAPPED_PAIRS_FROM = 300
 #: this share of the skin/2 the list allows: a step taken from there still finds it valid
 #: (beyond skin/2 the graph sums every pair: exact, but O(N²)).
 REFRESH_SHARE = 0.5
+#: An explicit method's step moves no listed particle by more than this share of the margin
+#: (1 − REFRESH_SHARE) · skin/2 at its speed at the step's start (``step_limit``; the speed
+#: changes within the step: the rest of the margin is for that).
+STEP_SHARE = 0.8
 #: The Functions that carry the pair potentials, and where: output index -> "force" or "energy".
 OUTPUTS = {"dynamics": {0: "force"}, "energy": {0: "energy"}, "potential": {0: "energy"}}
 
@@ -95,6 +99,22 @@ class PairPotentials:
                 gone = ca.logic_and(term.valid_graph(P), ca.logic_not(term.fresh_graph(X, P, REFRESH_SHARE)))
                 stale = ca.logic_or(stale, gone)
         return stale
+
+    def step_limit(self, V, P) -> ca.MX | None:
+        """MX: the longest step of an explicit method from velocities V (3N) after which no
+        listed particle has moved by more than STEP_SHARE of the margin a list keeps beyond its
+        refresh, (1 − REFRESH_SHARE) · skin/2, at its present speed: within it the stages of
+        the step find their lists valid (beyond, the graph sums every pair: exact, but O(N²)).
+        No limit from a list beyond its capacity (not used); None without a list."""
+        limits = []
+        for term in self.terms:
+            if term.size:
+                speed = ca.sqrt(ca.mmax(ca.sum1(ca.reshape(V[term._coordinates.tolist()], 3, term.n) ** 2)))
+                margin = STEP_SHARE * (1 - REFRESH_SHARE) * term.skin / 2
+                limits.append(ca.if_else(term.valid_graph(P), margin / ca.fmax(speed, 1e-300), ca.inf))
+        if not limits:
+            return None
+        return limits[0] if len(limits) == 1 else ca.mmin(ca.vertcat(*limits))
 
     def refreshed(self, p: np.ndarray, x) -> np.ndarray | None:
         """p with the neighbour lists rebuilt at positions ``x`` where a particle has moved more
