@@ -160,8 +160,7 @@ class Dopri(Stepper):
         remaining = t_target - t
         clipped = h >= remaining
         hh = ca.if_else(done, h, ca.fmin(h, remaining))  # a valid step even when discarded
-        pairs = self.model.structure.pair_potentials
-        reach = pairs.step_limit(v, P) if self.model.structure.pairs else None
+        reach = self.model.structure.pair_potentials.step_limit(v, P)
         if reach is not None:  # the stages stay where the neighbour lists hold (no O(N²) sums)
             clipped = ca.logic_and(clipped, remaining <= reach)
             hh = ca.if_else(done, h, ca.fmin(hh, reach))

@@ -168,9 +168,7 @@ def fused_forces(name: str, r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, *, n: int, s
     """(x (3n), t, q (n_q), data (size)) -> (V = 0, F (3n)): the listed pairs' forces in one C
     loop (``force_body``), or None where that cannot be had: no C compiler, compiled code
     turned off (``CONSTRAINED_COMPILE=0``), an operation of φ outside the whitelist, or a
-    failed compilation."""
-    if not compiled.enabled():
-        return None
+    failed compilation (``jit``)."""
     body = force_body(r, t, q, g, n, capacity, cutoff)
     if body is None:
         return None

@@ -284,16 +284,17 @@ class PairTerm:
             Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
             self._functions = {"every": ca.Function("pairs_every", [Xl, T, Pp],
                                                     list(self._all_pairs(Xl, T, Pp)))}
+        every = self._functions["every"]
         if self.cutoff is None:
-            return self._functions["every"], None
-        key = (want, "fused") if want == "force" and not differentiable else want
-        if key not in self._functions:
-            fused = self._fused() if key == (want, "fused") else None
-            if fused is not None:
-                self._functions[key] = fused
-            else:
-                self._functions[key] = self._sums(want, True)[1] if key != want else self._mapped(want)
-        return self._functions["every"], self._functions[key]
+            return every, None
+        if want == "force" and not differentiable:
+            if "fused" not in self._functions:
+                self._functions["fused"] = self._fused()
+            if self._functions["fused"] is not None:
+                return every, self._functions["fused"]
+        if want not in self._functions:
+            self._functions[want] = self._mapped(want)
+        return every, self._functions[want]
 
     def _mapped(self, want: str) -> ca.Function:
         """The listed sum as the mapped graph (``_listed_pairs``)."""
@@ -318,6 +319,10 @@ class PairTerm:
         moved = ca.reshape(X[self._coordinates.tolist()] - ref, 3, self.n)
         within = ca.sum1(moved * moved) <= (share * self.skin / 2) ** 2
         return ca.logic_and(P[self.offset] == 1, ca.sum2(ca.logic_not(within)) == 0)
+
+    def fastest_graph(self, V):
+        """MX: the largest speed among the term's particles at velocities V (3N)."""
+        return ca.sqrt(ca.mmax(ca.sum1(ca.reshape(V[self._coordinates.tolist()], 3, self.n) ** 2)))
 
     def valid_graph(self, P):
         """MX: whether the data in P is a list (not one beyond the capacities)."""

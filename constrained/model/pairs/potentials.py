@@ -54,9 +54,9 @@ class PairPotentials:
                    differentiable: bool = False) -> ca.Function:
         """The Function ``name`` (``OUTPUTS``), an MX Function of the full p, with the pair
         potentials' energy and forces added to its outputs: ``rest`` (the SX graph's, of the
-        physical p) plus each PairTerm's mapped graph (``lists``: through its neighbour list;
-        else every pair, which also evaluates with SX symbols; ``differentiable``: the list's
-        mapped kernel, never the fused loop)."""
+        whole p, whose lists it ignores) plus each PairTerm's graph (``lists``: through its
+        neighbour list; else every pair, which also evaluates with SX symbols;
+        ``differentiable``: the list's mapped kernel, never the fused loop)."""
         inputs = [ca.MX.sym(rest.name_in(i), rest.sparsity_in(i)) for i in range(rest.n_in() - 1)]
         P = ca.MX.sym("p", self.n_p)
         out = rest.call([*inputs, P])
@@ -109,9 +109,9 @@ class PairPotentials:
         limits = []
         for term in self.terms:
             if term.size:
-                speed = ca.sqrt(ca.mmax(ca.sum1(ca.reshape(V[term._coordinates.tolist()], 3, term.n) ** 2)))
                 margin = STEP_SHARE * (1 - REFRESH_SHARE) * term.skin / 2
-                limits.append(ca.if_else(term.valid_graph(P), margin / ca.fmax(speed, 1e-300), ca.inf))
+                limits.append(ca.if_else(term.valid_graph(P), margin / ca.fmax(term.fastest_graph(V), 1e-300),
+                                         ca.inf))
         if not limits:
             return None
         return limits[0] if len(limits) == 1 else ca.mmin(ca.vertcat(*limits))
