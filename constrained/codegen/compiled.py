@@ -114,6 +114,38 @@ def compile_functions(functions: list[ca.Function], *, flags=FLAGS) -> list[ca.F
     functions do not have the expected inputs and outputs, is rebuilt with a one-line notice
     on stderr: a damaged cache costs a compilation, never a crash.
     """
+    return _cached(functions, lambda cc: cache_key(functions, cc, flags), lambda: _generated(functions),
+                   flags)
+
+
+def compile_source(source, like: list[ca.Function], *, key: bytes | None = None,
+                   flags=FLAGS) -> list[ca.Function]:
+    """C ``source`` written by hand (CasADi's external API: each entry point ``NAME`` with
+    ``NAME_n_in``, ``NAME_sparsity_in`` …) compiled and cached as ``compile_functions``
+    does, keyed by the source itself (or by ``key``, bytes that decide the source: then
+    ``source`` may be a callable, called only to build); ``like``: Functions with the names,
+    inputs and outputs the library must have (what comes back in their place, or ``like``
+    unchanged on failure)."""
+
+    def key_of(cc: str) -> str:
+        digest = hashlib.sha256(key if key is not None else source.encode())
+        digest.update(json.dumps(build_environment(cc, flags), sort_keys=True).encode())
+        return digest.hexdigest()[:20]
+
+    return _cached(like, key_of, source if callable(source) else lambda: source, flags)
+
+
+def _generated(functions: list[ca.Function]) -> str:
+    """The C source of ``functions`` from CasADi's CodeGenerator."""
+    cg = ca.CodeGenerator(f"{functions[0].name()}.c", {"with_header": False})
+    for function in functions:
+        cg.add(function)
+    return cg.dump()
+
+
+def _cached(functions: list[ca.Function], key_of, source_of, flags) -> list[ca.Function]:
+    """The compile cache's lookup, build and load for ``functions`` (see compile_functions):
+    ``key_of(cc)`` their key, ``source_of()`` their C source (only on a miss)."""
     global last_error
     last_error = None
     cc = compiler()
@@ -134,7 +166,7 @@ def compile_functions(functions: list[ca.Function], *, flags=FLAGS) -> list[ca.F
             _notice(f"{last_error}; running without compiled code (use a folder of your own: "
                     f"CONSTRAINED_CACHE=DIR{chmod})")
         return list(functions)
-    target = folder / f"{name}_{cache_key(functions, cc, flags)}.so"
+    target = folder / f"{name}_{key_of(cc)}.so"
     if target.exists():
         problem = _verify(target, build_environment(cc, flags), key=key)
         if problem is None:
@@ -144,7 +176,7 @@ def compile_functions(functions: list[ca.Function], *, flags=FLAGS) -> list[ca.F
             problem = "its functions do not have the expected inputs and outputs"
         if problem != UNSIGNED:  # (an entry of an earlier version is rebuilt quietly)
             _notice(f"compile cache entry {target} is damaged or untrusted ({problem}); rebuilding it")
-    if not _build(functions, target, cc, flags, key=key):
+    if not _build(name, source_of(), target, cc, flags, key=key):
         return list(functions)
     loaded = _load(functions, target)
     if loaded is None:
@@ -370,15 +402,10 @@ def _load(functions: list[ca.Function], target: Path) -> list[ca.Function] | Non
     return loaded
 
 
-def _build(functions: list[ca.Function], target: Path, cc: str, flags, *, key: bytes | None = None) -> bool:
-    """Compile ``functions`` into ``target`` and write its record (signed with ``key``); False
+def _build(name: str, source: str, target: Path, cc: str, flags, *, key: bytes | None = None) -> bool:
+    """Compile the C ``source`` into ``target`` and write its record (signed with ``key``); False
     (and last_error) on failure or on a stop request (Ctrl-C, which ends the compiler at once)."""
     global last_error
-    name = functions[0].name()
-    cg = ca.CodeGenerator(f"{name}.c", {"with_header": False})
-    for function in functions:
-        cg.add(function)
-    source = cg.dump()
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:

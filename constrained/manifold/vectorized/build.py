@@ -28,6 +28,8 @@ from ...model.cache import built_once
 from ...model.structure import Structure, forces
 from ..mapped import _row_terms, mapped_build
 from .columns import Summation, binary, on_columns, shared, take
+from .fused import fused_groups
+from .products import compiled_products
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
@@ -40,14 +42,27 @@ class Jacobian:
     build: VectorizedBuild
     streams: list
 
+    def _loops(self):
+        """The build's products in C (``products``) when they apply to these streams, else None."""
+        loops = self.build.products()
+        if loops is None or any(J.nnz() != J.numel() for J in self.streams):
+            return None
+        return loops
+
     def times(self, y):
         """J y (C,) for a column y (3N,)."""
-        b = self.build
+        b, loops = self.build, self._loops()
+        if loops is not None:
+            return shared(("J y", *map(hash, self.streams), hash(y)), lambda: loops.times(self.streams, y),
+                          *self.streams, y)
         return b.by_rows([_times(J, take(y, c)) for J, c in zip(self.streams, b.cols, strict=True)])
 
     def transpose_times(self, lam):
         """Jᵀ λ (3N,) for a column λ (C,)."""
-        b = self.build
+        b, loops = self.build, self._loops()
+        if loops is not None:
+            return shared(("J' y", *map(hash, self.streams), hash(lam)),
+                          lambda: loops.transpose_times(self.streams, lam), *self.streams, lam)
         return b.by_cols([_times(J, take(lam, r)) for J, r in zip(self.streams, b.rows, strict=True)])
 
     def gram(self, inverse_masses):
@@ -65,6 +80,9 @@ class Jacobian:
         the Schur complement of the diagonal block of S: the same Λ, from a system of R's
         rows alone (a chain in a plane: half the rows, and A's couplings through z gone)."""
         b, minv = self.build, _column(inverse_masses)
+        loops = self._loops()
+        if loops is not None and B.shape[1] in (1, 2):
+            return loops.solve(self.streams, minv, B)
         if b.single is None:
             return ca.solve(self.gram(minv), B, "ldl")
         e = b.single
@@ -147,6 +165,8 @@ class _Gram:
             self.sources += [product, product]
             targets += [entry(row[i1], row[i2]), entry(row[i2], row[i1])]
         self.by_gram = Summation([len(t) for t in targets], targets, len(key))
+        #: Where each product goes in A's nonzeros: the diagonal's, then two per pair.
+        self.targets = targets
         self.cols = cols
 
     def __call__(self, streams: list, minv):
@@ -245,6 +265,8 @@ class VectorizedBuild:
             self.single = None
         self._jacobian_pattern(lengths)
         self._kernels: dict = {}
+        self._fused: dict | None = None
+        self._products = None
         _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
         self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
 
@@ -288,6 +310,57 @@ class VectorizedBuild:
                 "rest", [e.x, e.v, e.t, e.p], [self.rest[k] for k in outputs], {"cse": True})
         return self._rest_functions[outputs]
 
+    def products(self):
+        """J's products in C (``products.CompiledProducts``), built once; None without compiled code."""
+        if self._products is None:
+            self._products = (compiled_products(self) if self.n_rows else None) or False
+        return self._products or None
+
+    def _loops(self) -> dict:
+        """The C loops of the groups (``fused``): id(group) -> FusedGroup, for the groups it covers."""
+        if self._fused is None:
+            mb = self.mapped
+            groups = [*mb.rows, *mb.terms]
+            kernels = [*(self._kernel(g, ROW_OUTPUTS) for g in mb.rows),
+                       *(self._gradient_kernel(g) for g in mb.terms)]
+            loops = fused_groups(groups, kernels, self.n3, self.e.p.numel()) if groups else []
+            self._fused = {id(g): f for g, f in zip(groups, loops, strict=True) if f is not None}
+        return self._fused
+
+    def _fused_call(self, g, X, V, T, P) -> list | None:
+        """Every scalar output of g's C loop at (X, V, T, P), or None (no loop for g)."""
+        loop = self._loops().get(id(g))
+        if loop is None:
+            return None
+        key = ("loop", id(g), hash(X), None if V is None else hash(V), hash(T), hash(P))
+        return shared(key, lambda: loop(X, V, T, P), X, V, T, P, g)
+
+    def _moves(self, g, kernel: ca.Function) -> bool:
+        """Whether ``kernel``'s outputs change with the state (else columns: computed once per
+        step within ``shared_nodes``, a plane's row of J)."""
+        key = (id(g), id(kernel), "moves")
+        if key not in self._kernels:
+            xl, vl = kernel.sx_in(0), kernel.sx_in(1)
+            out = ca.vertcat(*[ca.vec(o) for o in kernel.call(kernel.sx_in())])
+            self._kernels[key] = bool(ca.depends_on(out, ca.vertcat(xl, vl)))
+        return self._kernels[key]
+
+    def _row_columns(self, g, outputs: tuple, X, V, T, P) -> list:
+        """The ``outputs`` of g's rows, for each a list of MX columns (J: one per coordinate)."""
+        kernel = self._kernel(g, outputs)
+        scalars = self._fused_call(g, X, V, T, P) if self._moves(g, kernel) else None
+        if scalars is None:
+            return self._columns(g, kernel, X, V, T, P)
+        full = self._kernel(g, ROW_OUTPUTS)
+        start = np.concatenate([[0], np.cumsum([full.nnz_out(i) for i in range(full.n_out())])])
+        return [scalars[start[ROW_OUTPUTS.index(k)]:start[ROW_OUTPUTS.index(k) + 1]] for k in outputs]
+
+    def _gradient_columns(self, g, X, V, T, P) -> list:
+        """The gradient of g's terms, one MX column per local coordinate."""
+        kernel = self._gradient_kernel(g)
+        scalars = self._fused_call(g, X, V, T, P) if self._moves(g, kernel) else None
+        return self._columns(g, kernel, X, V, T, P)[0] if scalars is None else list(scalars)
+
     def _columns(self, g, kernel, X, V, T, P) -> list:
         n = g.index.shape[1]
         values = (shared(("values", id(g), hash(P)), lambda: ca.vertcat(P, ca.DM(g.constants)), g, P)
@@ -304,7 +377,7 @@ class VectorizedBuild:
         mb = self.mapped
         rows = {k: [] for k in outputs}
         for g in mb.rows:
-            out = self._columns(g, self._kernel(g, outputs), X, V, T, P)
+            out = self._row_columns(g, outputs, X, V, T, P)
             for k, values in zip(outputs, out, strict=True):
                 rows[k] += values
         rest_outputs = (*outputs, "F") if forces_too and (self.rest_forces or not mb.terms) else outputs
@@ -319,8 +392,7 @@ class VectorizedBuild:
             if k == "J":
                 result["J"] = Jacobian(self, rows["J"] + [value])
             elif k == "F":
-                gradients = [col for g in mb.terms
-                             for col in self._columns(g, self._gradient_kernel(g), X, V, T, P)[0]]
+                gradients = [col for g in mb.terms for col in self._gradient_columns(g, X, V, T, P)]
                 if not gradients:
                     result["F"] = value
                 elif self.rest_forces:

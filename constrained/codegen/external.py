@@ -1,0 +1,116 @@
+"""A hand-written C loop as a CasADi Function, through the compile cache.
+
+``c_function(name, body, …)`` wraps ``body`` in CasADi's external-function API (the entry
+point ``name(arg, res, iw, w, mem)`` with ``name_n_in``, ``name_sparsity_in`` … and
+``name_work``), compiles it with ``compiled.compile_source`` — cached on disk by the source
+itself, signed and checked on loading like every compiled library — and loads it with
+``casadi.external``: the next run with the same source loads it without compiling. The body
+reads its inputs as ``const casadi_real *NAME`` (null: all zeros) and writes its outputs
+through ``casadi_real *NAME`` (null: not wanted). The Function has no derivatives.
+
+``casadi.Function.jit`` does the same but compiles at every construction (0.6 s each here),
+which a run that builds a few such loops could not afford.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+from . import compiled
+
+
+def _array(name: str, values: list[int]) -> str:
+    return f"static const casadi_int {name}[{len(values)}] = {{{', '.join(map(str, values))}}};"
+
+
+def _compressed(sparsity: ca.Sparsity) -> list[int]:
+    """CasADi's compressed form of ``sparsity``; a dense one as its shorthand (rows, columns, 1)."""
+    if sparsity.is_dense():
+        return [sparsity.size1(), sparsity.size2(), 1]
+    return list(sparsity.compress())
+
+
+def _switch(name: str, kind: str, cases: list[str]) -> str:
+    lines = "\n".join(f"    case {k}: return {c};" for k, c in enumerate(cases))
+    return f"""CASADI_SYMBOL_EXPORT {kind} {name}(casadi_int i) {{
+  switch (i) {{
+{lines}
+    default: return 0;
+  }}
+}}"""
+
+
+PRELUDE = """#include <math.h>
+#ifndef casadi_real
+#define casadi_real double
+#endif
+#ifndef casadi_int
+#define casadi_int long long int
+#endif
+#ifndef CASADI_SYMBOL_EXPORT
+#define CASADI_SYMBOL_EXPORT __attribute__ ((visibility ("default")))
+#endif
+"""
+
+
+def entry(name: str, body: str, names_in: list[str], sparsity_in: list[ca.Sparsity], names_out: list[str],
+          sparsity_out: list[ca.Sparsity], work: int = 0) -> str:
+    """The C of one entry point ``name`` running ``body`` (after ``PRELUDE``); ``work``: the
+    length of the scratch array ``w`` it may use (CasADi's, per call: safe across threads)."""
+    sparsities = [*sparsity_in, *sparsity_out]
+    arrays = "\n".join(_array(f"{name}_s{k}", _compressed(s)) for k, s in enumerate(sparsities))
+    unpack = "\n".join([f"  const casadi_real *{v} = arg[{k}];" for k, v in enumerate(names_in)]
+                       + [f"  casadi_real *{v} = res[{k}];" for k, v in enumerate(names_out)])
+    n_in, n_out = len(names_in), len(names_out)
+    return f"""{arrays}
+static int {name}_body(const casadi_real** arg, casadi_real** res, casadi_real* w) {{
+{unpack}
+{body}
+}}
+CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w,
+                               int mem) {{
+  return {name}_body(arg, res, w);
+}}
+CASADI_SYMBOL_EXPORT int {name}_casadi_int_size(void) {{ return (int) sizeof(casadi_int); }}
+CASADI_SYMBOL_EXPORT int {name}_casadi_real_size(void) {{ return (int) sizeof(casadi_real); }}
+CASADI_SYMBOL_EXPORT casadi_int {name}_n_in(void) {{ return {n_in}; }}
+CASADI_SYMBOL_EXPORT casadi_int {name}_n_out(void) {{ return {n_out}; }}
+{_switch(f"{name}_name_in", "const char*", [f'"{v}"' for v in names_in])}
+{_switch(f"{name}_name_out", "const char*", [f'"{v}"' for v in names_out])}
+{_switch(f"{name}_sparsity_in", "const casadi_int*", [f"{name}_s{k}" for k in range(n_in)])}
+{_switch(f"{name}_sparsity_out", "const casadi_int*", [f"{name}_s{n_in + k}" for k in range(n_out)])}
+CASADI_SYMBOL_EXPORT int {name}_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw,
+                                     casadi_int *sz_w) {{
+  if (sz_arg) *sz_arg = {n_in};
+  if (sz_res) *sz_res = {n_out};
+  if (sz_iw) *sz_iw = 0;
+  if (sz_w) *sz_w = {work};
+  return 0;
+}}
+"""
+
+
+def c_functions(specs: list[tuple], shared=None, key: bytes | None = None) -> list[ca.Function] | None:
+    """Several C loops, each ``(name, body, names_in, sparsity_in, names_out, sparsity_out[,
+    work])``, as CasADi Functions (see the module) from one library (one compiler run), with
+    ``shared`` C (static data; a callable giving it, with ``key`` the bytes that decide it,
+    builds it only when the library is not in the cache) before them; or None where
+    compiled code cannot be had: no C compiler, ``CONSTRAINED_COMPILE=0``, a cache folder
+    that is not private, or a failed compilation (``compiled.last_error`` says why)."""
+    if not specs or not compiled.enabled():
+        return None
+    like = [ca.Function(name, [ca.MX.sym(v, s) for v, s in zip(ni, si, strict=True)], [ca.MX(s) for s in so],
+                        ni, no) for name, _, ni, si, no, so, *_ in specs]
+    code = "".join(entry(*s) for s in specs)
+    if key is None:
+        loaded = compiled.compile_source(PRELUDE + (shared or "") + code, like)
+    else:
+        loaded = compiled.compile_source(lambda: PRELUDE + shared() + code, like, key=key + code.encode())
+    return None if loaded[0] is like[0] else loaded
+
+
+def c_function(name: str, body: str, names_in: list[str], sparsity_in: list[ca.Sparsity],
+               names_out: list[str], sparsity_out: list[ca.Sparsity]) -> ca.Function | None:
+    """The C ``body`` as a CasADi Function (``c_functions`` of one)."""
+    loaded = c_functions([(name, body, names_in, sparsity_in, names_out, sparsity_out)])
+    return None if loaded is None else loaded[0]

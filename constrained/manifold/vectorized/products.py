@@ -1,0 +1,276 @@
+"""J's products and the KKT solve's assembly as loops in C over J's nonzeros (issue 28).
+
+The vectorized build writes J y, Jᵀ λ and A = J M⁻¹ Jᵀ as gathers, products and sums of
+whole columns (``build.Jacobian``): on the 1 cm rope about forty passes over 10,000 numbers
+for each acceleration, each a node of CasADi's virtual machine with its temporary. Here each
+is one loop over the entries (stream s, position i) of J, reading the build's own index data
+(rows r_s, coordinates c_s, A's products) from a static table compiled into the library:
+
+    J y:      out[r_s[i]] += J_s[i] y[c_s[i]]
+    Jᵀ λ:     out[c_s[i]] += J_s[i] λ[r_s[i]]
+    A:        A[t] += J_s[i] J_s'[i'] m⁻¹[c]        over the products of ``_Gram``
+
+and, where rows with one coordinate are eliminated (``_Elimination``), the reduced right-hand
+side before CasADi's sparse LDLᵀ and Λ after it (the formulas of ``Jacobian.solve``). The
+factorization stays CasADi's. The numbers are those of the columns up to the order of
+floating-point sums. The library is compiled once per model and cached, keyed by the index
+data; where compiled code cannot be had the columns serve.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import casadi as ca
+import numpy as np
+
+from ...codegen.external import c_functions
+
+_OCTAL = np.array([f"\\{k:03o}" for k in range(256)])
+
+
+class _Table:
+    """Integer arrays laid end to end in one static table (``TABLE``) of the C source."""
+
+    def __init__(self):
+        self.parts: list[np.ndarray] = []
+        self.size = 0
+
+    def add(self, values) -> str:
+        """The C expression of ``values``' place in the table."""
+        values = np.asarray(values, np.int32).reshape(-1)
+        at = self.size
+        self.parts.append(values)
+        self.size += values.size
+        return f"(TABLE + {at})"
+
+    def data(self) -> bytes:
+        return (np.concatenate(self.parts) if self.parts else np.zeros(1, np.int32)).tobytes()
+
+    def c(self) -> str:
+        """The table as one string literal (a compiler reads it ten times faster than a list)."""
+        text = "".join(_OCTAL[np.frombuffer(self.data(), np.uint8)].tolist())
+        size = len(self.data()) + 1
+        return (f'static const char table_bytes[{size}] __attribute__((aligned(8))) = "{text}";\n'
+                "#define TABLE ((const int *) table_bytes)\n")
+
+
+def _dense(n: int, k: int = 1) -> ca.Sparsity:
+    return ca.Sparsity.dense(n, k)
+
+
+class CompiledProducts:
+    """The build's products as C loops (see the module): ``times``, ``transpose_times`` and
+    ``solve``; built by ``compiled_products``."""
+
+    def __init__(self, build, functions: dict):
+        self.build, self.f = build, functions
+
+    def times(self, streams, y):
+        return self.f["times"](*streams, y)
+
+    def transpose_times(self, streams, lam):
+        return self.f["transpose_times"](*streams, lam)
+
+    def solve(self, streams, minv, B):
+        """Λ with (J M⁻¹ Jᵀ) Λ = B for B of 1 or 2 columns, rows with one coordinate
+        eliminated first where the build has them (``Jacobian.solve``)."""
+        e, k = self.build.single, B.shape[1]
+        if e is None:
+            return self.f[f"solve{k}"](self.f["gram"](*streams, minv), B)
+        reduced = self.f[f"before{k}"](*streams, B)
+        lam = self.f[f"solve{k}"](self.f["gram"](*streams, minv), reduced) if len(e.others) else ca.MX(0, k)
+        return self.f[f"after{k}"](*streams, minv, B, lam)
+
+
+def _gram_body(gram, table: _Table, streams: list[str]) -> str:
+    """A's nonzeros from the products of ``gram`` (a ``_Gram``)."""
+    n_a = gram.sparsity.nnz()
+    lines = [f"  casadi_int i;\n  for (i = 0; i < {n_a}; ++i) A[i] = 0;"]
+    for d, (s, k) in enumerate(gram.diagonal):
+        K, C, T = table.add(k), table.add(gram.cols[s][k]), table.add(gram.targets[d])
+        lines.append(f"""  {{ const int *K = {K}, *C = {C}, *T = {T};
+    for (i = 0; i < {len(k)}; ++i) {{
+      const casadi_real a = {streams[s]}[K[i]];
+      A[T[i]] += a * a * m[C[i]];
+    }} }}""")
+    first = len(gram.diagonal)
+    for q, (s1, p1, s2, p2) in enumerate(gram.pairs):
+        ta, tb = gram.targets[first + 2 * q], gram.targets[first + 2 * q + 1]
+        P, Q, C = table.add(p1), table.add(p2), table.add(gram.cols[s2][p2])
+        TA, TB = table.add(ta), table.add(tb)
+        lines.append(f"""  {{ const int *P = {P}, *Q = {Q}, *C = {C}, *TA = {TA}, *TB = {TB};
+    for (i = 0; i < {len(p1)}; ++i) {{
+      const casadi_real a = {streams[s1]}[P[i]] * {streams[s2]}[Q[i]] * m[C[i]];
+      A[TA[i]] += a; A[TB[i]] += a;
+    }} }}""")
+    return "\n".join(lines) + "\n  return 0;"
+
+
+def _stream_loop(table: _Table, n: int, statement: str, r, c) -> str:
+    return (f"  {{ const int *R = {table.add(r)}, *C = {table.add(c)};\n"
+            f"    for (i = 0; i < {n}; ++i) {statement} }}")
+
+
+def _elimination(e, table: _Table, streams: list[str], n_rows: int, ks: tuple) -> dict:
+    """The bodies of ``before{k}`` (B -> the reduced right-hand side) and ``after{k}`` (Λ_R -> Λ)
+    for B of k columns, k in ``ks``."""
+    n_s, n_r = len(e.rows), len(e.others)
+    S, R, SC = table.add(e.rows), table.add(e.others), table.add(e.cols)
+    j_entries = "\n".join(
+        f"  {{ const int *P = {table.add(p)}, *Q = {table.add(q)};\n"
+        f"    for (i = 0; i < {len(p)}; ++i) j[Q[i]] += {streams[s]}[P[i]]; }}" for s, p, q in e.entries)
+    coupling = [(streams[s], table.add(p), table.add(r), table.add(q), len(p)) for s, p, r, q in e.coupling]
+    entries_j = f"""  casadi_int i, col;
+  casadi_real *j = w, *y = w + {n_s};
+  const int *S = {S}, *R = {R}, *SC = {SC};
+  for (i = 0; i < {n_s}; ++i) j[i] = 0;
+{j_entries}"""
+    subtract = "\n".join(f"""    {{ const int *P = {p}, *RR = {r}, *Q = {q};
+      for (i = 0; i < {n}; ++i) red[RR[i]] -= {J}[P[i]] * y[Q[i]]; }}""" for J, p, r, q, n in coupling)
+    gather = "\n".join(f"""    {{ const int *P = {p}, *RR = {r}, *Q = {q};
+      for (i = 0; i < {n}; ++i) y[Q[i]] += {J}[P[i]] * l[RR[i]]; }}""" for J, p, r, q, n in coupling)
+    bodies = {}
+    for k in ks:
+        bodies[f"before{k}"] = f"""{entries_j}
+  (void) SC;
+  for (col = 0; col < {k}; ++col) {{
+    const casadi_real *b = B + col * {n_rows};
+    casadi_real *red = out + col * {n_r};
+    for (i = 0; i < {n_s}; ++i) y[i] = b[S[i]] / j[i];
+    for (i = 0; i < {n_r}; ++i) red[i] = b[R[i]];
+{subtract}
+  }}
+  return 0;"""
+        bodies[f"after{k}"] = f"""{entries_j}
+  for (col = 0; col < {k}; ++col) {{
+    const casadi_real *b = B + col * {n_rows}, *l = lam + col * {n_r};
+    casadi_real *o = out + col * {n_rows};
+    for (i = 0; i < {n_s}; ++i) y[i] = 0;
+{gather}
+    for (i = 0; i < {n_s}; ++i) o[S[i]] = (b[S[i]] / (m[SC[i]] * j[i]) - y[i]) / j[i];
+    for (i = 0; i < {n_r}; ++i) o[R[i]] = l[i];
+  }}
+  return 0;"""
+    return bodies
+
+
+def _ldl_bodies(sparsity: ca.Sparsity, table: _Table, ks: tuple) -> tuple[dict, int]:
+    """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
+    (symmetric, positive definite), and their scratch length: A[p, p] = L D Lᵀ with CasADi's
+    symbolic factorization (the AMD order p and the pattern of L), numerically row by row,
+
+        row k of L:  y = Ã[:k+1, k];  for i in pattern(k), ascending:
+                     y[L's rows below i, above k] −= L[·, i] y_i,  L_ki = y_i / D_i,  D_k −= L_ki y_i,
+
+    then forward and back substitution. The pattern and the order are fixed for the model:
+    the loops read them from the table. The rows' own order is kept where AMD's saves no fill
+    (a chain: the loops then run through memory in order)."""
+    n = sparsity.size1()
+    lt, p = sparsity.ldl(True)
+    natural, identity = sparsity.ldl(False)
+    if natural.nnz() <= lt.nnz():  # (a chain's rows in order: no fill either way, and memory in order)
+        lt, p = natural, identity
+    p = np.asarray(p, np.int64)
+    pinv = np.empty(n, np.int64)
+    pinv[p] = np.arange(n)
+    ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
+    by_column = np.lexsort((tk, ti))
+    slot = np.empty(len(ti), np.int64)
+    slot[by_column] = np.arange(len(ti))
+    lp = np.concatenate([[0], np.cumsum(np.bincount(ti, minlength=n))])
+    by_row = np.lexsort((ti, tk))
+    rp = np.concatenate([[0], np.cumsum(np.bincount(tk, minlength=n))])
+    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
+    ii, kk = pinv[r], pinv[c]
+    z = np.flatnonzero(ii <= kk)
+    z = z[np.lexsort((ii[z], kk[z]))]
+    ap = np.concatenate([[0], np.cumsum(np.bincount(kk[z], minlength=n))])
+    n_l = len(ti)
+    names = {"Ap": ap, "Az": z, "Ai": ii[z], "Rp": rp, "Ri": ti[by_row], "Rs": slot[by_row], "Lp": lp,
+             "Li": tk[by_column], "P": p}
+    arrays = "\n".join(f"  const int *{k} = {table.add(v)};" for k, v in names.items())
+    factor = f"""{arrays}
+  casadi_int k, s, q, e, col;
+  casadi_real *y = w, *D = w + {n}, *Lx = w + {2 * n}, *x = w + {2 * n + n_l};
+  for (k = 0; k < {n}; ++k) y[k] = 0;
+  for (k = 0; k < {n}; ++k) {{
+    casadi_real dk;
+    for (e = Ap[k]; e < Ap[k + 1]; ++e) y[Ai[e]] += A[Az[e]];
+    dk = y[k];
+    y[k] = 0;
+    for (q = Rp[k]; q < Rp[k + 1]; ++q) {{
+      const int i = Ri[q], end = Rs[q];
+      const casadi_real yi = y[i], l = yi / D[i];
+      y[i] = 0;
+      for (s = Lp[i]; s < end; ++s) y[Li[s]] -= Lx[s] * yi;
+      dk -= l * yi;
+      Lx[end] = l;
+    }}
+    D[k] = dk;
+  }}"""
+    bodies = {}
+    for k in ks:
+        bodies[f"solve{k}"] = f"""{factor}
+  for (col = 0; col < {k}; ++col) {{
+    const casadi_real *b = B + col * {n};
+    casadi_real *o = out + col * {n};
+    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
+    for (q = 0; q < {n}; ++q) {{
+      const casadi_real xq = x[q];
+      for (s = Lp[q]; s < Lp[q + 1]; ++s) x[Li[s]] -= Lx[s] * xq;
+    }}
+    for (q = 0; q < {n}; ++q) x[q] /= D[q];
+    for (q = {n} - 1; q >= 0; --q) {{
+      casadi_real xq = x[q];
+      for (s = Lp[q]; s < Lp[q + 1]; ++s) xq -= Lx[s] * x[Li[s]];
+      x[q] = xq;
+    }}
+    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
+  }}
+  return 0;"""
+    return bodies, 3 * n + n_l
+
+
+def compiled_products(build) -> CompiledProducts | None:
+    """The ``CompiledProducts`` of ``build`` (a VectorizedBuild), or None where compiled code
+    cannot be had."""
+    b = build
+    names = [f"J{s}" for s in range(len(b.rows))]
+    stream_sp = [_dense(len(r)) for r in b.rows]
+    table = _Table()
+    specs = []
+
+    def add(kind, body, extra_in, extra_sp, out_name, out_sp, work=0):
+        specs.append((kind, body, [*names, *extra_in], [*stream_sp, *extra_sp], [out_name], [out_sp], work))
+
+    pairs = list(enumerate(zip(b.rows, b.cols, strict=True)))
+    for kind, n_out, update in (("times", b.n_rows, "out[R[i]] += J{s}[i] * y[C[i]];"),
+                                ("transpose_times", b.n3, "out[C[i]] += J{s}[i] * y[R[i]];")):
+        loops = "\n".join(_stream_loop(table, len(r), update.format(s=s), r, c) for s, (r, c) in pairs)
+        add(kind, f"  casadi_int i;\n  for (i = 0; i < {n_out}; ++i) out[i] = 0;\n{loops}\n  return 0;",
+            ["y"], [_dense(b.n3 + b.n_rows - n_out)], "out", _dense(n_out))
+    e = b.single
+    gram = b.gram if e is None else e.gram
+    add("gram", _gram_body(gram, table, names), ["m"], [_dense(b.n3)], "A", _dense(gram.sparsity.nnz()))
+    n_a = gram.sparsity.size1()
+    if n_a:
+        bodies, work = _ldl_bodies(gram.sparsity, table, (1, 2))
+        for k in (1, 2):
+            specs.append((f"solve{k}", bodies[f"solve{k}"], ["A", "B"],
+                          [_dense(gram.sparsity.nnz()), _dense(n_a, k)], ["out"], [_dense(n_a, k)], work))
+    if e is not None:
+        work = 2 * max(len(e.rows), 1)
+        bodies = _elimination(e, table, names, b.n_rows, (1, 2))
+        for k in (1, 2):
+            n_r = len(e.others)
+            add(f"before{k}", bodies[f"before{k}"], ["B"], [_dense(b.n_rows, k)], "out", _dense(n_r, k), work)
+            add(f"after{k}", bodies[f"after{k}"], ["m", "B", "lam"],
+                [_dense(b.n3), _dense(b.n_rows, k), _dense(n_r, k)], "out", _dense(b.n_rows, k), work)
+    data = table.data()
+    tag = hashlib.sha256(data).hexdigest()[:12]
+    named = [(f"kkt_{tag}_{kind}", *rest) for kind, *rest in specs]
+    loaded = c_functions(named, table.c, key=data)
+    if loaded is None:
+        return None
+    return CompiledProducts(b, {kind: f for (kind, *_), f in zip(specs, loaded, strict=True)})

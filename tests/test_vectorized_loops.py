@@ -1,0 +1,124 @@
+"""The vectorized build's C loops (issue 28): a group's kernel over its instances
+(``vectorized.fused``), J's products and the KKT solve with its own LDLᵀ
+(``vectorized.products``), and a Runge–Kutta step's combinations (``codegen.combination``).
+They must be what runs where a C compiler is found, give the columns' numbers to round-off
+(test_vectorized.py checks them against dense linear algebra and the unrolled route with the
+loops on; here the same checks run with them off), and fall back where they cannot be had."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+import test_vectorized as tv
+
+import constrained as C
+from constrained.codegen import combination, compiled, external
+from constrained.manifold.vectorized import build as vb
+from constrained.manifold.vectorized import fused
+from constrained.model.structure import assemble
+from constrained.solvers import dopri
+
+needs_compiler = pytest.mark.skipif(not compiled.enabled(), reason="no C compiler")
+
+
+@needs_compiler
+@pytest.mark.parametrize("name", ["rope", "cloth", "rope with extras"])
+def test_the_loops_are_what_a_large_model_runs_on(name):
+    system = tv.SYSTEMS[name]()
+    b = vb.vectorized_build(assemble(system, reuse=False).structure)
+    assert b.products() is not None
+    assert len(b._loops()) == len(b.mapped.rows) + len(b.mapped.terms)  # every group: whitelisted
+
+
+@needs_compiler
+def test_a_dopri_step_of_a_fine_rope_calls_the_loops(monkeypatch):
+    """The step in the virtual machine: every acceleration through the loops (no CasADi ldl),
+    the stages combined in one pass."""
+    steps = []
+    original = dopri.Dopri._step_function
+
+    def keep(self, *args, **kwargs):
+        steps.append(original(self, *args, **kwargs))
+        return steps[-1]
+    monkeypatch.setattr(dopri.Dopri, "_step_function", keep)
+    system = tv.rope(120)
+    tr = C.simulate(system, 0.002, model=assemble(system, reuse=False), rtol=1e-6, atol=1e-6)
+    assert tr.stats["evaluation"] == "virtual machine"
+    names = {f.name() for step in steps for f in step.find_functions()}
+    assert any(n.startswith("rows_") for n in names)
+    assert any(n.endswith("_solve1") for n in names) and any(n.endswith("_solve2") for n in names)
+    assert any(n.startswith("combination_") for n in names) and any(n.startswith("sum_") for n in names)
+
+
+@pytest.mark.parametrize("name", sorted(tv.SYSTEMS))
+def test_without_compiled_code_the_columns_give_the_same_numbers(name, monkeypatch):
+    """CONSTRAINED_COMPILE=0: no loops; J's products, the solve, the accelerations and the
+    projections are the columns' and still those of dense linear algebra."""
+    monkeypatch.setenv("CONSTRAINED_COMPILE", "0")
+    system = tv.SYSTEMS[name]()
+    b = vb.vectorized_build(assemble(system, reuse=False).structure)
+    assert b.products() is None and not b._loops()
+    tv.test_J_products_the_gram_and_its_solve_equal_dense_linear_algebra(system)
+    tv.test_accelerations_multipliers_and_projections_equal_the_unrolled_graphs(system)
+
+
+@needs_compiler
+def test_a_fine_rope_run_takes_the_same_steps_with_the_loops_and_without(monkeypatch):
+    """300 links of 1 cm and uneven masses: the loops change the numbers only by rounding."""
+    runs = {}
+    for label, setting in (("loops", "1"), ("columns", "0")):
+        monkeypatch.setenv("CONSTRAINED_COMPILE", setting)
+        system = tv.rope(300, varied=True)
+        runs[label] = C.simulate(system, 0.05, model=assemble(system, reuse=False), rtol=1e-6, atol=1e-6,
+                                 outputs=["multipliers"])
+    a, b = runs["loops"], runs["columns"]
+    assert a.stats["steps"] == b.stats["steps"] and a.stats["rejected"] == b.stats["rejected"]
+    tv._close(a.x[-1], b.x[-1], 1e-11)
+    tv._close(a.multipliers, b.multipliers, 1e-7)
+
+
+@needs_compiler
+@pytest.mark.parametrize("with_y", [True, False])
+def test_a_combination_is_y_plus_the_weighted_columns(with_y):
+    rng = np.random.default_rng(4)
+    n, k = 1001, 7
+    y, K, c = rng.standard_normal(n), rng.standard_normal((k, n)), rng.standard_normal(k)
+    f = combination.combination(n, k, with_y=with_y)
+    out = f(*([y] if with_y else []), *K, c)
+    np.testing.assert_allclose(np.asarray(out).ravel(), (y if with_y else 0) + c @ K, rtol=1e-13, atol=1e-13)
+    assert combination.combination(n, 0) is None
+    assert combination.combination(n, combination.MAX_TERMS + 1) is None
+
+
+@needs_compiler
+def test_a_c_function_is_compiled_once_and_loaded_from_the_cache(tmp_path, monkeypatch):
+    """The second build of the same source loads the library (the compiler is not run), a
+    null output is skipped, and a null input reads as zeros."""
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    body = ("  int i;\n  for (i = 0; i < 3; ++i) { if (y) y[i] = 2 * (x ? x[i] : 0); if (z) z[i] = 1; }\n"
+            "  return 0;")
+    args = (["x"], [ca.Sparsity.dense(3, 1)], ["y", "z"], [ca.Sparsity.dense(3, 1)] * 2)
+    f = external.c_function("twice_test", body, *args)
+    np.testing.assert_array_equal(np.asarray(f([1, 2, 3])[0]).ravel(), [2, 4, 6])
+    X = ca.MX.sym("x", 3)
+    g = ca.Function("g", [X], [f(X)[0]])  # z not wanted: a null output
+    np.testing.assert_array_equal(np.asarray(g([1, 1, 1])).ravel(), [2, 2, 2])
+    zero = ca.Function("h", [X], [f(ca.MX(3, 1))[0] + X])  # a structurally zero input
+    np.testing.assert_array_equal(np.asarray(zero([1, 2, 3])).ravel(), [1, 2, 3])
+
+    def no_compiler(command):
+        raise AssertionError("the compiler ran for a cached library")
+    monkeypatch.setattr(compiled, "_compile", no_compiler)
+    again = external.c_function("twice_test", body, *args)
+    np.testing.assert_array_equal(np.asarray(again([1, 2, 3])[0]).ravel(), [2, 4, 6])
+
+
+def test_a_kernel_outside_the_whitelist_has_no_loop():
+    xl, vl, t = ca.SX.sym("xl", 2), ca.SX.sym("vl", 2), ca.SX.sym("t")
+    c, p = ca.SX.sym("c", 0), ca.SX.sym("p", 0)
+    kernel = ca.Function("k", [xl, vl, c, t, p], [ca.erfinv(xl[0] / 3) - xl[1]])
+    index = np.array([[0, 2], [1, 3]])
+    assert fused.loop_body(fused.flat(kernel), index, np.zeros((0, 2)), np.zeros(0), 4, 0) is None
+    ok = ca.Function("k", [xl, vl, c, t, p], [ca.erf(xl[0] / 3) - xl[1]])
+    assert fused.loop_body(fused.flat(ok), index, np.zeros((0, 2)), np.zeros(0), 4, 0) is not None
