@@ -345,6 +345,19 @@ class VectorizedBuild:
             self._kernels[key] = bool(ca.depends_on(out, ca.vertcat(xl, vl)))
         return self._kernels[key]
 
+    def forces_vary(self) -> bool:
+        """Whether F changes with x, v or t (else it depends on p alone), from the SX."""
+        e = self.e
+        state = ca.vertcat(e.x, e.v, e.t)
+        if self.rest_forces and ca.depends_on(self.rest["F"], state):
+            return True
+        for g in self.mapped.terms:
+            kernel = self._gradient_kernel(g)
+            inputs = kernel.sx_in()
+            if ca.depends_on(kernel.call(inputs)[0], ca.vertcat(inputs[0], inputs[1], inputs[3])):
+                return True
+        return False
+
     def _row_columns(self, g, outputs: tuple, X, V, T, P) -> list:
         """The ``outputs`` of g's rows, for each a list of MX columns (J: one per coordinate)."""
         kernel = self._kernel(g, outputs)

@@ -68,9 +68,10 @@ def statics(view: ParametricView) -> tuple:
     once per step and handed to ``acceleration_graph`` (dopri's step: its accelerations are
     written into its graph)."""
     b = vectorized_build(view._model.structure)
+    if b.forces_vary():  # (asked of the SX: an MX graph through C loops has no cheap sparsity)
+        return view.inverse_masses, None
     X, V, T = ca.MX.sym("x", b.n3), ca.MX.sym("v", b.n3), ca.MX.sym("t")
-    F = b.evaluate(X, V, T, view.P, (), forces_too=True)["F"]
-    return view.inverse_masses, (None if ca.depends_on(F, ca.vertcat(X, V, T)) else F)
+    return view.inverse_masses, b.evaluate(X, V, T, view.P, (), forces_too=True)["F"]
 
 
 def acceleration_graph(view: ParametricView, X, V, T, *, minv=None, forces=None):
