@@ -30,7 +30,7 @@ def test_the_loops_are_what_a_large_model_runs_on(name):
     system = tv.SYSTEMS[name]()
     b = vb.vectorized_build(assemble(system, reuse=False).structure)
     assert b.products() is not None
-    assert len(b._loops()) == len(b.mapped.rows) + len(b.mapped.terms)  # every group: whitelisted
+    assert len(b._loops()) == 2 * len(b.mapped.rows) + len(b.mapped.terms)  # every group: whitelisted
 
 
 @needs_compiler

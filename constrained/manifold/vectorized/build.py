@@ -33,6 +33,8 @@ from .products import compiled_products
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
+#: What an acceleration reads of the rows.
+DYNAMICS = ("J", "gamma")
 
 
 @dataclass
@@ -320,19 +322,25 @@ class VectorizedBuild:
         """The C loops of the groups (``fused``): id(group) -> FusedGroup, for the groups it covers."""
         if self._fused is None:
             mb = self.mapped
-            groups = [*mb.rows, *mb.terms]
+            # each row group twice: every output, and an acceleration's J and γ alone (a
+            # loop computes what it has, and a rod's row scale is a second square root)
+            keys = ([(id(g), ROW_OUTPUTS) for g in mb.rows] + [(id(g), DYNAMICS) for g in mb.rows]
+                    + [(id(g), "gradient") for g in mb.terms])
+            groups = [*mb.rows, *mb.rows, *mb.terms]
             kernels = [*(self._kernel(g, ROW_OUTPUTS) for g in mb.rows),
+                       *(self._kernel(g, DYNAMICS) for g in mb.rows),
                        *(self._gradient_kernel(g) for g in mb.terms)]
             loops = fused_groups(groups, kernels, self.n3, self.e.p.numel()) if groups else []
-            self._fused = {id(g): f for g, f in zip(groups, loops, strict=True) if f is not None}
+            self._fused = {k: f for k, f in zip(keys, loops, strict=True) if f is not None}
         return self._fused
 
-    def _fused_call(self, g, X, V, T, P) -> list | None:
-        """Every scalar output of g's C loop at (X, V, T, P), or None (no loop for g)."""
-        loop = self._loops().get(id(g))
+    def _fused_call(self, g, outputs, X, V, T, P) -> list | None:
+        """Every scalar output of g's C loop for ``outputs`` (ROW_OUTPUTS, DYNAMICS or
+        "gradient") at (X, V, T, P), or None (no loop for g)."""
+        loop = self._loops().get((id(g), outputs))
         if loop is None:
             return None
-        key = ("loop", id(g), hash(X), None if V is None else hash(V), hash(T), hash(P))
+        key = ("loop", id(g), outputs, hash(X), None if V is None else hash(V), hash(T), hash(P))
         return shared(key, lambda: loop(X, V, T, P), X, V, T, P, g)
 
     def _moves(self, g, kernel: ca.Function) -> bool:
@@ -361,17 +369,18 @@ class VectorizedBuild:
     def _row_columns(self, g, outputs: tuple, X, V, T, P) -> list:
         """The ``outputs`` of g's rows, for each a list of MX columns (J: one per coordinate)."""
         kernel = self._kernel(g, outputs)
-        scalars = self._fused_call(g, X, V, T, P) if self._moves(g, kernel) else None
+        variant = DYNAMICS if set(outputs) <= set(DYNAMICS) else ROW_OUTPUTS
+        scalars = self._fused_call(g, variant, X, V, T, P) if self._moves(g, kernel) else None
         if scalars is None:
             return self._columns(g, kernel, X, V, T, P)
-        full = self._kernel(g, ROW_OUTPUTS)
+        full = self._kernel(g, variant)
         start = np.concatenate([[0], np.cumsum([full.nnz_out(i) for i in range(full.n_out())])])
-        return [scalars[start[ROW_OUTPUTS.index(k)]:start[ROW_OUTPUTS.index(k) + 1]] for k in outputs]
+        return [scalars[start[variant.index(k)]:start[variant.index(k) + 1]] for k in outputs]
 
     def _gradient_columns(self, g, X, V, T, P) -> list:
         """The gradient of g's terms, one MX column per local coordinate."""
         kernel = self._gradient_kernel(g)
-        scalars = self._fused_call(g, X, V, T, P) if self._moves(g, kernel) else None
+        scalars = self._fused_call(g, "gradient", X, V, T, P) if self._moves(g, kernel) else None
         return self._columns(g, kernel, X, V, T, P)[0] if scalars is None else list(scalars)
 
     def _columns(self, g, kernel, X, V, T, P) -> list:
