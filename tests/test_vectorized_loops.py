@@ -121,9 +121,10 @@ def test_a_kernel_outside_the_whitelist_has_no_loop():
     c, p = ca.SX.sym("c", 0), ca.SX.sym("p", 0)
     kernel = ca.Function("k", [xl, vl, c, t, p], [ca.erfinv(xl[0] / 3) - xl[1]])
     index = np.array([[0, 2], [1, 3]])
-    assert fused.loop_body(fused.flat(kernel), index, np.zeros((0, 2)), np.zeros(0), 4, 0) is None
+    table = external.IndexTable()
+    assert fused.loop_body(fused.flat(kernel), index, np.zeros((0, 2)), np.zeros(0), 4, 0, table) is None
     ok = ca.Function("k", [xl, vl, c, t, p], [ca.erf(xl[0] / 3) - xl[1]])
-    assert fused.loop_body(fused.flat(ok), index, np.zeros((0, 2)), np.zeros(0), 4, 0) is not None
+    assert fused.loop_body(fused.flat(ok), index, np.zeros((0, 2)), np.zeros(0), 4, 0, table) is not None
 
 
 def test_forces_of_p_alone_are_found_without_asking_casadi_through_the_loops(monkeypatch):

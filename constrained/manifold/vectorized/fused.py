@@ -28,7 +28,7 @@ import hashlib
 import casadi as ca
 import numpy as np
 
-from ...codegen.external import c_functions
+from ...codegen.external import IndexTable, c_functions
 from ...codegen.scalar_c import scalar_c
 
 
@@ -39,18 +39,13 @@ def flat(kernel: ca.Function) -> ca.Function:
     return ca.Function(f"{kernel.name()}_flat", inputs, scalars, {"cse": True})
 
 
-def _ints(name: str, values: np.ndarray) -> str:
-    text = ",".join(map(str, np.asarray(values, np.int64).reshape(-1).tolist())) or "0"
-    return f"static const int {name}[{max(np.size(values), 1)}] = {{{text}}};"
-
-
 def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, constants: np.ndarray, n3: int,
-              n_p: int) -> str | None:
+              n_p: int, table: IndexTable) -> str | None:
     """The C loop of ``kernel`` (``flat``'s form) over the instances of a group: ``index``
     (d, n) their coordinates, ``sources`` (n_c, n) where their constants are in p (below n_p)
-    or in ``constants`` (from n_p), written into the source as static arrays (no copy per
-    call); None when the kernel has an operation outside the whitelist. Inputs x, v (3N), t,
-    p; outputs y0 … (n each)."""
+    or in ``constants`` (from n_p), both in the library's ``table`` (no copy per call); None
+    when the kernel has an operation outside the whitelist. Inputs x, v (3N), t, p; outputs
+    y0 … (n each)."""
     if not np.all(np.isfinite(constants)):
         return None  # (no C literal)
     m = kernel.n_out()
@@ -63,8 +58,8 @@ def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, const
     n_c = sources.shape[0] if sources.size else 0
     writes = "\n    ".join(f"if (y{k}) y{k}[i] = o{k};" for k in range(m))
     literals = ",".join(map(repr, constants.tolist())) or "0"
-    return f"""  {_ints("index", index.T)}
-  {_ints("sources", sources.T if n_c else np.zeros(0))}
+    where = table.add(index.T), table.add(sources.T if n_c else np.zeros(0))
+    return f"""  const int *index = {where[0]}, *sources = {where[1]};
   static const casadi_real constants[{max(constants.size, 1)}] = {{{literals}}};
   static const casadi_real zero_x[{n3}], zero_p[{max(n_p, 1)}];
   const casadi_real *xx = x ? x : zero_x, *vv = v ? v : zero_x, *pp = p ? p : zero_p;
@@ -105,12 +100,12 @@ def fused_groups(groups: list, kernels: list[ca.Function], n3: int, n_p: int) ->
     """For each group and its kernel (inputs x_l, v_l, c, t, p), its ``FusedGroup``, all in one
     compiled library; None for a group the whitelist does not cover, and all None when
     compiled code cannot be had."""
-    bodies, specs = [], []
+    bodies, specs, table = [], [], IndexTable()
     for g, kernel in zip(groups, kernels, strict=True):
         k = flat(kernel)
         n = g.index.shape[1]
         constants = np.asarray(g.constants, float).reshape(-1)
-        body = loop_body(k, np.asarray(g.index), np.asarray(g.sources), constants, n3, n_p)
+        body = loop_body(k, np.asarray(g.index), np.asarray(g.sources), constants, n3, n_p, table)
         if body is None:
             specs.append(None)
             continue
@@ -123,9 +118,10 @@ def fused_groups(groups: list, kernels: list[ca.Function], n3: int, n_p: int) ->
         bodies.append(body)
     if not bodies:
         return [None] * len(groups)
-    tag = hashlib.sha256("\n".join(bodies).encode()).hexdigest()[:12]
+    data = table.data()
+    tag = hashlib.sha256("\n".join(bodies).encode() + data).hexdigest()[:12]
     named = [None if s is None else (f"rows_{tag}_{i}", *s) for i, s in enumerate(specs)]
-    functions = c_functions([s for s in named if s is not None])
+    functions = c_functions([s for s in named if s is not None], table.c, key=data)
     if functions is None:
         return [None] * len(groups)
     it = iter(functions)

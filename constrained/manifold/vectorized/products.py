@@ -24,35 +24,7 @@ import hashlib
 import casadi as ca
 import numpy as np
 
-from ...codegen.external import c_functions
-
-_OCTAL = np.array([f"\\{k:03o}" for k in range(256)])
-
-
-class _Table:
-    """Integer arrays laid end to end in one static table (``TABLE``) of the C source."""
-
-    def __init__(self):
-        self.parts: list[np.ndarray] = []
-        self.size = 0
-
-    def add(self, values) -> str:
-        """The C expression of ``values``' place in the table."""
-        values = np.asarray(values, np.int32).reshape(-1)
-        at = self.size
-        self.parts.append(values)
-        self.size += values.size
-        return f"(TABLE + {at})"
-
-    def data(self) -> bytes:
-        return (np.concatenate(self.parts) if self.parts else np.zeros(1, np.int32)).tobytes()
-
-    def c(self) -> str:
-        """The table as one string literal (a compiler reads it ten times faster than a list)."""
-        text = "".join(_OCTAL[np.frombuffer(self.data(), np.uint8)].tolist())
-        size = len(self.data()) + 1
-        return (f'static const char table_bytes[{size}] __attribute__((aligned(8))) = "{text}";\n'
-                "#define TABLE ((const int *) table_bytes)\n")
+from ...codegen.external import IndexTable, c_functions
 
 
 def _dense(n: int, k: int = 1) -> ca.Sparsity:
@@ -83,7 +55,7 @@ class CompiledProducts:
         return self.f[f"after{k}"](*streams, minv, B, lam)
 
 
-def _gram_body(gram, table: _Table, streams: list[str]) -> str:
+def _gram_body(gram, table: IndexTable, streams: list[str]) -> str:
     """A's nonzeros from the products of ``gram`` (a ``_Gram``)."""
     n_a = gram.sparsity.nnz()
     lines = [f"  casadi_int i;\n  for (i = 0; i < {n_a}; ++i) A[i] = 0;"]
@@ -107,12 +79,12 @@ def _gram_body(gram, table: _Table, streams: list[str]) -> str:
     return "\n".join(lines) + "\n  return 0;"
 
 
-def _stream_loop(table: _Table, n: int, statement: str, r, c) -> str:
+def _stream_loop(table: IndexTable, n: int, statement: str, r, c) -> str:
     return (f"  {{ const int *R = {table.add(r)}, *C = {table.add(c)};\n"
             f"    for (i = 0; i < {n}; ++i) {statement} }}")
 
 
-def _elimination(e, table: _Table, streams: list[str], n_rows: int, ks: tuple) -> dict:
+def _elimination(e, table: IndexTable, streams: list[str], n_rows: int, ks: tuple) -> dict:
     """The bodies of ``before{k}`` (B -> the reduced right-hand side) and ``after{k}`` (Λ_R -> Λ)
     for B of k columns, k in ``ks``."""
     n_s, n_r = len(e.rows), len(e.others)
@@ -155,59 +127,72 @@ def _elimination(e, table: _Table, streams: list[str], n_rows: int, ks: tuple) -
     return bodies
 
 
-def _ldl_bodies(sparsity: ca.Sparsity, table: _Table, ks: tuple) -> tuple[dict, int]:
+def _ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
     """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
-    (symmetric, positive definite), and their scratch length: A[p, p] = L D Lᵀ with CasADi's
-    symbolic factorization (the AMD order p and the pattern of L), numerically row by row,
+    (symmetric, positive definite), and their scratch lengths (reals, integers): A[p, p] =
+    L D Lᵀ in the order p of CasADi's symbolic factorization (AMD, or the rows' own where that
+    saves no fill: a chain's loops then run through memory in order), numerically row by row
+    as T. A. Davis' LDL does (ACM TOMS 31, 2005), the pattern of each row found by walking the
+    elimination tree from A's entries,
 
-        row k of L:  y = Ã[:k+1, k];  for i in pattern(k), ascending:
-                     y[L's rows below i, above k] −= L[·, i] y_i,  L_ki = y_i / D_i,  D_k −= L_ki y_i,
+        row k of L:  y = Ã[:k+1, k];  for i in the pattern of row k (in topological order):
+                     y[rows of L[:, i] so far] −= L[·, i] y_i,  L_ki = y_i / D_i,  D_k −= L_ki y_i,
 
-    then forward and back substitution. The pattern and the order are fixed for the model:
-    the loops read them from the table. The rows' own order is kept where AMD's saves no fill
-    (a chain: the loops then run through memory in order)."""
+    then forward and back substitution. The table holds only what is O(n + nnz(A)): A's
+    upper entries in the order p, the tree and the column starts of L."""
     n = sparsity.size1()
     lt, p = sparsity.ldl(True)
     natural, identity = sparsity.ldl(False)
-    if natural.nnz() <= lt.nnz():  # (a chain's rows in order: no fill either way, and memory in order)
+    if natural.nnz() <= lt.nnz():
         lt, p = natural, identity
     p = np.asarray(p, np.int64)
     pinv = np.empty(n, np.int64)
     pinv[p] = np.arange(n)
     ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
-    by_column = np.lexsort((tk, ti))
-    slot = np.empty(len(ti), np.int64)
-    slot[by_column] = np.arange(len(ti))
     lp = np.concatenate([[0], np.cumsum(np.bincount(ti, minlength=n))])
-    by_row = np.lexsort((ti, tk))
-    rp = np.concatenate([[0], np.cumsum(np.bincount(tk, minlength=n))])
+    parent = np.full(n, -1, np.int64)
+    first = np.full(n, np.iinfo(np.int64).max)
+    np.minimum.at(first, ti, tk)
+    parent[first < n] = first[first < n]
     r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
     ii, kk = pinv[r], pinv[c]
     z = np.flatnonzero(ii <= kk)
     z = z[np.lexsort((ii[z], kk[z]))]
     ap = np.concatenate([[0], np.cumsum(np.bincount(kk[z], minlength=n))])
     n_l = len(ti)
-    names = {"Ap": ap, "Az": z, "Ai": ii[z], "Rp": rp, "Ri": ti[by_row], "Rs": slot[by_row], "Lp": lp,
-             "Li": tk[by_column], "P": p}
+    names = {"Ap": ap, "Az": z, "Ai": ii[z], "Lp": lp, "Parent": parent, "P": p}
     arrays = "\n".join(f"  const int *{k} = {table.add(v)};" for k, v in names.items())
     factor = f"""{arrays}
-  casadi_int k, s, q, e, col;
+  casadi_int k, s, q, e, col, i, top, len;
   casadi_real *y = w, *D = w + {n}, *Lx = w + {2 * n}, *x = w + {2 * n + n_l};
-  for (k = 0; k < {n}; ++k) y[k] = 0;
+  casadi_int *pattern = iw, *flag = iw + {n}, *lnz = iw + {2 * n}, *Li = iw + {3 * n};
   for (k = 0; k < {n}; ++k) {{
-    casadi_real dk;
-    for (e = Ap[k]; e < Ap[k + 1]; ++e) y[Ai[e]] += A[Az[e]];
-    dk = y[k];
     y[k] = 0;
-    for (q = Rp[k]; q < Rp[k + 1]; ++q) {{
-      const int i = Ri[q], end = Rs[q];
-      const casadi_real yi = y[i], l = yi / D[i];
+    top = {n};
+    flag[k] = k;
+    lnz[k] = 0;
+    for (e = Ap[k]; e < Ap[k + 1]; ++e) {{
+      i = Ai[e];
+      y[i] += A[Az[e]];
+      for (len = 0; flag[i] != k; i = Parent[i]) {{
+        pattern[len++] = i;
+        flag[i] = k;
+      }}
+      while (len > 0) pattern[--top] = pattern[--len];
+    }}
+    D[k] = y[k];
+    y[k] = 0;
+    for (; top < {n}; ++top) {{
+      const casadi_int end = Lp[pattern[top]] + lnz[pattern[top]];
+      const casadi_real yi = y[pattern[top]], l = yi / D[pattern[top]];
+      i = pattern[top];
       y[i] = 0;
       for (s = Lp[i]; s < end; ++s) y[Li[s]] -= Lx[s] * yi;
-      dk -= l * yi;
+      D[k] -= l * yi;
+      Li[end] = k;
       Lx[end] = l;
+      ++lnz[i];
     }}
-    D[k] = dk;
   }}"""
     bodies = {}
     for k in ks:
@@ -229,7 +214,7 @@ def _ldl_bodies(sparsity: ca.Sparsity, table: _Table, ks: tuple) -> tuple[dict, 
     for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
   }}
   return 0;"""
-    return bodies, 3 * n + n_l
+    return bodies, 3 * n + n_l, 3 * n + n_l
 
 
 def compiled_products(build) -> CompiledProducts | None:
@@ -238,7 +223,7 @@ def compiled_products(build) -> CompiledProducts | None:
     b = build
     names = [f"J{s}" for s in range(len(b.rows))]
     stream_sp = [_dense(len(r)) for r in b.rows]
-    table = _Table()
+    table = IndexTable()
     specs = []
 
     def add(kind, body, extra_in, extra_sp, out_name, out_sp, work=0):
@@ -255,10 +240,10 @@ def compiled_products(build) -> CompiledProducts | None:
     add("gram", _gram_body(gram, table, names), ["m"], [_dense(b.n3)], "A", _dense(gram.sparsity.nnz()))
     n_a = gram.sparsity.size1()
     if n_a:
-        bodies, work = _ldl_bodies(gram.sparsity, table, (1, 2))
+        bodies, work, iwork = _ldl_bodies(gram.sparsity, table, (1, 2))
         for k in (1, 2):
-            specs.append((f"solve{k}", bodies[f"solve{k}"], ["A", "B"],
-                          [_dense(gram.sparsity.nnz()), _dense(n_a, k)], ["out"], [_dense(n_a, k)], work))
+            specs.append((f"solve{k}", bodies[f"solve{k}"], ["A", "B"], [_dense(gram.sparsity.nnz()),
+                          _dense(n_a, k)], ["out"], [_dense(n_a, k)], work, iwork))
     if e is not None:
         work = 2 * max(len(e.rows), 1)
         bodies = _elimination(e, table, names, b.n_rows, (1, 2))
