@@ -319,7 +319,8 @@ class VectorizedBuild:
         return self._products or None
 
     def _loops(self) -> dict:
-        """The C loops of the groups (``fused``): id(group) -> FusedGroup, for the groups it covers."""
+        """The C loops of the groups (``fused``): (id(group), ROW_OUTPUTS, DYNAMICS or "gradient")
+        -> FusedGroup, for the groups the whitelist covers; empty without compiled code."""
         if self._fused is None:
             mb = self.mapped
             # each row group twice: every output, and an acceleration's J and γ alone (a
