@@ -147,3 +147,16 @@ def test_forces_of_p_alone_are_found_without_asking_casadi_through_the_loops(mon
         monkeypatch.setattr(ca, "depends_on", original)
         assert (forces is None) == varies
         assert vb.vectorized_build(model.structure).mapped.terms or not varies
+
+
+def test_a_compiler_that_fails_leaves_the_columns(tmp_path, monkeypatch):
+    """A C compiler that fails (here ``false``): no loops, the reason kept, and the run as before."""
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", "false")
+    system = tv.rope(120)
+    model = assemble(system, reuse=False)
+    b = vb.vectorized_build(model.structure)
+    assert b.products() is None and not b._loops()
+    assert compiled.last_error and "compiler failed" in compiled.last_error
+    tr = C.simulate(system, 0.002, model=model, rtol=1e-6, atol=1e-6)
+    assert np.max(tr.constraint_residual) < 1e-9
