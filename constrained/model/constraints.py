@@ -20,6 +20,8 @@ from .lifting import Number
 
 
 def _fmt(value) -> str:
+    if type(value) is Number or type(value) is float:  # (the usual cases, first)
+        return f"{value:g}"
     if isinstance(value, np.ndarray | np.generic):
         value = value.tolist()
     if isinstance(value, str):
@@ -268,7 +270,8 @@ class Plane(Constraint):
         # all rows in a few CasADi calls (one per particle would dominate the build of a chain)
         P = ca.horzcat(*[s.position(p, where) for p in self.particles])
         rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
-        return [(row, f"{self.label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
+        label = self.label
+        return [(row, f"{label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
 
 
 class Surface(Constraint):
@@ -285,9 +288,9 @@ class Surface(Constraint):
         return self.name or f"surface {self.expr} = 0"
 
     def rows(self, s):
-        where = self._where()
+        where, label = self._where(), self.label
         return [
-            (s.parse_field(self.expr, f"{where}.expr", s.position(p, where)), f"{self.label} [{p}]")
+            (s.parse_field(self.expr, f"{where}.expr", s.position(p, where)), f"{label} [{p}]")
             for p in self.particles
         ]
 
@@ -313,12 +316,12 @@ class Curve(Constraint):
         return self.name or f"curve {self.exprs[0]} = 0, {self.exprs[1]} = 0"
 
     def rows(self, s):
-        where = self._where()
+        where, label = self._where(), self.label
         out = []
         for p in self.particles:
             at = s.position(p, where)
             for k, e in enumerate(self.exprs):
-                out.append((s.parse_field(e, f"{where}.expr[{k}]", at), f"{self.label} [{p}, {k + 1}]"))
+                out.append((s.parse_field(e, f"{where}.expr[{k}]", at), f"{label} [{p}, {k + 1}]"))
         return out
 
 

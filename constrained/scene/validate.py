@@ -137,6 +137,9 @@ class Validator:
             return [self.particle(value, key)]
         if not isinstance(value, list) or not value:
             self.fail(key, f"must be a particle name or a non-empty list of names, got {_describe(value)}")
+        if set(map(type, value)) == {str} and self.name_set().issuperset(value) \
+                and len(set(value)) == len(value):  # known names, each once: all at once
+            return list(value)
         out = [self.particle(v, _join(key, i)) for i, v in enumerate(value)]
         first: dict[str, int] = {}
         for i, name in enumerate(out):
