@@ -61,8 +61,11 @@ class Gravity(Effect):
         if not names:
             return 0.0
         # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
-        P = ca.horzcat(*[s.position(p, where) for p in names])
-        m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
+        if self.particles is None:  # every particle, in order: x as columns of 3
+            P, m = ca.reshape(s.x, 3, s.x.numel() // 3), s.mass_column().T
+        else:
+            P = ca.horzcat(*[s.position(p, where) for p in names])
+            m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
         return -ca.dot(ca.mtimes(g.T, P), m)
 
 

@@ -143,9 +143,9 @@ class Structure:
         if self.masses_symbolic:
             m = s.mass_column()
             m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1)  # each mass three times, in place
-            entries = _entries_of(s.masses, p)
+            entries = s.mass_entries if s.mass_entries is not None else _entries_of(s.masses, p)
             if entries is not None:
-                self.mass_entries = np.repeat(entries, 3)
+                self.mass_entries = np.repeat(np.asarray(entries, dtype=np.int64), 3)
         else:
             m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
         T = 0.5 * ca.dot(m3 * v, v)
@@ -475,17 +475,8 @@ def structure_fingerprint(system) -> str | None:
 
 def _fingerprint(system) -> tuple[str | None, np.ndarray]:
     """``(structure_fingerprint(system), lifting.numbers(system))`` in one walk."""
-    values: list[float] = []
     try:
-        particles = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
-                      else lifting.plain_data(lifting.lifted_mass(p, values))] for p in system.particles]
-        items = []
-        for item in (*system.constraints, *system.effects):
-            lifted = lifting.lifted_fields(item, values)
-            rest = {k: v for k, v in vars(item).items() if k not in lifted}
-            items.append([type(item).__module__, type(item).__qualname__, lifting.plain_data(lifted),
-                          lifting.plain_data(rest)])
-        data = [particles, items, list(system.parameters), lifting.plain_data(system.definitions)]
+        data, values = lifting.structure_data(system)
         text = json.dumps(data)
     except (lifting.NotPlain, TypeError, ValueError):
         return None, lifting.numbers(system)

@@ -31,6 +31,8 @@ class Symbols:
     ``Number`` entries; each is the symbol ``p[len(parameters) + index]``.
     """
 
+    mass_entries: list[int] | None = None
+
     def __init__(self, system, *, symbolic_parameters: bool = False, numbers: int = 0):
         self.system = system
         n = system.n_particles
@@ -43,12 +45,20 @@ class Symbols:
             self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
             hidden = ca.SX.sym("number", numbers)
             self._numbers = ca.vertsplit(hidden) if numbers else []
+            offset = self.p.numel()
             self.p = ca.vertcat(self.p, hidden)
-            self.masses = [
-                expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
-                if "mass" in p.formulas else self.number(p.mass)
-                for p in system.particles
-            ]
+            lifted = [p.mass for p in system.particles]
+            if all(type(m) is Number for m in lifted):  # (a mass given by a formula is not one)
+                #: Each particle's entry of p when every mass is a plain number (a Number): then
+                #: ``mass_column`` is one gather from p instead of a vertcat of N symbols.
+                self.mass_entries = [offset + m.index for m in lifted]
+                self.masses = [self._numbers[m.index] for m in lifted]
+            else:
+                self.masses = [
+                    expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
+                    if "mass" in p.formulas else self.number(p.mass)
+                    for p in system.particles
+                ]
         else:
             self.p = ca.SX(0, 1)
             self._numbers = []
@@ -63,6 +73,9 @@ class Symbols:
     def mass_column(self, indices=None):
         """The masses of the particles ``indices`` (all by default) as a column: a DM of
         numbers, or an SX when some are symbols (one CasADi call, not one per particle)."""
+        if self.mass_entries is not None:  # (the same elements as the vertcat below)
+            entries = self.mass_entries if indices is None else [self.mass_entries[i] for i in indices]
+            return self.p[entries] if entries else ca.SX(0, 1)
         masses = self.masses if indices is None else [self.masses[i] for i in indices]
         if not any(isinstance(m, ca.SX) for m in masses):
             return ca.DM(np.asarray(masses, float))
