@@ -202,3 +202,26 @@ def test_springs_built_in_a_batch_equal_springs_built_one_by_one(monkeypatch):
     Fb = np.asarray(batched.dynamics(x, v, 0.0)[0]).ravel()
     Fs = np.asarray(single.dynamics(x, v, 0.0)[0]).ravel()
     assert np.allclose(Fb, Fs, rtol=1e-12, atol=1e-12 * np.abs(Fs).max())
+
+
+def test_labels_are_filled_in_one_pass_as_one_by_one():
+    values = np.array([0.01, 2.5, 1e-7, 0.01, -3.0])
+    texts = ["rod ⟦0⟧ m", "⟦1⟧ and ⟦3⟧", "no number", "", "x⟦2⟧⟦4⟧", "a\0b ⟦1⟧"]
+    for some in (texts[:5], texts, []):
+        assert lifting.fill_all(some, values) == [lifting.fill(t, values) for t in some]
+
+
+def test_plain_data_of_flat_tables_and_lists_as_one_by_one():
+    for value in ([1, 2.5, "a", None, True], ("a", 1), {"a": 1, "b": None, "c": False},
+                  {"a": [1, 2], "b": lifting.Number(3)}, [[1, "x"], {"k": 0.5}]):
+        assert lifting.plain_data(value) == _plain_data_one_by_one(value)
+
+
+def _plain_data_one_by_one(value):
+    if isinstance(value, list | tuple):
+        return [_plain_data_one_by_one(v) for v in value]
+    if isinstance(value, dict):
+        return ["mapping", [[_plain_data_one_by_one(k), _plain_data_one_by_one(v)] for k, v in value.items()]]
+    if isinstance(value, lifting.Number):
+        return ["number", value.index]
+    return value

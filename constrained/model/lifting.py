@@ -203,6 +203,25 @@ def fill(text: str, values: np.ndarray) -> str:
     return _TOKEN.sub(lambda m: f"{values[int(m.group(1))]:g}", text)
 
 
+def fill_all(texts: list[str], values: np.ndarray) -> list[str]:
+    """``[fill(text, values) for text in texts]`` in one pass over them all (a large model's
+    labels), each distinct value formatted once."""
+    joined = "\0".join(texts)
+    if joined.count("\0") != len(texts) - 1:  # (a text with the separator in it)
+        return [fill(text, values) for text in texts]
+    numbers = np.asarray(values, float).tolist()
+    formatted: dict[float, str] = {}
+
+    def value(match) -> str:
+        v = numbers[int(match.group(1))]
+        text = formatted.get(v)
+        if text is None:
+            text = formatted[v] = f"{v:g}"
+        return text
+
+    return _TOKEN.sub(value, joined).split("\0") if texts else []
+
+
 @contextlib.contextmanager
 def shown(values: np.ndarray):
     """Inside the block (the Structure's build, which reads a lifted system), an InputError's

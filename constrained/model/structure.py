@@ -340,7 +340,7 @@ class Model:
         labels = self.structure.constraint_labels
         if not self.structure.n_numbers:
             return labels
-        return [lifting.fill(label, self.numbers) for label in labels]
+        return lifting.fill_all(labels, self.numbers)
 
     @property
     def parameters(self) -> dict[str, float]:

@@ -356,10 +356,16 @@ def file_mode() -> int:
     return 0o666 & ~mask
 
 
+#: Values ``_jsonable`` gives back as they are.
+_PLAIN = frozenset((str, float, int, bool, type(None)))
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
+        if _PLAIN.issuperset(map(type, value)):  # (names, labels: tens of thousands at once)
+            return list(value)
         return [_jsonable(v) for v in value]
     if isinstance(value, np.generic):
         return value.item()

@@ -193,7 +193,7 @@ class SceneBuilder(RunSections):
 
     def parameters(self) -> dict[str, float]:
         table = self.raw.get("parameters", {})
-        reserved = self.reserved_for_formulas()
+        reserved = self.reserved_for_formulas() if table else ()
         out = {}
         for k, v in table.items():
             key = _join("parameters", k)
@@ -210,7 +210,7 @@ class SceneBuilder(RunSections):
     def definitions(self, parameters: dict) -> dict:
         """[definitions]: name -> a formula in parameters and other definitions (or a number)."""
         table = self.raw.get("definitions", {})
-        reserved = self.reserved_for_formulas()
+        reserved = self.reserved_for_formulas() if table else ()
         for k, v in table.items():
             key = _join("definitions", k)
             self.identifier(k, key, "a definition name")

@@ -6,6 +6,7 @@ is one."""
 from __future__ import annotations
 
 import difflib
+import itertools
 import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -213,17 +214,13 @@ class Validator:
 def _all_moderate(value) -> bool:
     """Whether every number in the nested dicts and lists ``value`` is finite and at most
     ``expressions.MAX_MAGNITUDE`` in size."""
-    stack = [value]
     limit = expressions.MAX_MAGNITUDE
-    while stack:
-        item = stack.pop()
-        if isinstance(item, dict):
-            stack.extend(item.values())
-        elif isinstance(item, list):
-            stack.extend(item)
-        elif isinstance(item, float):
-            if not -limit <= item <= limit:  # (NaN fails too)
-                return False
-        elif isinstance(item, int) and not isinstance(item, bool) and abs(item) > limit:
+    level = [value]  # the values at one depth: each level's numbers compared at once
+    while level:
+        numbers = [v for v in level if isinstance(v, float | int) and not isinstance(v, bool)]
+        if not all(map(limit.__ge__, map(abs, numbers))):  # (NaN fails too)
             return False
+        level = list(itertools.chain(
+            itertools.chain.from_iterable(v.values() for v in level if isinstance(v, dict)),
+            itertools.chain.from_iterable(v for v in level if isinstance(v, list))))
     return True
