@@ -241,6 +241,7 @@ class NotPlain(Exception):
 
 #: Types ``plain_data`` gives back as they are.
 _ATOMS = frozenset((float, str, int, bool, type(None)))
+_NUMBERED = _ATOMS | {Number}
 
 
 def plain_data(value):
@@ -253,8 +254,13 @@ def plain_data(value):
             return list(value)
         return [plain_data(v) for v in value]
     if kind is dict:
-        if _ATOMS.issuperset(map(type, value)) and _ATOMS.issuperset(map(type, value.values())):
-            return ["mapping", [[k, v] for k, v in value.items()]]
+        if _ATOMS.issuperset(map(type, value)):  # (plain keys; values plain or Numbers: at once)
+            kinds = set(map(type, value.values()))
+            if kinds <= _ATOMS:
+                return ["mapping", [[k, v] for k, v in value.items()]]
+            if kinds <= _NUMBERED:
+                return ["mapping", [[k, ["number", v.index] if type(v) is Number else v]
+                                    for k, v in value.items()]]
         return ["mapping", [[plain_data(k), plain_data(v)] for k, v in value.items()]]
     if kind is Number:
         return ["number", value.index]

@@ -125,7 +125,10 @@ class Structure:
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
-        self.forces_depend_on_velocity = bool(ca.depends_on(F, v))
+        # (with potentials alone, F = −∂V/∂x: free of v when V is, which is the smaller graph to ask)
+        potentials_only = not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force"))
+        may = not potentials_only or ca.depends_on(V, v)
+        self.forces_depend_on_velocity = bool(may and ca.depends_on(F, v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)
