@@ -225,3 +225,28 @@ def _plain_data_one_by_one(value):
     if isinstance(value, lifting.Number):
         return ["number", value.index]
     return value
+
+
+def test_fingerprints_tell_apart_what_runs_of_items_hold():
+    from constrained.model.structure import structure_fingerprint
+
+    def system(*items):
+        s = C.System([C.Particle("p1", 1.0, [1, 0, 0]), C.Particle("p2", 2.0, [0, 1, 0]),
+                      C.Particle("p3", 1.0, [0, 0, 1])])
+        return s.add(*items)
+
+    def rod(a="p1", b="p2", length=1.0, **kw):
+        return C.Distance(a, b, length=length, **kw)
+
+    same = structure_fingerprint(system(rod(), rod("p2", "p3"), C.Spring("p1", "p3", k=2.0)))
+    assert same == structure_fingerprint(system(rod(length=3.0), rod("p2", "p3", length=0.5),
+                                                C.Spring("p1", "p3", k=7.0)))
+    others = [system(rod("p2", "p3"), rod(), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), rod("p3", "p2"), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), C.Pin("p3", [0, 0, 1.0]), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), rod("p2", "p3", name="second"), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), rod("p2", "p3"), C.Spring("p1", "p3", k=2.0, rest=0.5)),
+              system(rod(), rod("p2", "p3"), C.Spring("p1", point=[0, 0, 1.0], k=2.0)),
+              system(rod(), rod("p2", "p3"))]
+    prints = {structure_fingerprint(s) for s in others}
+    assert len(prints) == len(others) and same not in prints

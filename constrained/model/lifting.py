@@ -184,12 +184,27 @@ def structure_data(system) -> tuple[list, list[float]]:
     else:
         described = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
                       else plain_data(lifted_mass(p, values))] for p in particles]
-    items = []
+    # Items in runs of one class and one set of attributes: [module, class, numeric fields, other
+    # attributes, [[numeric values, other values] per item]] (a run's names written once).
+    runs: list = []
+    header = None
     for item in (*system.constraints, *system.effects):
         lifted = lifted_fields(item, values)
-        rest = {k: v for k, v in vars(item).items() if k not in lifted}
-        items.append([type(item).__module__, type(item).__qualname__, plain_data(lifted), plain_data(rest)])
-    return [described, items, list(system.parameters), plain_data(system.definitions)], values
+        rest = [(k, v) for k, v in vars(item).items() if k not in lifted]
+        key = (type(item), tuple(lifted), tuple(k for k, _ in rest))
+        if key != header:
+            header = key
+            runs.append([type(item).__module__, type(item).__qualname__, list(key[1]), list(key[2]), []])
+        runs[-1][4].append([[_plain_value(v) for v in lifted.values()], [_plain_value(v) for _, v in rest]])
+    return [described, runs, list(system.parameters), plain_data(system.definitions)], values
+
+
+def _plain_value(value):
+    """``plain_data(value)``, the usual kinds first."""
+    kind = type(value)
+    if kind is str or kind is float or kind is int or kind is bool or value is None:
+        return value
+    return ["number", value.index] if kind is Number else plain_data(value)
 
 
 _TOKEN = re.compile("⟦([0-9]+)⟧")
