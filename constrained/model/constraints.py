@@ -197,7 +197,7 @@ class Distance(Constraint):
         if not plain:
             return out
         rods = [items[k] for k in plain]
-        lengths = ca.vertcat(*[s.number(c.length) for c in rods])
+        lengths = s.number_column([c.length for c in rods])
         for k, row, c in zip(plain, ca.vertsplit(norms.T - lengths, 1), rods, strict=True):
             out[k] = [(row, c.label)]
         return out
@@ -268,7 +268,7 @@ class Plane(Constraint):
         n = s.point(self.normal, f"{where}.normal")
         offset = s.time_function(self.offset, f"{where}.offset")
         # all rows in a few CasADi calls (one per particle would dominate the build of a chain)
-        P = ca.horzcat(*[s.position(p, where) for p in self.particles])
+        P = s.columns(self.particles, where)
         rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
         label = self.label
         return [(row, f"{label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]

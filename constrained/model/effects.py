@@ -61,11 +61,8 @@ class Gravity(Effect):
         if not names:
             return 0.0
         # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
-        if self.particles is None:  # every particle, in order: x as columns of 3
-            P, m = ca.reshape(s.x, 3, s.x.numel() // 3), s.mass_column().T
-        else:
-            P = ca.horzcat(*[s.position(p, where) for p in names])
-            m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
+        P = s.columns(names, where)
+        m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
         return -ca.dot(ca.mtimes(g.T, P), m)
 
 
@@ -104,8 +101,8 @@ class Spring(Effect):
         if not plain:
             return out
         springs = [items[j] for j in plain]
-        k = ca.vertcat(*[s.number(e.k) for e in springs]).T
-        rest = ca.vertcat(*[s.number(e.rest) for e in springs]).T
+        k = s.number_column([e.k for e in springs]).T
+        rest = s.number_column([e.rest for e in springs]).T
         for j, term in zip(plain, ca.horzsplit(0.5 * k * (norms - rest) ** 2, 1), strict=True):
             out[j] = term
         return out

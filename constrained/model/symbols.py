@@ -7,6 +7,7 @@ Symbols object and returns expressions in ``x`` (3N positions), ``v`` (3N veloci
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import casadi as ca
@@ -32,6 +33,7 @@ class Symbols:
     """
 
     mass_entries: list[int] | None = None
+    _offset: int | None = None  # where the Numbers' entries start in p (symbolic parameters)
 
     def __init__(self, system, *, symbolic_parameters: bool = False, numbers: int = 0):
         self.system = system
@@ -45,7 +47,7 @@ class Symbols:
             self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
             hidden = ca.SX.sym("number", numbers)
             self._numbers = ca.vertsplit(hidden) if numbers else []
-            offset = self.p.numel()
+            offset = self._offset = self.p.numel()
             self.p = ca.vertcat(self.p, hidden)
             lifted = [p.mass for p in system.particles]
             if all(type(m) is Number for m in lifted):  # (a mass given by a formula is not one)
@@ -64,11 +66,30 @@ class Symbols:
             self._numbers = []
             self.parameters = system.parameter_values
             self.masses = system.masses
-        # One split each instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs in
-        # CasADi's Python layer, and a big chain asks for thousands of them.
-        self._xp = ca.vertsplit(self.x, 3) if n else []
-        self._vp = ca.vertsplit(self.v, 3) if n else []
         self._position_names = self._state_names = None
+
+    # One split each (on first use) instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs
+    # in CasADi's Python layer, and a big chain asks for thousands of them.
+    @functools.cached_property
+    def _xp(self) -> list:
+        return ca.vertsplit(self.x, 3) if self.x.numel() else []
+
+    @functools.cached_property
+    def _vp(self) -> list:
+        return ca.vertsplit(self.v, 3) if self.v.numel() else []
+
+    def columns(self, names, where: str):
+        """The positions of the particles ``names`` as the columns of a (3, len(names)) SX: one
+        gather from x (the same entries as a horzcat of ``position(name)``)."""
+        indices = [self.index(name, where) for name in names]
+        X = ca.reshape(self.x, 3, self.x.numel() // 3)
+        return X if indices == list(range(X.size2())) else X[:, indices]
+
+    def number_column(self, values: list):
+        """``vertcat(*[number(v) for v in values])``: when all are Numbers, one gather from p."""
+        if values and all(type(v) is Number for v in values) and self._offset is not None:
+            return self.p[[self._offset + v.index for v in values]]
+        return ca.vertcat(*[self.number(v) for v in values])
 
     def mass_column(self, indices=None):
         """The masses of the particles ``indices`` (all by default) as a column: a DM of
