@@ -250,3 +250,19 @@ def test_fingerprints_tell_apart_what_runs_of_items_hold():
               system(rod(), rod("p2", "p3"))]
     prints = {structure_fingerprint(s) for s in others}
     assert len(prints) == len(others) and same not in prints
+
+
+def test_models_of_one_structure_label_rows_with_their_own_numbers():
+    def rope(length):
+        s = C.System([C.Particle("a", 1.0, [length, 0, 0])])
+        return s.add(C.Distance("a", point=[0, 0, 0], length=length))
+
+    first = assemble(rope(1.5))
+    second = assemble(rope(2.5))
+    assert first.structure is second.structure
+    for _ in range(2):
+        assert first.constraint_labels == ["distance a–(0, 0, 0) = 1.5 m"]
+        assert second.constraint_labels == ["distance a–(0, 0, 0) = 2.5 m"]
+    first.constraint_labels.append("changed")
+    assert Model(rope(1.5), structure=first.structure).constraint_labels == \
+        ["distance a–(0, 0, 0) = 1.5 m"]

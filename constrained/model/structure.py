@@ -51,6 +51,8 @@ class Structure:
 
     #: Structures built in this process (each one parses and differentiates the system).
     builds = 0
+    #: (numbers as bytes, the labels filled with them): the most recent Model's (constraint_labels).
+    filled_labels: tuple | None = None
 
     def __init__(self, system, *, lift: bool = True):
         system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
@@ -340,10 +342,15 @@ class Model:
     @functools.cached_property
     def constraint_labels(self) -> list[str]:
         """One label per constraint row (its plain numbers the system's)."""
-        labels = self.structure.constraint_labels
-        if not self.structure.n_numbers:
-            return labels
-        return lifting.fill_all(labels, self.numbers)
+        structure = self.structure
+        if not structure.n_numbers:
+            return structure.constraint_labels
+        key = self.numbers.tobytes()  # (Models of equal numbers fill them once: a scene's check, its run)
+        filled = structure.filled_labels
+        if filled is None or filled[0] != key:
+            labels = lifting.fill_all(structure.constraint_labels, self.numbers)
+            filled = structure.filled_labels = (key, labels)
+        return list(filled[1])
 
     @property
     def parameters(self) -> dict[str, float]:
