@@ -42,8 +42,7 @@ def _described(scene) -> list:
     system = scene.system
     particles = [(p.name, type(p.mass), p.mass, p.position.tolist(), p.velocity.tolist(), p.where,
                   p.formulas, list(vars(p))) for p in system.particles]
-    items = [(type(c).__name__, {k: v for k, v in vars(c).items()})
-             for c in (*system.constraints, *system.effects)]
+    items = [(type(c).__name__, list(vars(c).items())) for c in (*system.constraints, *system.effects)]
     return [particles, items]
 
 
@@ -111,6 +110,14 @@ def test_what_the_fast_paths_leave_the_checks_say_as_before(monkeypatch, path, v
     slow = _build(raw)
     assert (fast if isinstance(fast, str) else _described(fast)) == \
         (slow if isinstance(slow, str) else _described(slow))
+
+
+def test_the_fast_paths_keep_the_structure_fingerprint(monkeypatch):
+    from constrained.model.structure import structure_fingerprint
+
+    fast = structure_fingerprint(build_scene(_raw()).system)
+    _slow(monkeypatch)
+    assert fast == structure_fingerprint(build_scene(_raw()).system)
 
 
 def test_plain_particles_share_no_arrays():

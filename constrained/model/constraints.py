@@ -175,6 +175,16 @@ class Distance(Constraint):
                 f"undefined (the constraint's gradient vanishes); {fix}",
                 where=f"{self._where()}.length")
 
+    @classmethod
+    def between(cls, a: str, b: str, length: float, where: str | None = None) -> Distance:
+        """``Distance(a, b, length=length, where=where)`` of values already checked (two different
+        particles' names, a finite positive float length), without checking them again: a
+        large scene's rods (constrained.scene.plain)."""
+        rod = cls.__new__(cls)
+        rod.__dict__.update(a=a, b=b, point=None, length=length, name=None, where=where, unilateral=False,
+                            restitution=0.0)
+        return rod
+
     @property
     def label(self) -> str:
         other = self.b if self.b is not None else _fmt(self.point)

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..model import expressions
+from ..model.constraints import Distance
 from ..model.system import Particle
 
 _PARTICLE_KEYS = frozenset(("name", "mass", "position", "velocity"))
@@ -106,6 +107,8 @@ def plain_pair(item, i: int, section: str, names: frozenset, types: dict):
         if not ((type(v) is float or type(v) is int) and -_LIMIT <= v <= _LIMIT):  # (NaN fails)
             return None
         args[k] = float(v)
+    if typ == "distance" and types[typ] is Distance:  # (a rod: its one check here)
+        return Distance.between(a, b, args["length"], f"{section}[{i}]") if args["length"] > 0 else None
     try:
         return types[typ](a, b, **args, name=None, where=f"{section}[{i}]")
     except InputError:
