@@ -202,3 +202,67 @@ def test_springs_built_in_a_batch_equal_springs_built_one_by_one(monkeypatch):
     Fb = np.asarray(batched.dynamics(x, v, 0.0)[0]).ravel()
     Fs = np.asarray(single.dynamics(x, v, 0.0)[0]).ravel()
     assert np.allclose(Fb, Fs, rtol=1e-12, atol=1e-12 * np.abs(Fs).max())
+
+
+def test_labels_are_filled_in_one_pass_as_one_by_one():
+    values = np.array([0.01, 2.5, 1e-7, 0.01, -3.0])
+    texts = ["rod ⟦0⟧ m", "⟦1⟧ and ⟦3⟧", "no number", "", "x⟦2⟧⟦4⟧", "a\0b ⟦1⟧"]
+    for some in (texts[:5], texts, []):
+        assert lifting.fill_all(some, values) == [lifting.fill(t, values) for t in some]
+
+
+def test_plain_data_of_flat_tables_and_lists_as_one_by_one():
+    for value in ([1, 2.5, "a", None, True], ("a", 1), {"a": 1, "b": None, "c": False},
+                  {"a": [1, 2], "b": lifting.Number(3)}, [[1, "x"], {"k": 0.5}]):
+        assert lifting.plain_data(value) == _plain_data_one_by_one(value)
+
+
+def _plain_data_one_by_one(value):
+    if isinstance(value, list | tuple):
+        return [_plain_data_one_by_one(v) for v in value]
+    if isinstance(value, dict):
+        return ["mapping", [[_plain_data_one_by_one(k), _plain_data_one_by_one(v)] for k, v in value.items()]]
+    if isinstance(value, lifting.Number):
+        return ["number", value.index]
+    return value
+
+
+def test_fingerprints_tell_apart_what_runs_of_items_hold():
+    from constrained.model.structure import structure_fingerprint
+
+    def system(*items):
+        s = C.System([C.Particle("p1", 1.0, [1, 0, 0]), C.Particle("p2", 2.0, [0, 1, 0]),
+                      C.Particle("p3", 1.0, [0, 0, 1])])
+        return s.add(*items)
+
+    def rod(a="p1", b="p2", length=1.0, **kw):
+        return C.Distance(a, b, length=length, **kw)
+
+    same = structure_fingerprint(system(rod(), rod("p2", "p3"), C.Spring("p1", "p3", k=2.0)))
+    assert same == structure_fingerprint(system(rod(length=3.0), rod("p2", "p3", length=0.5),
+                                                C.Spring("p1", "p3", k=7.0)))
+    others = [system(rod("p2", "p3"), rod(), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), rod("p3", "p2"), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), C.Pin("p3", [0, 0, 1.0]), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), rod("p2", "p3", name="second"), C.Spring("p1", "p3", k=2.0)),
+              system(rod(), rod("p2", "p3"), C.Spring("p1", "p3", k=2.0, rest=0.5)),
+              system(rod(), rod("p2", "p3"), C.Spring("p1", point=[0, 0, 1.0], k=2.0)),
+              system(rod(), rod("p2", "p3"))]
+    prints = {structure_fingerprint(s) for s in others}
+    assert len(prints) == len(others) and same not in prints
+
+
+def test_models_of_one_structure_label_rows_with_their_own_numbers():
+    def rope(length):
+        s = C.System([C.Particle("a", 1.0, [length, 0, 0])])
+        return s.add(C.Distance("a", point=[0, 0, 0], length=length))
+
+    first = assemble(rope(1.5))
+    second = assemble(rope(2.5))
+    assert first.structure is second.structure
+    for _ in range(2):
+        assert first.constraint_labels == ["distance a–(0, 0, 0) = 1.5 m"]
+        assert second.constraint_labels == ["distance a–(0, 0, 0) = 2.5 m"]
+    first.constraint_labels.append("changed")
+    assert Model(rope(1.5), structure=first.structure).constraint_labels == \
+        ["distance a–(0, 0, 0) = 1.5 m"]

@@ -343,7 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help (0) or a usage error (2, already reported)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     global _as_command
-    _as_command = argv is None
+    _as_command = args.as_command = argv is None
     code = _dispatch(args)
     if code == 130:  # Ctrl-C handled here: the exit status is 130, not a death by SIGINT
         from ..interrupt import forget_handled_keyboard_interrupt

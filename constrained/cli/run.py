@@ -5,6 +5,7 @@ its [expect]; the progress display; a trajectory as CSV."""
 from __future__ import annotations
 
 import csv
+import gc
 import io
 import sys
 from collections.abc import Sequence
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bulk import collector_paused
 from ..errors import InputError, RunInterrupted, SimulationError
 from ..output.output_set import OutputSet
 from ..run.trajectory import QUANTITIES, Trajectory, atomic_write
@@ -20,7 +22,12 @@ from .text import PROG, _end_time, _fmt_correction, _fmt_value, _say, _say_error
 
 
 def _run(args) -> int:
-    scene = load_scene(args.scene, args.overrides)
+    with collector_paused():  # (nested: the collector stays off until the scene is frozen below)
+        scene = load_scene(args.scene, args.overrides)
+        if getattr(args, "as_command", False):  # (not in-process: tests, notebooks keep their collector)
+            # The command runs this one scene: what it read lives to its end, and the collector's
+            # later passes need not walk it (0.12 s of them at 10⁴ particles, in the run's setup).
+            gc.freeze()
     file = args.scene
     s = scene.settings
     _end_time(scene, file)

@@ -20,6 +20,8 @@ from .lifting import Number
 
 
 def _fmt(value) -> str:
+    if type(value) is Number or type(value) is float:  # (the usual cases, first)
+        return f"{value:g}"
     if isinstance(value, np.ndarray | np.generic):
         value = value.tolist()
     if isinstance(value, str):
@@ -173,6 +175,16 @@ class Distance(Constraint):
                 f"undefined (the constraint's gradient vanishes); {fix}",
                 where=f"{self._where()}.length")
 
+    @classmethod
+    def between(cls, a: str, b: str, length: float, where: str | None = None) -> Distance:
+        """``Distance(a, b, length=length, where=where)`` of values already checked (two different
+        particles' names, a finite positive float length), without checking them again: a
+        large scene's rods (constrained.scene.plain)."""
+        rod = cls.__new__(cls)
+        rod.__dict__.update(a=a, b=b, point=None, length=length, name=None, where=where, unilateral=False,
+                            restitution=0.0)
+        return rod
+
     @property
     def label(self) -> str:
         other = self.b if self.b is not None else _fmt(self.point)
@@ -195,7 +207,7 @@ class Distance(Constraint):
         if not plain:
             return out
         rods = [items[k] for k in plain]
-        lengths = ca.vertcat(*[s.number(c.length) for c in rods])
+        lengths = s.number_column([c.length for c in rods])
         for k, row, c in zip(plain, ca.vertsplit(norms.T - lengths, 1), rods, strict=True):
             out[k] = [(row, c.label)]
         return out
@@ -266,9 +278,10 @@ class Plane(Constraint):
         n = s.point(self.normal, f"{where}.normal")
         offset = s.time_function(self.offset, f"{where}.offset")
         # all rows in a few CasADi calls (one per particle would dominate the build of a chain)
-        P = ca.horzcat(*[s.position(p, where) for p in self.particles])
+        P = s.columns(self.particles, where)
         rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
-        return [(row, f"{self.label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
+        label = self.label
+        return [(row, f"{label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
 
 
 class Surface(Constraint):
@@ -285,9 +298,9 @@ class Surface(Constraint):
         return self.name or f"surface {self.expr} = 0"
 
     def rows(self, s):
-        where = self._where()
+        where, label = self._where(), self.label
         return [
-            (s.parse_field(self.expr, f"{where}.expr", s.position(p, where)), f"{self.label} [{p}]")
+            (s.parse_field(self.expr, f"{where}.expr", s.position(p, where)), f"{label} [{p}]")
             for p in self.particles
         ]
 
@@ -313,12 +326,12 @@ class Curve(Constraint):
         return self.name or f"curve {self.exprs[0]} = 0, {self.exprs[1]} = 0"
 
     def rows(self, s):
-        where = self._where()
+        where, label = self._where(), self.label
         out = []
         for p in self.particles:
             at = s.position(p, where)
             for k, e in enumerate(self.exprs):
-                out.append((s.parse_field(e, f"{where}.expr[{k}]", at), f"{self.label} [{p}, {k + 1}]"))
+                out.append((s.parse_field(e, f"{where}.expr[{k}]", at), f"{label} [{p}, {k + 1}]"))
         return out
 
 

@@ -61,7 +61,7 @@ class Gravity(Effect):
         if not names:
             return 0.0
         # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
-        P = ca.horzcat(*[s.position(p, where) for p in names])
+        P = s.columns(names, where)
         m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
         return -ca.dot(ca.mtimes(g.T, P), m)
 
@@ -101,8 +101,8 @@ class Spring(Effect):
         if not plain:
             return out
         springs = [items[j] for j in plain]
-        k = ca.vertcat(*[s.number(e.k) for e in springs]).T
-        rest = ca.vertcat(*[s.number(e.rest) for e in springs]).T
+        k = s.number_column([e.k for e in springs]).T
+        rest = s.number_column([e.rest for e in springs]).T
         for j, term in zip(plain, ca.horzsplit(0.5 * k * (norms - rest) ** 2, 1), strict=True):
             out[j] = term
         return out
@@ -367,6 +367,15 @@ def effect_terms(effects: list, s, skip=()) -> list:
     return out
 
 
+def _total(terms: list):
+    """``sum(terms, ca.SX(0))`` of scalar terms as one CasADi sum: the same expression (t₁ + t₂ + …
+    in order), not one Python addition per term (2.6 s for a cloth's 40,000 springs)."""
+    terms = [term if isinstance(term, ca.SX) else ca.SX(term) for term in terms]
+    if len(terms) < 2 or any(term.shape != (1, 1) for term in terms):
+        return sum(terms, ca.SX(0))
+    return ca.sum1(ca.vertcat(*terms))
+
+
 def forces(slots: dict, x, v, t) -> tuple:
     """(F, V, U, ∂U/∂v, active slots) from the effects' terms by slot:
 
@@ -379,11 +388,11 @@ def forces(slots: dict, x, v, t) -> tuple:
     dU_dv = ca.SX.zeros(x.numel())
     if slots["potential"]:
         active.add("potential")
-        V = sum(slots["potential"], ca.SX(0))
+        V = _total(slots["potential"])
         F -= ca.gradient(V, x)
     if slots["generalized_potential"]:
         active.add("generalized_potential")
-        U = sum(slots["generalized_potential"], ca.SX(0))
+        U = _total(slots["generalized_potential"])
         dU_dv = ca.gradient(U, v)
         if ca.depends_on(dU_dv, v):
             raise InputError(
@@ -394,7 +403,7 @@ def forces(slots: dict, x, v, t) -> tuple:
         F += -ca.gradient(U, x) + ca.jtimes(dU_dv, x, v) + ca.jacobian(dU_dv, t)
     if slots["dissipation"]:
         active.add("dissipation")
-        R = sum(slots["dissipation"], ca.SX(0))
+        R = _total(slots["dissipation"])
         F -= ca.gradient(R, v)
     if slots["applied_force"]:
         active.add("applied_force")

@@ -51,6 +51,8 @@ class Structure:
 
     #: Structures built in this process (each one parses and differentiates the system).
     builds = 0
+    #: (numbers as bytes, the labels filled with them): the most recent Model's (constraint_labels).
+    filled_labels: tuple | None = None
 
     def __init__(self, system, *, lift: bool = True):
         system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
@@ -125,7 +127,10 @@ class Structure:
         F, V, U, dU_dv, forcing = forces(slots, x, v, t)
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
-        self.forces_depend_on_velocity = bool(ca.depends_on(F, v))
+        # (with potentials alone, F = −∂V/∂x: free of v when V is, which is the smaller graph to ask)
+        potentials_only = not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force"))
+        may = not potentials_only or ca.depends_on(V, v)
+        self.forces_depend_on_velocity = bool(may and ca.depends_on(F, v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)
@@ -143,9 +148,9 @@ class Structure:
         if self.masses_symbolic:
             m = s.mass_column()
             m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1)  # each mass three times, in place
-            entries = _entries_of(s.masses, p)
+            entries = s.mass_entries if s.mass_entries is not None else _entries_of(s.masses, p)
             if entries is not None:
-                self.mass_entries = np.repeat(entries, 3)
+                self.mass_entries = np.repeat(np.asarray(entries, dtype=np.int64), 3)
         else:
             m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
         T = 0.5 * ca.dot(m3 * v, v)
@@ -337,10 +342,15 @@ class Model:
     @functools.cached_property
     def constraint_labels(self) -> list[str]:
         """One label per constraint row (its plain numbers the system's)."""
-        labels = self.structure.constraint_labels
-        if not self.structure.n_numbers:
-            return labels
-        return [lifting.fill(label, self.numbers) for label in labels]
+        structure = self.structure
+        if not structure.n_numbers:
+            return structure.constraint_labels
+        key = self.numbers.tobytes()  # (Models of equal numbers fill them once: a scene's check, its run)
+        filled = structure.filled_labels
+        if filled is None or filled[0] != key:
+            labels = lifting.fill_all(structure.constraint_labels, self.numbers)
+            filled = structure.filled_labels = (key, labels)
+        return list(filled[1])
 
     @property
     def parameters(self) -> dict[str, float]:
@@ -475,17 +485,8 @@ def structure_fingerprint(system) -> str | None:
 
 def _fingerprint(system) -> tuple[str | None, np.ndarray]:
     """``(structure_fingerprint(system), lifting.numbers(system))`` in one walk."""
-    values: list[float] = []
     try:
-        particles = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
-                      else lifting.plain_data(lifting.lifted_mass(p, values))] for p in system.particles]
-        items = []
-        for item in (*system.constraints, *system.effects):
-            lifted = lifting.lifted_fields(item, values)
-            rest = {k: v for k, v in vars(item).items() if k not in lifted}
-            items.append([type(item).__module__, type(item).__qualname__, lifting.plain_data(lifted),
-                          lifting.plain_data(rest)])
-        data = [particles, items, list(system.parameters), lifting.plain_data(system.definitions)]
+        data, values = lifting.structure_data(system)
         text = json.dumps(data)
     except (lifting.NotPlain, TypeError, ValueError):
         return None, lifting.numbers(system)

@@ -7,6 +7,7 @@ Symbols object and returns expressions in ``x`` (3N positions), ``v`` (3N veloci
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import casadi as ca
@@ -31,6 +32,9 @@ class Symbols:
     ``Number`` entries; each is the symbol ``p[len(parameters) + index]``.
     """
 
+    mass_entries: list[int] | None = None
+    _offset: int | None = None  # where the Numbers' entries start in p (symbolic parameters)
+
     def __init__(self, system, *, symbolic_parameters: bool = False, numbers: int = 0):
         self.system = system
         n = system.n_particles
@@ -43,26 +47,56 @@ class Symbols:
             self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
             hidden = ca.SX.sym("number", numbers)
             self._numbers = ca.vertsplit(hidden) if numbers else []
+            offset = self._offset = self.p.numel()
             self.p = ca.vertcat(self.p, hidden)
-            self.masses = [
-                expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
-                if "mass" in p.formulas else self.number(p.mass)
-                for p in system.particles
-            ]
+            lifted = [p.mass for p in system.particles]
+            if all(type(m) is Number for m in lifted):  # (a mass given by a formula is not one)
+                #: Each particle's entry of p when every mass is a plain number (a Number): then
+                #: ``mass_column`` is one gather from p instead of a vertcat of N symbols.
+                self.mass_entries = [offset + m.index for m in lifted]
+                self.masses = [self._numbers[m.index] for m in lifted]
+            else:
+                self.masses = [
+                    expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
+                    if "mass" in p.formulas else self.number(p.mass)
+                    for p in system.particles
+                ]
         else:
             self.p = ca.SX(0, 1)
             self._numbers = []
             self.parameters = system.parameter_values
             self.masses = system.masses
-        # One split each instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs in
-        # CasADi's Python layer, and a big chain asks for thousands of them.
-        self._xp = ca.vertsplit(self.x, 3) if n else []
-        self._vp = ca.vertsplit(self.v, 3) if n else []
         self._position_names = self._state_names = None
+
+    # One split each (on first use) instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs
+    # in CasADi's Python layer, and a big chain asks for thousands of them.
+    @functools.cached_property
+    def _xp(self) -> list:
+        return ca.vertsplit(self.x, 3) if self.x.numel() else []
+
+    @functools.cached_property
+    def _vp(self) -> list:
+        return ca.vertsplit(self.v, 3) if self.v.numel() else []
+
+    def columns(self, names, where: str):
+        """The positions of the particles ``names`` as the columns of a (3, len(names)) SX: one
+        gather from x (the same entries as a horzcat of ``position(name)``)."""
+        indices = [self.index(name, where) for name in names]
+        X = ca.reshape(self.x, 3, self.x.numel() // 3)
+        return X if indices == list(range(X.size2())) else X[:, indices]
+
+    def number_column(self, values: list):
+        """``vertcat(*[number(v) for v in values])``: when all are Numbers, one gather from p."""
+        if values and all(type(v) is Number for v in values) and self._offset is not None:
+            return self.p[[self._offset + v.index for v in values]]
+        return ca.vertcat(*[self.number(v) for v in values])
 
     def mass_column(self, indices=None):
         """The masses of the particles ``indices`` (all by default) as a column: a DM of
         numbers, or an SX when some are symbols (one CasADi call, not one per particle)."""
+        if self.mass_entries is not None:  # (the same elements as the vertcat below)
+            entries = self.mass_entries if indices is None else [self.mass_entries[i] for i in indices]
+            return self.p[entries] if entries else ca.SX(0, 1)
         masses = self.masses if indices is None else [self.masses[i] for i in indices]
         if not any(isinstance(m, ca.SX) for m in masses):
             return ca.DM(np.asarray(masses, float))

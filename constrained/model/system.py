@@ -89,6 +89,17 @@ class Particle:
                 value = np.full(3, math.nan)
             setattr(self, key, value)
 
+    @classmethod
+    def plain(cls, name: str, mass: float, position: np.ndarray, velocity: np.ndarray,
+              where: str | None = None) -> Particle:
+        """The Particle ``Particle(name, mass, position, velocity, where=where)`` makes of values
+        already checked (a plain identifier, a finite positive float mass, finite float arrays of
+        3), without checking them again: a large scene's particles (constrained.scene.plain)."""
+        particle = cls.__new__(cls)
+        particle.__dict__.update(name=name, mass=mass, position=position, velocity=velocity, where=where,
+                                 formulas={})
+        return particle
+
     def copy(self) -> Particle:
         """An independent copy (its arrays and formulas copied too)."""
         other = copy.copy(self)

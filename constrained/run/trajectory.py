@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import tempfile
@@ -356,10 +357,19 @@ def file_mode() -> int:
     return 0o666 & ~mask
 
 
+#: Values ``_jsonable`` gives back as they are.
+_PLAIN = frozenset((str, float, int, bool, type(None)))
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
+        kinds = set(map(type, value))
+        if kinds <= _PLAIN:  # (names, labels: tens of thousands at once)
+            return list(value)
+        if kinds <= {list, tuple} and _PLAIN.issuperset(map(type, itertools.chain.from_iterable(value))):
+            return [list(v) for v in value]  # (pairs of indices: a sketch's rods)
         return [_jsonable(v) for v in value]
     if isinstance(value, np.generic):
         return value.item()

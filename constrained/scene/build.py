@@ -28,6 +28,7 @@ from .keys import (
     ONE_SIDED_KEYS,
     TOP_LEVEL_TABLES,
 )
+from .plain import plain_pair, plain_particles
 from .sections import RunSections
 from .validate import _describe, _join, _name_or_value, _suggest
 
@@ -79,10 +80,7 @@ class SceneBuilder(RunSections):
         particles = self.particles()
         parameters = self.parameters()
         definitions = self.definitions(parameters)
-        constraints = [
-            self.item(i, item, "constraints") for i, item in enumerate(self.array_of_tables("constraints"))
-        ]
-        effects = [self.item(i, item, "effects") for i, item in enumerate(self.array_of_tables("effects"))]
+        constraints, effects = self.items("constraints"), self.items("effects")
         try:
             system = System(particles, constraints, effects, parameters, name, definitions)
             for c in system.constraints:  # a formula's value in [0, 1] (sweeps check theirs per run)
@@ -132,6 +130,10 @@ class SceneBuilder(RunSections):
         items = self.array_of_tables("particles")
         if not items:
             self.fail("particles", "the scene has no particles; add at least one [[particles]] table")
+        fast = plain_particles(items)  # all plain numbers (a large scene): checked at once
+        if fast is not None:
+            self.names = [p.name for p in fast]
+            return fast
         out = []
         seen: dict[str, int] = {}
         for i, item in enumerate(items):
@@ -191,7 +193,7 @@ class SceneBuilder(RunSections):
 
     def parameters(self) -> dict[str, float]:
         table = self.raw.get("parameters", {})
-        reserved = self.reserved_for_formulas()
+        reserved = self.reserved_for_formulas() if table else ()
         out = {}
         for k, v in table.items():
             key = _join("parameters", k)
@@ -208,7 +210,7 @@ class SceneBuilder(RunSections):
     def definitions(self, parameters: dict) -> dict:
         """[definitions]: name -> a formula in parameters and other definitions (or a number)."""
         table = self.raw.get("definitions", {})
-        reserved = self.reserved_for_formulas()
+        reserved = self.reserved_for_formulas() if table else ()
         for k, v in table.items():
             key = _join("definitions", k)
             self.identifier(k, key, "a definition name")
@@ -218,6 +220,17 @@ class SceneBuilder(RunSections):
                 self.fail(key, f"the definition name '{k}' is taken ({what})")
             self.formula(v, key)
         return dict(table)
+
+    def items(self, section: str) -> list:
+        """The objects of the ``[[constraints]]`` or ``[[effects]]`` tables, in order (a rod or a
+        spring of plain numbers by the fast path, constrained.scene.plain; any other by ``item``)."""
+        names = self.name_set()
+        types = {**CONSTRAINT_TYPES, **VELOCITY_TYPES} if section == "constraints" else EFFECT_TYPES
+        out = []
+        for i, item in enumerate(self.array_of_tables(section)):
+            obj = plain_pair(item, i, section, names, types)
+            out.append(obj if obj is not None else self.item(i, item, section))
+        return out
 
     def item(self, i: int, item: dict, section: str):
         """One [[constraints]] or [[effects]] entry -> the library object."""

@@ -13,6 +13,7 @@ import collections
 import copy
 import dataclasses
 import hashlib
+import itertools
 import math
 import threading
 from collections.abc import Iterable, Mapping
@@ -285,13 +286,14 @@ MAX_NESTING = 64
 def refuse_deep_nesting(raw: dict, file: str) -> None:
     """SceneError when tables and arrays nest deeper than MAX_NESTING (counted without recursion:
     TOML's dotted table names, [a.a.a...], nest without limit)."""
-    stack = [(raw, 1)]
-    while stack:
-        value, depth = stack.pop()
+    level, depth = [raw], 1  # the tables and arrays at this depth, one level at a time
+    while level:
         if depth > MAX_NESTING:
             raise SceneError(f"{NESTED_TOO_DEEPLY} (more than {MAX_NESTING} levels)", file=file)
-        children = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
-        stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
+        children = itertools.chain(
+            itertools.chain.from_iterable(v.values() for v in level if isinstance(v, dict)),
+            itertools.chain.from_iterable(v for v in level if isinstance(v, list)))
+        level, depth = [child for child in children if isinstance(child, dict | list)], depth + 1
 #: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
 #: again (a sweep, a fresh call) skips the validation and formula checks (about 1 ms). Each
 #: caller gets its own copies of the mutable parts.

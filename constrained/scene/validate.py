@@ -6,6 +6,7 @@ is one."""
 from __future__ import annotations
 
 import difflib
+import itertools
 import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -137,6 +138,9 @@ class Validator:
             return [self.particle(value, key)]
         if not isinstance(value, list) or not value:
             self.fail(key, f"must be a particle name or a non-empty list of names, got {_describe(value)}")
+        if set(map(type, value)) == {str} and self.name_set().issuperset(value) \
+                and len(set(value)) == len(value):  # known names, each once: all at once
+            return list(value)
         out = [self.particle(v, _join(key, i)) for i, v in enumerate(value)]
         first: dict[str, int] = {}
         for i, name in enumerate(out):
@@ -210,17 +214,13 @@ class Validator:
 def _all_moderate(value) -> bool:
     """Whether every number in the nested dicts and lists ``value`` is finite and at most
     ``expressions.MAX_MAGNITUDE`` in size."""
-    stack = [value]
     limit = expressions.MAX_MAGNITUDE
-    while stack:
-        item = stack.pop()
-        if isinstance(item, dict):
-            stack.extend(item.values())
-        elif isinstance(item, list):
-            stack.extend(item)
-        elif isinstance(item, float):
-            if not -limit <= item <= limit:  # (NaN fails too)
-                return False
-        elif isinstance(item, int) and not isinstance(item, bool) and abs(item) > limit:
+    level = [value]  # the values at one depth: each level's numbers compared at once
+    while level:
+        numbers = [v for v in level if isinstance(v, float | int) and not isinstance(v, bool)]
+        if not all(map(limit.__ge__, map(abs, numbers))):  # (NaN fails too)
             return False
+        level = list(itertools.chain(
+            itertools.chain.from_iterable(v.values() for v in level if isinstance(v, dict)),
+            itertools.chain.from_iterable(v for v in level if isinstance(v, list))))
     return True

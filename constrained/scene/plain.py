@@ -1,0 +1,115 @@
+"""Fast paths of the scene's validation for the shapes a large scene is made of: particles of
+plain numbers, rods between two particles, lists of particle names. Each takes a whole
+section at once (NumPy over its numbers, C-level passes over its values) and returns None
+where any value needs the checks one by one (constrained.scene.build), which then give the
+same message as without the fast path: the fast paths accept exactly what those checks
+accept, and build the same objects."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from ..errors import InputError
+from ..model import expressions
+from ..model.constraints import Distance
+from ..model.system import Particle
+
+_PARTICLE_KEYS = frozenset(("name", "mass", "position", "velocity"))
+_NUMBERS = frozenset((float, int))
+_ABSENT = object()
+_LIMIT = expressions.MAX_MAGNITUDE
+
+
+def _vectors(values: list) -> np.ndarray | None:
+    """(n, 3) floats of n lists of 3 plain finite numbers (no bool, no string), else None."""
+    if set(map(type, values)) != {list} or set(map(len, values)) != {3}:
+        return None
+    if not _NUMBERS.issuperset(map(type, itertools.chain.from_iterable(values))):
+        return None
+    try:
+        out = np.array(values, float)
+    except OverflowError:  # an int beyond a float's range: the checks one by one say so
+        return None
+    return out if np.isfinite(out).all() else None
+
+
+def plain_particles(items: list) -> list[Particle] | None:
+    """The particles of ``[[particles]]`` tables each of a plain identifier ``name`` (all
+    different), a plain number ``mass`` (at least 1/MAX_MAGNITUDE) and lists of 3 plain numbers
+    ``position`` and (optional) ``velocity``; None when one is anything else."""
+    n = len(items)
+    if not n or set(map(type, items)) != {dict}:
+        return None
+    if not _PARTICLE_KEYS.issuperset(itertools.chain.from_iterable(items)):  # (a dict yields its keys)
+        return None
+    try:
+        names = [item["name"] for item in items]
+        masses = [item["mass"] for item in items]
+        positions = [item["position"] for item in items]
+    except KeyError:
+        return None
+    if set(map(type, names)) != {str} or not all(map(str.isidentifier, names)) or len(set(names)) != n:
+        return None
+    if not _NUMBERS.issuperset(map(type, masses)):
+        return None
+    try:
+        mass = np.array(masses, float)
+    except OverflowError:
+        return None
+    if not (np.isfinite(mass).all() and (mass >= 1 / expressions.MAX_MAGNITUDE).all()):
+        return None
+    position = _vectors(positions)
+    if position is None:
+        return None
+    given = [item.get("velocity", _ABSENT) for item in items]
+    velocity = np.zeros((n, 3))
+    moving = [k for k, v in enumerate(given) if v is not _ABSENT]
+    if moving:
+        values = _vectors([given[k] for k in moving])
+        if values is None:
+            return None
+        velocity[moving] = values
+    return [Particle.plain(name, m, x, v, f"particles[{k}]") for k, (name, m, x, v)
+            in enumerate(zip(names, mass.tolist(), position, velocity, strict=True))]
+
+
+#: Items between two particles whose other keys are plain numbers: (section, type) -> the
+#: numeric keys (required, optional), as constrained.scene.keys lists them.
+_PAIR_ITEMS = {("constraints", "distance"): (("length",), ()), ("effects", "spring"): (("k",), ("rest",))}
+
+
+def plain_pair(item, i: int, section: str, names: frozenset, types: dict):
+    """The object of a ``[[constraints]]`` or ``[[effects]]`` table ``{type, a, b, NUMBERS}``
+    (a rod, a spring between two different particles, no name, no one-sided keys) whose
+    numbers are plain and finite, as ``SceneBuilder.item`` builds it; None for any other table
+    or value (``item`` then checks it and says what is wrong)."""
+    if type(item) is not dict:
+        return None
+    typ = item.get("type")
+    fields = _PAIR_ITEMS.get((section, typ)) if type(typ) is str else None
+    if fields is None or len(item) > 3 + len(fields[0]) + len(fields[1]):
+        return None
+    required, optional = fields
+    a, b = item.get("a"), item.get("b")
+    if type(a) is not str or type(b) is not str or a == b or a not in names or b not in names:
+        return None
+    args = {}
+    for k in required:
+        if k not in item:
+            return None
+    for k, v in item.items():
+        if k in ("type", "a", "b"):
+            continue
+        if k not in required and k not in optional:
+            return None
+        if not ((type(v) is float or type(v) is int) and -_LIMIT <= v <= _LIMIT):  # (NaN fails)
+            return None
+        args[k] = float(v)
+    if typ == "distance" and types[typ] is Distance:  # (a rod: its one check here)
+        return Distance.between(a, b, args["length"], f"{section}[{i}]") if args["length"] > 0 else None
+    try:
+        return types[typ](a, b, **args, name=None, where=f"{section}[{i}]")
+    except InputError:
+        return None

@@ -1,0 +1,126 @@
+"""The fast paths of a scene's validation (constrained.scene.plain) build exactly what the checks
+one by one build, and leave every value they do not accept to those checks (the same message)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from constrained.scene import build as scene_build
+from constrained.scene.load import SceneError, build_scene
+
+
+def _raw(n: int = 5) -> dict:
+    particles = [{"name": f"p{i}", "mass": 0.5 + i, "position": [1.0 + i, 0, -1.5 * i]} for i in range(n)]
+    particles[1]["velocity"] = [0.0, 2, 0.25]
+    constraints = [{"type": "distance", "a": "p0", "point": [0.0, 0.0, 0.0], "length": 1.0}]
+    constraints += [{"type": "distance", "a": f"p{i}", "b": f"p{i + 1}", "length": 1 + 0.5 * i}
+                    for i in range(n - 1)]
+    constraints.append({"type": "plane", "particles": [f"p{i}" for i in range(n)], "normal": [0, 0, 1]})
+    effects = [{"type": "gravity", "g": [0.0, -9.81, 0.0]},
+               {"type": "spring", "a": "p0", "b": "p2", "k": 3, "rest": 0.5},
+               {"type": "spring", "a": "p1", "b": "p3", "k": 2.5}]
+    return {"particles": particles, "constraints": constraints, "effects": effects,
+            "simulate": {"t_end": 1.0}}
+
+
+def _slow(monkeypatch):
+    monkeypatch.setattr(scene_build, "plain_particles", lambda items: None)
+    monkeypatch.setattr(scene_build, "plain_pair", lambda *args: None)
+
+
+def _build(raw):
+    try:
+        return build_scene(copy.deepcopy(raw))
+    except SceneError as exc:
+        return str(exc)
+
+
+def _described(scene) -> list:
+    system = scene.system
+    particles = [(p.name, type(p.mass), p.mass, p.position.tolist(), p.velocity.tolist(), p.where,
+                  p.formulas, list(vars(p))) for p in system.particles]
+    items = [(type(c).__name__, list(vars(c).items())) for c in (*system.constraints, *system.effects)]
+    return [particles, items]
+
+
+def test_the_fast_paths_build_what_the_checks_build(monkeypatch):
+    raw = _raw()
+    fast = _described(build_scene(copy.deepcopy(raw)))
+    _slow(monkeypatch)
+    assert fast == _described(build_scene(copy.deepcopy(raw)))
+
+
+def _bad(raw, path, value):
+    raw = copy.deepcopy(raw)
+    *keys, last = path
+    target = raw
+    for k in keys:
+        target = target[k]
+    if value is KeyError:
+        del target[last]
+    else:
+        target[last] = value
+    return raw
+
+
+@pytest.mark.parametrize("path, value", [
+    (("particles", 2, "mass"), True),
+    (("particles", 2, "mass"), 0),
+    (("particles", 2, "mass"), -1.0),
+    (("particles", 2, "mass"), 1e-101),
+    (("particles", 2, "mass"), "m"),
+    (("particles", 2, "mass"), KeyError),
+    (("particles", 2, "name"), "p1"),
+    (("particles", 2, "name"), "2p"),
+    (("particles", 2, "name"), 7),
+    (("particles", 2, "position"), [0.0, 1.0]),
+    (("particles", 2, "position"), [0.0, True, 1.0]),
+    (("particles", 2, "position"), [0.0, "1.0", 1.0]),
+    (("particles", 2, "position"), (0.0, 1.0, 1.0)),
+    (("particles", 2, "position"), [0.0, float("nan"), 1.0]),
+    (("particles", 2, "velocity"), None),
+    (("particles", 2, "velocity"), [0.0, 1.0, 2.0, 3.0]),
+    (("particles", 2, "colour"), "red"),
+    (("constraints", 2, "length"), 0.0),
+    (("constraints", 2, "length"), -1),
+    (("constraints", 2, "length"), float("inf")),
+    (("constraints", 2, "length"), False),
+    (("constraints", 2, "b"), "p1"),
+    (("constraints", 2, "b"), "nobody"),
+    (("constraints", 2, "b"), 3),
+    (("constraints", 2, "name"), ""),
+    (("constraints", 2, "point"), [0.0, 0.0, 0.0]),
+    (("constraints", 2, "unilateral"), "yes"),
+    (("constraints", 5, "particles"), ["p0", "p1", "p0"]),
+    (("constraints", 5, "particles"), ["p0", "p9"]),
+    (("constraints", 5, "particles"), ["p0", 1]),
+    (("effects", 1, "k"), "k"),
+    (("effects", 1, "k"), float("nan")),
+    (("effects", 1, "b"), "p0"),
+    (("effects", 1, "rest"), KeyError),
+    (("effects", 2, "damping"), 1.0),
+])
+def test_what_the_fast_paths_leave_the_checks_say_as_before(monkeypatch, path, value):
+    raw = _bad(_raw(), path, value)
+    fast = _build(raw)
+    _slow(monkeypatch)
+    slow = _build(raw)
+    assert (fast if isinstance(fast, str) else _described(fast)) == \
+        (slow if isinstance(slow, str) else _described(slow))
+
+
+def test_the_fast_paths_keep_the_structure_fingerprint(monkeypatch):
+    from constrained.model.structure import structure_fingerprint
+
+    fast = structure_fingerprint(build_scene(_raw()).system)
+    _slow(monkeypatch)
+    assert fast == structure_fingerprint(build_scene(_raw()).system)
+
+
+def test_plain_particles_share_no_arrays():
+    system = build_scene(_raw()).system
+    system.particles[0].position[0] = 9.0
+    assert system.particles[1].position[0] == 2.0 and np.all(system.particles[1].velocity == [0, 2, 0.25])
