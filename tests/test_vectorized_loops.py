@@ -160,3 +160,21 @@ def test_a_compiler_that_fails_leaves_the_columns(tmp_path, monkeypatch):
     assert compiled.last_error and "compiler failed" in compiled.last_error
     tr = C.simulate(system, 0.002, model=model, rtol=1e-6, atol=1e-6)
     assert np.max(tr.constraint_residual) < 1e-9
+
+
+@needs_compiler
+def test_an_index_table_reads_back_every_byte_and_integer(tmp_path, monkeypatch):
+    """The table's string literal (shortest octal escapes, each followed by another escape)
+    gives the compiled loops exactly the integers added, at the places ``add`` names."""
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    table = external.IndexTable()
+    first = np.arange(-3, 300, dtype=np.int64)
+    second = np.array([0, 7, 8, 63, 92, 34, 48, 2**31 - 1, 255, 256, 65535, 65536])
+    at = [table.add(first), table.add(second)]
+    n = len(first) + len(second)
+    body = (f"  int i;\n  const int *a = {at[0]}, *b = {at[1]};\n"
+            f"  for (i = 0; i < {len(first)}; ++i) out[i] = a[i];\n"
+            f"  for (i = 0; i < {len(second)}; ++i) out[{len(first)} + i] = b[i];\n  return 0;")
+    f = external.c_functions([("table_test", body, ["x"], [ca.Sparsity.dense(1, 1)], ["out"],
+                               [ca.Sparsity.dense(n, 1)])], table.c, key=table.data())[0]
+    np.testing.assert_array_equal(np.asarray(f(0)).ravel(), np.concatenate([first, second]))

@@ -22,9 +22,20 @@ import numpy as np
 
 from . import compiled
 
-#: Each byte as the shortest octal escape: every byte is escaped, so the next character is
-#: always a backslash (or the closing quote), never a digit that would extend the escape.
-_OCTAL = np.array([f"\\{k:o}" for k in range(256)])
+#: Each byte as the shortest octal escape (its characters, padded to 4, and their count):
+#: every byte is escaped, so the next character is always a backslash (or the closing quote),
+#: never a digit that would extend the escape.
+_ESCAPES = [f"\\{k:o}".encode() for k in range(256)]
+_OCTAL = np.array([list(e.ljust(4, b" ")) for e in _ESCAPES], np.uint8)
+_OCTAL_LENGTH = np.array([len(e) for e in _ESCAPES])
+
+
+def octal_literal(data: bytes) -> str:
+    """The bytes as the characters of a C string literal, built as one array (a Python string
+    per byte of a 10⁷-byte table would take ten times its memory)."""
+    codes = np.frombuffer(data, np.uint8)
+    wanted = np.arange(4)[None, :] < _OCTAL_LENGTH[codes][:, None]
+    return _OCTAL[codes][wanted].tobytes().decode("ascii")
 
 
 class IndexTable:
@@ -50,8 +61,8 @@ class IndexTable:
 
     def c(self) -> str:
         """The table's C (before the entry points that read it)."""
-        text = "".join(_OCTAL[np.frombuffer(self.data(), np.uint8)].tolist())
-        size = len(self.data()) + 1
+        data = self.data()
+        text, size = octal_literal(data), len(data) + 1
         return (f'static const char table_bytes[{size}] __attribute__((aligned(8))) = "{text}";\n'
                 "#define TABLE ((const int *) table_bytes)\n")
 
