@@ -76,16 +76,19 @@ DENSE_FROM = 300
 SCALARS = ("t", "h", "rejected", "n_acc", "n_rej", "res", "t_target", "rtol", "atol")
 
 
-def combined(y, terms: list):
-    """y + Σ c_j K_j (y None: Σ c_j K_j) for ``terms`` [(c_j, K_j)] of dense MX columns, as one
-    pass of C (``codegen.combination``), or None where that cannot be had."""
-    if not terms or any(Kj.nnz() != Kj.numel() for _, Kj in terms):
-        return None
-    f = combination(terms[0][1].numel(), len(terms), with_y=y is not None)
-    if f is None:
-        return None
-    c = ca.vertcat(*[ca.MX(cj) if not isinstance(cj, ca.MX) else cj for cj, _ in terms])
-    return f(*([y] if y is not None else []), *[Kj for _, Kj in terms], c)
+def combined(y, terms: list, shape: tuple):
+    """y + Σ c_j K_j (y None: Σ c_j K_j; no terms: y, or zeros of ``shape``) for ``terms``
+    [(c_j, K_j)] of MX columns: one pass of C (``codegen.combination``) where the columns are
+    dense and compiled code can be had, else one product and one sum per term, the scalars
+    c_j first (no pass over the sum to scale it)."""
+    if terms and all(Kj.nnz() == Kj.numel() for _, Kj in terms):
+        f = combination(terms[0][1].numel(), len(terms), with_y=y is not None)
+        if f is not None:
+            c = ca.vertcat(*[ca.MX(cj) if not isinstance(cj, ca.MX) else cj for cj, _ in terms])
+            return f(*([y] if y is not None else []), *[Kj for _, Kj in terms], c)
+    for c, Kj in terms:
+        y = c * Kj if y is None else y + c * Kj
+    return ca.MX.zeros(shape) if y is None else y
 
 
 def _slot(n: int, name: str) -> int:
@@ -182,27 +185,16 @@ class Dopri(Stepper):
 
         def combine(K, w):
             if vector:  # Σ w_j K_j over the nonzero weights, column by column (no copies of K)
-                terms = [(float(wj), Kj) for wj, Kj in zip(w, K, strict=False) if wj != 0]
-                one_pass = combined(None, terms)
-                if one_pass is not None:
-                    return one_pass
-                terms = [c * Kj for c, Kj in terms]
-                return sum(terms[1:], terms[0]) if terms else ca.MX.zeros(K[0].shape)
+                return combined(None, [(float(wj), Kj) for wj, Kj in zip(w, K, strict=False) if wj != 0],
+                                K[0].shape)
             return ca.mtimes(ca.horzcat(*K), ca.DM(np.asarray(w, float)))
 
         def advanced(y, K, w):
-            """y + hh Σ w_j K_j; vectorized: one pass of C (``codegen.combination``), else
-            the scalars hh w_j first, one product per column (no pass over the sum to scale
-            it by hh)."""
+            """y + hh Σ w_j K_j; vectorized: ``combined`` with the scalars hh w_j."""
             if not vector:
                 return y + hh * combine(K, w)
-            terms = [(hh * float(wj), Kj) for wj, Kj in zip(w, K, strict=False) if wj != 0]
-            one_pass = combined(y, terms)
-            if one_pass is not None:
-                return one_pass
-            for c, Kj in terms:
-                y = y + c * Kj
-            return y
+            return combined(y, [(hh * float(wj), Kj) for wj, Kj in zip(w, K, strict=False) if wj != 0],
+                            y.shape)
 
         for i in range(1, tab.stages):
             xi = advanced(x, Kx, tab.A[i, :i])

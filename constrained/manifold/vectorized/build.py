@@ -44,7 +44,7 @@ class Jacobian:
     build: VectorizedBuild
     streams: list
 
-    def _loops(self):
+    def _products(self):
         """The build's products in C (``products``) when they apply to these streams, else None."""
         loops = self.build.products()
         if loops is None or any(J.nnz() != J.numel() for J in self.streams):
@@ -53,7 +53,7 @@ class Jacobian:
 
     def times(self, y):
         """J y (C,) for a column y (3N,)."""
-        b, loops = self.build, self._loops()
+        b, loops = self.build, self._products()
         if loops is not None:
             return shared(("J y", *map(hash, self.streams), hash(y)), lambda: loops.times(self.streams, y),
                           *self.streams, y)
@@ -61,7 +61,7 @@ class Jacobian:
 
     def transpose_times(self, lam):
         """Jᵀ λ (3N,) for a column λ (C,)."""
-        b, loops = self.build, self._loops()
+        b, loops = self.build, self._products()
         if loops is not None:
             return shared(("J' y", *map(hash, self.streams), hash(lam)),
                           lambda: loops.transpose_times(self.streams, lam), *self.streams, lam)
@@ -82,7 +82,7 @@ class Jacobian:
         the Schur complement of the diagonal block of S: the same Λ, from a system of R's
         rows alone (a chain in a plane: half the rows, and A's couplings through z gone)."""
         b, minv = self.build, _column(inverse_masses)
-        loops = self._loops()
+        loops = self._products()
         if loops is not None and B.shape[1] in (1, 2):
             return loops.solve(self.streams, minv, B)
         if b.single is None:
