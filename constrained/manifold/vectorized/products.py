@@ -11,8 +11,8 @@ is one loop over the entries (stream s, position i) of J, reading the build's ow
     A:        A[t] += J_s[i] J_s'[i'] m⁻¹[c]        over the products of ``_Gram``
 
 and, where rows with one coordinate are eliminated (``_Elimination``), the reduced right-hand
-side before CasADi's sparse LDLᵀ and Λ after it (the formulas of ``Jacobian.solve``). The
-factorization stays CasADi's. The numbers are those of the columns up to the order of
+side before the LDLᵀ and Λ after it (the formulas of ``Jacobian.solve``); the LDLᵀ itself is
+``ldl``'s (the columns' is CasADi's). The numbers are those of the columns up to the order of
 floating-point sums. The library is compiled once per model and cached, keyed by the index
 data; where compiled code cannot be had the columns serve.
 """
@@ -22,9 +22,9 @@ from __future__ import annotations
 import hashlib
 
 import casadi as ca
-import numpy as np
 
 from ...codegen.external import IndexTable, c_functions
+from .ldl import ldl_bodies
 
 
 def _dense(n: int, k: int = 1) -> ca.Sparsity:
@@ -127,96 +127,6 @@ def _elimination(e, table: IndexTable, streams: list[str], n_rows: int, ks: tupl
     return bodies
 
 
-def _ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
-    """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
-    (symmetric, positive definite), and their scratch lengths (reals, integers): A[p, p] =
-    L D Lᵀ in the order p of CasADi's symbolic factorization (AMD, or the rows' own where that
-    saves no fill: a chain's loops then run through memory in order), numerically row by row
-    as T. A. Davis' LDL does (ACM TOMS 31, 2005), the pattern of each row found by walking the
-    elimination tree from A's entries,
-
-        row k of L:  y = Ã[:k+1, k];  for i in the pattern of row k (in topological order):
-                     y[rows of L[:, i] so far] −= L[·, i] y_i,  L_ki = y_i / D_i,  D_k −= L_ki y_i,
-
-    then forward and back substitution. The table holds only what is O(n + nnz(A)): A's
-    upper entries in the order p, the tree and the column starts of L."""
-    n = sparsity.size1()
-    lt, p = sparsity.ldl(True)
-    natural, identity = sparsity.ldl(False)
-    if natural.nnz() <= lt.nnz():
-        lt, p = natural, identity
-    p = np.asarray(p, np.int64)
-    pinv = np.empty(n, np.int64)
-    pinv[p] = np.arange(n)
-    ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
-    lp = np.concatenate([[0], np.cumsum(np.bincount(ti, minlength=n))])
-    parent = np.full(n, -1, np.int64)
-    first = np.full(n, np.iinfo(np.int64).max)
-    np.minimum.at(first, ti, tk)
-    parent[first < n] = first[first < n]
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
-    ii, kk = pinv[r], pinv[c]
-    z = np.flatnonzero(ii <= kk)
-    z = z[np.lexsort((ii[z], kk[z]))]
-    ap = np.concatenate([[0], np.cumsum(np.bincount(kk[z], minlength=n))])
-    n_l = len(ti)
-    names = {"Ap": ap, "Az": z, "Ai": ii[z], "Lp": lp, "Parent": parent, "P": p}
-    arrays = "\n".join(f"  const int *{k} = {table.add(v)};" for k, v in names.items())
-    factor = f"""{arrays}
-  casadi_int k, s, q, e, col, i, top, len;
-  casadi_real *y = w, *D = w + {n}, *Lx = w + {2 * n}, *x = w + {2 * n + n_l};
-  casadi_int *pattern = iw, *flag = iw + {n}, *lnz = iw + {2 * n}, *Li = iw + {3 * n};
-  for (k = 0; k < {n}; ++k) {{
-    y[k] = 0;
-    top = {n};
-    flag[k] = k;
-    lnz[k] = 0;
-    for (e = Ap[k]; e < Ap[k + 1]; ++e) {{
-      i = Ai[e];
-      y[i] += A[Az[e]];
-      for (len = 0; flag[i] != k; i = Parent[i]) {{
-        pattern[len++] = i;
-        flag[i] = k;
-      }}
-      while (len > 0) pattern[--top] = pattern[--len];
-    }}
-    D[k] = y[k];
-    y[k] = 0;
-    for (; top < {n}; ++top) {{
-      const casadi_int end = Lp[pattern[top]] + lnz[pattern[top]];
-      const casadi_real yi = y[pattern[top]], l = yi / D[pattern[top]];
-      i = pattern[top];
-      y[i] = 0;
-      for (s = Lp[i]; s < end; ++s) y[Li[s]] -= Lx[s] * yi;
-      D[k] -= l * yi;
-      Li[end] = k;
-      Lx[end] = l;
-      ++lnz[i];
-    }}
-  }}"""
-    bodies = {}
-    for k in ks:
-        bodies[f"solve{k}"] = f"""{factor}
-  for (col = 0; col < {k}; ++col) {{
-    const casadi_real *b = B + col * {n};
-    casadi_real *o = out + col * {n};
-    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
-    for (q = 0; q < {n}; ++q) {{
-      const casadi_real xq = x[q];
-      for (s = Lp[q]; s < Lp[q + 1]; ++s) x[Li[s]] -= Lx[s] * xq;
-    }}
-    for (q = 0; q < {n}; ++q) x[q] /= D[q];
-    for (q = {n} - 1; q >= 0; --q) {{
-      casadi_real xq = x[q];
-      for (s = Lp[q]; s < Lp[q + 1]; ++s) xq -= Lx[s] * x[Li[s]];
-      x[q] = xq;
-    }}
-    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
-  }}
-  return 0;"""
-    return bodies, 3 * n + n_l, 3 * n + n_l
-
-
 def compiled_products(build) -> CompiledProducts | None:
     """The ``CompiledProducts`` of ``build`` (a VectorizedBuild), or None where compiled code
     cannot be had."""
@@ -240,7 +150,7 @@ def compiled_products(build) -> CompiledProducts | None:
     add("gram", _gram_body(gram, table, names), ["m"], [_dense(b.n3)], "A", _dense(gram.sparsity.nnz()))
     n_a = gram.sparsity.size1()
     if n_a:
-        bodies, work, iwork = _ldl_bodies(gram.sparsity, table, (1, 2))
+        bodies, work, iwork = ldl_bodies(gram.sparsity, table, (1, 2))
         for k in (1, 2):
             specs.append((f"solve{k}", bodies[f"solve{k}"], ["A", "B"], [_dense(gram.sparsity.nnz()),
                           _dense(n_a, k)], ["out"], [_dense(n_a, k)], work, iwork))
