@@ -178,3 +178,24 @@ def test_an_index_table_reads_back_every_byte_and_integer(tmp_path, monkeypatch)
     f = external.c_functions([("table_test", body, ["x"], [ca.Sparsity.dense(1, 1)], ["out"],
                                [ca.Sparsity.dense(n, 1)])], table.c, key=table.data())[0]
     np.testing.assert_array_equal(np.asarray(f(0)).ravel(), np.concatenate([first, second]))
+
+
+@needs_compiler
+def test_an_element_is_the_value_whether_it_steps_evenly_or_not(tmp_path, monkeypatch):
+    """``element``: evenly stepping indices (up, down, constant, one) as ``a + b i``, the rest read
+    from the table; both give back every value."""
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    arrays = [np.arange(5, 50, 3), np.arange(40, 0, -2), np.full(7, 9), np.array([4]), np.arange(12),
+              np.array([0, 1, 2, 4, 5]), np.array([3, 3, 4])]
+    table = external.IndexTable()
+    expressions = [external.element(table, a) for a in arrays]
+    assert sum("TABLE" in e for e in expressions) == 2
+    n = sum(len(a) for a in arrays)
+    loops, at = [], 0
+    for a, e in zip(arrays, expressions, strict=True):
+        loops.append(f"  for (i = 0; i < {len(a)}; ++i) out[{at} + i] = {e};")
+        at += len(a)
+    body = "  casadi_int i;\n" + "\n".join(loops) + "\n  return 0;"
+    f = external.c_functions([("element_test", body, ["x"], [ca.Sparsity.dense(1, 1)], ["out"],
+                               [ca.Sparsity.dense(n, 1)])], table.c, key=table.data())[0]
+    np.testing.assert_array_equal(np.asarray(f(0)).ravel(), np.concatenate(arrays))

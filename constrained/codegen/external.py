@@ -67,6 +67,21 @@ class IndexTable:
                 "#define TABLE ((const int *) table_bytes)\n")
 
 
+def element(table: IndexTable, values, var: str = "i") -> str:
+    """``values[var]`` as a C expression: ``a + b var`` where the values step evenly (a chain's
+    rows and coordinates: no index read, and loops the compiler can vectorize), else a read of
+    the values put in ``table``."""
+    values = np.asarray(values, np.int64).reshape(-1)
+    if values.size == 0:
+        return "0"
+    step = int(values[1] - values[0]) if values.size > 1 else 0
+    if values.size == 1 or np.all(np.diff(values) == step):
+        start = int(values[0])
+        term = var if step == 1 else f"{step} * {var}"
+        return f"({start} + {term})" if step and start else (f"({term})" if step else str(start))
+    return f"{table.add(values)}[{var}]"
+
+
 def _array(name: str, values: list[int]) -> str:
     return f"static const casadi_int {name}[{len(values)}] = {{{', '.join(map(str, values))}}};"
 

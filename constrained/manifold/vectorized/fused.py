@@ -58,8 +58,9 @@ def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, const
     n_c = sources.shape[0] if sources.size else 0
     writes = "\n    ".join(f"if (y{k}) y{k}[i] = o{k};" for k in range(m))
     literals = ",".join(map(repr, constants.tolist())) or "0"
-    where = table.add(index.T), table.add(sources.T if n_c else np.zeros(0))
-    return f"""  const int *index = {where[0]}, *sources = {where[1]};
+    at_x, at_c = _per_instance(index, "index", table), _per_instance(sources, "sources", table)
+    return f"""{at_x[0]}
+{at_c[0]}
   static const casadi_real constants[{max(constants.size, 1)}] = {{{literals}}};
   static const casadi_real zero_x[{n3}], zero_p[{max(n_p, 1)}];
   const casadi_real *xx = x ? x : zero_x, *vv = v ? v : zero_x, *pp = p ? p : zero_p;
@@ -70,12 +71,12 @@ def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, const
     casadi_real xl[{max(d, 1)}], vl[{max(d, 1)}], cl[{max(n_c, 1)}];
     casadi_real {', '.join(f'o{k}' for k in range(m))};
     for (j = 0; j < {d}; ++j) {{
-      const int c = index[{d} * i + j];
+      const int c = {at_x[1]};
       xl[j] = xx[c];
       vl[j] = vv[c];
     }}
     for (j = 0; j < {n_c}; ++j) {{
-      const int c = sources[{n_c} * i + j];
+      const int c = {at_c[1]};
       cl[j] = c < {n_p} ? pp[c] : constants[c - {n_p}];
     }}
     {{
@@ -84,6 +85,21 @@ def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, const
     {writes}
   }}
   return 0;"""
+
+
+def _per_instance(index: np.ndarray, name: str, table: IndexTable) -> tuple[str, str]:
+    """(declarations, expression): ``index[j, i]`` (d, n) in C, as ``base[j] + step[j] i``
+    where every row steps evenly (a chain's rods: no index read per instance), else read from
+    ``table``."""
+    if index.size == 0:
+        return "", "0"
+    d = index.shape[0]
+    steps = index[:, 1:2] - index[:, :1] if index.shape[1] > 1 else np.zeros((d, 1), np.int64)
+    if np.all(np.diff(index, axis=1) == steps):
+        base, step = (", ".join(map(str, v.ravel().tolist())) for v in (index[:, 0], steps))
+        return (f"  static const int {name}_base[{d}] = {{{base}}}, {name}_step[{d}] = {{{step}}};",
+                f"{name}_base[j] + {name}_step[j] * (int) i")
+    return f"  const int *{name} = {table.add(index.T)};", f"{name}[{d} * i + j]"
 
 
 class FusedGroup:

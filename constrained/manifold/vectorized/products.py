@@ -23,7 +23,7 @@ import hashlib
 
 import casadi as ca
 
-from ...codegen.external import IndexTable, c_functions
+from ...codegen.external import IndexTable, c_functions, element
 from .ldl import ldl_bodies
 
 
@@ -60,57 +60,48 @@ def _gram_body(gram, table: IndexTable, streams: list[str]) -> str:
     n_a = gram.sparsity.nnz()
     lines = [f"  casadi_int i;\n  for (i = 0; i < {n_a}; ++i) A[i] = 0;"]
     for d, (s, k) in enumerate(gram.diagonal):
-        K, C, T = table.add(k), table.add(gram.cols[s][k]), table.add(gram.targets[d])
-        lines.append(f"""  {{ const int *K = {K}, *C = {C}, *T = {T};
-    for (i = 0; i < {len(k)}; ++i) {{
-      const casadi_real a = {streams[s]}[K[i]];
-      A[T[i]] += a * a * m[C[i]];
-    }} }}""")
+        K, C, T = (element(table, v) for v in (k, gram.cols[s][k], gram.targets[d]))
+        lines.append(f"""  for (i = 0; i < {len(k)}; ++i) {{
+    const casadi_real a = {streams[s]}[{K}];
+    A[{T}] += a * a * m[{C}];
+  }}""")
     first = len(gram.diagonal)
     for q, (s1, p1, s2, p2) in enumerate(gram.pairs):
         ta, tb = gram.targets[first + 2 * q], gram.targets[first + 2 * q + 1]
-        P, Q, C = table.add(p1), table.add(p2), table.add(gram.cols[s2][p2])
-        TA, TB = table.add(ta), table.add(tb)
-        lines.append(f"""  {{ const int *P = {P}, *Q = {Q}, *C = {C}, *TA = {TA}, *TB = {TB};
-    for (i = 0; i < {len(p1)}; ++i) {{
-      const casadi_real a = {streams[s1]}[P[i]] * {streams[s2]}[Q[i]] * m[C[i]];
-      A[TA[i]] += a; A[TB[i]] += a;
-    }} }}""")
+        P, Q, C, TA, TB = (element(table, v) for v in (p1, p2, gram.cols[s2][p2], ta, tb))
+        lines.append(f"""  for (i = 0; i < {len(p1)}; ++i) {{
+    const casadi_real a = {streams[s1]}[{P}] * {streams[s2]}[{Q}] * m[{C}];
+    A[{TA}] += a;
+    A[{TB}] += a;
+  }}""")
     return "\n".join(lines) + "\n  return 0;"
-
-
-def _stream_loop(table: IndexTable, n: int, statement: str, r, c) -> str:
-    return (f"  {{ const int *R = {table.add(r)}, *C = {table.add(c)};\n"
-            f"    for (i = 0; i < {n}; ++i) {statement} }}")
 
 
 def _elimination(e, table: IndexTable, streams: list[str], n_rows: int, ks: tuple) -> dict:
     """The bodies of ``before{k}`` (B -> the reduced right-hand side) and ``after{k}`` (Λ_R -> Λ)
     for B of k columns, k in ``ks``."""
     n_s, n_r = len(e.rows), len(e.others)
-    S, R, SC = table.add(e.rows), table.add(e.others), table.add(e.cols)
+    S, R, SC = (element(table, v) for v in (e.rows, e.others, e.cols))
     j_entries = "\n".join(
-        f"  {{ const int *P = {table.add(p)}, *Q = {table.add(q)};\n"
-        f"    for (i = 0; i < {len(p)}; ++i) j[Q[i]] += {streams[s]}[P[i]]; }}" for s, p, q in e.entries)
-    coupling = [(streams[s], table.add(p), table.add(r), table.add(q), len(p)) for s, p, r, q in e.coupling]
+        f"  for (i = 0; i < {len(p)}; ++i) j[{element(table, q)}] += {streams[s]}[{element(table, p)}];"
+        for s, p, q in e.entries)
+    coupling = [(streams[s], *(element(table, v) for v in (p, r, q)), len(p)) for s, p, r, q in e.coupling]
     entries_j = f"""  casadi_int i, col;
   casadi_real *j = w, *y = w + {n_s};
-  const int *S = {S}, *R = {R}, *SC = {SC};
   for (i = 0; i < {n_s}; ++i) j[i] = 0;
 {j_entries}"""
-    subtract = "\n".join(f"""    {{ const int *P = {p}, *RR = {r}, *Q = {q};
-      for (i = 0; i < {n}; ++i) red[RR[i]] -= {J}[P[i]] * y[Q[i]]; }}""" for J, p, r, q, n in coupling)
-    gather = "\n".join(f"""    {{ const int *P = {p}, *RR = {r}, *Q = {q};
-      for (i = 0; i < {n}; ++i) y[Q[i]] += {J}[P[i]] * l[RR[i]]; }}""" for J, p, r, q, n in coupling)
+    subtract = "\n".join(f"    for (i = 0; i < {n}; ++i) red[{r}] -= {J}[{p}] * y[{q}];"
+                         for J, p, r, q, n in coupling)
+    gather = "\n".join(f"    for (i = 0; i < {n}; ++i) y[{q}] += {J}[{p}] * l[{r}];"
+                       for J, p, r, q, n in coupling)
     bodies = {}
     for k in ks:
         bodies[f"before{k}"] = f"""{entries_j}
-  (void) SC;
   for (col = 0; col < {k}; ++col) {{
     const casadi_real *b = B + col * {n_rows};
     casadi_real *red = out + col * {n_r};
-    for (i = 0; i < {n_s}; ++i) y[i] = b[S[i]] / j[i];
-    for (i = 0; i < {n_r}; ++i) red[i] = b[R[i]];
+    for (i = 0; i < {n_s}; ++i) y[i] = b[{S}] / j[i];
+    for (i = 0; i < {n_r}; ++i) red[i] = b[{R}];
 {subtract}
   }}
   return 0;"""
@@ -120,8 +111,8 @@ def _elimination(e, table: IndexTable, streams: list[str], n_rows: int, ks: tupl
     casadi_real *o = out + col * {n_rows};
     for (i = 0; i < {n_s}; ++i) y[i] = 0;
 {gather}
-    for (i = 0; i < {n_s}; ++i) o[S[i]] = (b[S[i]] / (m[SC[i]] * j[i]) - y[i]) / j[i];
-    for (i = 0; i < {n_r}; ++i) o[R[i]] = l[i];
+    for (i = 0; i < {n_s}; ++i) o[{S}] = (b[{S}] / (m[{SC}] * j[i]) - y[i]) / j[i];
+    for (i = 0; i < {n_r}; ++i) o[{R}] = l[i];
   }}
   return 0;"""
     return bodies
@@ -140,9 +131,11 @@ def compiled_products(build) -> CompiledProducts | None:
         specs.append((kind, body, [*names, *extra_in], [*stream_sp, *extra_sp], [out_name], [out_sp], work))
 
     pairs = list(enumerate(zip(b.rows, b.cols, strict=True)))
-    for kind, n_out, update in (("times", b.n_rows, "out[R[i]] += J{s}[i] * y[C[i]];"),
-                                ("transpose_times", b.n3, "out[C[i]] += J{s}[i] * y[R[i]];")):
-        loops = "\n".join(_stream_loop(table, len(r), update.format(s=s), r, c) for s, (r, c) in pairs)
+    for kind, n_out, update in (("times", b.n_rows, "out[{r}] += J{s}[i] * y[{c}];"),
+                                ("transpose_times", b.n3, "out[{c}] += J{s}[i] * y[{r}];")):
+        loops = "\n".join(f"  for (i = 0; i < {len(r)}; ++i) "
+                          + update.format(s=s, r=element(table, r), c=element(table, c))
+                          for s, (r, c) in pairs)
         add(kind, f"  casadi_int i;\n  for (i = 0; i < {n_out}; ++i) out[i] = 0;\n{loops}\n  return 0;",
             ["y"], [_dense(b.n3 + b.n_rows - n_out)], "out", _dense(n_out))
     e = b.single
