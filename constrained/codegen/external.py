@@ -103,6 +103,12 @@ def _switch(name: str, kind: str, cases: list[str]) -> str:
 }}"""
 
 
+#: The loops' flags: -O3 vectorizes a group's kernel over its instances (one rod per lane), and
+#: -fno-math-errno lets ``sqrt`` be the instruction (errno is never read here): on the 1 cm rope
+#: the rows 1.8x, the products 1.2-2x faster. No ``-march=native`` (no gain measured; the
+#: library stays portable) and no fast-math (the sums keep their order and rounding).
+LOOP_FLAGS = ("-O3", "-fno-math-errno", *compiled.FLAGS[1:])
+
 PRELUDE = """#include <math.h>
 #ifndef casadi_real
 #define casadi_real double
@@ -167,9 +173,10 @@ def c_functions(specs: list[tuple], shared=None, key: bytes | None = None) -> li
                         ni, no) for name, _, ni, si, no, so, *_ in specs]
     code = "".join(entry(*s) for s in specs)
     if key is None:
-        loaded = compiled.compile_source(PRELUDE + (shared or "") + code, like)
+        loaded = compiled.compile_source(PRELUDE + (shared or "") + code, like, flags=LOOP_FLAGS)
     else:
-        loaded = compiled.compile_source(lambda: PRELUDE + shared() + code, like, key=key + code.encode())
+        loaded = compiled.compile_source(lambda: PRELUDE + shared() + code, like, key=key + code.encode(),
+                                         flags=LOOP_FLAGS)
     return None if loaded[0] is like[0] else loaded
 
 

@@ -11,11 +11,12 @@ over the instances (``codegen.scalar_c``, the same whitelist as the pair forces)
                            c[j] = values[sources[j, i]]   (values = p, then the constants)
                            (its outputs, every scalar of them) = kernel(x_l, v_l, c, t, p)
 
-with all of the kernel's outputs in the loop and those not wanted (a null output) not
-written. The C source of all the groups of a build is one library (``codegen.external``),
-compiled once and cached: a later run of the same model loads it. Where it cannot be had
-(no C compiler, ``CONSTRAINED_COMPILE=0``, an operation outside the whitelist) the group is
-evaluated on columns as before; the numbers are the same up to rounding.
+with all of the kernel's outputs in the loop and those not wanted (a null output) written to
+scratch: no branch in the loop, which the compiler then vectorizes (``external.LOOP_FLAGS``).
+The C source of all the groups of a build is one library (``codegen.external``), compiled once
+and cached: a later run of the same model loads it. Where it cannot be had (no C compiler,
+``CONSTRAINED_COMPILE=0``, an operation outside the whitelist) the group is evaluated on
+columns as before; the numbers are the same up to rounding.
 
 The loop has no derivatives: it serves the vectorized build, which the virtual machine's
 step loops and the manifold's checks evaluate, and nothing differentiates.
@@ -56,7 +57,9 @@ def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, const
         return None
     d, n = index.shape
     n_c = sources.shape[0] if sources.size else 0
-    writes = "\n    ".join(f"if (y{k}) y{k}[i] = o{k};" for k in range(m))
+    # (an output not wanted is written to scratch: no branch in the loop, which can then be vectorized)
+    targets = "\n  ".join(f"casadi_real *t{k} = y{k} ? y{k} : w;" for k in range(m))
+    writes = "\n    ".join(f"t{k}[i] = o{k};" for k in range(m))
     literals = ",".join(map(repr, constants.tolist())) or "0"
     at_x, at_c = _per_instance(index, "index", table), _per_instance(sources, "sources", table)
     return f"""{at_x[0]}
@@ -65,6 +68,7 @@ def loop_body(kernel: ca.Function, index: np.ndarray, sources: np.ndarray, const
   static const casadi_real zero_x[{n3}], zero_p[{max(n_p, 1)}];
   const casadi_real *xx = x ? x : zero_x, *vv = v ? v : zero_x, *pp = p ? p : zero_p;
   const casadi_real tt = t ? t[0] : 0;
+  {targets}
   casadi_int i;
   int j;
   for (i = 0; i < {n}; ++i) {{
@@ -130,7 +134,7 @@ def fused_groups(groups: list, kernels: list[ca.Function], n3: int, n_p: int) ->
                        ca.Sparsity.dense(n_p, 1)]
         names_out = [f"y{j}" for j in range(k.n_out())]
         sparsity_out = [ca.Sparsity.dense(n, 1)] * k.n_out()
-        specs.append((body, names_in, sparsity_in, names_out, sparsity_out))
+        specs.append((body, names_in, sparsity_in, names_out, sparsity_out, n))
         bodies.append(body)
     if not bodies:
         return [None] * len(groups)
