@@ -310,3 +310,87 @@ def test_an_entry_others_can_write_is_rebuilt(tmp_path, which):
     assert again.returncode == 0 and "value-ok" in again.stdout, again.stderr[-2000:]
     assert "writable by group and others" in again.stderr and "rebuilding" in again.stderr
     assert target.stat().st_mode & 0o077 == 0
+
+
+def _entries(folder, sizes_and_ages):
+    """Fake cache entries (library and record) of the given sizes (bytes), used ``age`` s ago."""
+    import time
+
+    now = time.time()
+    paths = []
+    for k, (size, age) in enumerate(sizes_and_ages):
+        library, record = folder / f"f{k}_key.so", folder / f"f{k}_key.json"
+        library.write_bytes(b"\0" * size)
+        record.write_text("{}")
+        os.utime(library, (now - age, now - age))
+        paths.append(library)
+    return paths
+
+
+def test_the_cache_is_kept_within_its_limit_least_recently_used_first(tmp_path, monkeypatch):
+    """Over the limit, the oldest entries go (library and record together) until 80 % of it is
+    left; the entry just written and the signing key stay, whatever their age."""
+    from constrained.codegen import eviction
+
+    folder = tmp_path / "cache"
+    folder.mkdir()
+    (folder / "signing.key").write_bytes(b"k" * 32)
+    old, older, newest, kept = _entries(folder, [(300_000, 100), (300_000, 200), (300_000, 1),
+                                                 (300_000, 500)])
+    monkeypatch.setenv("CONSTRAINED_CACHE_LIMIT_MB", "1")
+    # 1.2 MB: the oldest but the one kept goes (0.9 MB), then the next (0.6 MB, below 80 %)
+    assert eviction.evict(folder, keep=kept) == [older.name, old.name]
+    assert not older.exists() and not older.with_suffix(".json").exists()
+    assert not old.exists() and newest.exists() and kept.exists() and (folder / "signing.key").exists()
+
+
+def test_under_its_limit_or_without_one_nothing_is_removed(tmp_path, monkeypatch):
+    from constrained.codegen import eviction
+
+    folder = tmp_path / "cache"
+    folder.mkdir()
+    paths = _entries(folder, [(400_000, 10), (400_000, 20)])
+    monkeypatch.setenv("CONSTRAINED_CACHE_LIMIT_MB", "1")
+    assert eviction.evict(folder, keep=paths[0]) == []
+    for value in ("0", "none"):
+        monkeypatch.setenv("CONSTRAINED_CACHE_LIMIT_MB", value)
+        assert eviction.limit_bytes() is None and eviction.evict(folder, keep=paths[0]) == []
+    assert all(p.exists() for p in paths)
+
+
+@pytest.mark.parametrize("value", ["lots", "-5", "nan", "inf"])
+def test_a_limit_that_is_not_a_size_is_named_and_the_default_used(value, monkeypatch, capsys):
+    from constrained.codegen import eviction
+
+    monkeypatch.setenv("CONSTRAINED_CACHE_LIMIT_MB", value)
+    eviction._warned.discard(value)
+    assert eviction.limit_bytes() == eviction.DEFAULT_LIMIT_MB * 1e6
+    assert f"CONSTRAINED_CACHE_LIMIT_MB={value!r}" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not compiled.enabled(), reason="no C compiler")
+def test_a_hit_marks_its_entry_used_and_a_new_entry_evicts_the_stale(tmp_path, monkeypatch):
+    """Through the cache itself: a library loaded again becomes the most recently used; with a
+    limit below two libraries, writing a second removes the first (not the one just written)."""
+    import time
+
+    import casadi as ca
+
+    from constrained.codegen import external
+
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("CONSTRAINED_CACHE_LIMIT_MB", "none")
+
+    def build(name):
+        scalar = [ca.Sparsity.dense(1, 1)]
+        return external.c_function(name, "  out[0] = 2 * x[0];\n  return 0;", ["x"], scalar, ["out"], scalar)
+    assert float(build("evict_a")(3)) == 6
+    (first,) = (tmp_path / "cache").glob("evict_a_*.so")
+    os.utime(first, (time.time() - 1000, time.time() - 1000))
+    assert float(build("evict_a")(4)) == 8
+    assert first.stat().st_mtime > time.time() - 100  # (the hit)
+    size = first.stat().st_size
+    monkeypatch.setenv("CONSTRAINED_CACHE_LIMIT_MB", str(1.5 * size / 1e6))
+    assert float(build("evict_b")(5)) == 10
+    (second,) = (tmp_path / "cache").glob("evict_b_*.so")
+    assert second.exists() and not first.exists() and not first.with_suffix(".json").exists()

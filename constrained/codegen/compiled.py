@@ -17,6 +17,8 @@ library in it is code that runs in this process. Each record is signed (HMAC-SHA
 per-user key kept 0600 in the folder (``signing.key``), so a library and record copied in from
 elsewhere — a planted pair whose checksums agree — are never trusted; an entry (library or
 record) that is not the user's own file, or writable by others, is rebuilt.
+The cache is kept within ``CONSTRAINED_CACHE_LIMIT_MB`` (``eviction``: least recently used
+entries removed after a new one is written).
 The compiler runs as a child process watched for Ctrl-C: a stop request ends it at once (the
 Functions then run on the virtual machine and the caller sees the request).
 Where there is no compiler, or the compilation fails, the virtual-machine Function is
@@ -48,6 +50,7 @@ from pathlib import Path
 import casadi as ca
 
 from .. import interrupt
+from . import eviction
 
 #: Why the last compile_function call fell back to the virtual machine (None if it did not).
 last_error: str | None = None
@@ -172,12 +175,14 @@ def _cached(functions: list[ca.Function], key_of, source_of, flags) -> list[ca.F
         if problem is None:
             loaded = _load(functions, target)
             if loaded is not None:
+                eviction.mark_used(target)
                 return loaded
             problem = "its functions do not have the expected inputs and outputs"
         if problem != UNSIGNED:  # (an entry of an earlier version is rebuilt quietly)
             _notice(f"compile cache entry {target} is damaged or untrusted ({problem}); rebuilding it")
     if not _build(name, source_of(), target, cc, flags, key=key):
         return list(functions)
+    eviction.evict(folder, keep=target)
     loaded = _load(functions, target)
     if loaded is None:
         last_error = last_error or f"cannot load {target}: its functions do not match"
