@@ -80,6 +80,46 @@ def test_a_fine_rope_run_takes_the_same_steps_with_the_loops_and_without(monkeyp
     tv._close(a.multipliers, b.multipliers, 1e-7)
 
 
+def _wavy_rope(n: int) -> C.System:
+    """A rope in 3-D (no plane: no rows eliminated) of uneven masses, its rods listed in a
+    shuffled order: A is tridiagonal only in an order the LDLᵀ must find."""
+    s = C.System(name="wavy rope")
+    rng = np.random.default_rng(1)
+    points = [np.zeros(3)] + [np.array([0.01 * (k + 1), 0.0, 0.002 * np.sin(k)]) for k in range(n)]
+    for k in range(n):
+        s.add_particle(f"p{k}", 0.01 * (1 + rng.uniform()), points[k + 1])
+    rods = [C.Distance("p0", point=[0, 0, 0], length=float(np.linalg.norm(points[1])))]
+    rods += [C.Distance(f"p{k - 1}", f"p{k}", length=float(np.linalg.norm(points[k + 1] - points[k])))
+             for k in range(1, n)]
+    for k in rng.permutation(n):
+        s.add(rods[k])
+    s.add(C.Gravity([0, -9.81, 0]))
+    return s
+
+
+@needs_compiler
+def test_a_rope_listed_shuffled_in_3d_is_solved_as_a_path_and_runs_as_the_columns(monkeypatch):
+    """Its A is a path in another order (the twisted tridiagonal LDLᵀ, permuted); the run takes
+    the steps the columns (CasADi's own LDLᵀ) take, to rounding."""
+    from constrained.manifold.vectorized import ldl
+
+    system = _wavy_rope(200)
+    b = vb.vectorized_build(assemble(system, reuse=False).structure)
+    assert b.single is None
+    order = ldl.path_order(b.gram.sparsity)
+    assert order is not None and not np.array_equal(order, np.arange(len(order)))
+    runs = {}
+    for label, setting in (("loops", "1"), ("columns", "0")):
+        monkeypatch.setenv("CONSTRAINED_COMPILE", setting)
+        runs[label] = C.simulate(system, 0.05, model=assemble(system, reuse=False), rtol=1e-8, atol=1e-8,
+                                 outputs=["multipliers", "constraint_residual"])
+    a, c = runs["loops"], runs["columns"]
+    assert a.stats["steps"] == c.stats["steps"] > 5
+    tv._close(a.x[-1], c.x[-1], 1e-11)
+    tv._close(a.multipliers, c.multipliers, 1e-7)
+    assert np.max(a.constraint_residual) < 1e-12
+
+
 @needs_compiler
 @pytest.mark.parametrize("with_y", [True, False])
 def test_a_combination_is_y_plus_the_weighted_columns(with_y):
