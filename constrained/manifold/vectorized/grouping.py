@@ -188,12 +188,64 @@ def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np
         both = ca.Function("probe", [x, t, p], [applied, original])
     except RuntimeError:  # some row reads more than x, t and p: none is taken here
         return np.zeros_like(same)
-    rng = np.random.default_rng(PROBE_SEED)
     equal = np.ones(n, bool)
-    for _ in range(2):
-        point = (rng.uniform(0.5, 1.5, x.numel()), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, p.numel()))
+    for point in _probe_points(x, t, p):
         with np.errstate(all="ignore"):
             a, b = (np.asarray(o, float).ravel() for o in both(*point))
+        equal &= (a == b) & np.isfinite(a)  # (a value that is not finite proves nothing)
+    out = np.zeros_like(same)
+    out[np.flatnonzero(same)[equal]] = True
+    return out
+
+
+def _probe_points(x, t, p) -> list[tuple]:
+    """The two points (x, t, p) at which candidate kernels and rows are compared (PROBE_SEED)."""
+    rng = np.random.default_rng(PROBE_SEED)
+    return [(rng.uniform(0.5, 1.5, x.numel()), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, p.numel()))
+            for _ in range(2)]
+
+
+def _row_values(exprs: list, stacked, x, t, p) -> list[np.ndarray] | None:
+    """Every row of ``exprs`` (``stacked``: them as one column) at each probe point, from one
+    Function of them all; None when a row reads more than x, t and p (velocities): then each
+    bucket's rows are compared by ``_same``."""
+    try:
+        rows = ca.Function("rows", [x, t, p], [stacked])
+    except RuntimeError:
+        return None
+    with np.errstate(all="ignore"):
+        return [np.asarray(rows(*point), float).ravel() for point in _probe_points(x, t, p)]
+
+
+def _same_at_points(kind: _Kind, values: list[np.ndarray], ks: np.ndarray, index: np.ndarray,
+                    reads: np.ndarray, x, t, p) -> np.ndarray:
+    """``_same`` with the rows' values known at the probe points (``_row_values``): the kernel
+    evaluated on the rows' own coordinates and numbers at those points, in numbers, and compared
+    with them (the same operations on the same numbers: what ``_same`` compares, without
+    writing the kernel out for every row in SX)."""
+    same = np.ones(len(ks), bool)
+    if kind.used is not None:  # its own entries of p: only rows reading exactly those
+        same &= np.all(reads == np.asarray(kind.used)[:, None], axis=0) if reads.size else same
+    if not same.any():
+        return same
+    ks, index, reads = ks[same], index[:, same], reads[:, same]
+    n = len(ks)
+    if kind.used is None:
+        kernel = ca.Function("kernel", [kind.xl, kind.cs, t], [kind.expr]).map(n)
+    else:
+        kernel = ca.Function("kernel", [kind.xl, t, p], [kind.expr]).map(n)
+    numbers = [("p", reads[value]) if what == "p" else ("c", value) for what, value in kind.numbers]
+    equal = np.ones(n, bool)
+    for (x0, t0, p0), value in zip(_probe_points(x, t, p), values, strict=True):
+        X = x0[index]  # (d, n): each row's coordinates as a column
+        with np.errstate(all="ignore"):
+            if kind.used is None:
+                C = np.array([p0[v] if what == "p" else np.full(n, float(v)) for what, v in numbers]
+                             ).reshape(len(numbers), n)
+                a = np.asarray(kernel(X, C, t0), float).ravel()
+            else:
+                a = np.asarray(kernel(X, t0, p0), float).ravel()
+        b = value[ks]
         equal &= (a == b) & np.isfinite(a)  # (a value that is not finite proves nothing)
     out = np.zeros_like(same)
     out[np.flatnonzero(same)[equal]] = True
@@ -251,6 +303,7 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
     else:
         read_colind, read_row = np.zeros(len(exprs) + 1, np.int64), np.zeros(0, np.int64)
     c = ca.SX.sym("c", MAX_CONSTANTS)
+    values = _row_values(exprs, stacked, x, t, p)  # (None: each bucket compared in SX)
     found: dict[tuple, list] = {}
     rest = []
 
@@ -276,7 +329,8 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
                 left[first] = False
                 continue
             todo = np.flatnonzero(left)
-            same = _same(kind, exprs, ks[todo], index[:, todo], reads[:, todo], x, t, p)
+            same = (_same(kind, exprs, ks[todo], index[:, todo], reads[:, todo], x, t, p) if values is None
+                    else _same_at_points(kind, values, ks[todo], index[:, todo], reads[:, todo], x, t, p))
             same[0] = True  # (the row it was cut from, whatever the comparison says)
             members = todo[same]
             numbers, _ = _instances(kind, p, reads[:, members])
