@@ -124,13 +124,13 @@ class Structure:
         terms = effect_terms(system.effects, s, skip=self.pair_owner)  # (a pair kernel's term: 0)
         for k, effect in enumerate(system.effects):
             slots[effect.slot] += [] if k in self.pair_owner else [terms[k]]
-        F, V, U, dU_dv, forcing = forces(slots, x, v, t)
+        F, V, U, dU_dv, forcing = forces(slots, x, v, t, deferred=True)  # F(): built when first asked
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
         # (with potentials alone, F = −∂V/∂x: free of v when V is, which is the smaller graph to ask)
         potentials_only = not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force"))
         may = not potentials_only or ca.depends_on(V, v)
-        self.forces_depend_on_velocity = bool(may and ca.depends_on(F, v))
+        self.forces_depend_on_velocity = bool(may and ca.depends_on(F(), v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)
@@ -174,7 +174,7 @@ class Structure:
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
         function("jacobian", [x, t], ["x", "t"], lambda: [f, kinematics()[0]], ["f", "J"])
         function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[1:3]), ["J", "f_t"])
-        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F, kinematics()[1], kinematics()[3]],
+        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F(), kinematics()[1], kinematics()[3]],
                  ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])

@@ -1,0 +1,72 @@
+"""Shortcuts of a run's fixed cost (reading, assembling, checking a large scene) against the
+long way they replace: the same expressions, numbers and refusals, on friendly and unfriendly
+systems (uneven masses, time-dependent and velocity-dependent forces, no effects at all)."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import constrained as C
+from constrained.model import lifting
+from constrained.model.effects import forces
+from constrained.model.structure import Structure
+
+
+def _rope(n: int, *, effects=()) -> C.System:
+    s = C.System(name="rope", parameters={"w": 2.0})
+    for i in range(n):
+        s.add_particle(f"p{i}", 0.01 * (1 + 0.5 * np.cos(i)), [0.01 * (i + 1), 0.0, 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=0.01))
+    for i in range(1, n):
+        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=0.01 * (1 + 0.1 * i)))
+    s.add(*effects)
+    return s
+
+
+EFFECTS = {
+    "none": (),
+    "gravity": (C.Gravity([0, -9.81, 0]),),
+    "springs": (C.Gravity([0, -9.81, 0]), C.Spring("p0", "p3", k=2.0, rest=0.0),
+                C.Spring("p1", "p4", k=1.0, rest=0.02)),
+    "time-dependent potential": (C.Spring("p0", "p3", k="1 + sin(w*t)", rest=0.02),),
+    "potential of t alone": (C.Potential("sin(t)"), C.Gravity([0, -9.81, 0])),
+    "damping": (C.Gravity([0, -9.81, 0]), C.Damping(0.1, ["p1", "p2"])),
+    "applied force": (C.Force("p2", ["0", "-0.1*t", "0"]),),
+}
+
+
+def _function(e, F) -> str:
+    return ca.Function("F", [e.x, e.v, e.t, e.p], [F]).serialize()
+
+
+@pytest.mark.parametrize("name", EFFECTS)
+def test_deferred_forces_are_the_eager_forces(name):
+    """``forces(..., deferred=True)``: F built when asked is the expression built at once, and the
+    active terms (time-dependent forces among them) are the same."""
+    e = Structure(_rope(6, effects=EFFECTS[name])).expressions
+    eager = forces(e.slots, e.x, e.v, e.t)
+    F, *deferred = forces(e.slots, e.x, e.v, e.t, deferred=True)
+    assert _function(e, F()) == _function(e, eager[0])
+    assert F() is F()  # (built once)
+    for a, b in zip(deferred[:3], eager[1:4], strict=True):
+        assert _function(e, a) == _function(e, b)
+    assert deferred[3] == eager[4]
+    of_t = ("time-dependent potential", "potential of t alone", "applied force")
+    assert ("time_dependent_forces" in eager[4]) == (name in of_t)
+
+
+@pytest.mark.parametrize("name", EFFECTS)
+def test_the_structures_dynamics_and_flags_follow_the_effects(name):
+    """The Structure's dynamics (F from the deferred build) gives the forces of the effects."""
+    system = _rope(6, effects=EFFECTS[name])
+    structure = Structure(system)
+    e = structure.expressions
+    x, v = np.asarray(system.positions, float).ravel(), np.linspace(-0.1, 0.1, 18)
+    p = np.r_[2.0, lifting.numbers(system)]
+    F = np.asarray(structure.function("dynamics")(x, v, 0.3, p)[0]).ravel()
+    reference = ca.Function("F", [e.x, e.v, e.t, e.p], [forces(e.slots, e.x, e.v, e.t)[0]])
+    assert np.array_equal(F, np.asarray(reference(x, v, 0.3, p)).ravel())
+    assert np.any(F != 0) == (name != "none")
+    assert structure.forces_depend_on_velocity == (name == "damping")
