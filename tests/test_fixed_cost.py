@@ -70,3 +70,34 @@ def test_the_structures_dynamics_and_flags_follow_the_effects(name):
     assert np.array_equal(F, np.asarray(reference(x, v, 0.3, p)).ravel())
     assert np.any(F != 0) == (name != "none")
     assert structure.forces_depend_on_velocity == (name == "damping")
+
+
+def _net(n: int) -> C.System:
+    """Springs of every kind: plain numbers between particles (equal and uneven masses, some of
+    the same period), to a point, of a formula of t, of zero stiffness, of a parameter."""
+    s = C.System(name="net", parameters={"kk": 40.0})
+    for i in range(n):
+        s.add_particle(f"p{i}", 0.01 * (1 + i % 3), [0.01 * i, 0.001 * (i % 2), 0.0])
+    for i in range(n - 1):
+        s.add(C.Spring(f"p{i}", f"p{i + 1}", k=[1.0, 1e6, 50.0, 0.0][i % 4], rest=0.011 * (i % 2)))
+    s.add(C.Spring("p0", point=[0, 1, 0], k=1e5, rest=0.5), C.Spring("p2", "p5", k="kk", rest=0.03),
+          C.Spring("p1", "p3", k="1e4*(2 + sin(t))", rest=0.02), C.Gravity([0, -9.81, 0]))
+    return s
+
+
+@pytest.mark.parametrize("limit", [0.0, 0.006, 0.05, 1.0, np.inf])
+def test_stiff_springs_kept_by_period_are_the_whole_list_filtered(limit):
+    """``stiff_springs(..., keep=...)`` (springs of plain numbers measured at once) is the whole
+    list (each spring measured on its own) filtered by the same test: the same elements, every
+    field equal, in the same order."""
+    from constrained.model.structure import assemble
+    from constrained.solvers.stiffness import stiff_springs
+
+    system = _net(30)
+    model = assemble(system)
+    x = np.asarray(system.positions, float).ravel() * 1.01
+    keep = lambda period: period * 10 < limit  # noqa: E731
+    whole = [e for e in stiff_springs(model, x, 0.3) if keep(e.period)]
+    kept = stiff_springs(model, x, 0.3, keep=keep)
+    assert kept == whole
+    assert len(whole) == {0.0: 0, 0.006: 4, 0.05: 9, 1.0: 16, np.inf: 25}[limit]
