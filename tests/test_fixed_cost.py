@@ -101,3 +101,39 @@ def test_stiff_springs_kept_by_period_are_the_whole_list_filtered(limit):
     kept = stiff_springs(model, x, 0.3, keep=keep)
     assert kept == whole
     assert len(whole) == {0.0: 0, 0.006: 4, 0.05: 9, 1.0: 16, np.inf: 25}[limit]
+
+
+def _mixed() -> C.System:
+    """Masses of numbers, of a parameter and of a formula; items with zeros, formulas, points."""
+    s = C.System(name="mixed", parameters={"m": 0.3, "L": 0.5})
+    s.add_particle("a", 1.0, [0.5, 0, 0])
+    s.add_particle("b", "m", [1.0, 0, 0])
+    s.add_particle("c", "2*m + 0.1", [1.5, 0, 0.0])
+    s.add_particle("d", 0.25, [2.0, 0, 0])
+    s.add(C.Distance("a", point=[0, 0, 0], length=0.5), C.Distance("a", "b", length="L"),
+          C.Distance("b", "c", length=0.5), C.Plane(["a", "b", "c", "d"], [0, 0, 1], 0.0),
+          C.Spring("c", "d", k=3.0, rest=0.0), C.Gravity([0, -9.81, 0]), C.Damping(0.1, ["d"]))
+    return s
+
+
+@pytest.mark.parametrize("make", [_mixed, lambda: _rope(8, effects=EFFECTS["springs"])],
+                         ids=["mixed", "rope"])
+def test_lifting_from_the_fingerprints_walk_is_lifting_anew(make):
+    """``lift(system, walked)`` with the walk ``structure_data`` made for the fingerprint gives the
+    lifted copy ``lift(system)`` gives: the same masses, fields and numbers."""
+    system = make()
+    walked: list = []
+    _, values = lifting.structure_data(system, walked)
+    reused, numbers = lifting.lift(system, tuple(walked))
+    anew, reference = lifting.lift(system)
+    assert np.array_equal(numbers, reference) and numbers.tolist() == values
+    assert [p.mass for p in reused.particles] == [p.mass for p in anew.particles]
+    for ours, theirs in zip((*reused.constraints, *reused.effects), (*anew.constraints, *anew.effects),
+                            strict=True):
+        assert type(ours) is type(theirs) and vars(ours) == vars(theirs)
+    assert any(isinstance(p.mass, lifting.Number) for p in anew.particles)
+    model_reused = Structure(system, walked=tuple(walked))
+    model_anew = Structure(system)
+    assert model_reused.constraint_labels == model_anew.constraint_labels
+    assert _function(model_anew.expressions, model_anew.expressions.rows[1]) == _function(
+        model_reused.expressions, model_reused.expressions.rows[1])

@@ -54,8 +54,9 @@ class Structure:
     #: (numbers as bytes, the labels filled with them): the most recent Model's (constraint_labels).
     filled_labels: tuple | None = None
 
-    def __init__(self, system, *, lift: bool = True):
-        system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+    def __init__(self, system, *, lift: bool = True, walked: tuple | None = None):
+        # (walked: the fingerprint's walk of the system, constrained.lifting.lift)
+        system, numbers = lifting.lift(system, walked) if lift else (system, np.zeros(0))
         with lifting.shown(numbers):  # a refusal names the scene's numbers, never their tokens
             self._assemble(system, numbers)
 
@@ -483,14 +484,16 @@ def structure_fingerprint(system) -> str | None:
     return _fingerprint(system)[0]
 
 
-def _fingerprint(system) -> tuple[str | None, np.ndarray]:
-    """``(structure_fingerprint(system), lifting.numbers(system))`` in one walk."""
+def _fingerprint(system) -> tuple[str | None, np.ndarray, tuple | None]:
+    """``(structure_fingerprint(system), lifting.numbers(system), the walk for lifting.lift)``
+    in one walk."""
+    walked: list = []
     try:
-        data, values = lifting.structure_data(system)
+        data, values = lifting.structure_data(system, walked)
         text = json.dumps(data)
     except (lifting.NotPlain, TypeError, ValueError):
-        return None, lifting.numbers(system)
-    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float)
+        return None, lifting.numbers(system), None
+    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float), tuple(walked)
 
 
 def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
@@ -504,7 +507,7 @@ def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
 
 def _kept_structure(system) -> tuple[Structure, np.ndarray | None]:
     big = 3 * system.n_particles > STRUCTURE_CACHE_COORDINATES
-    key, numbers = _fingerprint(system)
+    key, numbers, walked = _fingerprint(system)
     if key is None:
         return Structure(system), numbers
     with _structures_lock:
@@ -513,7 +516,7 @@ def _kept_structure(system) -> tuple[Structure, np.ndarray | None]:
             if not big:
                 _structures.move_to_end(key)
             return structure, numbers
-    structure = Structure(system)
+    structure = Structure(system, walked=walked)
     with _structures_lock:
         if big:
             _largest[:] = [key, structure]
