@@ -54,14 +54,16 @@ class Group:
 
 def summands(term) -> list:
     """The terms e_k of ``term`` = Σ ± e_k (sums, differences and negations unfolded)."""
+    add, sub, neg = ca.OP_ADD, ca.OP_SUB, ca.OP_NEG
     out, stack = [], [(term if isinstance(term, ca.SX) else ca.SX(term), False)]
     while stack:
         e, negative = stack.pop()
-        if e.is_op(ca.OP_ADD):
+        op = e.op()  # (one call per node: gravity's sum has 10,000 terms)
+        if op == add:
             stack += [(e.dep(1), negative), (e.dep(0), negative)]
-        elif e.is_op(ca.OP_SUB):
+        elif op == sub:
             stack += [(e.dep(1), not negative), (e.dep(0), negative)]
-        elif e.is_op(ca.OP_NEG):
+        elif op == neg:
             stack.append((e.dep(0), not negative))
         else:
             out.append(-e if negative else e)
