@@ -137,3 +137,29 @@ def test_lifting_from_the_fingerprints_walk_is_lifting_anew(make):
     assert model_reused.constraint_labels == model_anew.constraint_labels
     assert _function(model_anew.expressions, model_anew.expressions.rows[1]) == _function(
         model_reused.expressions, model_reused.expressions.rows[1])
+
+
+@pytest.mark.parametrize("n", [6, 150])
+def test_residual_functions_built_when_asked_give_the_residuals_in_metres(n):
+    """A large model's residual Functions: the row scales at once, the position and velocity
+    residuals when first asked for; they are max |f_i| / s_i and max |J_i v| / s_i."""
+    from constrained.manifold import residual
+    from constrained.manifold.manifold import constraint_values, sparse_jacobian
+    from constrained.model.structure import assemble
+
+    system = _rope(n, effects=EFFECTS["gravity"])
+    model = assemble(system)
+    x = np.asarray(system.positions, float).ravel() * (1 + 1e-3 * np.sin(np.arange(3 * n)))
+    v = np.cos(np.arange(3 * n))
+    functions = residual.functions(model)
+    large = n == 150
+    assert (dict.get(functions, "position") is None) == large  # (not built yet)
+    s = residual.row_scales(model, x, 0.0)
+    f = np.asarray(constraint_values(model)(x, 0.0)[0]).ravel()
+    J = np.asarray(ca.DM(sparse_jacobian(model)(x, 0.0)).full())
+    assert residual.position_residual(model, x) == pytest.approx(np.max(np.abs(f) / s), rel=1e-12)
+    velocity = residual.velocity_residual_along(model, x[None], v[None], np.zeros(1))[0]
+    assert velocity == pytest.approx(np.max(np.abs(J @ v) / s), rel=1e-12)
+    assert dict.get(functions, "position") is not None
+    with pytest.raises(KeyError):
+        functions["no such function"]
