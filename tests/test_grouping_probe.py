@@ -87,6 +87,11 @@ def test_the_numeric_probe_finds_the_groups_the_symbolic_one_finds(name, monkeyp
     for exprs in (e.rows, terms):
         numeric, symbolic = _both(exprs, e, monkeypatch)
         assert numeric == symbolic
+        stacked = ca.vertcat(*exprs)  # the Function's sparsity is the expressions'
+        function = grouping._rows_function(stacked, e.x, e.t, e.p)
+        for k, symbol in ((0, e.x), (2, e.p)):
+            expected = ca.jacobian_sparsity(stacked, symbol)
+            assert function.jac_sparsity(0, k).get_triplet() == expected.get_triplet()
     groups, _ = _groups(e.rows, e)
     assert groups and max(len(g[0]) for g in groups) >= 39  # (the rods are one group)
 
@@ -115,7 +120,7 @@ def test_rows_that_read_velocities_are_compared_in_sx():
     buckets are compared in SX, where such rows are left to the rest)."""
     x, v, t, p = ca.SX.sym("x", 30), ca.SX.sym("v", 30), ca.SX.sym("t"), ca.SX.sym("p", 1)
     rows = [x[i] * x[i] - p[0] for i in range(30)] + [x[0] * v[0]]
-    stacked = ca.vertcat(*rows)
-    assert grouping._row_values(rows, stacked, x, t, p) is None
+    function = grouping._rows_function(ca.vertcat(*rows), x, t, p)
+    assert function is None and grouping._row_values(function, x, t, p) is None
     groups, rest = grouping.grouped(rows, x, t, p, {})
     assert [g.place.tolist() for g in groups] == [list(range(30))] and rest == [30]

@@ -207,13 +207,19 @@ def _probe_points(x, t, p) -> list[tuple]:
             for _ in range(2)]
 
 
-def _row_values(exprs: list, stacked, x, t, p) -> list[np.ndarray] | None:
-    """Every row of ``exprs`` (``stacked``: them as one column) at each probe point, from one
-    Function of them all; None when a row reads more than x, t and p (velocities): then each
-    bucket's rows are compared by ``_same``."""
+def _rows_function(stacked, x, t, p) -> ca.Function | None:
+    """``(x, t, p) -> the rows`` (``stacked``: them as one column); None when a row reads more
+    than x, t and p (velocities): then each bucket's rows are compared by ``_same``."""
     try:
-        rows = ca.Function("rows", [x, t, p], [stacked])
+        return ca.Function("rows", [x, t, p], [stacked])
     except RuntimeError:
+        return None
+
+
+def _row_values(rows: ca.Function | None, x, t, p) -> list[np.ndarray] | None:
+    """Every row at each probe point, from the Function of them all (``_rows_function``; None:
+    None)."""
+    if rows is None:
         return None
     with np.errstate(all="ignore"):
         return [np.asarray(rows(*point), float).ravel() for point in _probe_points(x, t, p)]
@@ -295,17 +301,18 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
     if any(e.numel() != 1 for e in exprs):
         raise ValueError("the rows and terms of the mapped build are scalars")
     stacked = ca.vertcat(*exprs)
-    pattern = ca.jacobian_sparsity(stacked, x).T
+    rows = _rows_function(stacked, x, t, p)  # (its sparsity: a third of the time of the SX's)
+    pattern = (ca.jacobian_sparsity(stacked, x) if rows is None else rows.jac_sparsity(0, 0)).T
     colind, row = np.array(pattern.colind(), np.int64), np.array(pattern.row(), np.int64)
     # the entries of p each row reads: a row's kernel takes those alone (pl), so that its work
     # does not grow with the length of p (one number per rod of a 10,000-link chain)
     if p.numel():
-        reads = ca.jacobian_sparsity(stacked, p).T
+        reads = (ca.jacobian_sparsity(stacked, p) if rows is None else rows.jac_sparsity(0, 2)).T
         read_colind, read_row = np.array(reads.colind(), np.int64), np.array(reads.row(), np.int64)
     else:
         read_colind, read_row = np.zeros(len(exprs) + 1, np.int64), np.zeros(0, np.int64)
     c = ca.SX.sym("c", MAX_CONSTANTS)
-    values = _row_values(exprs, stacked, x, t, p)  # (None: each bucket compared in SX)
+    values = _row_values(rows, x, t, p)  # (None: each bucket compared in SX)
     found: dict[tuple, list] = {}
     rest = []
 
