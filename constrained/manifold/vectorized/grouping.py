@@ -5,13 +5,15 @@ kernel that the mapped build (``manifold.mapped``: CasADi ``map`` in compiled st
 the vectorized build (``vectorized.build``: whole columns in the virtual machine) evaluate.
 
 Rows of one shape (as many local coordinates, the same particles, as many entries of p read)
-are compared with a candidate kernel all at once — the kernel applied to every one of them
-symbolically and both evaluated at two random points: a row is the kernel's instance when
-the values agree to the last bit at both (the same operations in the same order always do;
-two different formulas never do, barring a coincidence of measure zero — and a row that
-computes the same function another way would be that function anyway) — so the work per row
-is a few array operations, linear whatever the expressions' sharing; only rows that fit
-none of MAX_KINDS candidates are cut out one by one.
+are compared with a candidate kernel all at once at two random points — every row's value
+there from one Function of all the rows, the kernel's from ``map`` on the rows' own coordinates
+and numbers (``_same_at_points``; where a row reads velocities, the kernel applied to the rows
+in SX instead, ``_same``): a row is the kernel's instance when the values agree to the last
+bit at both (the same operations in the same order always do; two different formulas never
+do, barring a coincidence of measure zero — and a row that computes the same function another
+way would be that function anyway) — so the work per row is a few array operations, linear
+whatever the expressions' sharing; only rows that fit none of MAX_KINDS candidates are cut
+out one by one.
 """
 
 from __future__ import annotations
