@@ -41,6 +41,22 @@ def functions(model) -> dict[str, ca.Function]:
     return cache[key]
 
 
+class _Residuals(dict):
+    """``functions``' dictionary of a large model: "scales" now, "position" and "velocity" when
+    first asked for (a run's start and steps need only the scales; its residuals along the
+    trajectory come from the vectorized build's quantities)."""
+
+    def __init__(self, scales: FastCall, build):
+        super().__init__(scales=scales)
+        self._build = build
+
+    def __missing__(self, key: str):
+        if key not in ("position", "velocity"):
+            raise KeyError(key)
+        self.update(self._build())
+        return self[key]
+
+
 def _build(model) -> dict:
     n3 = model.n_coordinates
     # a large model: MX on the vectorized build (an SX graph of every row would be built)
@@ -49,18 +65,28 @@ def _build(model) -> dict:
     x, v, t = kind.sym("x", n3), kind.sym("v", n3), kind.sym("t")
     p = kind.sym("p", len(model.parameter_vector))
     view = vectorized.VectorizedView(model, p) if large else ParametricView(model, p)
-    f, J = view.jacobian(x, t)
-    G, f_t = view.velocity_terms(x, t)  # every row (those of f first, then velocity rows)
-    J = G if model.n_position_rows < model.n_constraints else J  # (else the same J: one graph)
-    s = view.row_scales(x, t) if large else row_scales_expr(J, model.n_particles)
-    C_f = model.n_position_rows
-    position = ca.mmax(ca.fabs(f) / s[:C_f]) if C_f else kind(0)
-    velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s) if model.n_constraints else kind(0)
-    return {
-        "scales": FastCall(ca.Function("row_scales", [x, t, p], [ca.densify(s)])),
-        "position": ca.Function("residual_m", [x, t, p], [position]),
-        "velocity": ca.Function("velocity_residual_m", [x, v, t, p], [velocity]),
-    }
+
+    def scales(s) -> FastCall:
+        return FastCall(ca.Function("row_scales", [x, t, p], [ca.densify(s)]))
+
+    def residuals(s) -> dict:  # (s None: the scales of J, returned too)
+        f, J = view.jacobian(x, t)
+        G, f_t = view.velocity_terms(x, t)  # every row (those of f first, then velocity rows)
+        J = G if model.n_position_rows < model.n_constraints else J  # (else the same J: one graph)
+        out = {}
+        if s is None:
+            s = row_scales_expr(J, model.n_particles)
+            out["scales"] = scales(s)
+        C_f = model.n_position_rows
+        position = ca.mmax(ca.fabs(f) / s[:C_f]) if C_f else kind(0)
+        velocity = ca.mmax(ca.fabs(ca.mtimes(J, v) + f_t) / s) if model.n_constraints else kind(0)
+        return {**out, "position": ca.Function("residual_m", [x, t, p], [position]),
+                "velocity": ca.Function("velocity_residual_m", [x, v, t, p], [velocity])}
+
+    if not large:
+        return residuals(None)
+    s = view.row_scales(x, t)
+    return _Residuals(scales(s), lambda: residuals(s))
 
 
 def _parameters(model, n: int) -> np.ndarray:

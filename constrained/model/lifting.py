@@ -130,23 +130,26 @@ def _shallow(obj):
     return new
 
 
-def lift(system) -> tuple[object, np.ndarray]:
+def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
     """``(lifted, values)``: a shallow copy of ``system`` whose particles' numeric masses and
     items' numeric fields hold Numbers instead of their nonzero numbers, and those numbers
-    in order. Only the Structure's build reads the lifted copy (its particles have no state)."""
+    in order. Only the Structure's build reads the lifted copy (its particles have no state).
+    ``walked``: ``structure_data``'s walk of this system (its lifted masses, each item's lifted
+    fields, the values), used instead of walking it again."""
     values: list[float] = []
+    masses, fields = (None, None) if walked is None else (iter(walked[0]), iter(walked[1]))
     lifted = copy.copy(system)
     particles = []
     for p in system.particles:
         q = _shallow(p)
-        q.mass = lifted_mass(p, values)
+        q.mass = lifted_mass(p, values) if masses is None else next(masses)
         particles.append(q)
     lifted.particles = particles
 
     def items(sequence):
         out = []
         for item in sequence:
-            changed = lifted_fields(item, values)
+            changed = lifted_fields(item, values) if fields is None else next(fields)
             if changed:
                 item = _shallow(item)
                 for name, value in changed.items():
@@ -155,7 +158,7 @@ def lift(system) -> tuple[object, np.ndarray]:
         return out
 
     lifted.constraints, lifted.effects = items(system.constraints), items(system.effects)
-    return lifted, np.array(values, float)
+    return lifted, np.array(values if walked is None else walked[2], float)
 
 
 def numbers(system) -> np.ndarray:
@@ -168,12 +171,14 @@ def numbers(system) -> np.ndarray:
     return np.array(values, float)
 
 
-def structure_data(system) -> tuple[list, list[float]]:
+def structure_data(system, walked: list | None = None) -> tuple[list, list[float]]:
     """``(data, values)``: JSON-able data of everything a Structure is built from (what
     ``structure_fingerprint`` hashes: particle names and masses — Numbers, or their formulas —,
     each constraint and effect — its class and every attribute —, the parameter names in order
     and the definitions) and the plain numbers ``numbers(system)`` gives. NotPlain (or
-    TypeError, ValueError) when an item holds a value that cannot be described exactly."""
+    TypeError, ValueError) when an item holds a value that cannot be described exactly.
+    ``walked``: a list that receives the walk for ``lift`` (the lifted masses, each item's
+    lifted fields), once it is complete."""
     values: list[float] = []
     particles = system.particles
     masses = [p.mass for p in particles]
@@ -181,22 +186,29 @@ def structure_data(system) -> tuple[list, list[float]]:
             and np.all(np.isfinite(masses)) and np.all(np.asarray(masses) != 0):
         values += masses  # every mass a Number (lifted_mass), in order: at once
         described = [[p.name, ["number", k]] for k, p in enumerate(particles)]
+        lifted_masses = [Number(k) for k in range(len(particles))] if walked is not None else None
     else:
+        lifted_masses = [lifted_mass(p, values) for p in particles]
         described = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
-                      else plain_data(lifted_mass(p, values))] for p in particles]
+                      else plain_data(mass)] for p, mass in zip(particles, lifted_masses, strict=True)]
+    fields = []
     # Items in runs of one class and one set of attributes: [module, class, numeric fields, other
     # attributes, [[numeric values, other values] per item]] (a run's names written once).
     runs: list = []
     header = None
     for item in (*system.constraints, *system.effects):
         lifted = lifted_fields(item, values)
+        fields.append(lifted)
         rest = [(k, v) for k, v in vars(item).items() if k not in lifted]
         key = (type(item), tuple(lifted), tuple(k for k, _ in rest))
         if key != header:
             header = key
             runs.append([type(item).__module__, type(item).__qualname__, list(key[1]), list(key[2]), []])
         runs[-1][4].append([[_plain_value(v) for v in lifted.values()], [_plain_value(v) for _, v in rest]])
-    return [described, runs, list(system.parameters), plain_data(system.definitions)], values
+    data = [described, runs, list(system.parameters), plain_data(system.definitions)]
+    if walked is not None:
+        walked[:] = [lifted_masses, fields, values]
+    return data, values
 
 
 def _plain_value(value):

@@ -54,8 +54,9 @@ class Structure:
     #: (numbers as bytes, the labels filled with them): the most recent Model's (constraint_labels).
     filled_labels: tuple | None = None
 
-    def __init__(self, system, *, lift: bool = True):
-        system, numbers = lifting.lift(system) if lift else (system, np.zeros(0))
+    def __init__(self, system, *, lift: bool = True, walked: tuple | None = None):
+        # (walked: the fingerprint's walk of the system, constrained.lifting.lift)
+        system, numbers = lifting.lift(system, walked) if lift else (system, np.zeros(0))
         with lifting.shown(numbers):  # a refusal names the scene's numbers, never their tokens
             self._assemble(system, numbers)
 
@@ -124,13 +125,13 @@ class Structure:
         terms = effect_terms(system.effects, s, skip=self.pair_owner)  # (a pair kernel's term: 0)
         for k, effect in enumerate(system.effects):
             slots[effect.slot] += [] if k in self.pair_owner else [terms[k]]
-        F, V, U, dU_dv, forcing = forces(slots, x, v, t)
+        F, V, U, dU_dv, forcing = forces(slots, x, v, t, deferred=True)  # F(): built when first asked
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
         # (with potentials alone, F = −∂V/∂x: free of v when V is, which is the smaller graph to ask)
         potentials_only = not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force"))
         may = not potentials_only or ca.depends_on(V, v)
-        self.forces_depend_on_velocity = bool(may and ca.depends_on(F, v))
+        self.forces_depend_on_velocity = bool(may and ca.depends_on(F(), v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
         self.active_terms = frozenset(active)
@@ -174,7 +175,7 @@ class Structure:
         function("constraint", [x, t], ["x", "t"], [f], ["f"])
         function("jacobian", [x, t], ["x", "t"], lambda: [f, kinematics()[0]], ["f", "J"])
         function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[1:3]), ["J", "f_t"])
-        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F, kinematics()[1], kinematics()[3]],
+        function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F(), kinematics()[1], kinematics()[3]],
                  ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
@@ -483,14 +484,16 @@ def structure_fingerprint(system) -> str | None:
     return _fingerprint(system)[0]
 
 
-def _fingerprint(system) -> tuple[str | None, np.ndarray]:
-    """``(structure_fingerprint(system), lifting.numbers(system))`` in one walk."""
+def _fingerprint(system) -> tuple[str | None, np.ndarray, tuple | None]:
+    """``(structure_fingerprint(system), lifting.numbers(system), the walk for lifting.lift)``
+    in one walk."""
+    walked: list = []
     try:
-        data, values = lifting.structure_data(system)
+        data, values = lifting.structure_data(system, walked)
         text = json.dumps(data)
     except (lifting.NotPlain, TypeError, ValueError):
-        return None, lifting.numbers(system)
-    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float)
+        return None, lifting.numbers(system), None
+    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float), tuple(walked)
 
 
 def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
@@ -504,7 +507,7 @@ def kept_structure(system) -> tuple[Structure, np.ndarray | None]:
 
 def _kept_structure(system) -> tuple[Structure, np.ndarray | None]:
     big = 3 * system.n_particles > STRUCTURE_CACHE_COORDINATES
-    key, numbers = _fingerprint(system)
+    key, numbers, walked = _fingerprint(system)
     if key is None:
         return Structure(system), numbers
     with _structures_lock:
@@ -513,7 +516,7 @@ def _kept_structure(system) -> tuple[Structure, np.ndarray | None]:
             if not big:
                 _structures.move_to_end(key)
             return structure, numbers
-    structure = Structure(system)
+    structure = Structure(system, walked=walked)
     with _structures_lock:
         if big:
             _largest[:] = [key, structure]

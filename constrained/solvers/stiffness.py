@@ -46,26 +46,71 @@ class StiffElement:
                 f'(type = "distance", a = "{a}", {other}, length = {self.rest:g})')
 
 
-def stiff_springs(model, x, t: float = 0.0) -> list[StiffElement]:
+def _plain(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def stiff_springs(model, x, t: float = 0.0, *, keep=None) -> list[StiffElement]:
     """The scene's springs with their oscillation at the state (x, t), fastest first (springs
-    whose stiffness or rest length are not plain numbers at t are evaluated there)."""
+    whose stiffness or rest length are not plain numbers at t are evaluated there). ``keep``:
+    a test of the period, ``keep(period) -> bool`` that also takes an array of periods: only the
+    springs it keeps (springs of plain numbers between two particles are then measured all at
+    once, and only those kept are described: a cloth's 20,000 shear springs)."""
     system = model.system
     if not any(isinstance(effect, Spring) for effect in system.effects):
         return []
-    s = model.symbols
     x = np.asarray(x, float).reshape(-1, 3)
     masses = system.masses  # (a property that builds the array: once, not per spring)
+    found, others = [], []
+    if keep is not None:
+        names = {name: i for i, name in enumerate(model.particle_names)}
+        plain = [(index, effect, names[effect.a], names[effect.b])
+                 for index, effect in enumerate(system.effects)
+                 if isinstance(effect, Spring) and _plain(effect.k) and _plain(effect.rest)
+                 and isinstance(effect.b, str) and effect.a in names and effect.b in names]
+        if plain:
+            k = np.array([float(effect.k) for _, effect, _, _ in plain])
+            ia, ib = (np.array([item[j] for item in plain], dtype=np.int64) for j in (2, 3))
+            ma, mb = np.asarray(masses, float)[ia], np.asarray(masses, float)[ib]
+            with np.errstate(all="ignore"):
+                omega = np.sqrt(k / (ma * mb / (ma + mb)))
+                kept = np.isfinite(k) & (k > 0) & np.asarray(keep(2 * np.pi / omega), bool)
+            for j in np.flatnonzero(kept):
+                index, effect, a, b = plain[j]
+                found.append(_element(index, effect, float(k[j]), float(effect.rest), float(ma[j]),
+                                      float(mb[j]), x[a], x[b], effect.b))
+        done = {index for index, _, _, _ in plain}
+        others = [index for index, effect in enumerate(system.effects)
+                  if isinstance(effect, Spring) and index not in done]
+    else:
+        others = [index for index, effect in enumerate(system.effects) if isinstance(effect, Spring)]
+    if others:
+        found += _measured(model, others, x, t, masses, keep)
+    found.sort(key=lambda e: e.index)  # (in the scene's order, then the fastest first)
+    return sorted(found, key=lambda e: -e.omega)
+
+
+def _element(index: int, effect, k: float, rest: float, ma: float, mb: float, xa, xb, other) -> StiffElement:
+    m_red = ma if not np.isfinite(mb) else ma * mb / (ma + mb)
+    length = float(np.linalg.norm(xa - xb))
+    return StiffElement(index, effect.label, k, m_red, float(np.sqrt(k / m_red)), length, rest,
+                        abs(length - rest), (effect.a, other))
+
+
+def _measured(model, indices: list[int], x: np.ndarray, t: float, masses, keep) -> list[StiffElement]:
+    """The springs ``indices`` of the system measured one by one, their formulas evaluated at t."""
+    system = model.system
+    s = model.symbols
 
     def at_t(value, where):  # a plain number as it is; a formula evaluated at t
-        if isinstance(value, int | float) and not isinstance(value, bool):
+        if _plain(value):
             return float(value)
         return float(np.asarray(ca.Function("c", [s.t], [ca.SX(s.time_function(value, where))])(t),
                                 float).ravel()[0])
 
     found = []
-    for index, effect in enumerate(system.effects):
-        if not isinstance(effect, Spring):
-            continue
+    for index in indices:
+        effect = system.effects[index]
         try:
             where = f"effects[{index}]"
             k, rest = at_t(effect.k, where), at_t(effect.rest, where)
@@ -82,11 +127,10 @@ def stiff_springs(model, x, t: float = 0.0) -> list[StiffElement]:
             continue
         if not (np.isfinite(k) and k > 0):
             continue
-        m_red = ma if not np.isfinite(mb) else ma * mb / (ma + mb)
-        length = float(np.linalg.norm(x[ia] - xb))
-        found.append(StiffElement(index, effect.label, k, m_red, float(np.sqrt(k / m_red)), length, rest,
-                                  abs(length - rest), (effect.a, other)))
-    return sorted(found, key=lambda e: -e.omega)
+        element = _element(index, effect, k, rest, ma, mb, x[ia], xb, other)
+        if keep is None or keep(element.period):
+            found.append(element)
+    return found
 
 
 class StiffnessWatch:
@@ -107,7 +151,7 @@ class StiffnessWatch:
         self._clock = time.perf_counter
         self.model, self.t0, self.t_end, self.method = model, float(t0), float(t_end), method
         length = self.t_end - self.t0
-        self.elements = [e for e in stiff_springs(model, x0, t0) if e.period * self.MIN_PERIODS < length]
+        self.elements = stiff_springs(model, x0, t0, keep=lambda period: period * self.MIN_PERIODS < length)
         self.started = self._clock()
         self.next = self.started + self.AFTER_S
 

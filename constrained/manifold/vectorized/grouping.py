@@ -5,13 +5,15 @@ kernel that the mapped build (``manifold.mapped``: CasADi ``map`` in compiled st
 the vectorized build (``vectorized.build``: whole columns in the virtual machine) evaluate.
 
 Rows of one shape (as many local coordinates, the same particles, as many entries of p read)
-are compared with a candidate kernel all at once — the kernel applied to every one of them
-symbolically and both evaluated at two random points: a row is the kernel's instance when
-the values agree to the last bit at both (the same operations in the same order always do;
-two different formulas never do, barring a coincidence of measure zero — and a row that
-computes the same function another way would be that function anyway) — so the work per row
-is a few array operations, linear whatever the expressions' sharing; only rows that fit
-none of MAX_KINDS candidates are cut out one by one.
+are compared with a candidate kernel all at once at two random points — every row's value
+there from one Function of all the rows, the kernel's from ``map`` on the rows' own coordinates
+and numbers (``_same_at_points``; where a row reads velocities, the kernel applied to the rows
+in SX instead, ``_same``): a row is the kernel's instance when the values agree to the last
+bit at both (the same operations in the same order always do; two different formulas never
+do, barring a coincidence of measure zero — and a row that computes the same function another
+way would be that function anyway) — so the work per row is a few array operations, linear
+whatever the expressions' sharing; only rows that fit none of MAX_KINDS candidates are cut
+out one by one.
 """
 
 from __future__ import annotations
@@ -54,14 +56,16 @@ class Group:
 
 def summands(term) -> list:
     """The terms e_k of ``term`` = Σ ± e_k (sums, differences and negations unfolded)."""
+    add, sub, neg = ca.OP_ADD, ca.OP_SUB, ca.OP_NEG
     out, stack = [], [(term if isinstance(term, ca.SX) else ca.SX(term), False)]
     while stack:
         e, negative = stack.pop()
-        if e.is_op(ca.OP_ADD):
+        op = e.op()  # (one call per node: gravity's sum has 10,000 terms)
+        if op == add:
             stack += [(e.dep(1), negative), (e.dep(0), negative)]
-        elif e.is_op(ca.OP_SUB):
+        elif op == sub:
             stack += [(e.dep(1), not negative), (e.dep(0), negative)]
-        elif e.is_op(ca.OP_NEG):
+        elif op == neg:
             stack.append((e.dep(0), not negative))
         else:
             out.append(-e if negative else e)
@@ -188,12 +192,70 @@ def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np
         both = ca.Function("probe", [x, t, p], [applied, original])
     except RuntimeError:  # some row reads more than x, t and p: none is taken here
         return np.zeros_like(same)
-    rng = np.random.default_rng(PROBE_SEED)
     equal = np.ones(n, bool)
-    for _ in range(2):
-        point = (rng.uniform(0.5, 1.5, x.numel()), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, p.numel()))
+    for point in _probe_points(x, t, p):
         with np.errstate(all="ignore"):
             a, b = (np.asarray(o, float).ravel() for o in both(*point))
+        equal &= (a == b) & np.isfinite(a)  # (a value that is not finite proves nothing)
+    out = np.zeros_like(same)
+    out[np.flatnonzero(same)[equal]] = True
+    return out
+
+
+def _probe_points(x, t, p) -> list[tuple]:
+    """The two points (x, t, p) at which candidate kernels and rows are compared (PROBE_SEED)."""
+    rng = np.random.default_rng(PROBE_SEED)
+    return [(rng.uniform(0.5, 1.5, x.numel()), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, p.numel()))
+            for _ in range(2)]
+
+
+def _rows_function(stacked, x, t, p) -> ca.Function | None:
+    """``(x, t, p) -> the rows`` (``stacked``: them as one column); None when a row reads more
+    than x, t and p (velocities): then each bucket's rows are compared by ``_same``."""
+    try:
+        return ca.Function("rows", [x, t, p], [stacked])
+    except RuntimeError:
+        return None
+
+
+def _row_values(rows: ca.Function | None, x, t, p) -> list[np.ndarray] | None:
+    """Every row at each probe point, from the Function of them all (``_rows_function``; None:
+    None)."""
+    if rows is None:
+        return None
+    with np.errstate(all="ignore"):
+        return [np.asarray(rows(*point), float).ravel() for point in _probe_points(x, t, p)]
+
+
+def _same_at_points(kind: _Kind, values: list[np.ndarray], ks: np.ndarray, index: np.ndarray,
+                    reads: np.ndarray, x, t, p) -> np.ndarray:
+    """``_same`` with the rows' values known at the probe points (``_row_values``): the kernel
+    evaluated on the rows' own coordinates and numbers at those points, in numbers, and compared
+    with them (the same operations on the same numbers: what ``_same`` compares, without
+    writing the kernel out for every row in SX)."""
+    same = np.ones(len(ks), bool)
+    if kind.used is not None:  # its own entries of p: only rows reading exactly those
+        same &= np.all(reads == np.asarray(kind.used)[:, None], axis=0) if reads.size else same
+    if not same.any():
+        return same
+    ks, index, reads = ks[same], index[:, same], reads[:, same]
+    n = len(ks)
+    if kind.used is None:
+        kernel = ca.Function("kernel", [kind.xl, kind.cs, t], [kind.expr]).map(n)
+    else:
+        kernel = ca.Function("kernel", [kind.xl, t, p], [kind.expr]).map(n)
+    numbers = [("p", reads[value]) if what == "p" else ("c", value) for what, value in kind.numbers]
+    equal = np.ones(n, bool)
+    for (x0, t0, p0), value in zip(_probe_points(x, t, p), values, strict=True):
+        X = x0[index]  # (d, n): each row's coordinates as a column
+        with np.errstate(all="ignore"):
+            if kind.used is None:
+                C = np.array([p0[v] if what == "p" else np.full(n, float(v)) for what, v in numbers]
+                             ).reshape(len(numbers), n)
+                a = np.asarray(kernel(X, C, t0), float).ravel()
+            else:
+                a = np.asarray(kernel(X, t0, p0), float).ravel()
+        b = value[ks]
         equal &= (a == b) & np.isfinite(a)  # (a value that is not finite proves nothing)
     out = np.zeros_like(same)
     out[np.flatnonzero(same)[equal]] = True
@@ -241,16 +303,18 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
     if any(e.numel() != 1 for e in exprs):
         raise ValueError("the rows and terms of the mapped build are scalars")
     stacked = ca.vertcat(*exprs)
-    pattern = ca.jacobian_sparsity(stacked, x).T
+    rows = _rows_function(stacked, x, t, p)  # (its sparsity: a third of the time of the SX's)
+    pattern = (ca.jacobian_sparsity(stacked, x) if rows is None else rows.jac_sparsity(0, 0)).T
     colind, row = np.array(pattern.colind(), np.int64), np.array(pattern.row(), np.int64)
     # the entries of p each row reads: a row's kernel takes those alone (pl), so that its work
     # does not grow with the length of p (one number per rod of a 10,000-link chain)
     if p.numel():
-        reads = ca.jacobian_sparsity(stacked, p).T
+        reads = (ca.jacobian_sparsity(stacked, p) if rows is None else rows.jac_sparsity(0, 2)).T
         read_colind, read_row = np.array(reads.colind(), np.int64), np.array(reads.row(), np.int64)
     else:
         read_colind, read_row = np.zeros(len(exprs) + 1, np.int64), np.zeros(0, np.int64)
     c = ca.SX.sym("c", MAX_CONSTANTS)
+    values = _row_values(rows, x, t, p)  # (None: each bucket compared in SX)
     found: dict[tuple, list] = {}
     rest = []
 
@@ -276,7 +340,8 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
                 left[first] = False
                 continue
             todo = np.flatnonzero(left)
-            same = _same(kind, exprs, ks[todo], index[:, todo], reads[:, todo], x, t, p)
+            same = (_same(kind, exprs, ks[todo], index[:, todo], reads[:, todo], x, t, p) if values is None
+                    else _same_at_points(kind, values, ks[todo], index[:, todo], reads[:, todo], x, t, p))
             same[0] = True  # (the row it was cut from, whatever the comparison says)
             members = todo[same]
             numbers, _ = _instances(kind, p, reads[:, members])
