@@ -15,16 +15,18 @@ Two factorizations, by the pattern:
 
   then forward from both ends to m, x_m, and back out to both ends;
 
-* **the sparse up-looking LDLᵀ** of T. A. Davis (ACM TOMS 31, 2005) in CasADi's symbolic order
-  (AMD, or the rows' own where that saves no fill): a cloth's or a mesh's A. L's pattern is
-  CasADi's symbolic factorization, so each row's pattern and the place of each of its entries
-  in L's columns are index data (no walk of the elimination tree per call: 10–40 % faster on
-  cloths),
+* **the supernodal LDLᵀ** (``manifold.vectorized.supernodal``) in CasADi's symbolic order (AMD,
+  or the rows' own where that saves no fill): a cloth's or a mesh's A. L's pattern is CasADi's
+  symbolic factorization; its columns of one structure are grouped into dense panels, each
+  updated from the panels below it with dense loops, four columns at a time,
 
-      row k of L:  y = Ã[:k+1, k];  for i in the pattern of row k (ascending):
-                   y[rows of L[:, i] so far] −= L[·, i] y_i,  L_ki = y_i / D_i,  D_k −= L_ki y_i.
+      panel J = A[R_J, J] − Σ_K L[R_K, K] D_K L[J, K]ᵀ,  then the panel's dense LDLᵀ
 
-The table holds what is O(n + nnz(A) + nnz(L)).
+  (the 100 x 100 cloth's factor + solve 1.4 x faster than the up-looking LDLᵀ of T. A. Davis
+  it replaced, which took L's rows one by one).
+
+The table holds what is O(n + nnz(A) + nnz(L)), and the supernodal updates' places of rows
+(Σ over the updates J ← K of K's rows from J's on: 0.27 nnz(L) on the 100 x 100 cloth).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import casadi as ca
 import numpy as np
 
 from ...codegen.external import IndexTable
+from .supernodal import supernodal_bodies
 
 
 def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
@@ -144,74 +147,10 @@ def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple
     return bodies, 5 * n, 0
 
 
-def _up_looking(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
-                ks: tuple) -> tuple[dict, int, int]:
-    n = sparsity.size1()
-    p = np.asarray(p, np.int64)
-    pinv = np.empty(n, np.int64)
-    pinv[p] = np.arange(n)
-    ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
-    by_column = np.lexsort((tk, ti))  # L's entries column by column, rows ascending
-    rows, columns = tk[by_column], ti[by_column]
-    lp = np.concatenate([[0], np.cumsum(np.bincount(ti, minlength=n))])
-    by_row = np.lexsort((columns, rows))  # the same entries row by row: each row's pattern,
-    rp = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))])  # columns ascending
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
-    ii, kk = pinv[r], pinv[c]
-    z = np.flatnonzero(ii <= kk)
-    z = z[np.lexsort((ii[z], kk[z]))]
-    ap = np.concatenate([[0], np.cumsum(np.bincount(kk[z], minlength=n))])
-    n_l = len(ti)
-    names = {"Ap": ap, "Az": z, "Ai": ii[z], "Lp": lp, "Li": rows, "Rp": rp, "Ri": columns[by_row],
-             "Rpos": by_row, "P": p}
-    arrays = "\n".join(f"  const int *{k} = {table.add(v)};" for k, v in names.items())
-    factor = f"""{arrays}
-  casadi_int k, s, q, e, t, col;
-  casadi_real *y = w, *D = w + {n}, *Lx = w + {2 * n}, *x = w + {2 * n + n_l};
-  for (k = 0; k < {n}; ++k) y[k] = 0;
-  for (k = 0; k < {n}; ++k) {{
-    casadi_real d;
-    for (e = Ap[k]; e < Ap[k + 1]; ++e) y[Ai[e]] += A[Az[e]];
-    d = y[k];
-    y[k] = 0;
-    for (t = Rp[k]; t < Rp[k + 1]; ++t) {{  /* row k's pattern, columns ascending */
-      const int i = Ri[t], end = Rpos[t];
-      const casadi_real yi = y[i], l = yi / D[i];
-      y[i] = 0;
-      for (s = Lp[i]; s < end; ++s) y[Li[s]] -= Lx[s] * yi;
-      d -= l * yi;
-      Lx[end] = l;
-    }}
-    D[k] = d;
-  }}"""
-    bodies = {}
-    for k in ks:
-        bodies[f"solve{k}"] = f"""{factor}
-  for (col = 0; col < {k}; ++col) {{
-    const casadi_real *b = B + col * {n};
-    casadi_real *o = out + col * {n};
-    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
-    for (q = 0; q < {n}; ++q) {{
-      const casadi_real xq = x[q];
-      for (s = Lp[q]; s < Lp[q + 1]; ++s) x[Li[s]] -= Lx[s] * xq;
-    }}
-    for (q = 0; q < {n}; ++q) x[q] /= D[q];
-    for (q = {n} - 1; q >= 0; --q) {{
-      casadi_real xq = x[q];
-      for (s = Lp[q]; s < Lp[q + 1]; ++s) xq -= Lx[s] * x[Li[s]];
-      x[q] = xq;
-    }}
-    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
-  }}
-  return 0;"""
-    return bodies, 3 * n + n_l, 0
-
-
 def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
     """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
     (symmetric, positive definite), k in ``ks``, and their scratch lengths (reals, integers):
-    the envelope where it holds no more than the sparse factor, else the up-looking LDLᵀ (see
-    the module)."""
+    a path's twisted factorization, else the supernodal LDLᵀ (see the module)."""
     lt, p = sparsity.ldl(True)
     natural, identity = sparsity.ldl(False)
     if natural.nnz() <= lt.nnz():
@@ -219,4 +158,4 @@ def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dic
     order = path_order(sparsity) if sparsity.size1() >= 2 else None
     if order is not None:
         return _path(sparsity, order, table, ks)
-    return _up_looking(sparsity, lt, p, table, ks)
+    return supernodal_bodies(sparsity, lt, p, table, ks)
