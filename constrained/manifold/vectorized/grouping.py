@@ -168,14 +168,21 @@ def _instances(kind: _Kind, p, reads: np.ndarray) -> tuple[list, ca.SX]:
     return numbers, ca.vertcat(*rows)
 
 
+def _reading_its_own(kind: _Kind, reads: np.ndarray, n: int) -> np.ndarray:
+    """Which of n rows can be ``kind``: where it has its own entries of p, only the rows that
+    read exactly those (``reads`` (n_p, n))."""
+    same = np.ones(n, bool)
+    if kind.used is not None and reads.size:
+        same &= np.all(reads == np.asarray(kind.used)[:, None], axis=0)
+    return same
+
+
 def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np.ndarray,
           x, t, p) -> np.ndarray:
     """Which rows ``ks`` (coordinates ``index`` (d, n), reads of p ``reads`` (n_p, n)) are ``kind``
     applied to their own coordinates and numbers: the kernel applied to all of them at once
     and compared with the rows node by node."""
-    same = np.ones(len(ks), bool)
-    if kind.used is not None:  # its own entries of p: only rows reading exactly those
-        same &= np.all(reads == np.asarray(kind.used)[:, None], axis=0) if reads.size else same
+    same = _reading_its_own(kind, reads, len(ks))
     if not same.any():
         return same
     ks, index, reads = ks[same], index[:, same], reads[:, same]
@@ -233,9 +240,7 @@ def _same_at_points(kind: _Kind, values: list[np.ndarray], ks: np.ndarray, index
     evaluated on the rows' own coordinates and numbers at those points, in numbers, and compared
     with them (the same operations on the same numbers: what ``_same`` compares, without
     writing the kernel out for every row in SX)."""
-    same = np.ones(len(ks), bool)
-    if kind.used is not None:  # its own entries of p: only rows reading exactly those
-        same &= np.all(reads == np.asarray(kind.used)[:, None], axis=0) if reads.size else same
+    same = _reading_its_own(kind, reads, len(ks))
     if not same.any():
         return same
     ks, index, reads = ks[same], index[:, same], reads[:, same]
