@@ -353,6 +353,10 @@ def main(argv=None) -> int:
         for name, seconds, cpu, mb in b["stages"]:
             print(f"| {name} | {seconds:.2f} | {'' if cpu is None else f'{cpu:.2f}'} | "
                   f"{'' if mb is None else f'{mb:.0f}'} |")
+        wall = {name: seconds for name, seconds, _, _ in b["stages"]}
+        if "total" in wall and "the run (stepping)" in wall:
+            print(f"\nfixed cost (the whole command but its stepping): "
+                  f"{wall['total'] - wall['the run (stepping)']:.2f} s wall (issue 28's goal: ≤ 1 s)")
         f = b["floor"]
         per_particle = 1e6 * f["step_cpu"] / f["particles"]
         print(f"\nper attempted step: {1e3 * f['step_cpu']:.2f} ms CPU ({per_particle:.2f} µs per "
