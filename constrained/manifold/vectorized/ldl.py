@@ -151,11 +151,11 @@ def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dic
     """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
     (symmetric, positive definite), k in ``ks``, and their scratch lengths (reals, integers):
     a path's twisted factorization, else the supernodal LDLᵀ (see the module)."""
+    order = path_order(sparsity) if sparsity.size1() >= 2 else None
+    if order is not None:
+        return _path(sparsity, order, table, ks)
     lt, p = sparsity.ldl(True)
     natural, identity = sparsity.ldl(False)
     if natural.nnz() <= lt.nnz():
         lt, p = natural, identity
-    order = path_order(sparsity) if sparsity.size1() >= 2 else None
-    if order is not None:
-        return _path(sparsity, order, table, ks)
     return supernodal_bodies(sparsity, lt, p, table, ks)
