@@ -35,6 +35,16 @@ def _pattern(kind: str, n: int) -> set[tuple[int, int]]:
                     pairs.add((i * side + j, i * side + j + 1))
                 if i + 1 < side:
                     pairs.add((i * side + j, (i + 1) * side + j))
+    elif kind in ("y", "tree", "forest"):
+        rng = np.random.default_rng(n)
+        if kind == "y":  # a chain with a second branch from its middle
+            parent = [k - 1 if k != n // 2 + 1 else n // 4 for k in range(n)]
+        else:  # each row coupled to one row before it (two trees for a forest)
+            parent = [int(rng.integers(0, k)) if k else -1 for k in range(n)]
+            if kind == "forest":
+                parent[n // 2] = -1
+                parent[n // 2 + 1:] = [p if p >= n // 2 else n // 2 for p in parent[n // 2 + 1:]]
+        pairs = {(p, k) for k, p in enumerate(parent) if p >= 0}
     elif kind == "random":
         rng = np.random.default_rng(3)
         pairs = {tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(2 * n)}
@@ -74,7 +84,8 @@ def _solver(a: np.ndarray, name: str):
 @pytest.mark.parametrize("kind, n", [("chain", 1), ("chain", 2), ("chain", 400), ("loop", 60), ("band", 50),
                                      ("arrow down", 40), ("arrow up", 40), ("grid", 64), ("random", 80),
                                      ("none", 7), ("chain", 3), ("shuffled chain", 101),
-                                     ("shuffled chain", 2)])
+                                     ("shuffled chain", 2), ("y", 300), ("tree", 200), ("shuffled tree", 150),
+                                     ("forest", 90)])
 @pytest.mark.parametrize("condition", [1.0, 1e6])
 def test_the_compiled_ldl_solves_the_system(kind, n, condition, tmp_path, monkeypatch):
     monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
@@ -111,3 +122,19 @@ def test_a_path_is_found_in_any_order_of_its_rows(kind, n, path):
             assert sorted(order) == list(range(matrix.shape[0]))
             permuted = matrix[np.ix_(order, order)]
             assert not np.any(np.triu(permuted, 2)) and not np.any(np.tril(permuted, -2))
+
+
+@pytest.mark.parametrize("kind, n, expected", [
+    ("chain", 300, "path"), ("none", 6, "path"), ("y", 200, "short columns"), ("tree", 300, "short columns"),
+    ("forest", 100, "short columns"), ("arrow up", 30, "short columns"), ("loop", 30, "short columns"),
+    ("band", 40, "short columns"), ("grid", 100, "supernodal"), ("random", 80, "supernodal")])
+def test_each_pattern_takes_the_factorization_that_fits_it(kind, n, expected):
+    """A chain is a path; a branching chain, a tree, two trees, a star, a closed loop and a band
+    of three have L of short columns in AMD's order (a loop: two entries a column, the band:
+    three); a grid and a random graph fill in, and take the panels. The same in any order of
+    the rows."""
+    rng = np.random.default_rng(2)
+    a = _matrix(kind, n, rng)
+    shuffle = rng.permutation(n)
+    for matrix in (a, a[np.ix_(shuffle, shuffle)]):
+        assert ldl.factorization(_sparse(matrix).sparsity())[0] == expected

@@ -121,6 +121,40 @@ def test_a_rope_listed_shuffled_in_3d_is_solved_as_a_path_and_runs_as_the_column
 
 
 @needs_compiler
+def test_a_branching_rope_is_solved_by_short_columns_and_runs_as_the_columns(monkeypatch):
+    """A rope of 150 links with a second rope of 60 hanging from its 40th bead (a Y: the three
+    rods at the junction couple their rows, so A's graph is not a path): the short-column LDLᵀ;
+    the run takes the columns' (CasADi's LDLᵀ's) steps, to rounding."""
+    from constrained.manifold.vectorized import ldl
+
+    s = C.System(name="branching rope")
+    rng = np.random.default_rng(4)
+    for k in range(150):
+        s.add_particle(f"a{k}", 0.01 * (1 + rng.uniform()), [0.01 * (k + 1), 0.0, 0.0])
+    for k in range(60):
+        s.add_particle(f"b{k}", 0.005 * (1 + rng.uniform()), [0.4, -0.01 * (k + 1), 0.0])
+    s.add(C.Distance("a0", point=[0, 0, 0], length=0.01))
+    s.add(*[C.Distance(f"a{k - 1}", f"a{k}", length=0.01) for k in range(1, 150)])
+    s.add(C.Distance("a39", "b0", length=0.01))
+    s.add(*[C.Distance(f"b{k - 1}", f"b{k}", length=0.01) for k in range(1, 60)])
+    s.add(C.Plane([*(f"a{k}" for k in range(150)), *(f"b{k}" for k in range(60))], [0, 0, 1]))
+    s.add(C.Gravity([0, -9.81, 0]))
+    b = vb.vectorized_build(assemble(s, reuse=False).structure)
+    gram = b.gram if b.single is None else b.single.gram
+    assert ldl.factorization(gram.sparsity)[0] == "short columns"
+    runs = {}
+    for label, setting in (("loops", "1"), ("columns", "0")):
+        monkeypatch.setenv("CONSTRAINED_COMPILE", setting)
+        runs[label] = C.simulate(s, 0.05, model=assemble(s, reuse=False), rtol=1e-8, atol=1e-8,
+                                 outputs=["multipliers", "constraint_residual"])
+    a, c = runs["loops"], runs["columns"]
+    assert a.stats["steps"] == c.stats["steps"] > 5
+    tv._close(a.x[-1], c.x[-1], 1e-11)
+    tv._close(a.multipliers, c.multipliers, 1e-7)
+    assert np.max(a.constraint_residual) < 1e-12
+
+
+@needs_compiler
 @pytest.mark.parametrize("with_y", [True, False])
 def test_a_combination_is_y_plus_the_weighted_columns(with_y):
     rng = np.random.default_rng(4)

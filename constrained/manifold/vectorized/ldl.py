@@ -2,7 +2,7 @@
 fixed sparsity, the factorization's structure worked out once here and compiled in, the numbers
 factorized at every call (issue 28).
 
-Two factorizations, by the pattern:
+Three factorizations, by the pattern (``factorization``):
 
 * **a path's** (tridiagonal in some order of the rows: A's graph is paths, as a chain's rods
   give), twisted: factorized from both ends at once and joined in the middle row m (two
@@ -14,6 +14,11 @@ Two factorizations, by the pattern:
       D_m = A_mm − l_m g_m − G g_{m+1},  G = g_{m+1} / D_{m+1};
 
   then forward from both ends to m, x_m, and back out to both ends;
+
+* **short columns** where L, in CasADi's symbolic order (AMD), holds at most SHORT_COLUMNS
+  entries per row (a chain with branches: a junction of three rods couples their three rows, so
+  A's graph is not a path, but L has one or two entries a column): right-looking, every
+  update's place in L index data, no panels to set up;
 
 * **the supernodal LDLᵀ** (``manifold.vectorized.supernodal``) in CasADi's symbolic order (AMD,
   or the rows' own where that saves no fill): a cloth's or a mesh's A. L's pattern is CasADi's
@@ -65,6 +70,90 @@ def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
             a, b = neighbours[k]
             previous, k = k, (b if a == previous else a)
     return np.asarray(order, np.int64) if len(order) == n else None  # (else a loop)
+
+
+#: The short-column LDLᵀ serves factors of at most this many entries of L per row of A on
+#: average (a chain with branches: one or two); beyond, the supernodal panels pay.
+SHORT_COLUMNS = 3
+
+
+def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
+                   ks: tuple) -> tuple[dict, int, int]:
+    """Right-looking LDLᵀ with every update's place as index data, for a factor of short columns
+    (a branching chain: one entry below most diagonals, two at a junction of three rods):
+
+        column j:  g_i = Ã_ij,  L_ij = g_i / D_j,  D_i −= L_ij g_i,  Ã_ik −= L_ij g_k  (i > k > j)
+
+    over j's entries i, k, in the order ``p`` with Lᵀ's pattern ``lt`` (CasADi's symbolic
+    factorization)."""
+    n = sparsity.size1()
+    p = np.asarray(p, np.int64)
+    pinv = np.empty(n, np.int64)
+    pinv[p] = np.arange(n)
+    ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
+    by_column = np.lexsort((tk, ti))
+    rows, columns = tk[by_column], ti[by_column]
+    lp = np.concatenate([[0], np.cumsum(np.bincount(columns, minlength=n))])
+    keys = columns * n + rows  # L's entries in their order (by column, then row): ascending
+
+    def place(i, k):  # L[i, k]'s place among them
+        return np.searchsorted(keys, np.asarray(k, np.int64) * n + np.asarray(i, np.int64))
+    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
+    ii, kk = pinv[r], pinv[c]
+    lower = np.flatnonzero(ii > kk)
+    a_to_l = place(ii[lower], kk[lower])
+    diagonal = np.zeros(n, np.int64)
+    diagonal[ii[ii == kk]] = np.flatnonzero(ii == kk)
+    first, second, up = [], [], [0]
+    for j in range(n):  # (short columns: a few pairs each)
+        for s in range(lp[j], lp[j + 1]):
+            first += [s] * (s - lp[j])
+            second += range(s - lp[j])
+        up.append(len(first))
+    first, second = np.asarray(first, np.int64), np.asarray(second, np.int64)
+    owner = np.repeat(np.arange(n), np.diff(up))
+    targets = place(rows[first], rows[lp[owner] + second])
+    names = {"P": p, "Dz": diagonal, "Az": lower, "At": a_to_l, "Lp": lp, "Li": rows, "Up": up,
+             "T": targets, "S": first, "G": second}
+    arrays = "\n".join(f"  const int *{k} = {table.add(v)};" for k, v in names.items())
+    n_l, widest = len(rows), int(np.diff(lp).max(initial=0))
+    factor = f"""{arrays}
+  casadi_int j, s, u, q, col;
+  casadi_real *D = w, *Lx = w + {n}, *x = w + {n + n_l}, *g = w + {2 * n + n_l};
+  for (j = 0; j < {n}; ++j) D[j] = A[Dz[j]];
+  for (s = 0; s < {n_l}; ++s) Lx[s] = 0;
+  for (s = 0; s < {len(lower)}; ++s) Lx[At[s]] = A[Az[s]];
+  for (j = 0; j < {n}; ++j) {{
+    const casadi_real d = D[j];
+    for (s = Lp[j]; s < Lp[j + 1]; ++s) {{
+      const casadi_real gs = Lx[s], l = gs / d;
+      g[s - Lp[j]] = gs;
+      Lx[s] = l;
+      D[Li[s]] -= l * gs;
+    }}
+    for (u = Up[j]; u < Up[j + 1]; ++u) Lx[T[u]] -= Lx[S[u]] * g[G[u]];
+  }}"""
+    bodies = {}
+    for k in ks:
+        bodies[f"solve{k}"] = f"""{factor}
+  for (col = 0; col < {k}; ++col) {{
+    const casadi_real *b = B + col * {n};
+    casadi_real *o = out + col * {n};
+    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
+    for (q = 0; q < {n}; ++q) {{
+      const casadi_real xq = x[q];
+      for (s = Lp[q]; s < Lp[q + 1]; ++s) x[Li[s]] -= Lx[s] * xq;
+    }}
+    for (q = 0; q < {n}; ++q) x[q] /= D[q];
+    for (q = {n} - 1; q >= 0; --q) {{
+      casadi_real xq = x[q];
+      for (s = Lp[q]; s < Lp[q + 1]; ++s) xq -= Lx[s] * x[Li[s]];
+      x[q] = xq;
+    }}
+    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
+  }}
+  return 0;"""
+    return bodies, 2 * n + n_l + max(widest, 1), 0
 
 
 def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
@@ -147,15 +236,24 @@ def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple
     return bodies, 5 * n, 0
 
 
-def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
-    """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
-    (symmetric, positive definite), k in ``ks``, and their scratch lengths (reals, integers):
-    a path's twisted factorization, else the supernodal LDLᵀ (see the module)."""
+def factorization(sparsity: ca.Sparsity) -> tuple:
+    """Which LDLᵀ serves A of ``sparsity`` (see the module), with what it needs: ("path", its
+    order), else ("short columns", Lᵀ's pattern, order) where L holds at most SHORT_COLUMNS
+    entries per row of A in CasADi's symbolic order, else ("supernodal", Lᵀ's pattern, order)."""
     order = path_order(sparsity) if sparsity.size1() >= 2 else None
     if order is not None:
-        return _path(sparsity, order, table, ks)
+        return "path", order
     lt, p = sparsity.ldl(True)
     natural, identity = sparsity.ldl(False)
     if natural.nnz() <= lt.nnz():
         lt, p = natural, identity
-    return supernodal_bodies(sparsity, lt, p, table, ks)
+    return ("short columns" if lt.nnz() <= SHORT_COLUMNS * sparsity.size1() else "supernodal"), lt, p
+
+
+def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
+    """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
+    (symmetric, positive definite), k in ``ks``, and their scratch lengths (reals, integers),
+    by the ``factorization`` the pattern takes."""
+    kind, *needs = factorization(sparsity)
+    build = {"path": _path, "short columns": _short_columns, "supernodal": supernodal_bodies}[kind]
+    return build(sparsity, *needs, table, ks)
