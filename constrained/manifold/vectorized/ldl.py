@@ -40,7 +40,7 @@ import casadi as ca
 import numpy as np
 
 from ...codegen.external import IndexTable
-from .supernodal import supernodal_bodies
+from .supernodal import permuted_solves, supernodal_bodies
 
 
 def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
@@ -133,14 +133,7 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
     }}
     for (u = Up[j]; u < Up[j + 1]; ++u) Lx[T[u]] -= Lx[S[u]] * g[G[u]];
   }}"""
-    bodies = {}
-    for k in ks:
-        bodies[f"solve{k}"] = f"""{factor}
-  for (col = 0; col < {k}; ++col) {{
-    const casadi_real *b = B + col * {n};
-    casadi_real *o = out + col * {n};
-    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
-    for (q = 0; q < {n}; ++q) {{
+    substitution = f"""    for (q = 0; q < {n}; ++q) {{
       const casadi_real xq = x[q];
       for (s = Lp[q]; s < Lp[q + 1]; ++s) x[Li[s]] -= Lx[s] * xq;
     }}
@@ -150,9 +143,8 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
       for (s = Lp[q]; s < Lp[q + 1]; ++s) xq -= Lx[s] * x[Li[s]];
       x[q] = xq;
     }}
-    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
-  }}
-  return 0;"""
+"""
+    bodies = permuted_solves(factor, substitution, n, ks)
     return bodies, 2 * n + n_l + max(widest, 1), 0
 
 

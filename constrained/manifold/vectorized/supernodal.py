@@ -130,6 +130,22 @@ def symbolic(lt: ca.Sparsity, p, relax=RELAX) -> dict:
             "Uk": uk, "Ua": ua, "Ub": ub, "Uo": uo[:-1], "Rel": rel, "m": m, "group": group}
 
 
+def permuted_solves(factor: str, substitution: str, n: int, ks: tuple) -> dict:
+    """The bodies of ``solve{k}`` for B of k columns, k in ``ks``: ``factor``, then for each
+    column x = P b, ``substitution`` (forward, D, back on x in place), out = Pᵀ x."""
+    bodies = {}
+    for k in ks:
+        bodies[f"solve{k}"] = f"""{factor}
+  for (col = 0; col < {k}; ++col) {{
+    const casadi_real *b = B + col * {n};
+    casadi_real *o = out + col * {n};
+    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
+{substitution}    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
+  }}
+  return 0;"""
+    return bodies
+
+
 def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
                       ks: tuple, relax=RELAX) -> tuple[dict, int, int]:
     """The bodies of ``solve{k}`` by the supernodal LDLᵀ (see the module) in the order ``p``
@@ -214,14 +230,7 @@ def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTab
       }}
     }}
   }}"""
-    bodies = {}
-    for k in ks:
-        bodies[f"solve{k}"] = f"""{factor}
-  for (col = 0; col < {k}; ++col) {{
-    const casadi_real *b = B + col * {n};
-    casadi_real *o = out + col * {n};
-    for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
-    for (J = 0; J < {ns}; ++J) {{
+    substitution = f"""    for (J = 0; J < {ns}; ++J) {{
       const casadi_int f = F[J], nj = F[J + 1] - f, m = Rp[J + 1] - Rp[J];
       const int *R = Ri + Rp[J];
       const casadi_real *Pn = Lx + O[J];
@@ -242,7 +251,6 @@ def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTab
         x[f + j] = s;
       }}
     }}
-    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
-  }}
-  return 0;"""
+"""
+    bodies = permuted_solves(factor, substitution, n, ks)
     return bodies, 2 * n + n_l + most, 0
