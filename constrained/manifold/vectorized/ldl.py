@@ -40,7 +40,7 @@ import casadi as ca
 import numpy as np
 
 from ...codegen.external import IndexTable
-from .supernodal import permuted_solves, supernodal_bodies
+from .supernodal import entries_in, permuted_solves, supernodal_bodies
 
 
 def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
@@ -72,6 +72,13 @@ def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
     return np.asarray(order, np.int64) if len(order) == n else None  # (else a loop)
 
 
+def _diagonal(rows: np.ndarray, columns: np.ndarray, n: int) -> np.ndarray:
+    """Where each diagonal entry of A is among its nonzeros (rows, columns: ``entries_in``)."""
+    diagonal = np.zeros(n, np.int64)
+    diagonal[rows[rows == columns]] = np.flatnonzero(rows == columns)
+    return diagonal
+
+
 #: The short-column LDLᵀ serves factors of at most this many entries of L per row of A on
 #: average (a chain with branches: one or two); beyond, the supernodal panels pay.
 SHORT_COLUMNS = 3
@@ -88,8 +95,6 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
     factorization)."""
     n = sparsity.size1()
     p = np.asarray(p, np.int64)
-    pinv = np.empty(n, np.int64)
-    pinv[p] = np.arange(n)
     ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
     by_column = np.lexsort((tk, ti))
     rows, columns = tk[by_column], ti[by_column]
@@ -98,12 +103,10 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
 
     def place(i, k):  # L[i, k]'s place among them
         return np.searchsorted(keys, np.asarray(k, np.int64) * n + np.asarray(i, np.int64))
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
-    ii, kk = pinv[r], pinv[c]
+    ii, kk = entries_in(sparsity, p)
     lower = np.flatnonzero(ii > kk)
     a_to_l = place(ii[lower], kk[lower])
-    diagonal = np.zeros(n, np.int64)
-    diagonal[ii[ii == kk]] = np.flatnonzero(ii == kk)
+    diagonal = _diagonal(ii, kk, n)
     first, second, up = [], [], [0]
     for j in range(n):  # (short columns: a few pairs each)
         for s in range(lp[j], lp[j + 1]):
@@ -150,12 +153,8 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
 
 def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
     n = sparsity.size1()
-    position = np.empty(n, np.int64)
-    position[order] = np.arange(n)
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
-    qr, qc = position[r], position[c]
-    diagonal = np.zeros(n, np.int64)
-    diagonal[qr[qr == qc]] = np.flatnonzero(qr == qc)
+    qr, qc = entries_in(sparsity, order)
+    diagonal = _diagonal(qr, qc, n)
     coupling = np.full(n, -1, np.int64)  # A[q, q − 1]'s place (−1: none, a path's start)
     below = np.flatnonzero(qr == qc + 1)
     coupling[qr[below]] = below

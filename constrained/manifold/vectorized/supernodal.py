@@ -130,6 +130,16 @@ def symbolic(lt: ca.Sparsity, p, relax=RELAX) -> dict:
             "Uk": uk, "Ua": ua, "Ub": ub, "Uo": uo[:-1], "Rel": rel, "m": m, "group": group}
 
 
+def entries_in(sparsity: ca.Sparsity, order) -> tuple[np.ndarray, np.ndarray]:
+    """The rows and columns of A's nonzeros (CasADi's order of them) as places in ``order``
+    (row ``order[q]`` of A is row q of the factorized matrix)."""
+    n = sparsity.size1()
+    place = np.empty(n, np.int64)
+    place[np.asarray(order, np.int64)] = np.arange(n)
+    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
+    return place[r], place[c]
+
+
 def permuted_solves(factor: str, substitution: str, n: int, ks: tuple) -> dict:
     """The bodies of ``solve{k}`` for B of k columns, k in ``ks``: ``factor``, then for each
     column x = P b, ``substitution`` (forward, D, back on x in place), out = Pᵀ x."""
@@ -154,10 +164,7 @@ def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTab
     s = symbolic(lt, p, relax)
     q, first, rp, ri, offset = s["q"], s["F"], s["Rp"], s["R"], s["O"]
     ns = len(first) - 1
-    qinv = np.empty(n, np.int64)
-    qinv[q] = np.arange(n)
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
-    ii, kk = qinv[r], qinv[c]
+    ii, kk = entries_in(sparsity, q)
     z = np.flatnonzero(ii >= kk)  # A's lower triangle, to its place in the panels
     g = s["group"][kk[z]]
     owner = np.repeat(np.arange(ns), np.diff(rp))
