@@ -71,7 +71,7 @@ def _sparse(a: np.ndarray) -> ca.DM:
 def _solver(a: np.ndarray, name: str):
     sp = _sparse(a).sparsity()
     table = IndexTable()
-    bodies, work, iwork = ldl.ldl_bodies(sp, table, (1, 2))
+    bodies, work, iwork, _ = ldl.ldl_bodies(sp, table, (1, 2))
     specs = [(f"{name}_solve{k}", bodies[f"solve{k}"], ["A", "B"], [ca.Sparsity.dense(sp.nnz()),
               ca.Sparsity.dense(a.shape[0], k)], ["out"], [ca.Sparsity.dense(a.shape[0], k)], work, iwork)
              for k in (1, 2)]
@@ -104,6 +104,42 @@ def test_the_compiled_ldl_solves_the_system(kind, n, condition, tmp_path, monkey
     one = np.asarray(solve1(nonzeros, b[:, :1]))
     assert np.all(np.linalg.norm(two - expected, axis=0) <= tol * scale)
     assert np.linalg.norm(one[:, 0] - expected[:, 0]) <= tol * scale[0]
+
+
+@pytest.mark.parametrize("kind, n", [("chain", 2), ("chain", 301), ("shuffled chain", 40), ("y", 120),
+                                     ("grid", 100), ("random", 60), ("none", 5)])
+def test_one_factorization_serves_many_solves(kind, n, tmp_path, monkeypatch):
+    """``factor`` then ``substitute{k}`` is ``solve{k}`` (RATTLE's simplified Newton: one
+    factorization, a substitution per iteration), for each kind of factorization."""
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    rng = np.random.default_rng(n + 7)
+    a = _matrix(kind.removeprefix("shuffled "), n, rng, 1e4)
+    if kind.startswith("shuffled"):
+        shuffle = rng.permutation(n)
+        a = a[np.ix_(shuffle, shuffle)]
+    sp = _sparse(a).sparsity()
+    table = IndexTable()
+    bodies, work, iwork, stored = ldl.ldl_bodies(sp, table, (1, 2))
+    A_sp, F_sp = ca.Sparsity.dense(sp.nnz()), ca.Sparsity.dense(stored)
+    name = f"f{abs(hash((kind, n))) % 10**8}"
+    specs = [(f"{name}_factor", bodies["factor"], ["A"], [A_sp], ["out"], [F_sp], work, iwork)]
+    for k in (1, 2):
+        B = ca.Sparsity.dense(n, k)
+        specs += [(f"{name}_solve{k}", bodies[f"solve{k}"], ["A", "B"], [A_sp, B], ["out"], [B], work, iwork),
+                  (f"{name}_substitute{k}", bodies[f"substitute{k}"], ["LD", "B"], [F_sp, B], ["out"], [B],
+                   work, iwork)]
+    functions = c_functions(specs, table.c, key=table.data())
+    assert functions is not None, compiled.last_error
+    factor, solve1, substitute1, solve2, substitute2 = functions
+    nonzeros = _sparse(a).nonzeros()
+    factors = factor(nonzeros)
+    for _ in range(2):  # (a substitution leaves the factors as they were)
+        b = rng.standard_normal((n, 2))
+        assert np.array_equal(np.asarray(substitute2(factors, b)), np.asarray(solve2(nonzeros, b)))
+        one = np.asarray(substitute1(factors, b[:, :1]))
+        assert np.array_equal(one, np.asarray(solve1(nonzeros, b[:, :1])))
+        expected = np.linalg.solve(a, b)
+        assert np.allclose(np.asarray(substitute2(factors, b)), expected, rtol=1e-8, atol=1e-12)
 
 
 @pytest.mark.parametrize("kind, n, path", [("chain", 300, True), ("loop", 30, False), ("grid", 100, False),

@@ -72,7 +72,7 @@ def _solve(a: np.ndarray, relax, name: str, ks=(1, 2)):
     sp = _sparse(a).sparsity()
     lt, p = sp.ldl(True)
     table = IndexTable()
-    bodies, work, iwork = supernodal.supernodal_bodies(sp, lt, p, table, ks, relax)
+    bodies, work, iwork, _ = supernodal.supernodal_bodies(sp, lt, p, table, ks, relax)
     n = a.shape[0]
     specs = [(f"{name}_solve{k}", bodies[f"solve{k}"], ["A", "B"], [ca.Sparsity.dense(sp.nnz()),
               ca.Sparsity.dense(n, k)], ["out"], [ca.Sparsity.dense(n, k)], work, iwork) for k in ks]

@@ -13,11 +13,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .dense import schur_matrix
-from .manifold import RANK, Manifold, dense_jacobian
+from .manifold import RANK, Manifold, dense_jacobian, sparse_jacobian
 
 #: Smallest singular value of the row-normalized Jacobian below which a configuration counts as
 #: singular: the rank policy's (constrained.manifold.RANK).
 SINGULAR_SIGMA = RANK.singular_sigma
+#: Above this many coordinates a singularity is found on the sparse J (``sparse_singularity``),
+#: not by a dense SVD (the run's rank watch: the same limit).
+DENSE_SVD_MAX = 300
 
 
 class StiffnessWarning(UserWarning):
@@ -117,10 +120,17 @@ def rank_sigma(model, x, t: float, rank: int) -> float:
     return float(sv[rank - 1]) if 0 < rank <= sv.size else 0.0
 
 
-def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: float = 0.05) -> Singularity:
+def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: float = 0.05,
+                rows=None) -> Singularity:
     """The near-dependency of the constraint rows at (x, t): the left singular vector of the
     row-normalized J for its rank-th singular value (default: the smallest that rows and
-    coordinates allow), rows with weight above ``ignore``."""
+    coordinates allow), rows with weight above ``ignore``. Beyond DENSE_SVD_MAX coordinates
+    (a dense J of the 100 x 100 cloth is 4.8 GB): ``sparse_singularity`` of ``rows`` (default
+    all), the smallest singular value of those rows, which is the rank-th of all rows when
+    ``rows`` are the independent ones."""
+    if model.n_coordinates > DENSE_SVD_MAX:
+        chosen = list(range(model.n_constraints)) if rows is None else list(rows)
+        return sparse_singularity(model, x, t, chosen, ignore=ignore)[0]
     Jn = _normalized_jacobian(model, x, t)
     U, sv, _ = np.linalg.svd(Jn, full_matrices=True)
     k = min(Jn.shape) if rank is None else rank
@@ -132,6 +142,51 @@ def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: fl
     order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
     labels = model.constraint_labels
     return Singularity(sigma, order, [labels[k] for k in order], [float(w[k]) for k in order])
+
+
+def sparse_singularity(model, x, t: float, rows: list[int], *, start=None,
+                       ignore: float = 0.05) -> tuple[Singularity, np.ndarray | None]:
+    """(``Singularity`` of ``rows``, its vector): the smallest eigenvalue σ² of S = Ĵ Ĵᵀ (Ĵ the
+    rows' J, each row normalized) and its eigenvector u, by inverse iteration on S's sparse
+    LU — O(N) on a chain — from ``start`` (the vector of an earlier call, else random); σ = 0
+    where a row's gradient vanishes or S is exactly singular (no direction to name)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    J = sparse_jacobian(model)(np.asarray(x, float).ravel(), t)  # (J, then velocity rows' A)
+    r, c = J.sparsity().get_triplet()
+    J = sp.csr_matrix((np.asarray(J.nonzeros()).ravel(), (r, c)), shape=J.shape)[rows]
+    norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=1)).ravel())
+    u = np.zeros(len(rows))
+
+    def described(sigma: float, u: np.ndarray) -> Singularity:
+        w = u**2
+        order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+        labels = model.constraint_labels
+        return Singularity(sigma, [rows[k] for k in order], [labels[rows[k]] for k in order],
+                           [float(w[k]) for k in order])
+    if np.any(norms == 0):
+        u[int(np.argmin(norms))] = 1.0
+        return described(0.0, u), None
+    Jn = sp.diags(1.0 / norms) @ J
+    S = (Jn @ Jn.T).tocsc()
+    try:
+        lu = spla.splu(S)
+    except RuntimeError:  # exactly singular
+        return described(0.0, u), None
+    y = start if start is not None and len(start) == S.shape[0] else \
+        np.random.default_rng(0).standard_normal(S.shape[0])
+    lam = np.inf
+    for _ in range(20):  # inverse iteration: y → S⁻¹ y converges to σ_min²'s eigenvector
+        y = y / np.linalg.norm(y)
+        z = lu.solve(y)
+        estimate = 1.0 / float(np.dot(y, z)) if np.dot(y, z) > 0 else 0.0
+        converged = abs(estimate - lam) <= 1e-3 * abs(estimate)
+        lam, y = estimate, z
+        if converged:
+            break
+    y = y / np.linalg.norm(y)
+    return described(float(np.sqrt(max(lam, 0.0))), y), y
 
 
 # --- incompatible constraint sets -----------------------------------------------------------------
@@ -255,7 +310,7 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
         if model.n_constraints:
             n3, rows = model.n_coordinates, manifold.rows
             rank = model.n_constraints if rows is None else len(rows)
-            sing = singularity(model, x, t, rank=min(rank, n3))
+            sing = singularity(model, x, t, rank=min(rank, n3), rows=rows)
             if sing.sigma < 1e-3:
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
             full = rows is not None and singularity(model, x, t, rank=min(model.n_constraints, n3))
@@ -294,27 +349,36 @@ def nonfinite_cause(model, x, v, t: float) -> str:
     found = []
     try:
         mapped = _pair_values(model, x, t)
+        pieces, bounds = [], [0]  # every effect's term and force (their nonzeros): one Function
         for k, effect in enumerate(model.system.effects):
             if k in mapped:  # a pair potential's mapped kernel (no term per pair to build)
-                values = np.concatenate([[mapped[k][0]], mapped[k][1]])
-            else:
-                term = effect.term(s)
-                if isinstance(term, int | float):  # a constant formula (folded by the parser)
-                    term = ca.SX(term)
-                parts = {"potential": [term, ca.gradient(term, s.x)],
-                         "generalized_potential": [term, ca.gradient(term, s.x), ca.gradient(term, s.v)],
-                         "dissipation": [term, ca.gradient(term, s.v)]}.get(effect.slot, [term])
-                f = ca.Function("term", [s.x, s.v, s.t], [ca.vertcat(*[ca.vec(p) for p in parts])])
-                values = np.asarray(f(x, v, t)).ravel()
+                bounds.append(bounds[-1])
+                continue
+            term = effect.term(s)
+            if isinstance(term, int | float):  # a constant formula (folded by the parser)
+                term = ca.SX(term)
+            wrt = {"potential": (s.x,), "generalized_potential": (s.x, s.v), "dissipation": (s.v,)}
+            parts = [term, *(ca.gradient(term, z) for z in wrt.get(effect.slot, ()))]  # (a force: none)
+            column = ca.vertcat(*[ca.vec(p) for p in parts])
+            pieces += column.nonzeros()
+            bounds.append(bounds[-1] + column.nnz())
+        terms = ca.Function("terms", [s.x, s.v, s.t], [ca.vertcat(*pieces)]) if pieces else None
+        everything = np.asarray(terms(x, v, t)).ravel() if pieces else np.zeros(0)
+        for k, effect in enumerate(model.system.effects):
+            values = (np.concatenate([[mapped[k][0]], mapped[k][1]]) if k in mapped
+                      else everything[bounds[k]:bounds[k + 1]])
             if not np.all(np.isfinite(values)):
                 what = {"potential": "potential energy or its force", "applied_force": "force",
                         "dissipation": "damping force", "generalized_potential": "generalized potential"}
                 found.append(f"effect {k} ('{effect.label}') gives a non-finite "
                              f"{what.get(effect.slot, 'term')} ({values[0]:.3g})"
                              + _closest_pair(model, effect, x))
-        if not found and model.n_constraints:
-            f, J = (np.asarray(a) for a in model.jacobian(x, t))
-            rows = np.flatnonzero(~np.all(np.isfinite(np.hstack([f, J])), axis=1))
+        if not found and model.n_constraints:  # (J's nonzeros: a dense J of a cloth is GBs)
+            f, J = model.jacobian(x, t)
+            bad = ~np.isfinite(np.asarray(f, float).ravel())
+            r, _ = J.sparsity().get_triplet()
+            bad[np.asarray(r, np.int64)[~np.isfinite(np.asarray(J.nonzeros(), float).ravel())]] = True
+            rows = np.flatnonzero(bad)
             found += [f"constraint '{model.constraint_labels[r]}' is not finite (or its gradient)"
                       for r in rows[:3]]
         if not found:
@@ -353,35 +417,55 @@ def _pair_values(model, x, t) -> dict:
 
 
 def _strongest_effect(model, s, x, v, t):
-    """(index, label, particle, |F|) of the effect with the largest force on one particle."""
+    """(index, label, particle, |F|) of the effect with the largest force on one particle (the
+    first effect, then particle, of equal ones). Every effect's force is one column of one
+    Function's sparse output (−∂V/∂x of potential terms, −∂R/∂v of dissipation, applied
+    forces): O(N + effects), where a Function per effect took minutes on a cloth's springs."""
     import casadi as ca
 
-    best = None
+    n = model.n_particles
+    found = []  # (effect, particle, |F|)
     mapped = _pair_values(model, x, t)
+    columns, owners = {"potential": [], "dissipation": [], "applied_force": []}, {}
     for k, effect in enumerate(model.system.effects):
         if k in mapped:
             F = mapped[k][1].reshape(-1, 3)
             big = np.max(np.abs(F), axis=1, keepdims=True)
             norms = big.ravel() * np.linalg.norm(F / np.where(big > 0, big, 1.0), axis=1)
             i = int(np.argmax(norms))
-            if best is None or norms[i] > best[3]:
-                best = (k, effect.label, model.system.particles[i].name, float(norms[i]))
+            found.append((k, i, float(norms[i])))
             continue
         term = effect.term(s)
-        if isinstance(term, int | float):
+        if isinstance(term, int | float) or effect.slot not in columns:
             continue
-        if effect.slot == "potential":
-            force = -ca.gradient(term, s.x)
-        elif effect.slot == "dissipation":
-            force = -ca.gradient(term, s.v)
-        elif effect.slot == "applied_force":
-            force = term
+        columns[effect.slot].append(term)
+        owners.setdefault(effect.slot, []).append(k)
+    outputs, slots = [], []
+    for slot, terms in columns.items():
+        if not terms:
+            continue
+        if slot == "applied_force":
+            outputs.append(ca.horzcat(*terms).T)  # (effects, 3N)
         else:
-            continue
-        F = np.asarray(ca.Function("force", [s.x, s.v, s.t], [force])(x, v, t), float).reshape(-1, 3)
-        big = np.max(np.abs(F), axis=1, keepdims=True)  # scaled: |F| itself may be near overflow
-        norms = big.ravel() * np.linalg.norm(F / np.where(big > 0, big, 1.0), axis=1)
-        i = int(np.argmax(norms))
-        if best is None or norms[i] > best[3]:
-            best = (k, effect.label, model.system.particles[i].name, float(norms[i]))
-    return best
+            outputs.append(-ca.jacobian(ca.vertcat(*terms), s.x if slot == "potential" else s.v))
+        slots.append(slot)
+    if outputs:
+        values = ca.Function("forces", [s.x, s.v, s.t], outputs)(x, v, t)
+        values = values if isinstance(values, list | tuple) else [values]
+        for slot, F in zip(slots, values, strict=True):
+            rows, cols = (np.asarray(a, np.int64) for a in F.sparsity().get_triplet())
+            data = np.abs(np.asarray(F.nonzeros(), float).ravel())
+            key = rows * n + cols // 3  # (effect row, particle)
+            big = np.zeros(F.shape[0] * n)
+            with np.errstate(invalid="ignore"):  # (a NaN force: its effect is not the strongest)
+                np.maximum.at(big, key, data)  # scaled: |F| itself may be near overflow
+                sums = np.zeros_like(big)
+                np.add.at(sums, key, (data / np.where(big[key] > 0, big[key], 1.0)) ** 2)
+                norms = np.nan_to_num(big * np.sqrt(sums), nan=-1.0)
+            for r in np.unique(rows):
+                i = int(np.argmax(norms[r * n:(r + 1) * n]))
+                found.append((owners[slot][r], i, float(norms[r * n + i])))
+    if not found:
+        return None
+    k, i, size = max(found, key=lambda f: (f[2], -f[0], -f[1]))
+    return k, model.system.effects[k].label, model.system.particles[i].name, size

@@ -32,12 +32,17 @@ from ..codegen.fast_call import FastCall
 from ..errors import InputError
 from ..manifold import diagnostics, mapped, residual
 from ..manifold.graph import schur_solve_graph, velocity_correction_graph
+from ..manifold.vectorized import graphs as vectorized
 from ..model.cache import ParametricView, structure_cache
 from .base import DRIVER_OPTIONS, Advance, Status
 from .driver import Stepper, step_samples
 
 #: Under compiled="auto", RATTLE's folded steps are compiled for models up to this size.
 AUTO_COMPILE_COORDINATES = 90
+
+#: Newton iterations of a step for λ by default: exact Newton (quadratic) and, on the
+#: vectorized build, the simplified iteration (linear, by about h|v| / a rod's length).
+NEWTON_ITERATIONS, SIMPLIFIED_ITERATIONS = 4, 10
 
 #: Largest number of output samples when the caller gives no output grid.
 DEFAULT_SAMPLES = 2000
@@ -62,14 +67,14 @@ class Rattle(Stepper):
                              "velocity row has no f (a discrete non-holonomic integrator is another method)")
 
     def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, newton_tol: float = 1e-12,
-                 newton_iterations: int = 4, **options):
+                 newton_iterations: int | None = None, **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
         model = self.model
-        if not (isinstance(newton_iterations, int) and 1 <= newton_iterations <= 50):
+        if newton_iterations is not None and not (isinstance(newton_iterations, int)
+                                                  and 1 <= newton_iterations <= 50):
             raise InputError(
                 f"newton_iterations must be a whole number from 1 to 50, got {newton_iterations!r}"
             )
-        self.newton_iterations = newton_iterations
         # "auto" compiles the folded steps of models up to AUTO_COMPILE_COORDINATES coordinates:
         # there the one-time C compile takes seconds and the chunks run ~2.7x faster; beyond,
         # the compiler's time grows steeply, so only compiled=True asks for it — except for pair
@@ -79,6 +84,9 @@ class Rattle(Stepper):
             self.compiled_setting is True or model.n_coordinates <= AUTO_COMPILE_COORDINATES
             or bool(model.structure.pairs)
         )
+        if newton_iterations is None:  # (the simplified iteration contracts linearly: more)
+            newton_iterations = SIMPLIFIED_ITERATIONS if self.vectorized() else NEWTON_ITERATIONS
+        self.newton_iterations = newton_iterations
         if dt is None:
             raise InputError("method 'rattle' takes fixed steps: give dt (seconds), e.g. dt = 1e-3")
         self.newton_tol = newton_tol
@@ -91,6 +99,13 @@ class Rattle(Stepper):
         if self.compiled and mapped.applies(self.model):
             return mapped.MappedView(self.model, P)
         return ParametricView(self.model, P)
+
+    def vectorized(self) -> bool:
+        """Whether the step is built on the vectorized build (``vectorized.rattle_step_graph``:
+        its Newton iteration simplified, its KKT solves the loops' LDLᵀ): large models with
+        constraints, in the virtual machine."""
+        return (not self.compiled and bool(self.model.n_constraints)
+                and vectorized.applies(self.model, self.manifold.rows))
 
     def carries_forces(self) -> bool:
         """Whether the applied forces F are carried from one step to the next (state entries
@@ -118,15 +133,23 @@ class Rattle(Stepper):
         view = self._view(P)
         minv = view.inverse_masses if isinstance(view.inverse_masses, ca.MX) else ca.DM(view.inverse_masses)
         carry = self.carries_forces()
+        vector = self.vectorized()
         if carry:
             F0 = ca.MX.sym("F", n3)
-            J0 = view.jacobian(x, t)[1] if C else None
+            J0 = view.jacobian(x, t)[1] if C and not vector else None
+        elif vector:
+            F0 = J0 = None
         else:
             F0, J0, _ = view.dynamics(x, v, t)
         t1 = t + h
         passed = [h, scales]
         counted = [left - 1, *passed]
-        if C:
+        if C and vector:  # large, in the virtual machine: the vectorized build and its LDLᵀ
+            x1, v1, lam_k, f1, F1 = vectorized.rattle_step_graph(
+                view, x, v, t, lam, h, F0=F0 if carry else None, iterations=self.newton_iterations)
+            state = [x, v, t, lam, err, left, *passed]
+            out = [x1, v1, t1, lam_k, ca.fmax(err, ca.mmax(ca.fabs(f1) / scales)), *counted]
+        elif C:
             J0 = J0 if rows is None else J0[list(rows), :]
             kick = 0.5 * h * h * minv
             base = x + h * v + kick * F0
@@ -178,7 +201,8 @@ class Rattle(Stepper):
                self.carries_forces())
         chunks = cache.get(key)
         if chunks is None:
-            step = self._step()
+            with vectorized.shared_nodes():  # (a step's repeated products built once)
+                step = self._step()
             n3 = self.model.n_coordinates
             # (one step alone only where no chain fits: a chain takes fewer steps by skipping
             # the rest, nearly free, and each Function more costs the compile cache's key the
@@ -271,7 +295,8 @@ class Rattle(Stepper):
             return Advance.empty(state, n3, Status.PROJECTION_FAILED, (
                                f"Newton for the position multipliers did not converge between t = "
                                f"{y[2 * n3]:.6g} s and {t_new:.6g} s (|f| = {err:.3g} m after "
-                               f"{self.newton_iterations} iterations): reduce dt"))
+                               f"{self.newton_iterations} iterations): reduce dt"
+                               + (" or raise newton_iterations" if self.vectorized() else "")))
         self.stats["steps"] = done + k
         return Advance((done + k, new), np.array([t_new]), new[None, :n3], new[None, n3:2 * n3], h=self.h)
 

@@ -9,11 +9,11 @@ import time
 import numpy as np
 
 from ..manifold import diagnostics
-from ..manifold.manifold import Manifold, sparse_jacobian
+from ..manifold.manifold import Manifold
 from .base import Solver
 
 #: Up to this many coordinates the singular watch takes the dense SVD of the row-normalized J.
-DENSE_WATCH_MAX = 300
+DENSE_WATCH_MAX = diagnostics.DENSE_SVD_MAX
 #: The singular watch may take this fraction of a run's wall time at most (it is skipped
 #: until this much time has passed since its last, measured, cost).
 WATCH_SHARE = 0.02
@@ -47,43 +47,9 @@ class SingularWatch:
         """σ and the rows of the near-dependency (the left singular vector's weights)."""
         if self.dense:
             return diagnostics.singularity(self.model, x, t, rank=len(self.rows))
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as spla
-
-        J = sparse_jacobian(self.model)(x, t)  # every row: J, then velocity rows' A (built once)
-        rows, cols = J.sparsity().get_triplet()
-        J = sp.csr_matrix((np.asarray(J.nonzeros()).ravel(), (rows, cols)), shape=J.shape)[self.rows]
-        norms = np.sqrt(np.asarray(J.multiply(J).sum(axis=1)).ravel())
-        u = np.zeros(len(self.rows))
-        if np.any(norms == 0):
-            u[int(np.argmin(norms))] = 1.0
-            return self._described(0.0, u)
-        Jn = sp.diags(1.0 / norms) @ J
-        S = (Jn @ Jn.T).tocsc()
-        try:
-            lu = spla.splu(S)
-        except RuntimeError:  # exactly singular: no direction to name
-            return self._described(0.0, u)
-        y = (self._vector if self._vector is not None else
-             np.random.default_rng(0).standard_normal(S.shape[0]))
-        lam = np.inf
-        for _ in range(20):  # inverse iteration: y → S⁻¹ y converges to σ_min²'s eigenvector
-            y = y / np.linalg.norm(y)
-            z = lu.solve(y)
-            estimate = 1.0 / float(np.dot(y, z)) if np.dot(y, z) > 0 else 0.0
-            converged = abs(estimate - lam) <= 1e-3 * abs(estimate)
-            lam, y = estimate, z
-            if converged:
-                break
-        self._vector = y / np.linalg.norm(y)
-        return self._described(float(np.sqrt(max(lam, 0.0))), self._vector)
-
-    def _described(self, sigma: float, u: np.ndarray, ignore: float = 0.05) -> diagnostics.Singularity:
-        w = u**2
-        order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
-        rows = [self.rows[k] for k in order]
-        labels = self.model.constraint_labels
-        return diagnostics.Singularity(sigma, rows, [labels[k] for k in rows], [float(w[k]) for k in order])
+        found, vector = diagnostics.sparse_singularity(self.model, x, t, self.rows, start=self._vector)
+        self._vector = vector if vector is not None else self._vector
+        return found
 
     def check(self, x, t: float) -> str | None:
         """The stop sentence when σ < tol at (x, t), else None (throttled)."""

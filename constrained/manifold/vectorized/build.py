@@ -107,6 +107,17 @@ class Jacobian:
             out.append(e.by_split([lam[:, i], lam_s]))
         return ca.horzcat(*out)
 
+    def factorized(self, inverse_masses):
+        """``solve`` for many right-hand sides with one factorization of J M⁻¹ Jᵀ (the loops'
+        ``factor``, then a substitution per solve), as a function B -> Λ; ``solve`` itself
+        where the loops do not apply."""
+        loops, minv = self._products(), _column(inverse_masses)
+        if loops is None:
+            return lambda B: self.solve(minv, B)
+        factors = loops.factor(self.streams, minv)
+        return lambda B: loops.solve(self.streams, minv, B, factors) if B.shape[1] in (1, 2) \
+            else self.solve(minv, B)
+
     def matrix(self):
         """J as a sparse MX matrix (C, 3N): for generic products; the methods above are cheaper."""
         b = self.build

@@ -123,6 +123,40 @@ def projection_graph(view: ParametricView, x, v, t, *, minv=None):
     return x - minv * J.transpose_times(sol[:, 0]), v - minv * J.transpose_times(sol[:, 1]), residual
 
 
+def rattle_step_graph(view: ParametricView, x, v, t, lam, h, *, F0=None, iterations: int = 4):
+    """One RATTLE step on the vectorized build (``solvers.rattle``): (x1, v1, λ, |f(x1)| per row,
+    F1). With kick = h²/2 M⁻¹ and x1(λ) = x + h v + kick (F0 + J0ᵀ λ), λ is found by
+    ``iterations`` simplified Newton steps on f(x1(λ), t + h) = 0,
+
+        λ ← λ − (2/h²) A0⁻¹ f(x1(λ)),   A0 = J0 M⁻¹ J0ᵀ  (J0 = J(x, t)),
+
+    A0 in place of Newton's J(x1) M⁻¹ J0ᵀ, which is not symmetric: the loops' LDLᵀ serves it,
+    and the iteration contracts by about |J(x1) − J0| / |J0| ~ h|v| / (a rod's length) a step.
+    Then v½ = v + h/2 M⁻¹ (F0 + J0ᵀ λ), x1 = x + h v½, and v1 the mass-weighted nearest velocity
+    to v½ + h/2 M⁻¹ F(x1, v½) with J(x1) v1 + f_t = 0. ``F0``: the forces at (x, t) when carried
+    from the step before (else evaluated here, at (x, v, t))."""
+    b = vectorized_build(view._model.structure)
+    P, minv = view.P, view.inverse_masses
+    minv = minv if isinstance(minv, ca.MX) else ca.DM(minv)
+    t1 = t + h
+    first = b.evaluate(x, v, t, P, ("J",), forces_too=F0 is None)
+    J0, F0 = first["J"], first["F"] if F0 is None else F0
+    kick = 0.5 * h * h * minv
+    base = x + h * v + kick * F0
+    solve0 = J0.factorized(minv)  # (one factorization for every iteration)
+    for _ in range(iterations):
+        f1 = b.evaluate(base + kick * J0.transpose_times(lam), None, t1, P, ("f",))["f"]
+        lam = lam - (2 / (h * h)) * solve0(f1)
+    v_half = v + 0.5 * h * minv * (F0 + J0.transpose_times(lam))
+    x1 = x + h * v_half
+    out = b.evaluate(x1, v_half, t1, P, ("f", "J", "f_t") if b.rheonomic else ("f", "J"), forces_too=True)
+    J1, F1 = out["J"], out["F"]
+    v_pred = v_half + 0.5 * h * minv * F1
+    c = J1.times(v_pred) + out["f_t"] if b.rheonomic else J1.times(v_pred)
+    v1 = v_pred - minv * J1.transpose_times(J1.solve(minv, c))
+    return x1, v1, lam, out["f"], F1
+
+
 def _symbols(model: Model):
     n3 = model.n_coordinates
     P = ca.MX.sym("p", len(model.parameter_vector))

@@ -40,7 +40,7 @@ import casadi as ca
 import numpy as np
 
 from ...codegen.external import IndexTable
-from .supernodal import entries_in, permuted_solves, supernodal_bodies
+from .supernodal import composed, entries_in, permuted_columns, supernodal_bodies
 
 
 def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
@@ -85,7 +85,7 @@ SHORT_COLUMNS = 3
 
 
 def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
-                   ks: tuple) -> tuple[dict, int, int]:
+                   ks: tuple) -> tuple[dict, int, int, int]:
     """Right-looking LDLᵀ with every update's place as index data, for a factor of short columns
     (a branching chain: one entry below most diagonals, two at a junction of three rods):
 
@@ -120,10 +120,10 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
              "T": targets, "S": first, "G": second}
     arrays = "\n".join(f"  const int *{k} = {table.add(v)};" for k, v in names.items())
     n_l, widest = len(rows), int(np.diff(lp).max(initial=0))
-    factor = f"""{arrays}
+    declarations = f"""{arrays}
   casadi_int j, s, u, q, col;
-  casadi_real *D = w, *Lx = w + {n}, *x = w + {n + n_l}, *g = w + {2 * n + n_l};
-  for (j = 0; j < {n}; ++j) D[j] = A[Dz[j]];
+  casadi_real *D = w, *Lx = w + {n}, *x = w + {n + n_l}, *g = w + {2 * n + n_l};"""
+    compute = f"""  for (j = 0; j < {n}; ++j) D[j] = A[Dz[j]];
   for (s = 0; s < {n_l}; ++s) Lx[s] = 0;
   for (s = 0; s < {len(lower)}; ++s) Lx[At[s]] = A[Az[s]];
   for (j = 0; j < {n}; ++j) {{
@@ -147,11 +147,12 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
       x[q] = xq;
     }}
 """
-    bodies = permuted_solves(factor, substitution, n, ks)
-    return bodies, 2 * n + n_l + max(widest, 1), 0
+    bodies = composed(declarations, compute, lambda k: permuted_columns(substitution, n, k), n + n_l, ks)
+    return bodies, 2 * n + n_l + max(widest, 1), 0, n + n_l
 
 
-def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
+def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable,
+          ks: tuple) -> tuple[dict, int, int, int]:
     n = sparsity.size1()
     qr, qc = entries_in(sparsity, order)
     diagonal = _diagonal(qr, qc, n)
@@ -165,10 +166,10 @@ def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple
 
     def at(q: str) -> str:
         return q if identity else f"P[{q}]"
-    factor = f"""{arrays}
+    declarations = f"""{arrays}
   casadi_int q, s, col;
-  casadi_real *g = w, *a = w + {n}, *l = w + {2 * n}, *D = w + {3 * n}, *y = w + {4 * n}, G, lm;
-  for (q = 0; q < {n}; ++q) {{
+  casadi_real *g = w, *a = w + {n}, *l = w + {2 * n}, *D = w + {3 * n}, *y = w + {4 * n}, G, lm;"""
+    compute = f"""  for (q = 0; q < {n}; ++q) {{
     g[q] = Oz[q] >= 0 ? A[Oz[q]] : 0;
     a[q] = A[Dz[q]];
   }}
@@ -194,10 +195,9 @@ def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple
   l[{m}] = lm;
   D[{m}] = a[{m}] - lm * g[{m}]{f" - G * g[{m + 1}]" if m + 1 < n else ""};"""
     bottom_y = f"y[{m + 1}]" if m + 1 < n else "0"
-    bodies = {}
-    for k in ks:
-        bodies[f"solve{k}"] = f"""{factor}
-  for (col = 0; col < {k}; ++col) {{
+
+    def columns(k: int) -> str:
+        return f"""  for (col = 0; col < {k}; ++col) {{
     const casadi_real *b = B + col * {n};
     casadi_real *o = out + col * {n}, top = b[{at("0")}], bottom = b[{at(str(n - 1))}], up, down;
     y[0] = top;
@@ -223,8 +223,12 @@ def _path(sparsity: ca.Sparsity, order: np.ndarray, table: IndexTable, ks: tuple
       }}
     }}
   }}
-  return 0;"""
-    return bodies, 5 * n, 0
+"""
+    restore = f"""  lm = l[{m}];
+  G = {f"g[{m + 1}] / D[{m + 1}]" if m + 1 < n else "0"};
+"""
+    bodies = composed(declarations, compute, columns, 4 * n, ks, restore)
+    return bodies, 5 * n, 0, 4 * n
 
 
 def factorization(sparsity: ca.Sparsity) -> tuple:
@@ -241,10 +245,11 @@ def factorization(sparsity: ca.Sparsity) -> tuple:
     return ("short columns" if lt.nnz() <= SHORT_COLUMNS * sparsity.size1() else "supernodal"), lt, p
 
 
-def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int]:
-    """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B) for A of ``sparsity``
-    (symmetric, positive definite), k in ``ks``, and their scratch lengths (reals, integers),
-    by the ``factorization`` the pattern takes."""
+def ldl_bodies(sparsity: ca.Sparsity, table: IndexTable, ks: tuple) -> tuple[dict, int, int, int]:
+    """The bodies of ``solve{k}`` (A's nonzeros, B (n, k) -> A⁻¹ B), ``factor`` (A's nonzeros ->
+    its factors F) and ``substitute{k}`` (F, B -> A⁻¹ B) for A of ``sparsity`` (symmetric,
+    positive definite), k in ``ks`` (``supernodal.composed``), their scratch lengths (reals,
+    integers) and F's length, by the ``factorization`` the pattern takes."""
     kind, *needs = factorization(sparsity)
     build = {"path": _path, "short columns": _short_columns, "supernodal": supernodal_bodies}[kind]
     return build(sparsity, *needs, table, ks)

@@ -44,15 +44,29 @@ class CompiledProducts:
     def transpose_times(self, streams, lam):
         return self.f["transpose_times"](*streams, lam)
 
-    def solve(self, streams, minv, B):
+    def solve(self, streams, minv, B, factors=None):
         """Λ with (J M⁻¹ Jᵀ) Λ = B for B of 1 or 2 columns, rows with one coordinate
-        eliminated first where the build has them (``Jacobian.solve``)."""
+        eliminated first where the build has them (``Jacobian.solve``); ``factors``: those of
+        ``factor`` for these streams and minv (then only the substitutions are done)."""
         e, k = self.build.single, B.shape[1]
+
+        def inner(rhs):
+            if factors is not None:
+                return self.f[f"substitute{k}"](factors, rhs)
+            return self.f[f"solve{k}"](self.f["gram"](*streams, minv), rhs)
         if e is None:
-            return self.f[f"solve{k}"](self.f["gram"](*streams, minv), B)
+            return inner(B)
         reduced = self.f[f"before{k}"](*streams, B)
-        lam = self.f[f"solve{k}"](self.f["gram"](*streams, minv), reduced) if len(e.others) else ca.MX(0, k)
+        lam = inner(reduced) if len(e.others) else ca.MX(0, k)
         return self.f[f"after{k}"](*streams, minv, B, lam)
+
+    def factor(self, streams, minv):
+        """The LDLᵀ factors of the (reduced) J M⁻¹ Jᵀ, for ``solve``'s ``factors``; None where
+        every row is eliminated (nothing to factorize)."""
+        e = self.build.single
+        if e is not None and not len(e.others):
+            return None
+        return self.f["factor"](self.f["gram"](*streams, minv))
 
 
 def _gram_body(gram, table: IndexTable, streams: list[str]) -> str:
@@ -143,10 +157,14 @@ def compiled_products(build) -> CompiledProducts | None:
     add("gram", _gram_body(gram, table, names), ["m"], [_dense(b.n3)], "A", _dense(gram.sparsity.nnz()))
     n_a = gram.sparsity.size1()
     if n_a:
-        bodies, work, iwork = ldl_bodies(gram.sparsity, table, (1, 2))
+        bodies, work, iwork, stored = ldl_bodies(gram.sparsity, table, (1, 2))
+        A_sp, F_sp = _dense(gram.sparsity.nnz()), _dense(stored)
+        specs.append(("factor", bodies["factor"], ["A"], [A_sp], ["out"], [F_sp], work, iwork))
         for k in (1, 2):
-            specs.append((f"solve{k}", bodies[f"solve{k}"], ["A", "B"], [_dense(gram.sparsity.nnz()),
-                          _dense(n_a, k)], ["out"], [_dense(n_a, k)], work, iwork))
+            specs.append((f"solve{k}", bodies[f"solve{k}"], ["A", "B"], [A_sp, _dense(n_a, k)], ["out"],
+                          [_dense(n_a, k)], work, iwork))
+            specs.append((f"substitute{k}", bodies[f"substitute{k}"], ["LD", "B"], [F_sp, _dense(n_a, k)],
+                          ["out"], [_dense(n_a, k)], work, iwork))
     if e is not None:
         work = 2 * max(len(e.rows), 1)
         bodies = _elimination(e, table, names, b.n_rows, (1, 2))

@@ -140,26 +140,46 @@ def entries_in(sparsity: ca.Sparsity, order) -> tuple[np.ndarray, np.ndarray]:
     return place[r], place[c]
 
 
-def permuted_solves(factor: str, substitution: str, n: int, ks: tuple) -> dict:
-    """The bodies of ``solve{k}`` for B of k columns, k in ``ks``: ``factor``, then for each
-    column x = P b, ``substitution`` (forward, D, back on x in place), out = Pᵀ x."""
-    bodies = {}
-    for k in ks:
-        bodies[f"solve{k}"] = f"""{factor}
-  for (col = 0; col < {k}; ++col) {{
+def permuted_columns(substitution: str, n: int, k: int) -> str:
+    """The solve of B's k columns by a factorization in the order P: for each column x = P b,
+    ``substitution`` (forward, D, back on x in place), out = Pᵀ x."""
+    return f"""  for (col = 0; col < {k}; ++col) {{
     const casadi_real *b = B + col * {n};
     casadi_real *o = out + col * {n};
     for (q = 0; q < {n}; ++q) x[q] = b[P[q]];
 {substitution}    for (q = 0; q < {n}; ++q) o[P[q]] = x[q];
   }}
-  return 0;"""
+"""
+
+
+def composed(declarations: str, compute: str, columns, stored: int, ks: tuple, restore: str = "") -> dict:
+    """The bodies of a factorization that keeps its factors in w[0:stored]: ``solve{k}`` (A, B
+    -> A⁻¹ B: ``compute`` then ``columns(k)``), ``factor`` (A -> the factors, ``stored`` numbers)
+    and ``substitute{k}`` (the factors LD, B -> A⁻¹ B: LD into w, ``restore``, ``columns(k)``),
+    so that solves with one matrix share one factorization."""
+    bodies = {"factor": f"""{declarations}
+{compute}
+  {{
+    casadi_int z_;
+    for (z_ = 0; z_ < {stored}; ++z_) out[z_] = w[z_];
+  }}
+  return 0;"""}
+    for k in ks:
+        bodies[f"solve{k}"] = f"{declarations}\n{compute}\n{columns(k)}  return 0;"
+        bodies[f"substitute{k}"] = f"""{declarations}
+  {{
+    casadi_int z_;
+    for (z_ = 0; z_ < {stored}; ++z_) w[z_] = LD[z_];
+  }}
+{restore}{columns(k)}  return 0;"""
     return bodies
 
 
 def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
-                      ks: tuple, relax=RELAX) -> tuple[dict, int, int]:
-    """The bodies of ``solve{k}`` by the supernodal LDLᵀ (see the module) in the order ``p``
-    with Lᵀ's pattern ``lt`` (CasADi's symbolic factorization), and their scratch lengths."""
+                      ks: tuple, relax=RELAX) -> tuple[dict, int, int, int]:
+    """The bodies (``composed``) of the supernodal LDLᵀ (see the module) in the order ``p`` with
+    Lᵀ's pattern ``lt`` (CasADi's symbolic factorization), their scratch lengths (reals,
+    integers) and the factors' length."""
     n = sparsity.size1()
     s = symbolic(lt, p, relax)
     q, first, rp, ri, offset = s["q"], s["F"], s["Rp"], s["R"], s["O"]
@@ -180,10 +200,10 @@ def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTab
     m = s["m"]
     n_l = int(offset[-1])
     most = int(m.max()) if ns else 0
-    factor = f"""{arrays}
+    declarations = f"""{arrays}
   casadi_int J, u, e, i, j, t, col, q;
-  casadi_real *D = w, *Lx = w + {n}, *x = w + {n + n_l}, *C = w + {2 * n + n_l};
-  for (J = 0; J < {ns}; ++J) {{
+  casadi_real *D = w, *Lx = w + {n}, *x = w + {n + n_l}, *C = w + {2 * n + n_l};"""
+    compute = f"""  for (J = 0; J < {ns}; ++J) {{
     const casadi_int f = F[J], nj = F[J + 1] - f, m = Rp[J + 1] - Rp[J];
     const int *R = Ri + Rp[J];
     casadi_real *Pn = Lx + O[J];
@@ -259,5 +279,5 @@ def supernodal_bodies(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTab
       }}
     }}
 """
-    bodies = permuted_solves(factor, substitution, n, ks)
-    return bodies, 2 * n + n_l + most, 0
+    bodies = composed(declarations, compute, lambda k: permuted_columns(substitution, n, k), n + n_l, ks)
+    return bodies, 2 * n + n_l + most, 0, n + n_l
