@@ -1,0 +1,66 @@
+"""Shortcuts of a run's fixed cost (issue 28) against the long way they replace: the archive
+``write_npz`` writes against ``np.savez``'s, member by member."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+
+import numpy as np
+import pytest
+
+from constrained.run.trajectory import Trajectory, write_npz
+
+
+def _members(data: bytes) -> list[tuple]:
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        return [(info.filename, info.compress_type, info.file_size, info.CRC, archive.read(info))
+                for info in archive.infolist()]
+
+
+ARRAYS = {
+    "x": np.random.default_rng(1).normal(size=(7, 5, 3)),
+    "t": np.linspace(0, 1, 7),
+    "empty": np.zeros((0, 4)),
+    "ints": np.arange(12, dtype=np.int32).reshape(3, 4),
+    "big-endian": np.arange(5, dtype=">f8"),
+    "flags": np.array([True, False, True]),
+    "complex": np.array([1 + 2j, -0.5j]),
+    "fortran": np.asfortranarray(np.arange(12.0).reshape(3, 4)),
+    "strided": np.arange(20.0)[::3],
+    "scalar": np.float64(2.5),
+    "meta": np.array('{"names": ["a", "é"], "n": 3}'),
+    "bytes": np.array([b"ab", b"c"]),
+    "record": np.zeros(3, dtype=[("a", "<f8"), ("b", "<i4")]),
+    "long header": np.zeros(2, dtype=[(f"field_{k}" * 40, "<f8") for k in range(400)]),
+}
+
+
+@pytest.mark.filterwarnings("ignore:Stored array in format 2.0")
+@pytest.mark.parametrize("names", [list(ARRAYS), ["t"], []], ids=["all", "one", "none"])
+def test_write_npz_writes_what_savez_writes(names):
+    """The same members in the same order, each with the same bytes (header and data) and CRC;
+    np.load gives the same arrays."""
+    arrays = {k: ARRAYS[k] for k in names}
+    ours, theirs = io.BytesIO(), io.BytesIO()
+    write_npz(ours, arrays)
+    np.savez(theirs, **arrays)
+    assert _members(ours.getvalue()) == _members(theirs.getvalue())
+    with np.load(io.BytesIO(ours.getvalue()), allow_pickle=True) as data:  # (the long header)
+        assert data.files == names
+        for k in names:
+            assert np.array_equal(data[k], arrays[k]) and data[k].dtype == np.asarray(arrays[k]).dtype
+
+
+def test_a_saved_trajectory_loads_bit_for_bit(tmp_path):
+    rng = np.random.default_rng(3)
+    T, N = 5, 4
+    traj = Trajectory(t=np.linspace(0, 1, T), x=rng.normal(size=(T, N, 3)), v=rng.normal(size=(T, N, 3)),
+                      multipliers=rng.normal(size=(T, 3)), energy=rng.normal(size=T),
+                      particle_names=[f"p{i}" for i in range(N)], constraint_labels=["a", "b", "c"],
+                      info={"method": "dopri"})
+    back = Trajectory.load(traj.save(tmp_path / "trajectory.npz"))
+    for k, value in traj.arrays().items():
+        assert np.array_equal(back[k], value) and back[k].dtype == value.dtype
+    assert back.particle_names == traj.particle_names and back.info == traj.info
+    assert back.constraint_forces is None
