@@ -64,3 +64,26 @@ def test_a_saved_trajectory_loads_bit_for_bit(tmp_path):
         assert np.array_equal(back[k], value) and back[k].dtype == value.dtype
     assert back.particle_names == traj.particle_names and back.info == traj.info
     assert back.constraint_forces is None
+
+
+def test_redundant_rows_kept_for_the_same_state_only():
+    """``redundant_rows`` gives the kept answer for the same x, t and policy alone: the value
+    computed anew at each of the states asked in turn, dependent rows and independent ones."""
+    import constrained as C
+    from constrained.manifold import manifold
+    from constrained.manifold.rank_policy import RankPolicy
+    from constrained.model.structure import assemble
+
+    s = C.System(name="two rods")
+    s.add_particle("p", 1.0, [1.0, 0.0, 0.0])
+    s.add(C.Distance("p", point=[0, 0, 0], length=1.0), C.Distance("p", point=[2, 0, 0], length=1.0))
+    model = assemble(s)
+    aligned, bent = np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.1, 0.0])
+    loose = RankPolicy(dependent_rtol=1e-30, cholesky_rtol=1e-30)
+    rank = manifold.RANK
+    asked = [(aligned, 0.0, rank), (aligned, 0.0, rank), (bent, 0.0, rank), (aligned, 0.0, rank),
+             (aligned, 1.0, rank), (aligned, 0.0, loose), (bent, 0.0, loose), (aligned, 0.0, rank)]
+    for x, t, policy in asked:
+        kept = manifold.redundant_rows(model, x, t, policy)
+        assert kept == manifold._redundant_rows(model, x, t, policy)
+        assert kept == (None if x is bent else (0,)) or policy is loose
