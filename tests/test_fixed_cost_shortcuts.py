@@ -87,3 +87,18 @@ def test_redundant_rows_kept_for_the_same_state_only():
         kept = manifold.redundant_rows(model, x, t, policy)
         assert kept == manifold._redundant_rows(model, x, t, policy)
         assert kept == (None if x is bent else (0,)) or policy is loose
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.int32, np.uint16, np.intp])
+def test_sorted_unique_is_numpys_unique(dtype):
+    """``sorted_unique`` (a sort) gives what ``np.unique`` gives (a hash table in NumPy 2.3+): the
+    same values, dtype and shape, for empty, single, repeated, negative and 2-D input."""
+    from constrained.manifold.vectorized.columns import sorted_unique
+
+    rng = np.random.default_rng(7)
+    low = 0 if np.dtype(dtype).kind == "u" else -50
+    cases = [np.zeros(0, dtype), np.array([3], dtype), np.full(9, 4, dtype), np.arange(20, dtype=dtype)[::-1],
+             rng.integers(low, 50, 1000).astype(dtype), rng.integers(low, 5, (30, 4)).astype(dtype)]
+    for a in cases:
+        ours, theirs = sorted_unique(a), np.unique(a)
+        assert ours.dtype == theirs.dtype and ours.shape == theirs.shape and np.array_equal(ours, theirs)
