@@ -102,3 +102,77 @@ def test_sorted_unique_is_numpys_unique(dtype):
     for a in cases:
         ours, theirs = sorted_unique(a), np.unique(a)
         assert ours.dtype == theirs.dtype and ours.shape == theirs.shape and np.array_equal(ours, theirs)
+
+
+def _structure_data_item_by_item(system):
+    """``lifting.structure_data``'s items walked one by one, each item's names found anew (the
+    long way its run-wise walk replaces)."""
+    from constrained.model import lifting
+
+    values, walked = [], []
+    masses = [lifting.lifted_mass(p, values) for p in system.particles]
+    described = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas else lifting.plain_data(m)]
+                 for p, m in zip(system.particles, masses, strict=True)]
+    runs, header = [], None
+    for item in (*system.constraints, *system.effects):
+        lifted = lifting.lifted_fields(item, values)
+        walked.append(lifted)
+        rest = [(k, v) for k, v in vars(item).items() if k not in lifted]
+        key = (type(item), tuple(lifted), tuple(k for k, _ in rest))
+        if key != header:
+            header = key
+            runs.append([type(item).__module__, type(item).__qualname__, list(key[1]), list(key[2]), []])
+        runs[-1][4].append([[lifting._plain_value(v) for v in lifted.values()],
+                            [lifting._plain_value(v) for _, v in rest]])
+    data = [described, runs, list(system.parameters), lifting.plain_data(system.definitions)]
+    return data, values, [masses, walked, values]
+
+
+def _items_of_every_shape():
+    """Runs of one class broken by other classes, by attributes added to one item or given in
+    another order, by a subclass, by a class whose numeric fields are a list; formulas, points,
+    names, one-sided rods, masses of formulas."""
+    import constrained as C
+
+    class Rod(C.Distance):
+        numbers = ["length", "point"]
+
+    s = C.System(name="shapes", parameters={"L": 0.5})
+    for i in range(8):
+        s.add_particle(f"p{i}", "2*L" if i == 3 else 0.1 * (i + 1), [0.3 * i, 0.1, 0.0])
+    rods = [C.Distance(f"p{i}", f"p{i + 1}", length=0.3) for i in range(6)]
+    rods[2].note = "an extra attribute"
+    rods[4] = C.Distance("p4", "p5", length="L", name="named")
+    rods[5] = C.Distance("p5", "p6", length=0.3, unilateral=True, restitution=0.5)
+    reordered = C.Distance("p6", "p7", length=0.3)
+    reordered.__dict__ = dict(reversed(list(reordered.__dict__.items())))
+    s.add(C.Distance("p0", point=[0, 0.1, 0], length=0.3), *rods, reordered, Rod("p1", "p7", length=1.0),
+          Rod("p2", point=[0.0, 1.0, 0.0], length=2.0), C.Plane(["p0", "p1"], [0, 0, 1], 0.0),
+          C.Gravity([0, -9.81, 0]), C.Spring("p0", "p2", k=3.0, rest=0.0), C.Damping(0.1, ["p1"]))
+    return s
+
+
+@pytest.mark.parametrize("make", ["shapes", "rope", "mixed"])
+def test_structure_data_run_by_run_is_item_by_item(make):
+    """The fingerprint's data, values and walk are those of the item-by-item walk (so the
+    fingerprint is the same text hashed)."""
+    import constrained as C
+    from constrained.model import lifting
+
+    if make == "shapes":
+        system = _items_of_every_shape()
+    elif make == "rope":
+        system = C.System(name="rope")
+        for i in range(70):
+            system.add_particle(f"p{i}", 0.01, [0.01 * (i + 1), 0.0, 0.0])
+        system.add(*[C.Distance(f"p{i - 1}", f"p{i}", length=0.01) for i in range(1, 70)],
+                   C.Gravity([0, -9.81, 0]))
+    else:
+        from test_fixed_cost import _mixed
+
+        system = _mixed()
+    walked: list = []
+    data, values = lifting.structure_data(system, walked)
+    reference, reference_values, reference_walk = _structure_data_item_by_item(system)
+    assert data == reference and values == reference_values
+    assert walked == reference_walk
