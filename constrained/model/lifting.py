@@ -191,23 +191,31 @@ def structure_data(system, walked: list | None = None) -> tuple[list, list[float
         lifted_masses = [lifted_mass(p, values) for p in particles]
         described = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas
                       else plain_data(mass)] for p, mass in zip(particles, lifted_masses, strict=True)]
-    fields = []
+    item_fields = []
     # Items in runs of one class and one set of attributes: [module, class, numeric fields, other
     # attributes, [[numeric values, other values] per item]] (a run's names written once).
     runs: list = []
     header = None
+    # (the lifted fields' and the other attributes' names of an item with the class and the
+    # attribute names of the one before: a run's, found once, not per item)
+    shape, names, other = None, (), ()
     for item in (*system.constraints, *system.effects):
-        lifted = lifted_fields(item, values)
-        fields.append(lifted)
-        rest = [(k, v) for k, v in vars(item).items() if k not in lifted]
-        key = (type(item), tuple(lifted), tuple(k for k, _ in rest))
+        attributes = vars(item)
+        cls = type(item)
+        if shape is None or shape[0] is not cls or shape[1] != tuple(attributes):
+            shape, names = (cls, tuple(attributes)), fields(item)
+            other = tuple(k for k in attributes if k not in names)
+        lifted = {name: _entries(getattr(item, name), values) for name in names}  # (lifted_fields)
+        item_fields.append(lifted)
+        key = (cls, tuple(lifted), other)
         if key != header:
             header = key
-            runs.append([type(item).__module__, type(item).__qualname__, list(key[1]), list(key[2]), []])
-        runs[-1][4].append([[_plain_value(v) for v in lifted.values()], [_plain_value(v) for _, v in rest]])
+            runs.append([cls.__module__, cls.__qualname__, list(key[1]), list(other), []])
+        runs[-1][4].append([[_plain_value(v) for v in lifted.values()],
+                            [_plain_value(attributes[k]) for k in other]])
     data = [described, runs, list(system.parameters), plain_data(system.definitions)]
     if walked is not None:
-        walked[:] = [lifted_masses, fields, values]
+        walked[:] = [lifted_masses, item_fields, values]
     return data, values
 
 

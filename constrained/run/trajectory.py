@@ -264,7 +264,7 @@ class Trajectory:
             event_arrays, meta["events"] = records_to_arrays(self.events, self.n_particles)
             arrays.update(event_arrays)
         arrays["meta"] = np.array(json.dumps(_jsonable(meta)))
-        atomic_write(path, lambda f: np.savez(f, **arrays))
+        atomic_write(path, lambda f: write_npz(f, arrays))
         return path
 
     @classmethod
@@ -347,6 +347,27 @@ def atomic_write(path: Path, write) -> None:
             # (a write that fails, as on a full disk, raises an OSError without a file name)
             raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
+
+
+def write_npz(f, arrays: dict) -> None:
+    """Write ``arrays`` to the open binary file ``f`` as ``np.savez(f, **arrays)`` does (the same
+    members, headers and bytes: an archive ``np.load`` reads), each plain array's bytes written
+    from its own memory. (np.savez copies an array to new 16 MiB bytes objects first: fresh pages
+    whose faults cost 0.2 s on the 84 MB of a 10,000-particle rope.)"""
+    npy = np.lib.format
+    with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, value in arrays.items():
+            value = np.asanyarray(value)
+            with archive.open(name + ".npy", "w", force_zip64=True) as member:
+                if type(value) is np.ndarray and value.flags.c_contiguous and value.dtype.kind in "biufcSU":
+                    try:  # (the version np.save picks for these: 1.0 unless the header is too long)
+                        npy.write_array_header_1_0(member, npy.header_data_from_array_1_0(value))
+                    except ValueError:
+                        npy.write_array(member, value)
+                        continue
+                    member.write(memoryview(value.reshape(-1).view(np.uint8)))
+                else:
+                    npy.write_array(member, value)
 
 
 def file_mode() -> int:

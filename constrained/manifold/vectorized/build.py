@@ -27,7 +27,7 @@ import numpy as np
 from ...model.cache import built_once
 from ...model.structure import Structure, forces
 from ..mapped import _row_terms, mapped_build
-from .columns import Summation, binary, on_columns, shared, take
+from .columns import Summation, binary, on_columns, shared, sorted_unique, take
 from .fused import fused_groups
 from .products import compiled_products
 
@@ -157,8 +157,8 @@ class _Gram:
             second.append(same + d)
         first = np.concatenate(first) if first else np.zeros(0, np.int64)
         second = np.concatenate(second) if second else np.zeros(0, np.int64)
-        key = np.unique(np.concatenate([row * n + row, row[second] * n + row[first],
-                                        row[first] * n + row[second]]))  # compressed-column order
+        key = sorted_unique(np.concatenate([row * n + row, row[second] * n + row[first],
+                                            row[first] * n + row[second]]))  # compressed-column order
         self.sparsity = ca.Sparsity.triplet(n, n, (key % max(n, 1)).tolist(), (key // max(n, 1)).tolist())
 
         def entry(r, c):
@@ -170,7 +170,7 @@ class _Gram:
         self.sources = list(range(len(self.diagonal)))
         self.pairs = []
         pair_key = sid[first] * len(rows) + sid[second]
-        for k in np.unique(pair_key):
+        for k in sorted_unique(pair_key):
             members = np.flatnonzero(pair_key == k)
             i1, i2 = first[members], second[members]
             self.pairs.append((int(sid[i1[0]]), pos[i1], int(sid[i2[0]]), pos[i2]))
@@ -287,7 +287,7 @@ class VectorizedBuild:
         """J's sparsity (C, 3N) and where each stream's entries go in its nonzeros."""
         n = self.n_rows
         key = [c * n + r for r, c in zip(self.rows, self.cols, strict=True)]
-        every = np.unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
+        every = sorted_unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
         self.jacobian_sparsity = ca.Sparsity.triplet(n, self.n3, (every % max(n, 1)).tolist(),
                                                      (every // max(n, 1)).tolist())
         self.by_nonzero = Summation(lengths, [np.searchsorted(every, k) for k in key], len(every))

@@ -140,6 +140,14 @@ def on_columns(kernel: ca.Function, inputs: list, n: int) -> list[list]:
     return outputs
 
 
+def sorted_unique(a) -> np.ndarray:
+    """``np.unique(a)`` of integers, by a sort: NumPy 2.3+ finds the unique values of an array
+    (asked for no indices) with a hash table, 5-10 times slower than sorting the 10⁴-10⁵
+    indices of a large model (0.05 s of a 10,000-link chain's vectorized build)."""
+    a = np.sort(np.asarray(a).ravel())
+    return a[np.concatenate(([True], a[1:] != a[:-1]))] if a.size else a
+
+
 def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(a, axis=0, return_inverse=True)`` for an integer array a (n, w) of entries
     ≥ −1, the rows in the same (lexicographic) order: each row read as one integer in base

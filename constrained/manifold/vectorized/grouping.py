@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from .columns import sorted_unique
+
 #: A repeated row or potential term becomes a mapped kernel from this many instances; fewer
 #: stay in the one SX graph of the rest.
 MIN_GROUP = 8
@@ -272,7 +274,7 @@ def _buckets(colind: np.ndarray, row: np.ndarray, read_colind: np.ndarray) -> li
     in order of appearance), as many entries of p read. In order of their first row."""
     counts, reads = np.diff(colind), np.diff(read_colind)
     out = []
-    for d in np.unique(counts):
+    for d in sorted_unique(counts):
         ks = np.flatnonzero(counts == d)
         if d == 0:
             out.append(ks)
