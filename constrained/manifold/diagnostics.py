@@ -455,16 +455,15 @@ def _strongest_effect(model, s, x, v, t):
         for slot, F in zip(slots, values, strict=True):
             rows, cols = (np.asarray(a, np.int64) for a in F.sparsity().get_triplet())
             data = np.abs(np.asarray(F.nonzeros(), float).ravel())
-            key = rows * n + cols // 3  # (effect row, particle)
-            big = np.zeros(F.shape[0] * n)
+            pairs, at = np.unique(rows * n + cols // 3, return_inverse=True)  # (effect row, particle)
+            big = np.zeros(len(pairs))
             with np.errstate(invalid="ignore"):  # (a NaN force: its effect is not the strongest)
-                np.maximum.at(big, key, data)  # scaled: |F| itself may be near overflow
+                np.maximum.at(big, at, data)  # scaled: |F| itself may be near overflow
                 sums = np.zeros_like(big)
-                np.add.at(sums, key, (data / np.where(big[key] > 0, big[key], 1.0)) ** 2)
+                np.add.at(sums, at, (data / np.where(big[at] > 0, big[at], 1.0)) ** 2)
                 norms = np.nan_to_num(big * np.sqrt(sums), nan=-1.0)
-            for r in np.unique(rows):
-                i = int(np.argmax(norms[r * n:(r + 1) * n]))
-                found.append((owners[slot][r], i, float(norms[r * n + i])))
+            top = np.flatnonzero(norms == norms.max()) if len(norms) else []
+            found += [(owners[slot][int(pairs[q] // n)], int(pairs[q] % n), float(norms[q])) for q in top]
     if not found:
         return None
     k, i, size = max(found, key=lambda f: (f[2], -f[0], -f[1]))

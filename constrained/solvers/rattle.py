@@ -198,7 +198,7 @@ class Rattle(Stepper):
         every dt, start and parameter value of the structure shares them."""
         cache, prefix = structure_cache(self.model)
         key = (*prefix, "rattle", self.manifold.rows, self.newton_iterations, self.compiled,
-               self.carries_forces())
+               self.carries_forces(), self.vectorized())
         chunks = cache.get(key)
         if chunks is None:
             with vectorized.shared_nodes():  # (a step's repeated products built once)
