@@ -34,6 +34,7 @@ import numpy as np
 
 from .. import interrupt
 from ..errors import InconsistentStateError, InputError, RunInterrupted, SimulationError
+from ..manifold.algebra import algebra_for
 from ..manifold.manifold import Manifold
 from ..model.held import held
 from ..model.structure import Model
@@ -478,8 +479,13 @@ def _dof(model: Model, result: HybridRun, i0: int, rows) -> int:
     k = min(i0, len(result.t) - 1)
     if k < 0:
         return model.n_coordinates - len(rows)
-    J = np.asarray(model.jacobian(result.x[k], result.t[k])[1], float)[list(rows)]
-    return model.n_coordinates - int(np.linalg.matrix_rank(J))
+    J = model.jacobian(result.x[k], result.t[k])[1]
+    algebra = algebra_for(model.n_constraints)
+    if algebra.name == "dense":
+        return model.n_coordinates - int(np.linalg.matrix_rank(np.asarray(J, float)[list(rows)]))
+    # (a large model: its independent rows by a sparse factorization, no dense J or SVD)
+    independent = algebra.independent_rows(algebra.matrix(J)[list(rows)], model.inverse_masses)
+    return model.n_coordinates - len(independent)
 
 
 def trajectory_quantities(model: Model, result: HybridRun, wanted, stats) -> Trajectory:

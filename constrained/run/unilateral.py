@@ -45,7 +45,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..manifold import residual
-from ..manifold.dense import schur_solve
+from ..manifold.algebra import algebra_for
 from ..manifold.manifold import Manifold, constraint_values
 from ..model.cache import built_once
 from ..model.held import held
@@ -126,10 +126,17 @@ def gaps(model: Model, x, t) -> np.ndarray:
     return one_sided(model).side * constraint_values(model)(x, t)[0]
 
 
+def _velocity_terms(model: Model, x, t):
+    """(J, f_t) at (x, t): J in the model's linear algebra (``algebra_for``: SciPy CSR for a
+    large model, where a dense J of a 3,000-bead rope on a floor is 0.6 GB at every event)."""
+    J, f_t = model.velocity_terms(x, t)
+    return algebra_for(model.n_constraints).matrix(J), np.asarray(f_t, float).ravel()
+
+
 def constraint_velocities(model: Model, x, v, t) -> np.ndarray:
     """c = J v + f_t over every row (the rate of f along the motion)."""
-    J, f_t = (np.asarray(o, float) for o in model.velocity_terms(x, t))
-    return J @ np.asarray(v, float) + f_t.ravel()
+    J, f_t = _velocity_terms(model, x, t)
+    return J @ np.asarray(v, float) + f_t
 
 
 def scales(model: Model, x, t) -> np.ndarray:
@@ -187,21 +194,23 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
     sign is released and the jump recomputed without it."""
     info = one_sided(model)
     x, v = np.asarray(x, float), np.asarray(v, float)
-    J, f_t = (np.asarray(o, float) for o in model.velocity_terms(x, t))
-    f_t = f_t.ravel()
+    J, f_t = _velocity_terms(model, x, t)
     c = J @ v + f_t
+    algebra = algebra_for(model.n_constraints)
     s = scales(model, x, t)
     held = [k for k in active_rows if k not in closing]
     released = []
+    closing_set, one_sided_rows = set(closing), set(info.rows)  # (sets: thousands of rows)
     while True:
         rows = np.array(sorted(held) + sorted(closing), dtype=int)
+        held_set = set(held)
         target = np.zeros(len(rows))
         for i, k in enumerate(rows):
-            if k in closing:
+            if k in closing_set:
                 target[i] = -restitution.get(k, 0.0) * c[k]
-        P = schur_solve(J[rows], model.inverse_masses, target - c[rows])
+        P = algebra.schur_solve(J[rows], model.inverse_masses, target - c[rows])
         wrong = [(info.side[k] * P[i] * s[k], k) for i, k in enumerate(rows)
-                 if k in held and k in info.rows and info.side[k] * P[i] < 0]
+                 if k in held_set and k in one_sided_rows and info.side[k] * P[i] < 0]
         if not wrong:
             break
         worst = min(wrong)[1]
@@ -210,7 +219,7 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
     v_new = v + model.inverse_masses * (J[rows].T @ P)
     change = float(model.kinetic(v_new)) - float(model.kinetic(v))
     lost = max(0.0, -change - float(f_t[rows] @ P))  # in the constraint's frame (see the module)
-    impulse = {int(k): float(info.side[k] * P[i] * s[k]) for i, k in enumerate(rows) if k in closing}
+    impulse = {int(k): float(info.side[k] * P[i] * s[k]) for i, k in enumerate(rows) if k in closing_set}
     return Impact(v_new, impulse, lost, tuple(released), change)
 
 
