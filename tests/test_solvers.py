@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import DP_REF_T2, double_pendulum
+from test_vectorized import rope
 
 import constrained as C
 from constrained.solvers import METHODS
@@ -208,3 +209,17 @@ def test_a_stop_carries_its_status_not_only_words():
     assert done.info["stop"] == Status.COMPLETED.value
     text = Failure(Status.NON_FINITE, "non-finite state at t = 1 s")
     assert text.status is Status.NON_FINITE and text.startswith("non-finite")
+
+
+def test_pantelides_refuses_a_model_too_large_for_its_symbolic_reduction():
+    """CasADi's index reduction is one uninterruptible call whose time grows as the cube of the
+    size: above ``max_coordinates`` the method refuses before it starts, naming the others."""
+    from constrained.errors import InputError
+
+    system = rope(160)
+    with pytest.raises(InputError, match=r"480 coordinates, above max_coordinates = 450: use method 'idas'"):
+        C.simulate(system, 0.01, method="pantelides")
+    with pytest.raises(InputError, match="max_coordinates must be a whole number"):
+        C.simulate(rope(5), 0.01, method="pantelides", max_coordinates=0)
+    run = C.simulate(rope(5), 0.01, method="pantelides", max_coordinates=15)
+    assert run.t[-1] == pytest.approx(0.01)

@@ -60,3 +60,4 @@ def test_a_segments_degrees_of_freedom_on_a_large_model_are_the_dense_rank(monke
     sparse = hybrid._dof(model, run, 0, rows)
     J = np.asarray(model.jacobian(x, 0.0)[1], float)[rows]
     assert sparse == model.n_coordinates - np.linalg.matrix_rank(J)
+

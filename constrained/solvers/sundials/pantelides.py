@@ -30,17 +30,33 @@ from .messages import quiet
 
 #: Output times of pantelides' first IDAS call (see idas.CallSize).
 PANTELIDES_FIRST_CALL_OUTPUTS = 50
+#: The largest model (coordinates) whose index pantelides reduces unless told otherwise
+#: (``max_coordinates``): CasADi's reduction is one call that Ctrl-C cannot stop, and its time
+#: grows as about the cube of the size (a chain of 1 cm links: 0.85 s at 150 coordinates,
+#: 8.5 s at 450, 57 s at 900, over 2 minutes at 3,000).
+MAX_COORDINATES = 450
 
 
 class Pantelides(Stepper):
     name = "pantelides"
-    OPTIONS = DRIVER_OPTIONS
+    OPTIONS = ("max_coordinates", *DRIVER_OPTIONS)
 
-    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, **options):
+    def __init__(self, manifold, *, rtol=1e-8, atol=1e-10, dt=None, max_coordinates: int = MAX_COORDINATES,
+                 **options):
         super().__init__(manifold, rtol=rtol, atol=atol, dt=dt, **options)
         # redundant rows: the DAE takes the independent subset (see solvers.base)
         if self.model.n_constraints == 0:
             raise InputError("method 'pantelides' is for constrained systems; this one has none")
+        if isinstance(max_coordinates, bool) or not isinstance(max_coordinates, int) or max_coordinates < 1:
+            raise InputError(f"max_coordinates must be a whole number of at least 1, got {max_coordinates!r}")
+        n3 = self.model.n_coordinates
+        if n3 > max_coordinates:
+            raise InputError(
+                f"method 'pantelides' reduces the index symbolically (CasADi's dae_reduce_index) in one "
+                f"call that Ctrl-C cannot stop, at a cost growing as about the cube of the size (57 s for "
+                f"a chain of 900 coordinates); this model has {n3} coordinates, above max_coordinates = "
+                f"{max_coordinates}: use method 'idas' (IDAS on the index-2 form built directly) or 'dopri', "
+                "or, to wait for it, raise max_coordinates (Python: simulate(..., max_coordinates=...))")
         self.dae, self.reduced, self.index = self._reduce()
         self.semi_explicit, self.to_original, _ = ca.dae_map_semi_expl(self.dae, self.reduced)
 
