@@ -39,6 +39,11 @@ STABILITY_RTOL = 1e-8
 #: Convergence: force balance within FORCE_RTOL × force scale, constraints within LENGTH_RTOL × size.
 FORCE_RTOL = 1e-10
 LENGTH_RTOL = 1e-12
+#: The largest KKT system (3N + C unknowns) the statics solve, all dense (0.3 GB a matrix at
+#: 6,000; a 3,000-bead chain, 15,000, took 11 GB and did not finish).
+MAX_UNKNOWNS = 6000
+#: IPOPT's budget (CPU seconds, iterations) after Newton failed: then the failure is reported.
+IPOPT_CPU_S, IPOPT_ITERATIONS = 30.0, 500
 
 __all__ = ["Equilibrium", "equilibrium", "virtual_work", "constraint_virtual_work_residual",
            "generalized_forces", "tangent_basis"]
@@ -99,40 +104,24 @@ class Equilibrium:
         """A JSON-ready dictionary (plain lists and floats)."""
         names = self.particle_names or [f"p{i}" for i in range(len(self.x))]
         labels = self.constraint_labels or [f"constraint {k}" for k in range(len(self.multipliers))]
+        fs = self.frequencies_squared
         return {
-            "t": self.t,
-            "converged": self.converged,
-            "iterations": self.iterations,
-            "method": self.method,
-            "particles": [
-                {
-                    "name": n,
-                    "position": self.x[i].tolist(),
-                    "applied_force": self.applied_forces[i].tolist(),
-                    "constraint_force": self.constraint_forces[i].tolist(),
-                }
-                for i, n in enumerate(names)
-            ],
-            "multipliers": [
-                {"constraint": label, "value": float(v)}
-                for label, v in zip(labels, self.multipliers, strict=True)
-            ],
-            "anchor_reactions": [
-                {"constraint": label, "support_force": f.tolist(), "load_on_support": (-f).tolist()}
-                for label, f in self.anchor_reactions
-            ],
-            "potential_energy": self.potential_energy,
-            "stable": self.stable,
-            "conservative": self.conservative,
-            "eigenvalues": self.eigenvalues.tolist(),
-            "frequencies_squared": ([] if self.frequencies_squared is None
-                                    else self.frequencies_squared.tolist()),
-            "stability_tolerance": self.stability_tolerance,
-            "soft_modes": self.soft_modes.tolist(),
+            "t": self.t, "converged": self.converged, "iterations": self.iterations, "method": self.method,
+            "particles": [{"name": n, "position": self.x[i].tolist(),
+                           "applied_force": self.applied_forces[i].tolist(),
+                           "constraint_force": self.constraint_forces[i].tolist()}
+                          for i, n in enumerate(names)],
+            "multipliers": [{"constraint": label, "value": float(v)}
+                            for label, v in zip(labels, self.multipliers, strict=True)],
+            "anchor_reactions": [{"constraint": label, "support_force": f.tolist(),
+                                  "load_on_support": (-f).tolist()} for label, f in self.anchor_reactions],
+            "potential_energy": self.potential_energy, "stable": self.stable,
+            "conservative": self.conservative, "eigenvalues": self.eigenvalues.tolist(),
+            "frequencies_squared": [] if fs is None else fs.tolist(),
+            "stability_tolerance": self.stability_tolerance, "soft_modes": self.soft_modes.tolist(),
             "virtual_work_residual": self.virtual_work_residual,
             "constraint_virtual_work_residual": self.constraint_virtual_work_residual,
-            "max_constraint_residual": self.max_constraint_residual,
-            "slack": list(self.slack),
+            "max_constraint_residual": self.max_constraint_residual, "slack": list(self.slack),
             "velocity_constraints": self.velocity_constraints,
         }
 
@@ -300,7 +289,8 @@ def _ipopt(kkt: _KKT, x0: np.ndarray) -> np.ndarray | None:
     """A constrained minimum of V near x0 (IPOPT), or None when IPOPT fails."""
     try:
         nlp = {"x": kkt.xs, "f": kkt.objective, "g": kkt.f}
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-12}
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-12,
+                "ipopt.max_cpu_time": IPOPT_CPU_S, "ipopt.max_iter": IPOPT_ITERATIONS}
         solver = ca.nlpsol("statics", "ipopt", nlp, opts)
         sol = solver(x0=x0, lbg=0, ubg=0)
         x = np.asarray(sol["x"], float).ravel()
@@ -414,8 +404,14 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
         raise InputError(f"t must be a finite number of seconds, got {t!r}", where="t")
     model = model or assemble(system)
-    kkt = _KKT(model, float(t))
     n3, C = model.n_coordinates, model.n_constraints
+    if n3 + C > MAX_UNKNOWNS:
+        raise InputError(
+            f"the statics solve a dense KKT system of 3N + C = {n3 + C} unknowns here ({n3} coordinates, "
+            f"{C} constraint rows): {8 * (n3 + C) ** 2 / 1e9:.2g} GB a matrix and minutes a factorization, "
+            f"above the {MAX_UNKNOWNS} they take; for a large model let a run settle instead (a damping "
+            "effect and `constrained run`), or study a coarser discretization")
+    kkt = _KKT(model, float(t))
     x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
     size = system.size()
     manifold = Manifold.at(model, x0, t)
