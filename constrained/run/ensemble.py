@@ -34,7 +34,7 @@ from ..model.cache import ParametricView, structure_cache
 from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
 from ..model.system import require_system
-from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
+from ..solvers.dopri import NOT_FINITE, PROJECTION_FAIL, SCALARS, Dopri
 from ..threads import available_cores, one_blas_thread
 
 #: Steps (attempts) one call advances every column by.
@@ -423,4 +423,6 @@ def _judge(new: np.ndarray, S: np.ndarray, cols: np.ndarray, status: list, runni
                 status[k], running[k] = "step limit", False
             elif S[scal["t"], k] < S[scal["t_target"], k] and \
                     S[scal["h"], k] < 1e-14 * max(1.0, abs(S[scal["t"], k])):
-                status[k], running[k] = "step size collapsed", False
+                # (every trial came out non-finite: dopri.NOT_FINITE)
+                status[k] = "non-finite" if S[scal["rejected"], k] == NOT_FINITE else "step size collapsed"
+                running[k] = False

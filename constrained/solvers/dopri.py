@@ -65,6 +65,8 @@ SYMBOLIC_MAX_CONSTRAINTS = 8
 #: Newton converges quadratically, so this leaves |f| ≈ 1e-12 after it.
 PROJECTION_FAIL = 1e-6
 SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 10.0
+#: The ``rejected`` flag of an attempt refused because it came out non-finite (1: too large an error).
+NOT_FINITE = 2
 #: A run with at most this many output times ends a step at each; with more, and a model of
 #: DENSE_FROM coordinates or more, they come from the dense output (``Dopri.prepare``).
 LANDED_OUTPUTS = 16
@@ -226,16 +228,25 @@ class Dopri(Stepper):
             err = ca.if_else(denom > 0, hh * e5 / ca.sqrt(ca.fmax(denom, 1e-300) * 2 * n), 0)
         else:
             err = hh * ca.sqrt(weighted(tab.E[0]) / (2 * n))
+        # a trial step that left the finite numbers (a stage far off the manifold: a rod's
+        # beads on top of each other, a singular KKT solve, a Newton step that diverged) is
+        # rejected and shrunk, never accepted (NaN compares false: the blend above made its
+        # error 0); its ``rejected`` flag is NOT_FINITE, so a step that collapses on such
+        # trials is reported as non-finite
+        finite = (ca.sum1(x1) + ca.sum1(v1) + ca.sum1(a1) + residual + err) < ca.inf
+        err = ca.if_else(finite, err, ca.inf)
         accept = err <= 1.0
         grow = ca.if_else(err == 0, MAX_FACTOR,
                           ca.fmin(MAX_FACTOR, SAFETY * ca.power(ca.fmax(err, 1e-300), tab.exponent)))
         grow = ca.if_else(rejected, ca.fmin(1.0, grow), grow)
         shrink = ca.fmax(MIN_FACTOR, SAFETY * ca.power(ca.fmax(err, 1e-300), tab.exponent))
+        shrink = ca.if_else(finite, shrink, MIN_FACTOR)
         # after a step clipped to an output time, keep the proposal that step had
         h_accept = ca.if_else(clipped, ca.fmax(h, hh * grow), hh * grow)
         accepted = ca.vertcat(x1, v1, a1, t1, h_accept, 0, n_acc + 1, n_rej, ca.fmax(res, residual),
                               t_target, rtol, atol, P)
-        refused = ca.vertcat(x, v, a, t, hh * shrink, 1, n_acc, n_rej + 1, res, t_target, rtol, atol, P)
+        flag = ca.if_else(finite, 1, NOT_FINITE)
+        refused = ca.vertcat(x, v, a, t, hh * shrink, flag, n_acc, n_rej + 1, res, t_target, rtol, atol, P)
         name = f"dopri_{tab.name.lower()}"
         attempt = ca.Function(f"{name}_attempt", [S], [ca.if_else(accept, accepted, refused)])
         if symbolic:  # one SX graph, common subexpressions merged (≈ 9 % fewer operations)
@@ -388,6 +399,10 @@ class Dopri(Stepper):
                 f"the state could not be kept on the constraints near t = {cols[bad, T]:.6g} s (residual "
                 f"{cols[bad, RES]:.3g} m before the last Newton step): reduce rtol"))
         if new[T] < t_stop and new[H] < 1e-14 * max(1.0, abs(new[T])):
+            if new[_slot(n, "rejected")] == NOT_FINITE:  # every trial came out non-finite
+                return Advance(new, **samples, status=Status.NON_FINITE,
+                               message=f"non-finite state after t = {new[T]:.6g} s; "
+                               + diagnostics.nonfinite_cause(self.model, new[:n], new[n:2 * n], new[T]))
             return Advance(new, **samples, status=Status.STEP_SIZE_COLLAPSED,
                            message=(f"the step size collapsed at t = {new[T]:.6g} s (h = {new[H]:.3g} s); "
                                     + self.diagnose(new[:n], new[n:2 * n], new[T])))
