@@ -233,7 +233,8 @@ class Dopri(Stepper):
         # rejected and shrunk, never accepted (NaN compares false: the blend above made its
         # error 0); its ``rejected`` flag is NOT_FINITE, so a step that collapses on such
         # trials is reported as non-finite
-        finite = (ca.sum1(x1) + ca.sum1(v1) + ca.sum1(a1) + residual + err) < ca.inf
+        total = ca.sum1(x1) + ca.sum1(v1) + ca.sum1(a1) + residual + err
+        finite = ca.logic_and(total < ca.inf, total > -ca.inf)  # (NaN compares false)
         err = ca.if_else(finite, err, ca.inf)
         accept = err <= 1.0
         grow = ca.if_else(err == 0, MAX_FACTOR,
