@@ -4,9 +4,10 @@
 
     x' = v,   v' = M⁻¹ (F + Jᵀλ),   0 = J M⁻¹ (F + Jᵀλ) + γ
 
-Position and velocity constraints are only implied, so they drift slowly; by default the
-state is projected onto both manifolds at every output time (``project_outputs``) and the
-integration continues from the projected state.
+Position and velocity constraints are only implied, so they drift slowly; by default every
+output is projected onto both manifolds (``project_outputs``), and each IDAS call continues
+from its projected end. A call covers more output times while the state it ends in stays
+within atol of the constraints, fewer when it drifts further.
 
 ``ggl``: the Gear–Gupta–Leimkuhler stabilized index-2 form, with a second multiplier μ:
 
@@ -28,6 +29,7 @@ import numpy as np
 from ... import interrupt
 from ...errors import InputError
 from ...manifold import residual
+from ...manifold.manifold import constraint_values
 from ...model.cache import ParametricView, structure_cache
 from ..base import DRIVER_OPTIONS, Advance, Status
 from ..driver import Stepper
@@ -36,11 +38,16 @@ from .messages import quiet
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
 #: at 100; a default grid of 201 is one call), growing 4x while calls take under 1/16 of
-#: CALL_SECONDS (2x under 1/4) and halving above it, so that progress, the watches and the
+#: CALL_SECONDS (2x under it) and halving above twice it, so that progress, the watches and the
 #: step limit are honoured between calls of a long run; Ctrl-C reaches inside a call
 #: (``interrupt.external``); a failing call is retried in halves (it loses one interval).
 FIRST_CALL_OUTPUTS = 200
 CALL_SECONDS = 0.25
+#: IDAS steps a call should take at least, where the steps are counted (``CallSize.took``).
+CALL_STEPS = 200
+#: idas, projecting its outputs, starts with calls of this many (growing while the state a call
+#: ends in stays within atol of the constraints: ``CallSize.took``).
+FIRST_PROJECTED_CALL_OUTPUTS = 1
 #: Steps one IDAS call may take; a call that needs more is split into SPLIT parts.
 STEPS_PER_CALL = 20_000
 SPLIT = 10
@@ -57,20 +64,40 @@ def _inverse_masses(m):
     return inverse if isinstance(inverse, ca.SX | ca.MX) else ca.DM(inverse)
 
 
+def _canonical(grid: tuple) -> tuple:
+    """A call's output times in τ ∈ (0, 1]; equally spaced ones (to round-off) as the one tuple
+    k/n, k = 1…n, so that calls over equal intervals share their integrator (building one
+    takes about 0.6 s on a 1,000-bead rope)."""
+    even = tuple(np.arange(1, len(grid) + 1) / len(grid))
+    return even if np.max(np.abs(np.subtract(grid, even))) <= 1e-13 else grid
+
+
 class CallSize:
     """How many output times the next SUNDIALS call covers (see FIRST_CALL_OUTPUTS)."""
 
     def __init__(self, fixed: int | None = None, first: int = FIRST_CALL_OUTPUTS):
         self.fixed, self.size = fixed, fixed or first
 
-    def took(self, seconds: float) -> None:
+    def took(self, seconds: float, steps: int | None = None, drifted: bool = False) -> None:
+        """After a call that took ``seconds`` and (where counted) ``steps``. Every call restarts
+        IDAS at order 1 with small steps (about a dozen on a rope), so a call should take
+        CALL_STEPS steps or more: the size grows eightfold while it takes fewer and falls eightfold
+        above 8 CALL_STEPS (the watches and the progress meter act between calls), or when the
+        state the call ended in left the constraints (index 1, where f = 0 is only implied) by
+        more than the run's atol (``drifted``). Decided by counts, never by the clock, so a run
+        takes the same steps on a loaded machine. Without ``steps``: by its seconds."""
         if self.fixed:
             return
-        if seconds < CALL_SECONDS / 16:
+        if steps is not None:  # (sizes 1, 8, 64, …: each size's integrator is built once)
+            if drifted or steps > 8 * CALL_STEPS:
+                self.size = max(1, self.size // 8)
+            elif steps < CALL_STEPS:
+                self.size *= 8
+        elif seconds < CALL_SECONDS / 16:
             self.size *= 4
-        elif seconds < CALL_SECONDS / 4:
+        elif seconds < CALL_SECONDS:
             self.size *= 2
-        elif seconds > CALL_SECONDS:
+        elif seconds > 2 * CALL_SECONDS:
             self.size = max(1, self.size // 2)
 
     def retry_smaller(self, covered: int, seconds: float) -> bool:
@@ -126,10 +153,13 @@ class _IdasBase(Stepper):
             self._tol_f = 1e-14 * residual.smallest_scale(m, x0, t0)
             self._retries, self._pace, self._t0 = list(RESTART_STEPS), 0.0, t0
         times = tuple(float(tk) for tk in self._grid if t0 < tk < t_end) + (float(t_end),)
-        # one IDAS call per output time (idas, projecting there) or per group of them (ggl,
-        # CallSize): Ctrl-C is honoured between calls, and inside one it loses only that call's
-        # part. A call that runs out of steps (STEPS_PER_CALL) is split at intermediate times
-        self._calls = CallSize(1 if self.project_outputs else None)
+        # one IDAS call per group of output times (CallSize): Ctrl-C is honoured between calls,
+        # and inside one it loses only that call's part. A call that runs out of steps
+        # (STEPS_PER_CALL) is split at intermediate times. Every call restarts IDAS at order 1
+        # with small steps, so idas does not restart at every output it projects (on a
+        # 1,000-bead rope that made 20x the steps): the next call starts from the projected end
+        first = FIRST_PROJECTED_CALL_OUTPUTS if self.project_outputs else FIRST_CALL_OUTPUTS
+        self._calls = CallSize(first=first)
         return (float(t0), np.concatenate([x0, v0]), self.algebraic_guess(x0, v0, t0), times)
 
     def step(self, state, t_stop) -> Advance:
@@ -137,7 +167,10 @@ class _IdasBase(Stepper):
         m = self.model
         n3 = m.n_coordinates
         t_prev, y, z, times = state
-        seg, rest = times[:self._calls.size], times[self._calls.size:]
+        size = self._calls.size
+        if self.project_outputs and len(times) < size:  # (the sizes' integrators, not one more)
+            size = 8 ** int(np.log(len(times)) / np.log(8) + 1e-9)
+        seg, rest = times[:size], times[size:]
         pieces = int(np.ceil(self._pace * (seg[-1] - t_prev) / (STEPS_PER_CALL // 2)))
         if pieces > 1 and len(seg) > 1:  # at the pace so far: fewer times in this call
             self._calls.size = max(1, len(seg) // pieces)
@@ -147,7 +180,7 @@ class _IdasBase(Stepper):
             if inner:
                 return Advance.empty((t_prev, y, z, inner + times), n3)
         span = seg[-1] - t_prev
-        grid = tuple((np.asarray(seg) - t_prev) / span)
+        grid = _canonical(tuple((np.asarray(seg) - t_prev) / span))
         p = np.concatenate([[t_prev, span], self._weights, m.parameter_vector])
         called = time.perf_counter()
         try:
@@ -185,7 +218,7 @@ class _IdasBase(Stepper):
                 return Advance.empty(state, n3)
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
                                  f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
-        self._calls.took(time.perf_counter() - called)
+        took = time.perf_counter() - called
         stats = integ.stats()
         if self._step0:
             # the next call restarts at order 1: a tenth of the last step taken (RESTART_STEPS
@@ -198,6 +231,11 @@ class _IdasBase(Stepper):
                           ("rejected", "netfails")):
             self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
         X = res["xf"].full()
+        if self.project_outputs:  # (idas: calls sized by their steps and the drift at their end)
+            self._calls.took(took, int(stats.get("nsteps", 0)),
+                             drifted=bool(rest) and self._drift(X[:n3, -1], seg[-1]) > self.atol)
+        else:
+            self._calls.took(took)
         xs, vs = [], []
         for k, tk in enumerate(seg):
             x, v = X[:n3, k], X[n3:, k]
@@ -213,6 +251,15 @@ class _IdasBase(Stepper):
         t_new = seg[-1]
         new = (t_new, np.concatenate([xs[-1], vs[-1]]), self.algebraic_guess(xs[-1], vs[-1], t_new), rest)
         return Advance(new, np.array(seg), np.array(xs), np.array(vs))
+
+    def _drift(self, x: np.ndarray, t: float) -> float:
+        """max_i |f_i(x, t)| / s_i, the drift of the state a call ended in from the position
+        manifold in metres (s_i the rows' scales at the start)."""
+        m = self.model
+        if m.n_position_rows == 0:
+            return 0.0
+        f = np.asarray(constraint_values(m)(x, t)[0], float).ravel()
+        return float(np.max(np.abs(f) / self.row_scales[:m.n_position_rows]))
 
     def extra_options(self) -> dict:
         return {}
