@@ -56,6 +56,9 @@ def test_calls_grow_while_cheap_and_shrink_when_the_state_drifts():
     assert calls.size == 1
     calls.took(0.01, steps=9 * CALL_STEPS, drifted=True)
     assert calls.size == 1
+    # a failed call is retried in eighths whatever it took (the same outputs on any machine)
+    assert calls.retry_smaller(64, seconds=100.0, by_steps=True) and calls.size == 8
+    assert not calls.retry_smaller(1, seconds=0.0, by_steps=True)
 
 
 def test_equally_spaced_calls_share_one_grid():

@@ -100,12 +100,15 @@ class CallSize:
         elif seconds > 2 * CALL_SECONDS:
             self.size = max(1, self.size // 2)
 
-    def retry_smaller(self, covered: int, seconds: float) -> bool:
+    def retry_smaller(self, covered: int, seconds: float, by_steps: bool = False) -> bool:
         """After a failed call over ``covered`` times that took ``seconds``: whether to retry
-        it in halves (not when failing took long: a stiff run would pay that again)."""
-        if covered <= 1 or seconds > 4 * CALL_SECONDS:
+        it in halves (not when failing took long: a stiff run would pay that again).
+        ``by_steps`` (calls sized by their steps, ``took``): in eighths, whatever the clock, so
+        that a failure near a singularity keeps the same outputs on any machine (at most three
+        retries from 64 times: each covers an eighth of the one before)."""
+        if covered <= 1 or (not by_steps and seconds > 4 * CALL_SECONDS):
             return False
-        self.size = max(1, covered // 2)
+        self.size = max(1, covered // (8 if by_steps else 2))
         return True
 
 
@@ -214,7 +217,8 @@ class _IdasBase(Stepper):
                 # a run does not fail on a loaded machine where it passes on an idle one
                 self._pace = max(self._pace, SPLIT * STEPS_PER_CALL / span)
                 return Advance.empty(state, n3)
-            if self._calls.retry_smaller(len(seg), time.perf_counter() - called):
+            failed_after = time.perf_counter() - called
+            if self._calls.retry_smaller(len(seg), failed_after, by_steps=self.project_outputs):
                 return Advance.empty(state, n3)
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
                                  f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
