@@ -7,16 +7,19 @@ Within a segment the held rows (every two-sided row and the active one-sided one
 * each inactive one-sided row's gap g = side · f (falling through zero: contact),
 * the user's events,
 
-located to round-off on the integrator's dense output. At a release the row leaves the
-active set; at a contact the impact law (``unilateral.impact``) gives the velocity jump, and
-the row joins the active set when it then holds (force of the allowed sign) and does not
-bounce off. Every change is an ``EventRecord`` in ``Trajectory.events``.
+located to round-off on the integrator's dense output (``unilateral.SegmentWatch``: a row
+that starts a segment touching — just bounced off, or let go — is watched so that the
+transition's round-off is no new event). At a release the row leaves the active set; at a
+contact the impact law (``unilateral.impact``) gives the velocity jump, and the row joins the
+active set when it then holds (force of the allowed sign) and does not bounce off: a bead
+stopped by a plastic impact (e = 0) that the rest of the body then pulls away lifts off.
+Every change is an ``EventRecord`` in ``Trajectory.events``.
 
 **Rest rule** (against Zeno chatter: a ball with e < 1 bounces infinitely often in a finite
 time): when the rebound speed e·u of an impact is below ``rest_speed`` (default
 ``REST_SPEED_PER_ATOL × atol`` m/s, the velocities the integrator resolves), the contact
 settles: the row joins the active set as if e were 0. A run with more than ``max_events``
-events stops with a message naming the chattering constraint.
+events, or segments, stops with a message naming the chattering constraint.
 
 Each segment is a run of the common driver (solvers/driver.py, ``run_segment``) with the
 method asked for (``projection``, ``dopri`` or ``baumgarte``; the others refuse, see
@@ -39,13 +42,14 @@ from ..manifold.manifold import Manifold
 from ..model.held import held
 from ..model.structure import Model
 from ..solvers import METHODS
-from ..solvers.base import Event, Failure, Status
+from ..solvers.base import Failure, Status
 from .action_integral import action
 from .event_records import EventRecord
 from .quantities import constraint_forces_along, trajectory_from
 from .trajectory import Trajectory
 from .unilateral import (
     ActiveSet,
+    SegmentWatch,
     check_allowed_side,
     constraint_velocities,
     gaps,
@@ -130,68 +134,6 @@ class HybridRun:
     start_correction: tuple[float, float] = (0.0, 0.0)
 
 
-class _Watch:
-    """The events one segment watches: releases, contacts and the user's, with memoized
-    multipliers (solve_ivp evaluates every event function at the same point)."""
-
-    def __init__(self, model: Model, active: ActiveSet, user: list[Event], t0: float,
-                 rebounding: dict[int, float] | None = None):
-        info = one_sided(model)
-        self.model, self.active, self._memo, self.t0 = model, active, (None, None), t0
-        self.rebounding = rebounding or {}
-        self.events: list[Event] = []
-        self.meaning: list[tuple[str, int | None]] = []
-        for k in info.rows:
-            label = model.constraint_labels[k]
-            if k in active.rows:
-                self.events.append(Event(f"release {label}", self._mu(k), -1, True))
-                self.meaning.append(("release", k))
-            else:
-                self.events.append(Event(f"contact {label}", self._gap(k), -1, True))
-                self.meaning.append(("contact", k))
-        for e in user:
-            self.events.append(e)
-            self.meaning.append(("user", None))
-
-    def _multipliers(self, t, x, v):
-        key = (t, x.tobytes(), v.tobytes())
-        if self._memo[0] != key:
-            self._memo = (key, self.active.multipliers(x, v, t))
-        return self._memo[1]
-
-    def _open_at_start(self, value: float, t: float) -> float:
-        """At the segment's first instant a watched quantity is on its allowed side (the
-        transition made it so): its round-off is read as positive. Otherwise a rebound whose
-        whole flight fits in one step (a parabola is integrated exactly, in very long steps)
-        would show no sign change between the step's ends, and the landing would be missed."""
-        return max(abs(value), 1e-300) if t == self.t0 else value
-
-    def _mu(self, k):
-        side = one_sided(self.model).side[k]
-        return lambda t, x, v: self._open_at_start(side * self._multipliers(t, x, v)[k], t)
-
-    def _gap(self, k):
-        if k in self.rebounding:
-            return self._deflated_gap(k, self.rebounding[k])
-        return lambda t, x, v: self._open_at_start(gaps(self.model, x, t)[k], t)
-
-    def _deflated_gap(self, k, speed: float):
-        """The gap of a row that has just bounced off, divided by the time since: g(t) =
-        w (t − t0) − ½ |g̈| (t − t0)² + … vanishes at the impact instant t0 itself, where its
-        round-off (~1e-16 m) would read as a crossing a moment after t0 for a short flight;
-        g(t)/(t − t0) → w (the rebound speed, > 0) at t0 instead, and changes sign only where
-        the flight ends."""
-        t0 = self.t0
-
-        def deflated(t, x, v):
-            return speed if t <= t0 else gaps(self.model, x, t)[k] / (t - t0)
-
-        return deflated
-
-    def kind(self, event: Event) -> tuple[str, int | None]:
-        return self.meaning[self.events.index(event)]
-
-
 def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8, atol=1e-10,
         method="projection", options=None, user_events=(), rest_speed=None, max_events=MAX_EVENTS, size=1.0,
         max_correction=np.inf) -> HybridRun:
@@ -225,8 +167,9 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     T, X, V, segments = [], [], [], []
     grid = None if t_eval is None else np.asarray(t_eval, float)
     stopped_by, failure, nfev = None, None, 0
+    ended: dict[str, int] = {}  # constraint label -> segments its event ended
     while True:
-        watch = _Watch(model, active, list(user_events), t, rebounding)
+        watch = SegmentWatch(model, active, list(user_events), t, x, rebounding, touch=touch, round_off=tol)
         if grid is None:
             seg_eval = None
         else:
@@ -273,19 +216,30 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
         closing += _also_closing(model, x, v, t, active.rows, closing, touch)
         active, x, v, rebounding = _transition(model, x, v, t, held, closing, rest, tol, record,
                                                history=history)
-        if len(records) > max_events:
-            counts = {}
-            for r in records:
-                counts[r.constraint] = counts.get(r.constraint, 0) + 1
-            worst = max(counts, key=counts.get)
-            failure = Failure(Status.STEP_LIMIT, f"more than {max_events} events by t = {t:.6g} s, "
-                              f"{counts[worst]} of them of '{worst}': the constraint chatters (opens and "
-                              "closes ever faster); raise rest_speed so that slow rebounds settle, or "
-                              "give restitution = 0")
+        ended[model.constraint_labels[row]] = ended.get(model.constraint_labels[row], 0) + 1
+        if len(records) > max_events or len(segments) > max_events:
+            failure = _chattering(records, ended, max_events, t)
             break
     n3 = model.n_coordinates
     return HybridRun(np.array(T), np.array(X).reshape(-1, n3), np.array(V).reshape(-1, n3), segments,
                      records, failure, stopped_by, nfev, start_correction)
+
+
+def _chattering(records, ended: dict[str, int], max_events: int, t: float) -> Failure:
+    """The stop of a run past its work budget: more than ``max_events`` events recorded, or
+    more than ``max_events`` segments (each ends at an event, a transition that records
+    nothing included: no loop of segments runs without end), naming the constraint with the
+    most of them."""
+    counts: dict[str, int] = {}
+    for r in records:
+        counts[r.constraint] = counts.get(r.constraint, 0) + 1
+    what = "events"
+    if len(records) <= max_events:
+        counts, what = ended, "segments"
+    worst = max(counts, key=counts.get)
+    return Failure(Status.STEP_LIMIT, f"more than {max_events} {what} by t = {t:.6g} s, {counts[worst]} "
+                   f"of them of '{worst}': the constraint chatters (opens and closes ever faster); raise "
+                   "rest_speed so that slow rebounds settle, or give restitution = 0")
 
 
 def _also_closing(model: Model, x, v, t, held, closing, touch) -> list[int]:

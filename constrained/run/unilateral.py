@@ -15,7 +15,8 @@ plane, surface, custom     +1         λ ≥ 0 (the push along ∇f)
 While a row is **active** it is held as an equality; it is **released** when μ would turn
 negative. An inactive row **closes** when its gap falls to zero; the impact law then gives
 the velocity jump. The time loop that switches between these is constrained.hybrid; this
-module holds the per-state numerics. Linear systems go through ``manifold.schur_solve``.
+module holds the per-state numerics and the event functions a segment watches
+(``SegmentWatch``). Linear systems go through ``manifold.schur_solve``.
 
 Impact law (mass-weighted, Newton's restitution on each closing row c, the active rows a
 kept): with c = J v + f_t the constraint velocities, find the impulse P over the rows a ∪ c
@@ -50,6 +51,7 @@ from ..manifold.manifold import Manifold, constraint_values
 from ..model.cache import built_once
 from ..model.held import held
 from ..model.structure import Model
+from ..solvers.base import Event
 
 
 @dataclass(frozen=True)
@@ -169,6 +171,13 @@ def holding_set(model: Model, rows, x, v, t, tol: float) -> tuple[ActiveSet, lis
 
 
 # --- the impact law ----------------------------------------------------------------------------------
+#: A held row's impulse of the forbidden sign releases it only beyond this fraction of the
+#: impact's largest impulse: a bead resting on a floor next to one landing (the link between
+#: them along the floor) takes an impulse that is zero but for round-off (~1e-14 of the
+#: landing's), which must not lift it off.
+IMPULSE_ROUND_OFF = 1e-10
+
+
 @dataclass(frozen=True)
 class Impact:
     """The outcome of an impact: the new velocity ``v``, the impulse on each closing row
@@ -191,7 +200,8 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
     """The velocity jump when the rows ``closing`` close at (x, t) with approach velocity,
     keeping the rows ``active_rows`` held: (J M⁻¹ Jᵀ) P = c⁺ − c⁻ over both (see the module).
     ``restitution``: row -> e. A held one-sided row whose impulse comes out with the forbidden
-    sign is released and the jump recomputed without it."""
+    sign (beyond ``IMPULSE_ROUND_OFF`` of the largest) is released and the jump recomputed
+    without it."""
     info = one_sided(model)
     x, v = np.asarray(x, float), np.asarray(v, float)
     J, f_t = _velocity_terms(model, x, t)
@@ -209,8 +219,10 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
             if k in closing_set:
                 target[i] = -restitution.get(k, 0.0) * c[k]
         P = algebra.schur_solve(J[rows], model.inverse_masses, target - c[rows])
-        wrong = [(info.side[k] * P[i] * s[k], k) for i, k in enumerate(rows)
-                 if k in held_set and k in one_sided_rows and info.side[k] * P[i] < 0]
+        pulls = info.side[rows] * P * s[rows]  # N·s along each row's normal (allowed: ≥ 0)
+        round_off = IMPULSE_ROUND_OFF * np.max(np.abs(pulls), initial=0.0)
+        wrong = [(pulls[i], k) for i, k in enumerate(rows)
+                 if k in held_set and k in one_sided_rows and pulls[i] < -round_off]
         if not wrong:
             break
         worst = min(wrong)[1]
@@ -308,3 +320,103 @@ def start_report(model: Model, x, t: float, size: float, max_correction: float) 
         parts.append(f"{model.constraint_labels[k]} {state}")
     return ("one-sided constraints at the start: " + "; ".join(parts)
             + " (the two-sided ones are projected on)")
+
+
+# --- what a segment watches ------------------------------------------------------------------------
+
+class SegmentWatch:
+    """The events one segment of a hybrid run (constrained.run.hybrid) watches: each active
+    one-sided row's signed multiplier μ = side · λ (falling through zero: a release), each
+    free one-sided row's gap g = side · f (falling through zero: a contact), and the user's
+    events; the multipliers memoized (the driver evaluates every event function at the same
+    point).
+
+    A free row's gap is watched in one of three forms, so that a segment never ends on the
+    round-off of the transition that started it:
+
+    * a row that has just bounced off at speed w > 0: g(t) / (t − t0) → w (``_deflated_gap``);
+    * a row that starts the segment touching without bouncing (let go by the holding test, or
+      released by an impact): g(t) − min(g0, 0) + ρ, ρ the position round-off (``_lifting_gap``);
+    * any other row: g itself, its round-off at the start read as open (``_open_at_start``).
+    """
+
+    def __init__(self, model: Model, active: ActiveSet, user: list[Event], t0: float, x0,
+                 rebounding: dict[int, float] | None = None, *, touch: float = 0.0, round_off: float = 0.0):
+        info = one_sided(model)
+        self.model, self.active, self._memo, self.t0 = model, active, (None, None), t0
+        self.rebounding = rebounding or {}
+        s = scales(model, x0, t0)
+        g0 = gaps(model, x0, t0)
+        #: free rows that start the segment touching (|g0| within ``touch``, m: a row found
+        #: deeper is a landing the last segment missed, watched as g itself): each one's gap
+        #: at the start and the position round-off ρ (``round_off``, m) in the row's units
+        self.lifting = {k: (float(g0[k]), round_off * s[k]) for k in info.rows
+                        if k not in active.rows and k not in self.rebounding and abs(g0[k]) <= touch * s[k]}
+        self.events: list[Event] = []
+        self.meaning: list[tuple[str, int | None]] = []
+        for k in info.rows:
+            label = model.constraint_labels[k]
+            if k in active.rows:
+                self.events.append(Event(f"release {label}", self._mu(k), -1, True))
+                self.meaning.append(("release", k))
+            else:
+                self.events.append(Event(f"contact {label}", self._gap(k), -1, True))
+                self.meaning.append(("contact", k))
+        for e in user:
+            self.events.append(e)
+            self.meaning.append(("user", None))
+
+    def _multipliers(self, t, x, v):
+        key = (t, x.tobytes(), v.tobytes())
+        if self._memo[0] != key:
+            self._memo = (key, self.active.multipliers(x, v, t))
+        return self._memo[1]
+
+    def _open_at_start(self, value: float, t: float) -> float:
+        """At the segment's first instant a watched quantity is on its allowed side (the
+        transition made it so): its round-off is read as positive. Otherwise a rebound whose
+        whole flight fits in one step (a parabola is integrated exactly, in very long steps)
+        would show no sign change between the step's ends, and the landing would be missed."""
+        return max(abs(value), 1e-300) if t == self.t0 else value
+
+    def _mu(self, k):
+        side = one_sided(self.model).side[k]
+        return lambda t, x, v: self._open_at_start(side * self._multipliers(t, x, v)[k], t)
+
+    def _gap(self, k):
+        if k in self.rebounding:
+            return self._deflated_gap(k, self.rebounding[k])
+        if k in self.lifting:
+            return self._lifting_gap(k, *self.lifting[k])
+        return lambda t, x, v: self._open_at_start(gaps(self.model, x, t)[k], t)
+
+    def _lifting_gap(self, k, g0: float, rho: float):
+        """The gap of a free row that starts the segment touching (a contact the holding test
+        let go, a row released by an impact), as it opens from its start g0 (a round-off,
+        possibly below zero) with a margin of the position round-off ρ:
+
+            ĝ(t) = g(t) − min(g0, 0) + ρ.
+
+        Such a row leaves tangentially — g(t) − g0 = w (t − t0) + ½ g̈ (t − t0)² + … with w ≈ 0
+        — so g itself has a double zero at t0, and its round-off (a start 1e-16 m below zero,
+        or the dense output's) reads as a landing a moment after t0: a transition that changes
+        nothing, repeated without end. ĝ > 0 there; the row lands where its gap falls ρ below
+        where it started (ρ ~ 1e-13 m, the projections' tolerance)."""
+        below = min(g0, 0.0)
+        return lambda t, x, v: gaps(self.model, x, t)[k] - below + rho
+
+    def _deflated_gap(self, k, speed: float):
+        """The gap of a row that has just bounced off, divided by the time since: g(t) =
+        w (t − t0) − ½ |g̈| (t − t0)² + … vanishes at the impact instant t0 itself, where its
+        round-off (~1e-16 m) would read as a crossing a moment after t0 for a short flight;
+        g(t)/(t − t0) → w (the rebound speed, > 0) at t0 instead, and changes sign only where
+        the flight ends."""
+        t0 = self.t0
+
+        def deflated(t, x, v):
+            return speed if t <= t0 else gaps(self.model, x, t)[k] / (t - t0)
+
+        return deflated
+
+    def kind(self, event: Event) -> tuple[str, int | None]:
+        return self.meaning[self.events.index(event)]
