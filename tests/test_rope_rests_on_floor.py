@@ -1,5 +1,5 @@
 """The rope of test_rope_slams_floor with restitution 0: it lands and stays down, the beads near
-the kink lifting off and landing again as the hanging part pulls them (session 15: the run
+the kink lifting off and landing again as the hanging part pulls them (session 14: the run
 never ended).
 
 A bead stopped by a plastic impact that the rope then pulls up has a held force of the

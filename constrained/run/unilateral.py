@@ -344,6 +344,7 @@ class SegmentWatch:
                  rebounding: dict[int, float] | None = None, *, touch: float = 0.0, round_off: float = 0.0):
         info = one_sided(model)
         self.model, self.active, self._memo, self.t0 = model, active, (None, None), t0
+        self._gap_memo, self._rate_memo = (None, None), (None, None)
         self.rebounding = rebounding or {}
         s = scales(model, x0, t0)
         g0 = gaps(model, x0, t0)
@@ -360,7 +361,8 @@ class SegmentWatch:
                 self.events.append(Event(f"release {label}", self._mu(k), -1, True))
                 self.meaning.append(("release", k))
             else:
-                self.events.append(Event(f"contact {label}", self._gap(k), -1, True))
+                rate = None if k in self.rebounding else self._rate(k)
+                self.events.append(Event(f"contact {label}", self._gap(k), -1, True, rate=rate))
                 self.meaning.append(("contact", k))
         for e in user:
             self.events.append(e)
@@ -371,6 +373,29 @@ class SegmentWatch:
         if self._memo[0] != key:
             self._memo = (key, self.active.multipliers(x, v, t))
         return self._memo[1]
+
+    def _state_key(self, t, x, v=None) -> tuple:
+        return (t, x.tobytes(), None if v is None else v.tobytes())
+
+    def _gaps(self, t, x) -> np.ndarray:
+        """Every row's gap at (t, x), one evaluation for all of the rows' events."""
+        key = self._state_key(t, x)
+        if self._gap_memo[0] != key:
+            self._gap_memo = (key, gaps(self.model, x, t))
+        return self._gap_memo[1]
+
+    def _rate(self, k):
+        """dg/dt = side · (J v + f_t) of row k (``Event.rate``: a dip through the floor and
+        back within one step is found at its turn), one evaluation for all rows."""
+        side = one_sided(self.model).side[k]
+
+        def rate(t, x, v):
+            key = self._state_key(t, x, v)
+            if self._rate_memo[0] != key:
+                self._rate_memo = (key, constraint_velocities(self.model, x, v, t))
+            return side * self._rate_memo[1][k]
+
+        return rate
 
     def _open_at_start(self, value: float, t: float) -> float:
         """At the segment's first instant a watched quantity is on its allowed side (the
@@ -388,7 +413,7 @@ class SegmentWatch:
             return self._deflated_gap(k, self.rebounding[k])
         if k in self.lifting:
             return self._lifting_gap(k, *self.lifting[k])
-        return lambda t, x, v: self._open_at_start(gaps(self.model, x, t)[k], t)
+        return lambda t, x, v: self._open_at_start(self._gaps(t, x)[k], t)
 
     def _lifting_gap(self, k, g0: float, rho: float):
         """The gap of a free row that starts the segment touching (a contact the holding test
@@ -403,7 +428,7 @@ class SegmentWatch:
         nothing, repeated without end. ĝ > 0 there; the row lands where its gap falls ρ below
         where it started (ρ ~ 1e-13 m, the projections' tolerance)."""
         below = min(g0, 0.0)
-        return lambda t, x, v: gaps(self.model, x, t)[k] - below + rho
+        return lambda t, x, v: self._gaps(t, x)[k] - below + rho
 
     def _deflated_gap(self, k, speed: float):
         """The gap of a row that has just bounced off, divided by the time since: g(t) =
@@ -414,7 +439,7 @@ class SegmentWatch:
         t0 = self.t0
 
         def deflated(t, x, v):
-            return speed if t <= t0 else gaps(self.model, x, t)[k] / (t - t0)
+            return speed if t <= t0 else self._gaps(t, x)[k] / (t - t0)
 
         return deflated
 

@@ -89,6 +89,11 @@ class Event:
     a sign change between two values both within the run's resolution (how much g moves when
     the state moves by atol) is not a crossing: a quantity the constraints hold at zero only to
     round-off flips sign from sample to sample.
+
+    ``rate(t, x, v) -> dg/dt`` along the motion (optional; a falling event, direction −1): a g
+    that stays positive at both samples of a step but turns around between them (rate < 0
+    before, > 0 after: a bead that dips through a floor and comes back within one step) is
+    checked at its minimum on the dense output, and a minimum below zero is a crossing.
     """
 
     name: str
@@ -96,6 +101,7 @@ class Event:
     direction: int = 0
     terminal: bool = True
     ignore_round_off: bool = False
+    rate: Callable[[float, np.ndarray, np.ndarray], float] | None = None
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
-from .events import locate
+from .events import dip, locate
 from .stiffness import StiffnessWatch
 from .watches import CollapseWatch, SingularWatch, past_a_limit
 
@@ -68,6 +68,7 @@ class _Run:
         # with the event vx = 0): the run begins on it, which is not a crossing; its side is
         # that of its first nonzero value
         self.g_last = [_side(e.function(t0, x0, v0)) for e in self.events]
+        self.rate_last = [_rate(e, t0, x0, v0) for e in self.events]
         self.hits: list[EventHit] = []
         self.singular = SingularWatch(stepper.manifold, stepper.rows, stepper.singular_tol)
         self.collapse = CollapseWatch(t_end) if stepper.adaptive and stepper.dt is None else None
@@ -177,9 +178,18 @@ class _Run:
         crossed = [j for j, e in enumerate(self.events)
                    if self.g_last[j] is not None and e.crossed(self.g_last[j], g_now[j])
                    and not (e.ignore_round_off and self.round_off_flip(e, self.g_last[j], sample, g_now[j]))]
+        ends = {j: sample for j in crossed}
+        rate_now = [_rate(e, *sample) for e in self.events]
+        for j, e in enumerate(self.events):  # a dip through zero and back within the step
+            if (j not in ends and e.rate is not None and dense is not None and self.g_last[j] is not None
+                    and self.g_last[j] > 0 and g_now[j] > 0):
+                lowest = dip(e, self.last, sample, dense, self.rate_last[j], rate_now[j])
+                if lowest is not None:
+                    ends[j] = lowest
         self.g_last = [g if g != 0 or self.g_last[j] is not None else None for j, g in enumerate(g_now)]
-        found = sorted((locate(self.stepper, self.events[j], self.last, sample, dense) for j in crossed),
-                       key=lambda h: h.t)
+        self.rate_last = rate_now
+        found = sorted((locate(self.stepper, self.events[j], self.last, end, dense)
+                        for j, end in ends.items()), key=lambda h: h.t)
         for hit in found:
             self.hits.append(hit)
             if hit.event.terminal:
@@ -212,6 +222,11 @@ class _Run:
             advice += (f"; the fastest spring, '{e.label}' (effect {e.index}), has period {e.period:.3g} s"
                        + (f": {e.constraint_advice()}" if e.rigid_like else ""))
         diagnostics.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
+
+
+def _rate(event: Event, t: float, x, v) -> float:
+    """dg/dt of a falling event that has a ``rate`` (see Event), else NaN (never a turn)."""
+    return float(event.rate(t, x, v)) if event.rate is not None and event.direction == -1 else np.nan
 
 
 def step_samples(n_coordinates: int) -> int:

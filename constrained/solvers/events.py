@@ -76,6 +76,27 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
     return EventHit(event, float(best[0]), np.asarray(best[1]), np.asarray(best[2]))
 
 
+def dip(event: Event, before, after, dense, rate_before: float, rate_after: float):
+    """The state (t, x, v) at the minimum of a falling ``event``'s g between two samples where
+    g is positive at both, when g turns around between them (``event.rate`` < 0 before, > 0
+    after) and that minimum is below zero: the crossing then lies between ``before`` and it;
+    else None. The minimum is the rate's root on the dense output (brentq)."""
+    if event.rate is None or not (rate_before < 0 < rate_after):
+        return None
+    from scipy.optimize import brentq
+
+    ta, tb = before[0], after[0]
+    try:
+        t_min = brentq(lambda t: event.rate(t, *dense(t)), ta, tb, xtol=1e-15 * max(1.0, abs(tb)),
+                       rtol=BRENTQ_RTOL)
+    except ValueError:  # the interpolant's rate does not change sign: no turn to look at
+        return None
+    x, v = dense(t_min)
+    if not event.function(t_min, x, v) < 0:
+        return None
+    return (float(t_min), np.asarray(x), np.asarray(v))
+
+
 def _land(stepper: Solver, ta: float, xa, va, t1: float):
     """The method's state at t1, stepping from the accepted sample (ta, xa, va): a
     RuntimeError when it cannot (a failed step, more than LANDING_STEPS calls without
