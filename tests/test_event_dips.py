@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_rope_rests_on_floor import FLOOR, T_END, _rope_over_a_floor
 
 import constrained as C
 from constrained.solvers.base import Event
-from test_rope_rests_on_floor import FLOOR, T_END, _rope_over_a_floor
 
 Y0, VY0, G_UP = 0.001, -0.2, 9.81
 
