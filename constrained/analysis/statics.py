@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import casadi as ca
 import numpy as np
 
 from ..errors import InputError
@@ -31,6 +30,12 @@ from ..model import system as _system
 from ..model import velocity
 from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
+from ..threads import one_blas_thread
+from .statics_methods.descent import minimize_on_constraints
+from .statics_methods.kkt import IPOPT_CPU_S, IPOPT_ITERATIONS  # noqa: F401 (their home was here)
+from .statics_methods.kkt import KKT as _KKT
+from .statics_methods.kkt import ipopt_minimum as _ipopt
+from .statics_methods.kkt import newton as _newton
 
 #: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
 #: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
@@ -42,8 +47,6 @@ LENGTH_RTOL = 1e-12
 #: The largest KKT system (3N + C unknowns) the statics solve, all dense (0.3 GB a matrix at
 #: 6,000; a 3,000-bead chain, 15,000, took 11 GB and did not finish).
 MAX_UNKNOWNS = 6000
-#: IPOPT's budget (CPU seconds, iterations) after Newton failed: then the failure is reported.
-IPOPT_CPU_S, IPOPT_ITERATIONS = 30.0, 500
 
 __all__ = ["Equilibrium", "equilibrium", "virtual_work", "constraint_virtual_work_residual",
            "generalized_forces", "tangent_basis"]
@@ -85,7 +88,7 @@ class Equilibrium:
     stability_tolerance: float = 0.0
     tangent_basis: np.ndarray | None = None
     frequencies_squared: np.ndarray | None = None
-    method: str = "newton"
+    method: str = "newton"  #: what found it: "newton", "descent" (then Newton) or "ipopt" (then Newton)
     max_constraint_residual: float = 0.0
     #: One-sided constraint rows that do not hold at this equilibrium (their force would have
     #: the forbidden sign there; multiplier 0).
@@ -209,96 +212,6 @@ def _min_norm_multipliers(model: Model, J: np.ndarray, F: np.ndarray) -> np.ndar
     return schur_solve(J, model.inverse_masses, -J @ (model.inverse_masses * F))
 
 
-class _KKT:
-    """CasADi functions of the static problem of one model at a fixed t."""
-
-    def __init__(self, model: Model, t: float):
-        n3, C = model.n_coordinates, model.n_constraints
-        xs, lam = ca.SX.sym("x", n3), ca.SX.sym("lam", C)
-        F, J, _ = model.dynamics(xs, ca.SX.zeros(n3), t)
-        f = model.constraint(xs, t)
-        g = F + ca.mtimes(J.T, lam)  # force balance = −∇ₓ(V − λᵀf)
-        K = -ca.jacobian(g, xs)  # ∇²ₓ(V − λᵀf) for potential forces
-        r = ca.vertcat(g, f)
-        self.residual = ca.Function("kkt", [xs, lam], [r, ca.jacobian(r, ca.vertcat(xs, lam))])
-        self.stiffness = ca.Function("stiffness", [xs, lam], [K])
-        self.potential = ca.Function("V", [xs], [model.potential(xs, t)])
-        self.objective = model.potential(xs, t)
-        self.f = f
-        self.xs = xs
-        self.n3, self.C = n3, C
-
-    def residual_and_jacobian(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r, A = self.residual(z[: self.n3], z[self.n3 :])
-        return np.asarray(r, float).ravel(), np.asarray(A, float)
-
-
-def _newton(
-    kkt: _KKT, z: np.ndarray, w: np.ndarray, max_iter: int, restore=None
-) -> tuple[np.ndarray, int, bool]:
-    """Newton on the scaled KKT residual W r(z) = 0 with a backtracking line search on
-    ½‖W r‖², falling back to Levenberg–Marquardt steps when the Newton step does not descend.
-    Steps use least squares (minimum norm) so redundant constraints do no harm. ``restore``
-    maps each trial point back onto f = 0 (a second-order correction: without it the
-    curvature of the constraints forces tiny steps)."""
-    restore = restore or (lambda z: z)
-    z = restore(z)
-    r, A = kkt.residual_and_jacobian(z)
-    merit = 0.5 * float(np.sum((w * r) ** 2))
-    polish = 0
-    for it in range(1, max_iter + 1):
-        if not np.isfinite(merit):
-            return z, it, False
-        if np.all(np.abs(w * r) <= 1.0):
-            polish += 1  # within tolerance: a couple more steps take it to round-off
-            if polish > 2:
-                return z, it - 1, True
-        B = w[:, None] * A
-        b = w * r
-        dz, *_ = np.linalg.lstsq(B, -b, rcond=1e-14)
-        accepted = False
-        alpha = 1.0
-        while alpha >= 1e-4:
-            zn = restore(z + alpha * dz)
-            rn, An = kkt.residual_and_jacobian(zn)
-            mn = 0.5 * float(np.sum((w * rn) ** 2))
-            if np.isfinite(mn) and mn <= (1.0 - 1e-4 * alpha) * merit:
-                accepted = True
-                break
-            alpha *= 0.5
-        if not accepted:
-            # Levenberg–Marquardt: (BᵀB + μI) dz = −Bᵀb, μ grown until the merit decreases
-            BtB, Btb = B.T @ B, B.T @ b
-            mu = 1e-6 * max(float(np.max(np.diag(BtB))), 1e-300)
-            for _ in range(16):
-                dz = np.linalg.solve(BtB + mu * np.eye(len(z)), -Btb)
-                zn = restore(z + dz)
-                rn, An = kkt.residual_and_jacobian(zn)
-                mn = 0.5 * float(np.sum((w * rn) ** 2))
-                if np.isfinite(mn) and mn < merit:
-                    accepted = True
-                    break
-                mu *= 10.0
-        if not accepted:
-            return z, it, bool(np.all(np.abs(w * r) <= 1.0))
-        z, r, A, merit = zn, rn, An, mn
-    return z, max_iter, bool(np.all(np.abs(w * r) <= 1.0))
-
-
-def _ipopt(kkt: _KKT, x0: np.ndarray) -> np.ndarray | None:
-    """A constrained minimum of V near x0 (IPOPT), or None when IPOPT fails."""
-    try:
-        nlp = {"x": kkt.xs, "f": kkt.objective, "g": kkt.f}
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-12,
-                "ipopt.max_cpu_time": IPOPT_CPU_S, "ipopt.max_iter": IPOPT_ITERATIONS}
-        solver = ca.nlpsol("statics", "ipopt", nlp, opts)
-        sol = solver(x0=x0, lbg=0, ubg=0)
-        x = np.asarray(sol["x"], float).ravel()
-        return x if np.all(np.isfinite(x)) else None
-    except RuntimeError:
-        return None
-
-
 def _anchor_reactions(model: Model, J: np.ndarray, lam: np.ndarray) -> list[tuple[str, np.ndarray]]:
     """Support forces of the constraint rows that tie particles to the environment.
 
@@ -358,16 +271,24 @@ def equilibrium(
 
     ``method``: ``"newton"`` (Newton on the KKT conditions with a line search; finds any
     stationary point, also unstable ones, near the guess), ``"ipopt"`` (a constrained minimum
-    of V by IPOPT, then Newton polish; potential forces only), ``"auto"`` (Newton, then IPOPT
-    if Newton fails). Multipliers are the minimum-norm solution of Jᵀλ = −F (redundant
-    constraints share the load). Raises InputError naming the largest residual when no
-    equilibrium is found.
+    of V by IPOPT, then Newton polish; potential forces only), ``"auto"`` (Newton; if it fails
+    and the forces have a potential, a trust-region descent of V that stays on the constraints,
+    statics_methods.descent, then Newton polish: ``method`` "descent" in the result; IPOPT last,
+    unless the descent found V falling away without bound). Multipliers are the minimum-norm
+    solution of Jᵀλ = −F (redundant constraints share the load). Raises InputError naming the
+    largest residual when no equilibrium is found.
 
     One-sided constraints (constrained.unilateral) hold only where their force has the
     allowed sign: starting from the rows touching at the guess, a row pulling (pushing) the
     wrong way is dropped and a slack row that the equilibrium would violate is added, until
     both hold; ``slack`` names the one-sided rows that do not hold (multiplier 0)."""
     _system.require_system(system, "equilibrium")
+    with one_blas_thread():  # constrained/threads.py: spin-waiting BLAS threads cost more than they give
+        return _equilibrium_one_sided(system, x_guess, t, method, max_iter, stability_rtol, model)
+
+
+def _equilibrium_one_sided(system, x_guess, t, method, max_iter, stability_rtol, model) -> Equilibrium:
+    """``equilibrium``, its one-sided constraints held or slack by an active-set loop."""
     model = model or (assemble(system) if system.n_particles else None)
     if model is None or not has_one_sided(model):
         return _equilibrium(system, x_guess, t, method=method, max_iter=max_iter,
@@ -444,26 +365,33 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
             Fr, Jr = _forces_at_rest(model, xr, t)
             return np.concatenate([xr, _min_norm_multipliers(model, Jr, Fr)])
 
-    used = "newton"
+    used, why, descent = "newton", "", None
     iterations, converged, z = 0, False, np.concatenate([x0, lam0])
     if method in ("auto", "newton"):
         z, iterations, converged = _newton(kkt, np.concatenate([x0, lam0]), w, max_iter, restore)
-    if not converged and method in ("auto", "ipopt"):
-        conservative_only = not ({"applied_force", "generalized_potential"} & model.active_terms)
-        if conservative_only:
-            xi = _ipopt(kkt, x0)
-            Fi, Ji = _forces_at_rest(model, xi, t) if xi is not None else (None, None)
-            # (IPOPT may end where a gradient is 0/0, after V ran downhill without bound)
-            if xi is not None and np.all(np.isfinite(Fi)) and np.all(np.isfinite(Ji)):
-                zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
-                zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
-                if conv2 or method == "ipopt":
-                    z, iterations, converged, used = zi, iterations + it2, conv2, "ipopt"
+    conservative_only = not ({"applied_force", "generalized_potential"} & model.active_terms)
+    if not converged and method == "auto" and conservative_only:  # descend V on the constraints
+        descent = minimize_on_constraints(model, kkt, manifold, x0, t, size, force_scale)
+        zd, it2 = restore(np.concatenate([descent.x, lam0])), 0
+        if descent.reason in ("minimum", "stalled", "budget"):  # (where Newton may finish)
+            zd, it2, converged = _newton(kkt, zd, w, max_iter, restore)
+        iterations += descent.iterations + it2
+        z, used, why = (zd, "descent", "") if converged else (z, used, f" ({descent.explanation()})")
+    unbounded = descent is not None and descent.reason == "far"  # (IPOPT would only chase it)
+    if not converged and method in ("auto", "ipopt") and conservative_only and not unbounded:
+        xi = _ipopt(kkt, x0)
+        Fi, Ji = _forces_at_rest(model, xi, t) if xi is not None else (None, None)
+        # (IPOPT may end where a gradient is 0/0, after V ran downhill without bound)
+        if xi is not None and np.all(np.isfinite(Fi)) and np.all(np.isfinite(Ji)):
+            zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
+            zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
+            if conv2 or method == "ipopt":
+                z, iterations, converged, used = zi, iterations + it2, conv2, "ipopt"
     r, _ = kkt.residual_and_jacobian(z)
     if not converged or not np.all(np.isfinite(z)):
         raise InputError(
             f"no static equilibrium found near the guess after {iterations} iterations: "
-            f"{_worst_residual(model, r, w, size)}; try another starting configuration (x_guess, or the "
+            f"{_worst_residual(model, r, w, size)}{why}; try another starting configuration (x_guess, or the "
             "particles' positions), or check that the forces can be balanced by the constraints"
         )
     x = z[:n3]
