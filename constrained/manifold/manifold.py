@@ -160,6 +160,26 @@ def sparse_jacobian(model: Model):
     return lambda x, t: ca.DM(sparsity, nonzeros(np.asarray(x, float).ravel(), t)[0])
 
 
+def potential_forces_finite(model: Model):
+    """``(x, v, t) -> bool`` for a large model (the vectorized build) whose effects are
+    potentials alone: whether F = −∂V/∂x and the energy T + V are finite there. Every term's
+    value and gradient then are (a sum of numbers is finite only when each is: an infinity
+    stays one, or meets its opposite in a NaN), so the per-effect check need not be built."""
+    def build(view, X, V, T, P):
+        F = view._at(X, V, T, (), forces_too=True)["F"]
+        return ca.Function("start_forces", [X, V, T, P], [ca.densify(F), view.energy(X, V, T)])
+
+    values = structural_call(model, "start_forces", build, "x", "v", "t")
+
+    def finite(x, v, t) -> bool:
+        with np.errstate(all="ignore"):
+            F, E = (np.asarray(out, float) for out in values(np.asarray(x, float).ravel(),
+                                                             np.asarray(v, float).ravel(), t))
+        return bool(np.all(np.isfinite(F)) and np.all(np.isfinite(E)))
+
+    return finite
+
+
 def dynamics_values(model: Model):
     """``(x, v, t) -> (F, J, γ)`` (F and γ flat NumPy, J a sparse CasADi DM) with the model's
     parameter values: the Model's ``dynamics``, or for a large model the vectorized build."""

@@ -51,7 +51,7 @@ def _bad_rows(matrix: ca.DM) -> np.ndarray:
 
 def undefined_items(system: System, t0: float, built: tuple[Symbols, dict] | None = None, *,
                     structure: Structure | None = None, numbers: np.ndarray | None = None,
-                    jacobian=None) -> list[tuple[str, int, object]]:
+                    jacobian=None, effects_finite: bool = False) -> list[tuple[str, int, object]]:
     """(section, index, item) of each constraint ("constraints") and effect ("effects") whose
     value or gradient is not finite at the system's initial state (positions, velocities) and
     time t0, in scene order. ``built``: the Symbols and {(section, index): rows or term}
@@ -59,9 +59,11 @@ def undefined_items(system: System, t0: float, built: tuple[Symbols, dict] | Non
     ``structure`` (and the system's plain ``numbers``, constrained.lifting): the system's
     Structure, whose expressions are used instead (nothing built per call); ``jacobian``:
     ``(x, t) -> (f, J)`` of the constraint rows to use instead of the Structure's (a large
-    model's vectorized build)."""
+    model's vectorized build); ``effects_finite``: the effects' values and gradients are known
+    to be finite there (a large model's potentials, ``manifold.potential_forces_finite``), so
+    they are not checked one by one."""
     if structure is not None:
-        return _undefined_in(system, t0, structure, numbers, jacobian)
+        return _undefined_in(system, t0, structure, numbers, jacobian, effects_finite)
     s, done = built if built is not None else (Symbols(system), {})
     items, constraint_values, effect_values = [], [], []
     owner_c, owner_e = [], []  # row of the stacked vector -> index into items
@@ -105,12 +107,13 @@ def _start_check(structure: Structure) -> tuple[ca.Function, np.ndarray]:
     return built_once(structure, "start check", build)
 
 
-def _undefined_in(system: System, t0: float, structure: Structure, numbers, jacobian=None) -> list:
+def _undefined_in(system: System, t0: float, structure: Structure, numbers, jacobian=None,
+                  effects_finite: bool = False) -> list:
     numbers = lifting.numbers(system) if numbers is None else numbers
     p = np.concatenate([[system.parameters[k] for k in structure.parameter_names], numbers])
     x0 = np.asarray(system.positions, float).reshape(-1)
     v0 = np.asarray(system.velocities, float).reshape(-1)
-    effects, owner_e = _start_check(structure)
+    effects, owner_e = (None, np.zeros(0, int)) if effects_finite else _start_check(structure)
     with np.errstate(all="ignore"):
         bad = set()
         if structure.n_constraints:  # f and J, then the velocity level [J; A], [f_t; b]

@@ -11,7 +11,7 @@ import functools
 import numpy as np
 
 from ..errors import InputError
-from ..manifold.manifold import constraint_values, sparse_jacobian
+from ..manifold.manifold import constraint_values, potential_forces_finite, sparse_jacobian
 from ..manifold.vectorized import graphs as vectorized
 from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
@@ -387,12 +387,17 @@ class SceneBuilder(RunSections):
         (constrained.regularity: one sparse evaluation for the whole system, of a Function
         built once per structure). ``structure``: ``(Structure, numbers)`` of the system."""
         structure, numbers = structure if structure is not None else self.structure(system)
-        jacobian = None
+        jacobian, effects_finite = None, False
         model = Model(system, structure=structure, numbers=numbers)
         if vectorized.applies(model):  # large: the run's vectorized build, not an SX Jacobian
             f, J = constraint_values(model), sparse_jacobian(model)
             jacobian = lambda x, t: (f(x, t)[0], J(x, t))  # noqa: E731
-        undefined = undefined_items(system, t0, structure=structure, numbers=numbers, jacobian=jacobian)
+            # potentials alone: one evaluation of F and V says whether every effect is finite
+            # (a term and its gradient per effect in SX: 0.4 s for a cloth's 19,602 springs)
+            if structure.active_terms <= {"constraints", "rheonomic", "potential", "time_dependent_forces"}:
+                effects_finite = potential_forces_finite(model)(system.positions, system.velocities, t0)
+        undefined = undefined_items(system, t0, structure=structure, numbers=numbers, jacobian=jacobian,
+                                    effects_finite=effects_finite)
         for section, i, obj in undefined[:1]:
             what = "constraint" if section == "constraints" else "effect"
             self.fail(_join(section, i), f"this {what} ({obj.label}) is undefined at the initial state "
