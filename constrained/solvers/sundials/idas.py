@@ -38,7 +38,7 @@ from .messages import quiet
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
 #: at 100; a default grid of 201 is one call), growing 4x while calls take under 1/16 of
-#: CALL_SECONDS (2x under it) and halving above twice it, so that progress, the watches and the
+#: CALL_SECONDS (2x under 1/4) and halving above it, so that progress, the watches and the
 #: step limit are honoured between calls of a long run; Ctrl-C reaches inside a call
 #: (``interrupt.external``); a failing call is retried in halves (it loses one interval).
 FIRST_CALL_OUTPUTS = 200
@@ -95,9 +95,9 @@ class CallSize:
                 self.size *= 8
         elif seconds < CALL_SECONDS / 16:
             self.size *= 4
-        elif seconds < CALL_SECONDS:
+        elif seconds < CALL_SECONDS / 4:
             self.size *= 2
-        elif seconds > 2 * CALL_SECONDS:
+        elif seconds > CALL_SECONDS:
             self.size = max(1, self.size // 2)
 
     def retry_smaller(self, covered: int, seconds: float, by_steps: bool = False) -> bool:
