@@ -25,8 +25,8 @@ from .figure_style import (
     AXES,
     EVENT_COLOURS,
     MAX_MARKED_EVENTS,
-    colour,
     constraint_labels,
+    curves,
     finite_samples,
     fmt_vec,
     legend,
@@ -55,11 +55,7 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         # coordinate planes keep the raw coordinates; a general plane is centred at the origin
         shift = np.zeros(3) if coordinate_plane else origin
         q = (x - shift) @ basis.T  # (T, N, 2)
-        for i in range(len(names)):
-            (line,) = ax.plot(q[:, i, 0], q[:, i, 1], color=colour(i), lw=1.5)
-            ax.plot(*q[0, i], "o", color=colour(i), ms=7, mfc="white", mew=1.8)
-            ax.plot(*q[-1, i], "s", color=colour(i), ms=6)
-            handles.append(line)
+        handles = curves(ax, q.transpose(1, 0, 2), ends=True)
         for e in traj.events[:MAX_MARKED_EVENTS]:
             at = (np.asarray(e.x, float) - shift) @ basis.T
             ax.plot(at[:, 0], at[:, 1], "x", color=EVENT_COLOURS.get(e.kind, "0.45"), ms=7, mew=1.6)
@@ -78,12 +74,7 @@ def trajectory_figure(traj: Trajectory) -> Figure:
         ax.set_title(f"Particle paths\n{where}", fontsize="medium")
     else:
         ax = fig.add_subplot(projection="3d")
-        for i in range(len(names)):
-            p = x[:, i]
-            (line,) = ax.plot(p[:, 0], p[:, 1], p[:, 2], color=colour(i), lw=1.5)
-            ax.plot(*p[0][:, None], "o", color=colour(i), ms=7, mfc="white", mew=1.8)
-            ax.plot(*p[-1][:, None], "s", color=colour(i), ms=6)
-            handles.append(line)
+        handles = curves(ax, x.transpose(1, 0, 2), ends=True)
         for e in traj.events[:MAX_MARKED_EVENTS]:
             at = np.asarray(e.x, float)
             ax.plot(at[:, 0], at[:, 1], at[:, 2], "x", color=EVENT_COLOURS.get(e.kind, "0.45"), ms=7, mew=1.6)
@@ -232,9 +223,7 @@ def constraint_forces_figure(traj: Trajectory) -> Figure:
     names = particle_names(traj)
     fig = new_figure()
     ax = fig.add_subplot()
-    handles = [
-        ax.plot(t, magnitude[:, i], color=colour(i), lw=1.3)[0] for i in range(len(names))
-    ]
+    handles = curves(ax, np.stack(np.broadcast_arrays(t[None, :], magnitude.T), axis=-1), lw=1.3)
     time_axis(ax, traj)
     ax.set_ylabel("|F$_{con}$| [N]")
     ax.set_ylim(bottom=0.0)
@@ -251,7 +240,7 @@ def multipliers_figure(traj: Trajectory) -> Figure:
     labels = constraint_labels(traj, lam.shape[1])
     fig = new_figure()
     ax = fig.add_subplot()
-    handles = [ax.plot(t, lam[:, k], color=colour(k), lw=1.3)[0] for k in range(lam.shape[1])]
+    handles = curves(ax, np.stack(np.broadcast_arrays(t[None, :], lam.T), axis=-1), lw=1.3)
     ax.axhline(0.0, color="0.5", lw=0.8, ls="--")
     time_axis(ax, traj)
     ax.set_ylabel("λ [N] (for constraints f in m)")
