@@ -71,3 +71,20 @@ def test_a_few_curves_keep_one_line_each():
     tr = _rope(n=5)
     ax = plot.trajectory_figure(tr).axes[0]
     assert not ax.collections and len([line for line in ax.lines if len(line.get_xdata()) > 1]) == 5
+
+
+def test_an_animation_of_many_particles_moves_a_few_artists_with_every_particle():
+    """A frame of a 3,000-bead rope's GIF updated 9,000 artists (51 s for 65 frames): from
+    MANY_CURVES particles the trails and dots are one artist per colour and the rods one."""
+    from constrained.output.animation import animation_parts, resample
+
+    tr = _rope()
+    fig, draw, n_frames = animation_parts(tr, None, forces=False, max_frames=12)
+    k = n_frames - 1
+    changed = draw(k)
+    assert len(changed) <= 25  # (10 trails, 10 dots, the rods, the title: not 3 per particle)
+    times = np.linspace(tr.t[0], tr.t[-1], n_frames)
+    q = resample(tr.t, tr.x, times)[k, :, :2]
+    dots = {tuple(np.round(p, 12)) for line in fig.axes[0].lines if line.get_marker() == "o"
+            for p in np.column_stack(line.get_data())}
+    assert dots >= {tuple(np.round(p, 12)) for p in q}  # every particle's dot where it is

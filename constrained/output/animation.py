@@ -30,7 +30,7 @@ from matplotlib.lines import Line2D
 from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the "3d" projection)
 
 from ..run.trajectory import Trajectory, file_mode
-from .figure_style import MAX_LEGEND, colour, legend, motion_plane, particle_names
+from .figure_style import MANY_CURVES, MAX_LEGEND, colour, curves, legend, motion_plane, particle_names
 
 #: Most frames an animation gets (the trajectory is resampled uniformly in time).
 MAX_FRAMES = 120
@@ -139,20 +139,40 @@ def animation_parts(traj: Trajectory, system, forces: bool, max_frames: int, fra
         ax.set_box_aspect([max(h - l_, 0.05 * size) for l_, h in limits], zoom=0.85)
     else:
         ax.grid(True, alpha=0.3)
-    # the whole path, faint
-    for i in range(len(names)):
-        ax.plot(*[path[:, i, k] for k in range(dim)], color=colour(i), lw=0.6, alpha=0.25)
+    # the whole path, faint (limits kept: they are set above)
+    limits_now = (ax.get_xlim(), ax.get_ylim(), ax.get_zlim() if dim == 3 else None)
+    curves(ax, path.transpose(1, 0, 2), lw=0.6, alpha=0.25)
+    ax.set_xlim(*limits_now[0])
+    ax.set_ylim(*limits_now[1])
+    if dim == 3:
+        ax.set_zlim(*limits_now[2])
     _draw_pivot_circles(ax, dim, plane, anchors, anchor_q, size, limits)
     moving_clouds, cloud_artists = (_draw_clouds(ax, system, names, times, x, plane, project, dim, size)
                                     if system is not None else ([], []))
     trail_len = max(1, n_frames // 4)
+    # one trail and one dot artist per particle; from MANY_CURVES particles one per colour, the
+    # particles of a colour drawn as one line broken by NaN (and the rods as one): a frame of a
+    # 3,000-bead rope updated 9,000 artists (51 s for the GIF)
+    many = len(names) >= MANY_CURVES
+    groups = ([np.arange(c, len(names), 10) for c in range(10)] if many
+              else [np.array([i]) for i in range(len(names))])
     trails, dots = [], []
-    for i in range(len(names)):
-        (trail,) = ax.plot(*([[]] * dim), color=colour(i), lw=1.2, alpha=0.7)
-        (dot,) = ax.plot(*([[]] * dim), "o", color=colour(i), ms=8, alpha=0.9, label=names[i], zorder=3)
+    for g in groups:
+        (trail,) = ax.plot(*([[]] * dim), color=colour(int(g[0])), lw=1.2, alpha=0.7)
+        (dot,) = ax.plot(*([[]] * dim), "o", color=colour(int(g[0])), ms=8, alpha=0.9, linestyle="none",
+                         label=names[int(g[0])], zorder=3)
         trails.append(trail)
         dots.append(dot)
-    rods = [ax.plot(*([[]] * dim), color="0.25", lw=2.0)[0] for _ in pairs + anchors]
+    if many:  # legend entries: a proxy per particle named (the artists are per colour)
+        named = [Line2D([], [], marker="o", color=colour(i), ms=8, alpha=0.9, linestyle="none")
+                 for i in range(MAX_LEGEND)]
+        dots_legend = named + [None] * (len(names) - MAX_LEGEND)
+    else:
+        dots_legend = dots
+    rods = ([ax.plot(*([[]] * dim), color="0.25", lw=2.0)[0]] if many and pairs + anchors
+            else [ax.plot(*([[]] * dim), color="0.25", lw=2.0)[0] for _ in pairs + anchors])
+    rod_ends = np.array([(i, j) for i, j in pairs] + [(i, -1 - a) for a, (i, _, _) in enumerate(anchors)],
+                        dtype=int).reshape(-1, 2)
     for p in anchor_q:
         ax.plot(*[[c] for c in p], "k^", ms=8)
     fq = None if f is None else (f @ basis.T if dim == 2 else f)  # forces are directions: no shift
@@ -161,7 +181,7 @@ def animation_parts(traj: Trajectory, system, forces: bool, max_frames: int, fra
     title = ax.set_title("", fontsize="medium")
     # drawn once (static): the GIF's speed, bottom left
     fig.text(0.01, 0.01, f"GIF {speed_note(span, n_frames, frame_ms)}", fontsize="small", color="0.3")
-    handles, labels = [*dots, *cloud_artists], [*names, *(a.get_label() for a in cloud_artists)]
+    handles, labels = [*dots_legend, *cloud_artists], [*names, *(a.get_label() for a in cloud_artists)]
     if arrows_on:
         handles.append(Line2D([], [], color="C3", lw=2))
         labels.append("constraint force (arrows scaled per frame)")
@@ -198,13 +218,18 @@ def animation_parts(traj: Trajectory, system, forces: bool, max_frames: int, fra
         for a_ in arrows:
             a_.remove()
         arrows.clear()
-        for i in range(len(names)):
-            set_line(trails[i], q[max(0, k - trail_len) : k + 1, i])
-            set_line(dots[i], q[k, i])
-        for rod, (i, j) in zip(rods, pairs, strict=False):
-            set_line(rod, np.stack([q[k, i], q[k, j]]))
-        for rod, (i, _, _), p in zip(rods[len(pairs):], anchors, anchor_q, strict=True):
-            set_line(rod, np.stack([p, q[k, i]]))
+        recent = q[max(0, k - trail_len) : k + 1]  # (L, N, dim)
+        for g, trail, dot in zip(groups, trails, dots, strict=True):
+            set_line(trail, _broken(recent[:, g].transpose(1, 0, 2)))
+            set_line(dot, q[k, g])
+        if many and len(rod_ends):
+            ends = np.vstack([q[k], np.asarray(anchor_q[::-1], float).reshape(-1, dim)])  # anchor a: -1 - a
+            set_line(rods[0], _broken(ends[rod_ends]))
+        elif not many:
+            for rod, (i, j) in zip(rods, pairs, strict=False):
+                set_line(rod, np.stack([q[k, i], q[k, j]]))
+            for rod, (i, _, _), p in zip(rods[len(pairs):], anchors, anchor_q, strict=True):
+                set_line(rod, np.stack([p, q[k, i]]))
         changed = [cloud.show(k) for cloud in moving_clouds]
         text = f"t = {times[k]:.3f} s"
         if arrows_on:
@@ -221,6 +246,13 @@ def animation_parts(traj: Trajectory, system, forces: bool, max_frames: int, fra
         return [*changed, *trails, *rods, *dots, *([quiver] if quiver is not None else []), *arrows, title]
 
     return fig, draw, n_frames
+
+
+def _broken(lines: np.ndarray) -> np.ndarray:
+    """The polylines ``lines`` (n, L, dim) as one array of points with a NaN row after each,
+    which a Line2D draws as n separate pieces."""
+    n, _, dim = lines.shape
+    return np.concatenate([lines, np.full((n, 1, dim), np.nan)], axis=1).reshape(-1, dim)
 
 
 def _draw_pivot_circles(ax, dim, plane, anchors, anchor_q, size, limits) -> None:

@@ -46,7 +46,7 @@ def colour(i: int) -> str:
 MANY_CURVES = 64
 
 
-def curves(ax, paths: np.ndarray, *, lw: float = 1.5, ends: bool = False) -> list:
+def curves(ax, paths: np.ndarray, *, lw: float = 1.5, ends: bool = False, alpha: float = 1.0) -> list:
     """Draw the curves ``paths`` (n, T, 2) — or (n, T, 3) on 3D axes — in the colours
     ``colour(i)``, with a start circle and an end square each when ``ends``; return one legend
     handle per curve (a proxy line of its colour where the curves are one collection)."""
@@ -55,7 +55,7 @@ def curves(ax, paths: np.ndarray, *, lw: float = 1.5, ends: bool = False) -> lis
     if n < MANY_CURVES:
         handles = []
         for i, p in enumerate(paths):
-            (line,) = ax.plot(*p.T, color=colour(i), lw=lw)
+            (line,) = ax.plot(*p.T, color=colour(i), lw=lw, alpha=alpha)
             if ends:
                 ax.plot(*p[0][:, None], "o", color=colour(i), ms=7, mfc="white", mew=1.8)
                 ax.plot(*p[-1][:, None], "s", color=colour(i), ms=6)
@@ -65,11 +65,11 @@ def curves(ax, paths: np.ndarray, *, lw: float = 1.5, ends: bool = False) -> lis
     if three_d:
         from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-        ax.add_collection3d(Line3DCollection(paths, colors=colours, linewidths=lw))
+        ax.add_collection3d(Line3DCollection(paths, colors=colours, linewidths=lw, alpha=alpha))
     else:
         from matplotlib.collections import LineCollection
 
-        ax.add_collection(LineCollection(paths, colors=colours, linewidths=lw))
+        ax.add_collection(LineCollection(paths, colors=colours, linewidths=lw, alpha=alpha))
     finite = paths.reshape(-1, paths.shape[-1])
     finite = finite[np.all(np.isfinite(finite), axis=1)]
     if len(finite):  # (a collection does not move the data limits)
