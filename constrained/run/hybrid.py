@@ -43,6 +43,7 @@ from ..model.held import held
 from ..model.structure import Model
 from ..solvers import METHODS
 from ..solvers.base import Failure, Status
+from ..solvers.driver import same_instant
 from .action_integral import action
 from .event_records import EventRecord
 from .quantities import constraint_forces_along, trajectory_from
@@ -195,6 +196,9 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
             X.append(xk)
             V.append(vk)
         terminal = next((h for h in hits if h.event.terminal), None)
+        if terminal is not None:  # a user's stop at the instant of a contact or release: a stop
+            terminal = next((h for h in hits if h.event.terminal and watch.kind(h.event)[0] == "user"
+                             and h.t <= same_instant(terminal.t)), terminal)
         t_stop = terminal.t if terminal is not None else float(t_end)
         segments.append((start, len(T), active.rows, t, t_stop))
         for h in hits:

@@ -372,8 +372,10 @@ class SegmentWatch:
                 self.events.append(Event(f"release {label}", self._mu(k), -1, True))
                 self.meaning.append(("release", k))
             else:
-                rate = None if k in self.rebounding else self._rate(k)
-                self.events.append(Event(f"contact {label}", self._gap(k), -1, True, rate=rate))
+                # (a rebounding row's deflated gap has the sign of g − min(g0, 0) after t0, so
+                # the rate's root, the minimum of g, shows its dip too: a bead bouncing off a
+                # ball, falling back through it and out within one step)
+                self.events.append(Event(f"contact {label}", self._gap(k), -1, True, rate=self._rate(k)))
                 self.meaning.append(("contact", k))
         for e in user:
             self.events.append(e)
