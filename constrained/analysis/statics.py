@@ -29,13 +29,14 @@ from ..manifold.manifold import Manifold
 from ..model import system as _system
 from ..model import velocity
 from ..model.structure import Model, assemble
-from ..run.unilateral import gaps, has_one_sided, held_system, one_sided, scales, statics_active_set
+from ..run.unilateral import gaps, has_one_sided, one_sided, scales
 from ..threads import one_blas_thread
 from .statics_methods.descent import minimize_on_constraints
 from .statics_methods.kkt import IPOPT_CPU_S, IPOPT_ITERATIONS  # noqa: F401 (their home was here)
 from .statics_methods.kkt import KKT as _KKT
 from .statics_methods.kkt import ipopt_minimum as _ipopt
 from .statics_methods.kkt import newton as _newton
+from .statics_methods.one_sided import held_system, statics_active_set
 
 #: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
 #: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string

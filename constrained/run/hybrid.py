@@ -43,12 +43,15 @@ from ..model.held import held
 from ..model.structure import Model
 from ..solvers import METHODS
 from ..solvers.base import Failure, Status
+from ..solvers.driver import same_instant
 from .action_integral import action
 from .event_records import EventRecord
 from .quantities import constraint_forces_along, trajectory_from
 from .trajectory import Trajectory
 from .unilateral import (
+    MAX_IMPACT_ROUNDS,
     ActiveSet,
+    ImpactHistory,
     SegmentWatch,
     check_allowed_side,
     constraint_velocities,
@@ -57,14 +60,13 @@ from .unilateral import (
     impact,
     one_sided,
     scales,
+    unloaded_rows,
 )
 
 #: Default rest speed = this × atol (m/s): rebounds slower than that settle (see the module).
 REST_SPEED_PER_ATOL = 1e3
 #: Events a run may have before it is stopped as chattering.
 MAX_EVENTS = 10_000
-#: A Zeno sequence: the last impact intervals' ratios agree to this fraction.
-ZENO_RATIO_SPREAD = 0.05
 #: A Zeno sequence settles when its accumulation point is nearer than this (s; or 1000 ε |t_end|
 #: when larger): flights much shorter than that are below what a gap of round-off 1e-16 m (and
 #: an event instant of round-off ε |t|) resolves, and all the remaining bounces fit in it.
@@ -154,15 +156,19 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     g = gaps(model, x, t) / scales(model, x, t)
     rows = [k for k in range(model.n_constraints) if k not in info.rows or g[k] <= touch]
     x_given, v_given = x, v
-    x, v, err = ActiveSet(model, rows).project(x, v, t, tol)
+    x, _, err = ActiveSet(model, rows).project(x, v, t, tol)
+    # velocities onto the two-sided rows only: a touching one-sided row's approach is an
+    # impact at the start, its separation a lift-off (_transition), not a correction
+    two_sided = [k for k in rows if k not in info.rows]
+    v = ActiveSet(model, two_sided).manifold.project_velocities(x, v, t) if two_sided else np.array(v)
     _check_start(model, x_given, x, t, rows, err, size, max_correction)
     start_correction = (float(np.max(np.abs(x - x_given), initial=0.0)),
                         float(np.max(np.abs(v - v_given), initial=0.0)))
     touching = [k for k in info.rows if k in rows]
     rows = [k for k in rows if k not in touching]
-    history = _Impacts(max(ZENO_TIME, 1e3 * np.finfo(float).eps * abs(t_end)))
+    history = ImpactHistory(max(ZENO_TIME, 1e3 * np.finfo(float).eps * abs(t_end)))
     active, x, v, rebounding = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True,
-                                           history=history)
+                                           history=history, touch=touch)
 
     T, X, V, segments = [], [], [], []
     grid = None if t_eval is None else np.asarray(t_eval, float)
@@ -183,11 +189,16 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
             ts, xs, vs = ts[1:], xs[1:], vs[1:]
         start = len(T)
         for tk, xk, vk in zip(ts, xs, vs, strict=True):
+            if T and tk <= T[-1]:  # a segment of zero length (an event at its start): no new sample
+                continue
             xk, vk, _ = active.project(xk, vk, tk, tol)
             T.append(float(tk))
             X.append(xk)
             V.append(vk)
         terminal = next((h for h in hits if h.event.terminal), None)
+        if terminal is not None:  # a user's stop at the instant of a contact or release: a stop
+            terminal = next((h for h in hits if h.event.terminal and watch.kind(h.event)[0] == "user"
+                             and h.t <= same_instant(terminal.t)), terminal)
         t_stop = terminal.t if terminal is not None else float(t_end)
         segments.append((start, len(T), active.rows, t, t_stop))
         for h in hits:
@@ -215,7 +226,7 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
         closing = [row] if kind == "contact" else []
         closing += _also_closing(model, x, v, t, active.rows, closing, touch)
         active, x, v, rebounding = _transition(model, x, v, t, held, closing, rest, tol, record,
-                                               history=history)
+                                               history=history, touch=touch)
         ended[model.constraint_labels[row]] = ended.get(model.constraint_labels[row], 0) + 1
         if len(records) > max_events or len(segments) > max_events:
             failure = _chattering(records, ended, max_events, t)
@@ -273,10 +284,16 @@ def _check_start(model: Model, x_given, x, t, rows, err, size, max_correction) -
 
 
 def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_start=False,
-                history: _Impacts | None = None):
-    """Rows ``closing`` meet the state at t while ``held`` are held: impact (with the rest
+                history: ImpactHistory | None = None, touch: float = 0.0):
+    """Rows ``closing`` meet the state at t while ``held`` are held: impacts (with the rest
     rule), then the holding test; returns (the new ActiveSet, x, v, the rows that bounced off
-    with their rebound speeds g' > 0 in the row's own units per second)."""
+    with their rebound speeds g' > 0 in the row's own units per second).
+
+    The impacts at one instant are resolved **in turn** (Newton's cradle): the rows closing
+    take the first impulse, with every held row that carries a load kept rigid; a one-sided row
+    that touches without load (free within ``touch``, or held with a force that is zero but for
+    round-off, ``unloaded_rows``) takes no impulse then, but takes its own impact, with its own
+    restitution, if the jump makes it approach; and so on (``MAX_IMPACT_ROUNDS``)."""
     info = one_sided(model)
     labels = model.constraint_labels
     s = scales(model, x, t)
@@ -286,35 +303,36 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
     joining = [k for k in closing if not at_start or info.side[k] * c[k] / s[k] <= rest]
     hit = [k for k in joining if approach[k] > rest]
     bounced: dict[int, float] = {}
+    struck: list[int] = []
     if hit:
-        e = {k: info.restitution[k] for k in hit}
-        notes = {}
-        for k in hit:
-            note = history.settles(k, t, e[k] * approach[k], rest) if history is not None else None
-            if note is None and e[k] * approach[k] <= rest:
-                note = f"rebound speed {e[k] * approach[k]:.3g} m/s below the rest speed {rest:.3g} m/s"
-            if note is not None and e[k] > 0:
-                notes[k] = "settles: " + note
-        settles = {k for k in hit if k in notes or e[k] == 0}
-        result = impact(model, x, v, t, held, hit, {k: (0.0 if k in settles else e[k]) for k in hit})
-        v = result.v
-        for k in result.released:
-            record(t, labels[k], "release", x, v, extra={"note": "released by the impact"})
-        held = [k for k in held if k not in result.released]
-        for k in hit:
-            record(t, labels[k], "impact", x, v, impulse=result.impulse[k],
-                   energy_lost=result.energy_lost if k == hit[0] else 0.0,
-                   extra={"approach_speed": approach[k], "restitution": float(e[k]),
-                          **({"kinetic_energy_change": result.kinetic_energy_change} if k == hit[0] else {}),
-                          **({"note": notes[k]} if k in notes else {})})
-        joining = [k for k in joining if k not in hit or k in settles]
-        c_after = constraint_velocities(model, x, v, t)
-        bounced = {k: float(info.side[k] * c_after[k]) for k in hit if k not in settles}
+        unloaded = unloaded_rows(model, held, x, v, t)
+        held = [k for k in held if k not in unloaded]
+        g = gaps(model, x, t) / s
+        pool = set(closing) | set(unloaded) | {k for k in info.rows if k not in held and g[k] <= touch}
+        settled: set[int] = set()
+        c_now = c
+        for round_ in range(MAX_IMPACT_ROUNDS + 1):
+            speed = {k: -info.side[k] * c_now[k] / s[k] for k in hit}
+            v, held, settles = _impact_round(model, x, v, t, held, hit, speed, settled, rest, record,
+                                             None if round_ else history, last=round_ == MAX_IMPACT_ROUNDS)
+            settled |= settles
+            struck += [k for k in hit if k not in struck]
+            c_now = constraint_velocities(model, x, v, t)
+            hit = sorted(k for k in pool if k not in held and -info.side[k] * c_now[k] / s[k] > rest)
+            if not hit or round_ == MAX_IMPACT_ROUNDS:
+                break
+        joining = [k for k in joining if k not in struck] + sorted(settled)
+        bounced = {k: float(info.side[k] * c_now[k]) for k in struck if k not in settled}
         bounced = {k: w for k, w in bounced.items() if w > 0}
+        for k in unloaded:  # not struck: held again unless the jump moves it off
+            if k not in struck and info.side[k] * c_now[k] / s[k] <= rest:
+                held.append(k)
+            elif k not in struck:
+                record(t, labels[k], "release", x, v, extra={"note": "released by the impact"})
     candidates = sorted(set(held) | set(joining))
     active, dropped = holding_set(model, candidates, x, v, t, tol=0.0)
     for k in joining:
-        if k in hit:
+        if k in struck:
             continue
         if k not in dropped and not at_start:  # the start's held rows are in info["segments"]
             away = info.side[k] * c[k] / s[k]
@@ -328,37 +346,34 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
     return active, x, v, bounced
 
 
-class _Impacts:
-    """Each one-sided row's impact instants, for the Zeno test of the rest rule: a row whose
-    last impacts follow each other at intervals shrinking by a steady ratio r < 1 (a ball
-    bouncing with e = r) would bounce infinitely often before the accumulation point
-    t∞ = t + Δ r / (1 − r). It settles when t∞ is closer than ``zeno_time``: the remaining
-    bounces (infinitely many, all within zeno_time) are replaced by one plastic impact, which
-    loses the same energy, the rebound's ½ m_eff (e u)²."""
-
-    def __init__(self, zeno_time: float):
-        self.zeno_time = zeno_time
-        self.times: dict[int, list[float]] = {}
-
-    def settles(self, k: int, t: float, rebound: float, rest: float) -> str | None:
-        times = self.times.setdefault(k, [])
-        times.append(t)
-        if len(times) < 4:
-            return None
-        d1, d2, d3 = np.diff(times[-4:])
-        if not (d1 > 0 and d2 > 0 and d3 > 0):
-            return None
-        r1, r2 = d2 / d1, d3 / d2
-        if not (r2 < 1 and abs(r1 - r2) <= ZENO_RATIO_SPREAD * r2):
-            return None
-        remaining = d3 * r2 / (1 - r2)
-        if rebound > rest and remaining > self.zeno_time:
-            return None
-        if rebound <= rest:
-            return (f"rebound speed {rebound:.3g} m/s below the rest speed {rest:.3g} m/s "
-                    f"({len(times)} impacts; accumulation point t∞ ≈ {t + remaining:.9g} s)")
-        return (f"Zeno sequence of {len(times)} impacts: the accumulation point t∞ ≈ {t + remaining:.9g} s "
-                f"is within {self.zeno_time:.3g} s")
+def _impact_round(model: Model, x, v, t, held, hit, speed, settled, rest, record, history, last: bool):
+    """One impact of a transition's sequence: the rows ``hit`` (approach ``speed``, m/s) close
+    on (x, v) with ``held`` kept; returns (v after, the rows still held, the rows that settle:
+    restitution 0, by the rest rule, having settled before at this instant, or in the
+    ``last`` round, which ends a sequence that would not)."""
+    info = one_sided(model)
+    labels = model.constraint_labels
+    e = {k: info.restitution[k] for k in hit}
+    notes = {}
+    for k in hit:
+        note = history.settles(k, t, e[k] * speed[k], rest) if history is not None else None
+        if note is None and e[k] * speed[k] <= rest:
+            note = f"rebound speed {e[k] * speed[k]:.3g} m/s below the rest speed {rest:.3g} m/s"
+        if note is None and last:
+            note = f"more than {MAX_IMPACT_ROUNDS} impacts in turn at this instant"
+        if note is not None and e[k] > 0 and k not in settled:
+            notes[k] = "settles: " + note
+    settles = {k for k in hit if k in notes or e[k] == 0 or k in settled}
+    result = impact(model, x, v, t, held, hit, {k: (0.0 if k in settles else e[k]) for k in hit})
+    for k in result.released:
+        record(t, labels[k], "release", x, result.v, extra={"note": "released by the impact"})
+    for k in hit:
+        record(t, labels[k], "impact", x, result.v, impulse=result.impulse[k],
+               energy_lost=result.energy_lost if k == hit[0] else 0.0,
+               extra={"approach_speed": speed[k], "restitution": float(e[k]),
+                      **({"kinetic_energy_change": result.kinetic_energy_change} if k == hit[0] else {}),
+                      **({"note": notes[k]} if k in notes else {})})
+    return result.v, [k for k in held if k not in result.released], settles
 
 
 # ---- the run as simulate returns it --------------------------------------------------------------

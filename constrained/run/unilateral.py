@@ -235,6 +235,66 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
     return Impact(v_new, impulse, lost, tuple(released), change)
 
 
+#: A Zeno sequence: the last impact intervals' ratios agree to this fraction.
+ZENO_RATIO_SPREAD = 0.05
+
+
+class ImpactHistory:
+    """Each one-sided row's impact instants, for the Zeno test of the rest rule: a row whose
+    last impacts follow each other at intervals shrinking by a steady ratio r < 1 (a ball
+    bouncing with e = r) would bounce infinitely often before the accumulation point
+    t∞ = t + Δ r / (1 − r). It settles when t∞ is closer than ``zeno_time``: the remaining
+    bounces (infinitely many, all within zeno_time) are replaced by one plastic impact, which
+    loses the same energy, the rebound's ½ m_eff (e u)²."""
+
+    def __init__(self, zeno_time: float):
+        self.zeno_time = zeno_time
+        self.times: dict[int, list[float]] = {}
+
+    def settles(self, k: int, t: float, rebound: float, rest: float) -> str | None:
+        times = self.times.setdefault(k, [])
+        times.append(t)
+        if len(times) < 4:
+            return None
+        d1, d2, d3 = np.diff(times[-4:])
+        if not (d1 > 0 and d2 > 0 and d3 > 0):
+            return None
+        r1, r2 = d2 / d1, d3 / d2
+        if not (r2 < 1 and abs(r1 - r2) <= ZENO_RATIO_SPREAD * r2):
+            return None
+        remaining = d3 * r2 / (1 - r2)
+        if rebound > rest and remaining > self.zeno_time:
+            return None
+        if rebound <= rest:
+            return (f"rebound speed {rebound:.3g} m/s below the rest speed {rest:.3g} m/s "
+                    f"({len(times)} impacts; accumulation point t∞ ≈ {t + remaining:.9g} s)")
+        return (f"Zeno sequence of {len(times)} impacts: the accumulation point t∞ ≈ {t + remaining:.9g} s "
+                f"is within {self.zeno_time:.3g} s")
+
+
+#: A held one-sided row carries no load when its force is within this fraction of the largest
+#: held force (``unloaded_rows``): beads of a Newton's cradle hanging side by side touch with a
+#: force of ±1e-17 N beside rod tensions of 1 N.
+LOAD_ROUND_OFF = 1e-9
+#: Impacts resolved in turn at one instant (hybrid._transition) before the rest are plastic.
+MAX_IMPACT_ROUNDS = 1000
+
+
+def unloaded_rows(model: Model, held, x, v, t) -> list[int]:
+    """The held one-sided rows that carry no load at (x, v, t): |λ s| ≤ LOAD_ROUND_OFF × the
+    largest |λ s| of the held rows (s the row scales; all of them when every force is 0).
+    At an impact such a row is a touching contact, not a rigid one: whether round-off left it
+    held must not decide whether a cradle's beads move as one block (bead 1 of 3 bouncing
+    back at −u/3) or pass the impact on (bead 3 leaving at u)."""
+    info = one_sided(model)
+    rows = [k for k in held if k in set(info.rows)]
+    if not rows:
+        return []
+    force = np.abs(ActiveSet(model, held).multipliers(x, v, t) * scales(model, x, t))
+    largest = np.max(force[list(held)], initial=0.0)
+    return [k for k in rows if force[k] <= LOAD_ROUND_OFF * largest]
+
+
 # --- the start -----------------------------------------------------------------------------------
 def check_allowed_side(model: Model, x, t, limit: float) -> None:
     """Refuse a start on the forbidden side of a one-sided row by more than ``limit`` metres."""
@@ -249,58 +309,6 @@ def check_allowed_side(model: Model, x, t, limit: float) -> None:
                 f"t = {t:g} s: {what}; move the particle to the allowed side or onto the constraint "
                 "(a one-sided constraint keeps side · f ≥ 0; see docs/scene-format.md, "
                 "\"One-sided constraints\")")
-
-
-# --- statics: which one-sided rows hold at an equilibrium ----------------------------------------
-def held_system(system, model: Model, held) -> tuple[object, np.ndarray]:
-    """The System whose constraints are the two-sided ones and the one-sided rows ``held``
-    (a one-sided plane or surface on several particles is split into one constraint per
-    particle, so each row is held or slack on its own), and for each of its rows the row of
-    ``model`` it is (``row_map``)."""
-    import copy
-
-    from ..model.system import System
-
-    info = one_sided(model)
-    owner = model.constraint_owner
-    constraints, row_map = [], []
-    for i, c in enumerate(system.constraints):
-        rows = [k for k in range(model.n_constraints) if owner[k] == i]
-        if not c.unilateral:
-            constraints.append(c)
-            row_map += rows
-            continue
-        particles = getattr(c, "particles", None)
-        for j, k in enumerate(rows):
-            if k not in held or k not in info.rows:
-                continue
-            if particles is not None and len(particles) > 1:
-                part = copy.copy(c)
-                part.particles = [particles[j]]
-                constraints.append(part)
-            else:
-                constraints.append(c)
-            row_map.append(k)
-    sub = System(system.particles, constraints, system.effects, system.parameters, system.name)
-    return sub, np.array(row_map, dtype=int)
-
-
-def statics_active_set(model: Model, x, t, multipliers_full, held, size: float):
-    """One step of the statics active set at an equilibrium x of the held rows: the row to
-    drop (a held one-sided row with a force of the forbidden sign, the most negative) or to
-    add (a slack row whose gap is violated there, the most violated), as ("drop"|"add", row),
-    or None when the held set is consistent."""
-    info = one_sided(model)
-    s = scales(model, x, t)
-    mu = info.side * np.asarray(multipliers_full, float) * s
-    bad = [(mu[k], k) for k in info.rows if k in held and mu[k] < -1e-9 * max(1.0, np.max(np.abs(mu)))]
-    if bad:
-        return "drop", min(bad)[1]
-    g = gaps(model, x, t) / s
-    violated = [(g[k], k) for k in info.rows if k not in held and g[k] < -1e-9 * size]
-    if violated:
-        return "add", min(violated)[1]
-    return None
 
 
 def start_report(model: Model, x, t: float, size: float, max_correction: float) -> str:
@@ -353,6 +361,9 @@ class SegmentWatch:
         #: at the start and the position round-off ρ (``round_off``, m) in the row's units
         self.lifting = {k: (float(g0[k]), round_off * s[k]) for k in info.rows
                         if k not in active.rows and k not in self.rebounding and abs(g0[k]) <= touch * s[k]}
+        #: rows that have just bounced off: each one's gap at the start (a round-off, possibly
+        #: below zero: a bounce at a corner, the start projected onto the other wall only)
+        self._rebound_start = {k: float(g0[k]) for k in self.rebounding}
         self.events: list[Event] = []
         self.meaning: list[tuple[str, int | None]] = []
         for k in info.rows:
@@ -361,8 +372,10 @@ class SegmentWatch:
                 self.events.append(Event(f"release {label}", self._mu(k), -1, True))
                 self.meaning.append(("release", k))
             else:
-                rate = None if k in self.rebounding else self._rate(k)
-                self.events.append(Event(f"contact {label}", self._gap(k), -1, True, rate=rate))
+                # (a rebounding row's deflated gap has the sign of g − min(g0, 0) after t0, so
+                # the rate's root, the minimum of g, shows its dip too: a bead bouncing off a
+                # ball, falling back through it and out within one step)
+                self.events.append(Event(f"contact {label}", self._gap(k), -1, True, rate=self._rate(k)))
                 self.meaning.append(("contact", k))
         for e in user:
             self.events.append(e)
@@ -435,11 +448,18 @@ class SegmentWatch:
         w (t − t0) − ½ |g̈| (t − t0)² + … vanishes at the impact instant t0 itself, where its
         round-off (~1e-16 m) would read as a crossing a moment after t0 for a short flight;
         g(t)/(t − t0) → w (the rebound speed, > 0) at t0 instead, and changes sign only where
-        the flight ends."""
+        the flight ends. The start's own round-off below zero, g0 < 0, is taken out first,
+
+            ĝ(t) = (g(t) − min(g0, 0)) / (t − t0),
+
+        else a ball bouncing off one wall of a sharp wedge at its apex (the start projected
+        onto the other wall only, g0 = −5e-14 m) reads ĝ → −∞ just after t0: a landing at t0
+        itself, a segment of zero length."""
         t0 = self.t0
+        below = min(self._rebound_start[k], 0.0)
 
         def deflated(t, x, v):
-            return speed if t <= t0 else self._gaps(t, x)[k] / (t - t0)
+            return speed if t <= t0 else (self._gaps(t, x)[k] - below) / (t - t0)
 
         return deflated
 

@@ -190,11 +190,11 @@ class _Run:
         self.rate_last = rate_now
         found = sorted((locate(self.stepper, self.events[j], self.last, end, dense)
                         for j, end in ends.items()), key=lambda h: h.t)
-        for hit in found:
-            self.hits.append(hit)
-            if hit.event.terminal:
-                return hit
-        return None
+        stop = next((hit for hit in found if hit.event.terminal), None)
+        # every event at the stop's instant is met too (a user's event y = 0 located at a floor's
+        # contact, the same root to a few ulps), whichever the sort put first
+        self.hits += [hit for hit in found if stop is None or hit.t <= same_instant(stop.t)]
+        return stop
 
     def round_off_flip(self, event: Event, g_before: float, sample, g_after: float) -> bool:
         """Whether a sign change of ``event`` lies within the run's resolution: both values no
@@ -222,6 +222,17 @@ class _Run:
             advice += (f"; the fastest spring, '{e.label}' (effect {e.index}), has period {e.period:.3g} s"
                        + (f": {e.constraint_advice()}" if e.rigid_like else ""))
         diagnostics.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
+
+
+#: Two located events this many ulps of t apart are at the same instant (``same_instant``).
+SAME_INSTANT_ULPS = 64
+
+
+def same_instant(t: float) -> float:
+    """The latest instant that is still t to round-off: t + SAME_INSTANT_ULPS ulps (two events
+    located separately on one root, a contact and a user's event of the same height, agree to
+    a few ulps)."""
+    return t + SAME_INSTANT_ULPS * np.spacing(abs(t))
 
 
 def _rate(event: Event, t: float, x, v) -> float:
