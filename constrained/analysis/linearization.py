@@ -39,6 +39,7 @@ from ..manifold.dense import tangent_basis
 from ..manifold.manifold import Manifold
 from ..model.structure import Model
 from .statics import _newton
+from .statics_methods.kkt import force_round_off
 
 __all__ = ["RotatingFrame", "frame_arrays", "linearize", "omega_velocity", "quadratic_roots",
            "reduced_linearization", "relative_equilibrium", "zero_root_chain"]
@@ -144,7 +145,9 @@ def relative_equilibrium(model: Model, x0: np.ndarray, t: float, omega, centre, 
     scale = _force_scale(model, *fun(x0, np.zeros(n3), lam)[3:], lam, omega, x0)
     # one unit of the weighted residual is the tolerance: forces in N, constraint rows in metres
     scales = residual.row_scales(model, x0, t)[:model.n_position_rows]  # the rows of f
-    w = np.concatenate([np.full(n3, 1.0 / (FORCE_RTOL * scale)), 1.0 / (LENGTH_RTOL * size * scales)])
+    Ry = np.asarray(fun(x0, np.zeros(n3), lam)[1], float)  # −K: the round-off floor of a stiff model
+    w = np.concatenate([1.0 / np.maximum(FORCE_RTOL * scale, force_round_off(Ry, x0, size)),
+                        1.0 / (LENGTH_RTOL * size * scales)])
     z, iterations, converged = _newton(Kkt, np.concatenate([x0, lam]), w, 100, restore)
     if not converged:
         raise InputError(f"no state at rest in the frame found near the given positions after {iterations} "
@@ -159,9 +162,11 @@ def omega_velocity(omega: np.ndarray, centre: np.ndarray, x: np.ndarray) -> np.n
 
 
 def linearize(model: Model, x: np.ndarray, v: np.ndarray, t: float, frame: RotatingFrame | None = None):
-    """(T, G + D, K, λ, residual) about the state (x, v, t) (flat), at rest in ``frame``:
-    see the module's docstring. ``residual``: the largest tangential acceleration left
-    (m/s²) over the acceleration scale; InputError when the state is not at rest in the frame."""
+    """(T, G + D, K, λ, residual, unbalanced) about the state (x, v, t) (flat), at rest in
+    ``frame``: see the module's docstring. ``unbalanced``: the largest tangential acceleration
+    left (m/s²), ``residual`` that over the acceleration scale; InputError when the state is
+    not at rest in the frame: beyond STATIONARY_RTOL of the scale and beyond what the
+    positions' round-off leaves in a stiff model (statics_methods.kkt.force_round_off / m)."""
     n3 = model.n_coordinates
     omega, centre = frame_arrays(frame, model.n_particles)
     u0 = v - omega_velocity(omega, centre, x)
@@ -175,17 +180,20 @@ def linearize(model: Model, x: np.ndarray, v: np.ndarray, t: float, frame: Rotat
     T = minv_sqrt[:, None] * null
     speed = max(float(np.max(np.abs(v), initial=0.0)), float(np.linalg.norm(omega)) * _size(x), 1e-300)
     tangential = T @ (T.T @ r)  # M⁻¹-free: T Tᵀ r is the tangential acceleration (m/s²)
-    residual = float(np.max(np.abs(tangential), initial=0.0)) / accel
+    unbalanced = float(np.max(np.abs(tangential), initial=0.0))
+    residual = unbalanced / accel
+    floor = force_round_off(Ry, x, _size(x)) / model.masses  # m/s²: a stiff model's round-off
+    rests = bool(np.all(np.abs(tangential) <= np.maximum(STATIONARY_RTOL * accel, floor)))
     moving = float(np.max(np.abs(u0), initial=0.0)) / speed
-    if residual > STATIONARY_RTOL or moving > STATIONARY_RTOL:
+    if not rests or moving > STATIONARY_RTOL:
         where = "" if frame is None else " in the given frame"
         why = (f"its velocity relative to the frame is {np.max(np.abs(u0)):.3g} m/s"
                if moving > STATIONARY_RTOL else
-               f"the forces leave a tangential acceleration of {np.max(np.abs(tangential)):.3g} m/s²")
+               f"the forces leave a tangential acceleration of {unbalanced:.3g} m/s²")
         raise InputError(
             f"the state is not at rest{where}: {why}; linearize about an equilibrium (leave x out: "
             "statics finds one), or give the rotating frame in which the motion is steady", where="x")
-    return T, -T.T @ Ru @ T, -T.T @ Ry @ T, lam, residual
+    return T, -T.T @ Ru @ T, -T.T @ Ry @ T, lam, residual, unbalanced
 
 
 def _force_scale(model: Model, J, F, lam, omega, x, *, per_mass: bool = False) -> float:

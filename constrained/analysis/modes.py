@@ -36,12 +36,13 @@ from .linearization import (
     relative_equilibrium,
     zero_root_chain,
 )
-from .statics import _flat, equilibrium
+from .statics import _flat, equilibrium, zero_frequency_squared
 
 __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 
-#: ω² (undamped, symmetric) with |ω²| <= SOFT_RTOL × ‖K‖ count as zero: a soft (neutral) mode.
-SOFT_RTOL = 1e-8
+#: Roots s with |s|² within statics.zero_frequency_squared (d ε ‖K‖ units of round-off, and what
+#: the state's unbalanced acceleration leaves) count as zero: a soft (neutral) mode. (A fixed
+#: 1e-8 ‖K‖ made a pendulum's swing soft when its bob hung on a 1e9 N/m spring.)
 #: A given state may be off the constraints by this × the system's size (rounded input); it is
 #: projected onto them.
 ON_CONSTRAINTS_RTOL = 1e-6
@@ -266,11 +267,12 @@ def _sorted_roots(s: np.ndarray) -> np.ndarray:
     return s[np.lexsort((key[:, 1], key[:, 0]))]
 
 
-def _modes_from_roots(s, Z, symmetric: bool, T: np.ndarray, K: np.ndarray, n_particles: int):
-    """(list of Mode, stable, stability) from the roots; see Mode.kind."""
+def _modes_from_roots(s, Z, symmetric: bool, T: np.ndarray, zero_s2: float, n_particles: int):
+    """(list of Mode, stable, stability) from the roots; see Mode.kind. ``zero_s2``: |s|² at or
+    below it is 0 (statics.zero_frequency_squared)."""
     n = T.shape[1]
     scale = max(float(np.max(np.abs(s), initial=0.0)), 1e-300)
-    soft_s = math.sqrt(SOFT_RTOL * max(float(np.linalg.norm(K, 2)), 1e-300))
+    soft_s = math.sqrt(max(zero_s2, 1e-300))
     picked = []
     if symmetric:  # ω² and its shape: one mode per degree of freedom
         for j in range(n):
@@ -355,11 +357,12 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         refine = x is None if refine is None else refine
         x_flat = relative_equilibrium(model, guess, t, omega, centre, size) if refine else guess
     v_flat = omega_velocity(omega, centre, x_flat) if v is None else _flat(system, v, "v")
-    T, C, K, lam, residual = linearize(model, x_flat, v_flat, float(t), frame)
+    T, C, K, lam, residual, unbalanced = linearize(model, x_flat, v_flat, float(t), frame)
     n = T.shape[1]
     M = np.eye(n)
     s, Z, symmetric = quadratic_roots(M, C, K)
-    mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, K, model.n_particles)
+    zero_s2 = zero_frequency_squared(float(np.linalg.norm(K, 2)) if n else 0.0, n, unbalanced, size)
+    mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, zero_s2, model.n_particles)
     chain = [] if symmetric or not n else zero_root_chain(M, C, K)
     if len(chain) > 2 and stable is not False:  # a Jordan chain at s = 0 longer than a free direction's
         stable, stability = False, (f"UNSTABLE (the root s = 0 is defective, a Jordan chain of length "

@@ -32,17 +32,33 @@ from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, one_sided, scales
 from ..threads import one_blas_thread
 from .statics_methods.descent import minimize_on_constraints
-from .statics_methods.kkt import IPOPT_CPU_S, IPOPT_ITERATIONS  # noqa: F401 (their home was here)
+from .statics_methods.kkt import IPOPT_CPU_S, IPOPT_ITERATIONS, force_round_off  # noqa: F401 (their home was here)
 from .statics_methods.kkt import KKT as _KKT
 from .statics_methods.kkt import ipopt_minimum as _ipopt
 from .statics_methods.kkt import newton as _newton
 from .statics_methods.one_sided import held_system, statics_active_set
 
-#: Squared frequencies ω² (mass-weighted tangent-space Hessian) with |ω²| <= STABILITY_RTOL ×
-#: ‖M^(-1/2) K M^(-1/2)‖ count as zero (neutral). Mass-weighting puts a 1e-6 kg bob on a string
-#: beside a 1e6 kg one on the same footing: both swing with ω² = g/L.
-STABILITY_RTOL = 1e-8
-#: Convergence: force balance within FORCE_RTOL × force scale, constraints within LENGTH_RTOL × size.
+#: Squared frequencies ω² (mass-weighted tangent-space Hessian) within ``zero_frequency_squared``
+#: of 0 count as zero (neutral): ZERO_OMEGA2_UNITS × d ε ‖M^(-1/2) K M^(-1/2)‖ (d degrees of
+#: freedom), the eigensolver's and the tangent basis' round-off. Mass-weighting puts a 1e-6 kg bob
+#: on a string beside a 1e6 kg one on the same footing: both swing with ω² = g/L. (A fixed 1e-8 ‖K‖
+#: called the swing of a pendulum whose bob hangs on a 1e9 N/m spring, ω² = 7.5 /s² against
+#: ‖K‖ = 1e9 /s², a soft mode.)
+ZERO_OMEGA2_UNITS = 10.0
+
+
+def zero_frequency_squared(knorm: float, degrees_of_freedom: int, acceleration_residual: float = 0.0,
+                           size: float = 1.0) -> float:
+    """The ω² (1/s²) that cannot be told from 0 at a state: ``max(u d ε ‖K‖, 10 a / size)``,
+    u = ZERO_OMEGA2_UNITS, d the degrees of freedom, ``knorm`` ‖K‖ of the mass-weighted
+    stiffness (1/s²), ``acceleration_residual`` a the largest acceleration the state leaves
+    unbalanced (m/s²): off an equilibrium by a, the Hessian along a symmetry (a turn about the
+    pin of a hanging body) is a / (lever arm) instead of 0."""
+    eps = np.finfo(float).eps
+    return max(ZERO_OMEGA2_UNITS * max(degrees_of_freedom, 1) * eps * knorm,
+               10.0 * acceleration_residual / max(size, 1e-300))
+#: Convergence: force balance within FORCE_RTOL × force scale (or the round-off floor of a stiff
+#: model, statics_methods.kkt.force_round_off), constraints within LENGTH_RTOL × size.
 FORCE_RTOL = 1e-10
 LENGTH_RTOL = 1e-12
 #: The largest KKT system (3N + C unknowns) the statics solve, all dense (0.3 GB a matrix at
@@ -207,10 +223,24 @@ def generalized_forces(system, x, map_jacobian, t: float = 0.0, *, model: Model 
 def _min_norm_multipliers(model: Model, J: np.ndarray, F: np.ndarray) -> np.ndarray:
     """λ with Jᵀλ = −F in the mass-weighted least-squares sense, (J M⁻¹ Jᵀ) λ = −J M⁻¹ F: the
     multipliers that keep every particle at rest (a = 0), minimum-norm for redundant rows
-    (identical rods share the load evenly), accurate whatever the spread of the masses."""
+    (identical rods share the load evenly), accurate whatever the spread of the masses.
+
+    Two steps of iterative refinement on the force balance r = F + Jᵀλ follow the solve,
+    ``λ += (J M⁻¹ Jᵀ)⁺ (−J M⁻¹ r)``: J M⁻¹ Jᵀ squares the conditioning the masses give it (a
+    1 mg bead between 1 kg beads of a straight hanging chain: its two rods' rows nearly
+    parallel, cond ~ 1e6 after scaling), and the solve alone left the force balance off by
+    ε × cond × the tension (1.2e-9 N of 29 N), above the statics' tolerance, so Newton, whose λ
+    is taken from here after every step, could not converge."""
     if J.shape[0] == 0:
         return np.zeros(0)
-    return schur_solve(J, model.inverse_masses, -J @ (model.inverse_masses * F))
+    Minv = model.inverse_masses
+    lam = schur_solve(J, Minv, -J @ (Minv * F))
+    for _ in range(2):
+        r = F + J.T @ lam
+        if not np.all(np.isfinite(r)):
+            break
+        lam = lam + schur_solve(J, Minv, -J @ (Minv * r))
+    return lam
 
 
 def _anchor_reactions(model: Model, J: np.ndarray, lam: np.ndarray) -> list[tuple[str, np.ndarray]]:
@@ -264,7 +294,7 @@ def equilibrium(
     *,
     method: str = "auto",
     max_iter: int = 100,
-    stability_rtol: float = STABILITY_RTOL,
+    stability_rtol: float | None = None,
     model: Model | None = None,
 ) -> Equilibrium:
     """A static equilibrium near ``x_guess`` (default: the initial positions projected onto
@@ -277,7 +307,8 @@ def equilibrium(
     statics_methods.descent, then Newton polish: ``method`` "descent" in the result; IPOPT last,
     unless the descent found V falling away without bound). Multipliers are the minimum-norm
     solution of Jᵀλ = −F (redundant constraints share the load). Raises InputError naming the
-    largest residual when no equilibrium is found.
+    largest residual when no equilibrium is found. ``stability_rtol``: ω² within it × ‖K‖ (the
+    mass-weighted stiffness) count as zero; default: ``zero_frequency_squared``, the round-off.
 
     One-sided constraints (constrained.unilateral) hold only where their force has the
     allowed sign: starting from the rows touching at the guess, a row pulling (pushing) the
@@ -349,8 +380,11 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     force_scale = force_scale if force_scale > 0 else 1.0
     # residual weights: one unit of the scaled residual is the convergence tolerance
     # (constraint rows in metres: each over its scale, constrained.residual)
+    # (a force balance tighter than the stiffness times the positions' round-off cannot be met:
+    # kkt.force_round_off; a 1 kg bob below a 1e7 N/m spring failed here)
+    floor = force_round_off(np.asarray(kkt.stiffness(x0, lam0), float), x0, size)
     w = np.concatenate(
-        [np.full(n3, 1.0 / (FORCE_RTOL * force_scale)),
+        [1.0 / np.maximum(FORCE_RTOL * force_scale, floor),
          1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t)[:model.n_position_rows])]
     )
 
@@ -413,7 +447,10 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     Kw = r[:, None] * Ks * r[None, :]
     Nw = tangent_basis(J * r[None, :], n3) if C else np.eye(n3)
     omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
-    tol = stability_rtol * (float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0)
+    kw_norm = float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0
+    unbalanced = float(np.max(np.abs((F + G.T @ lam) * model.inverse_masses), initial=0.0)) if C else 0.0
+    tol = (zero_frequency_squared(kw_norm, len(omega2), unbalanced, size) if stability_rtol is None
+           else stability_rtol * kw_norm)
     soft = np.abs(omega2) <= tol
     if not conservative or held or note and np.any(omega2 <= tol):  # see velocity.at_rest
         stable = None

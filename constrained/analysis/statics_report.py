@@ -84,7 +84,7 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
         out.append(
             "  squared frequencies ω² of small oscillations [1/s²]: "
             + ", ".join(_num(e, eq.stability_tolerance) for e in omega2)
-            + f"  (zero below {eq.stability_tolerance:.2g})"
+            + "  (zero below the round-off of the stiffness: Equilibrium.stability_tolerance)"
         )
     for k, mode in enumerate(eq.soft_modes):  # unit shapes: components below 1e-9 are round-off
         moving = [f"{names[i]} {_vec(mode[i], 1e-9)}" for i in range(len(mode))

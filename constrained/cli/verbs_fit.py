@@ -61,9 +61,10 @@ def _modes(args) -> int:
         if exc.where in ("x", "v"):  # the state of the scene: its particles
             exc = InputError(exc.reason, where="particles")
         raise _scene_error(exc, file) from None
-    k = (args.mode or _first_oscillation(result)) - 1
+    k = (_first_oscillation(result) if args.mode is None else args.mode) - 1  # (--mode 0 is no default)
     if not 0 <= k < max(len(result.modes), 1):
-        raise InputError(f"--mode {args.mode}: the state has {len(result.modes)} mode(s)")
+        raise InputError(f"--mode {args.mode}: the modes are numbered from 1 and the state has "
+                         f"{len(result.modes)} mode(s)")
     names = ["modes.json", "modes.png"]
     animate = bool(result.modes) and not args.no_animation
     if animate:

@@ -322,6 +322,18 @@ def at_rest(model, x: np.ndarray, t: float, size: float, G: np.ndarray, multipli
     if np.max(np.abs(force), initial=0.0) <= REST_FORCE_RTOL * force_scale:
         return ("velocity constraints: no force at this equilibrium (μ = 0: the holonomic constraints "
                 "balance the applied forces); at rest they do no work", False)
+    # μ ≠ 0 may only be a share of a load the holonomic rows could carry alone: a velocity row
+    # that repeats the derivative of a holonomic one (a bead on the plane z = 0 and v_z = 0)
+    # takes half of it in the minimum-norm split. It holds the system only where the total
+    # constraint force Gᵀ[λ; μ] is not in the row space of J: min_λ' |Jᵀλ' − Gᵀ[λ; μ]| > 0.
+    total = G.T @ multipliers
+    J = G[:C_f]
+    alone = np.linalg.lstsq(J.T, total, rcond=None)[0] if C_f else np.zeros(0)
+    left = total - J.T @ alone if C_f else total
+    if np.max(np.abs(left), initial=0.0) <= REST_FORCE_RTOL * force_scale:
+        return ("velocity constraints: they repeat holonomic ones here and share their load (μ ≠ 0 by "
+                "the minimum-norm split), but the holonomic constraints alone balance the applied "
+                "forces; at rest they do no work", False)
     return ("velocity constraints: they hold the system at rest here (μ ≠ 0, as a skate's blade holds it "
             "across a slope) and do no work (power −μ·b = 0); such equilibria form families, and the "
             "energy method does not decide their stability", True)

@@ -94,14 +94,17 @@ class FitResult:
                      f"({self.nfev} runs, {self.njev} Jacobians)")
         for name, rms in zip(self.outputs, self.rms, strict=True):
             lines.append(f"  rms residual of {name}: {rms:.4g}")
-        if len(self.names) > 1:
-            k = np.unravel_index(np.argmax(np.abs(self.correlation - np.eye(len(self.names)))),
-                                 self.correlation.shape)
+        off = np.abs(self.correlation - np.eye(len(self.names)))
+        off[~np.isfinite(off)] = -1.0  # (an undetermined parameter has no correlation)
+        if len(self.names) > 1 and np.max(off) >= 0:
+            k = np.unravel_index(np.argmax(off), off.shape)
             lines.append(f"  largest correlation: {self.names[k[0]]}–{self.names[k[1]]} "
                          f"{self.correlation[k]:+.3f}")
         for combo in self.unidentified:
             text = " + ".join(f"{w:.3g}·{n}" for n, w in combo.items())
-            lines.append(f"  NOT determined by these data: {text} (its standard error is infinite)")
+            lines.append(f"  NOT determined by these data: {text} (held at its start; its standard error "
+                         "is infinite: fix one of these parameters, or write the model with the combination "
+                         "the data see)")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
@@ -116,6 +119,25 @@ class FitResult:
                 "nfev": self.nfev, "njev": self.njev, "outputs": list(self.outputs),
                 "formulas": list(self.formulas), "rms_residuals": [_finite(r) for r in self.rms],
                 "unidentified": self.unidentified}
+
+
+def unseen_directions(jac: np.ndarray) -> tuple[np.ndarray, float]:
+    """(V (n, k), ρ): orthonormal directions of parameter space along which the weighted
+    residuals do not change at the start (singular values of ``jac`` within IDENTIFIABLE_RTOL
+    of the largest: two masses that enter only as their ratio, m₂/m₁, change nothing measured
+    along (m₁, m₂)), and ρ, the largest singular value. Along such a direction the
+    Gauss–Newton step is round-off divided by round-off: the fit wandered there (to m₁ = −1.2,
+    m₂ = −1.4 kg, where the run fails). The fit holds them at the start instead: it minimizes
+    ``|r(θ)|² + ρ² |Vᵀ(θ − θ₀)|²`` with the Jacobian ``[J (I − V Vᵀ); ρ Vᵀ]`` (exactly the
+    fit within the hyperplane Vᵀ(θ − θ₀) = 0, which every such line crosses), and reports them
+    as not determined."""
+    _, sv, vt = np.linalg.svd(np.asarray(jac, float), full_matrices=False)
+    if not sv.size or not sv[0] > 0:
+        return np.eye(jac.shape[1]), 1.0
+    hidden = vt[sv <= IDENTIFIABLE_RTOL * sv[0]]
+    if len(sv) < jac.shape[1]:  # fewer measured values than parameters: refused before this
+        hidden = np.vstack([hidden, vt[len(sv):]])
+    return hidden.T, float(sv[0])
 
 
 def _finite(value) -> float | None:
@@ -240,7 +262,19 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
         njev[0] += 1
         return evaluate(theta)[1]
 
-    sol = least_squares(lambda th: evaluate(th)[0], theta0, jac=jacobian, bounds=(lo, hi), method="trf",
+    hidden, rho = unseen_directions(evaluate(theta0)[1])
+    if hidden.shape[1]:  # hold them at the start: the fit would wander along them (see below)
+        def held_residual(theta):
+            return np.concatenate([evaluate(theta)[0], rho * (hidden.T @ (theta - theta0))])
+
+        def held_jacobian(theta):
+            return np.vstack([jacobian(theta) @ (np.eye(n) - hidden @ hidden.T), rho * hidden.T])
+    else:
+        def held_residual(theta):
+            return evaluate(theta)[0]
+
+        held_jacobian = jacobian
+    sol = least_squares(held_residual, theta0, jac=held_jacobian, bounds=(lo, hi), method="trf",
                         x_scale="jac", ftol=tolerance, xtol=tolerance, gtol=tolerance, max_nfev=max_nfev)
     residual, jac, fitted = evaluate(sol.x)
     chi2 = float(residual @ residual)

@@ -104,7 +104,9 @@ def step_sequence(model: Model, system, t_eval, t0: float = 0.0, *, rtol: float 
     output time, and keep the ends of the accepted steps (SimulationError when it stops)."""
     if has_one_sided(model):
         raise InputError("sensitivities through releases, contacts and impacts of one-sided constraints "
-                         "are not supported (the step sequence is not smooth there)", where="constraints")
+                         "are not supported (the step sequence is not smooth there); for a run where the "
+                         "constraint holds throughout, make it two-sided (unilateral = false)",
+                         where="constraints")
     if any(getattr(e, "terminal", False) for e in getattr(system, "events", ())):
         raise InputError("the system has terminal events: sensitivities run to the last output time "
                          "without them; remove the [[events]] or make them non-terminal", where="events")

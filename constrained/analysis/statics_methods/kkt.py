@@ -18,6 +18,21 @@ from ...model.structure import Model
 
 #: IPOPT's budget (CPU seconds, iterations) after Newton failed: then the failure is reported.
 IPOPT_CPU_S, IPOPT_ITERATIONS = 30.0, 500
+#: The force balance cannot be met more closely than this many units of round-off of the
+#: positions times the stiffness (``force_round_off``).
+ROUND_OFF_UNITS = 64.0
+
+
+def force_round_off(stiffness: np.ndarray, x: np.ndarray, size: float) -> np.ndarray:
+    """The force balance's floor per coordinate (N): ``u ε Σ_j |K_ij| (|x_j| + size)``, u =
+    ROUND_OFF_UNITS. Positions are known to ε |x_j| (plus ε × the size for the differences
+    formed from them), and a stiffness K (N/m) turns that into a force: a 1 kg bob below a
+    1e7 N/m spring 1.5 m from the origin balances its weight only to 1e7 × 3e-16 m ≈ 3e-9 N,
+    more than 1e-10 of the weight. A tolerance below this floor can never be met."""
+    K = np.abs(np.asarray(stiffness, float))
+    if K.size == 0:
+        return np.zeros(len(x))
+    return ROUND_OFF_UNITS * np.finfo(float).eps * (K @ (np.abs(np.asarray(x, float)) + size))
 
 
 class KKT:
