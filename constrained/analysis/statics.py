@@ -57,6 +57,8 @@ def zero_frequency_squared(knorm: float, degrees_of_freedom: int, acceleration_r
     eps = np.finfo(float).eps
     return max(ZERO_OMEGA2_UNITS * max(degrees_of_freedom, 1) * eps * knorm,
                10.0 * acceleration_residual / max(size, 1e-300))
+
+
 #: Convergence: force balance within FORCE_RTOL × force scale (or the round-off floor of a stiff
 #: model, statics_methods.kkt.force_round_off), constraints within LENGTH_RTOL × size.
 FORCE_RTOL = 1e-10
