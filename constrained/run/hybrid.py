@@ -159,13 +159,16 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     x, _, err = ActiveSet(model, rows).project(x, v, t, tol)
     # velocities onto the two-sided rows only: a touching one-sided row's approach is an
     # impact at the start, its separation a lift-off (_transition), not a correction
-    two_sided = [k for k in rows if k not in info.rows]
+    one_sided_rows = set(info.rows)  # (sets: thousands of rows)
+    two_sided = [k for k in rows if k not in one_sided_rows]
     v = ActiveSet(model, two_sided).manifold.project_velocities(x, v, t) if two_sided else np.array(v)
     _check_start(model, x_given, x, t, rows, err, size, max_correction)
     start_correction = (float(np.max(np.abs(x - x_given), initial=0.0)),
                         float(np.max(np.abs(v - v_given), initial=0.0)))
-    touching = [k for k in info.rows if k in rows]
-    rows = [k for k in rows if k not in touching]
+    start_rows = set(rows)
+    touching = [k for k in info.rows if k in start_rows]
+    touching_set = set(touching)
+    rows = [k for k in rows if k not in touching_set]
     history = ImpactHistory(max(ZENO_TIME, 1e3 * np.finfo(float).eps * abs(t_end)))
     active, x, v, rebounding = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True,
                                            history=history, touch=touch)
@@ -260,7 +263,8 @@ def _also_closing(model: Model, x, v, t, held, closing, touch) -> list[int]:
     s = scales(model, x, t)
     g = gaps(model, x, t) / s
     c = info.side * constraint_velocities(model, x, v, t)
-    return [k for k in info.rows if k not in held and k not in closing and g[k] <= touch and c[k] < 0]
+    taken = set(held) | set(closing)  # (a set: thousands of rows)
+    return [k for k in info.rows if k not in taken and g[k] <= touch and c[k] < 0]
 
 
 def _check_start(model: Model, x_given, x, t, rows, err, size, max_correction) -> None:
@@ -306,9 +310,11 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
     struck: list[int] = []
     if hit:
         unloaded = unloaded_rows(model, held, x, v, t)
-        held = [k for k in held if k not in unloaded]
+        unloaded_set = set(unloaded)
+        held = [k for k in held if k not in unloaded_set]
         g = gaps(model, x, t) / s
-        pool = set(closing) | set(unloaded) | {k for k in info.rows if k not in held and g[k] <= touch}
+        held_set = set(held)
+        pool = set(closing) | unloaded_set | {k for k in info.rows if k not in held_set and g[k] <= touch}
         settled: set[int] = set()
         c_now = c
         for round_ in range(MAX_IMPACT_ROUNDS + 1):
@@ -318,7 +324,8 @@ def _transition(model: Model, x, v, t, held, closing, rest, tol, record, at_star
             settled |= settles
             struck += [k for k in hit if k not in struck]
             c_now = constraint_velocities(model, x, v, t)
-            hit = sorted(k for k in pool if k not in held and -info.side[k] * c_now[k] / s[k] > rest)
+            held_set = set(held)
+            hit = sorted(k for k in pool if k not in held_set and -info.side[k] * c_now[k] / s[k] > rest)
             if not hit or round_ == MAX_IMPACT_ROUNDS:
                 break
         joining = [k for k in joining if k not in struck] + sorted(settled)
@@ -473,7 +480,8 @@ def trajectory_quantities(model: Model, result: HybridRun, wanted, stats) -> Tra
     for i0, i1, rows, _, _ in result.segments:
         active = ActiveSet(model, rows)
         idx = np.array(rows, dtype=int)
-        free = np.array([k for k in info.rows if k not in rows], dtype=int)
+        held_rows = set(rows)
+        free = np.array([k for k in info.rows if k not in held_rows], dtype=int)
         for i in range(i0, i1):
             x, v, t = result.x[i], result.v[i], result.t[i]
             if "multipliers" in wanted or "constraint_forces" in wanted:

@@ -65,7 +65,8 @@ class OneSided:
 
     @property
     def bilateral(self) -> tuple[int, ...]:
-        return tuple(k for k in range(len(self.side)) if k not in set(self.rows))
+        one_sided_rows = set(self.rows)  # (a set: thousands of rows)
+        return tuple(k for k in range(len(self.side)) if k not in one_sided_rows)
 
 
 def one_sided(model: Model) -> OneSided:
@@ -153,7 +154,8 @@ def wrong_sign(model: Model, active: ActiveSet, x, v, t, tol: float) -> list[int
     info = one_sided(model)
     lam = active.multipliers(x, v, t)
     mu = info.side * lam * scales(model, x, t)
-    bad = [k for k in info.rows if k in active.rows and mu[k] < -tol]
+    held_rows = set(active.rows)
+    bad = [k for k in info.rows if k in held_rows and mu[k] < -tol]
     return sorted(bad, key=lambda k: mu[k])
 
 
@@ -208,9 +210,9 @@ def impact(model: Model, x, v, t, active_rows, closing, restitution: dict) -> Im
     c = J @ v + f_t
     algebra = algebra_for(model.n_constraints)
     s = scales(model, x, t)
-    held = [k for k in active_rows if k not in closing]
-    released = []
     closing_set, one_sided_rows = set(closing), set(info.rows)  # (sets: thousands of rows)
+    held = [k for k in active_rows if k not in closing_set]
+    released = []
     while True:
         rows = np.array(sorted(held) + sorted(closing), dtype=int)
         held_set = set(held)
@@ -287,7 +289,8 @@ def unloaded_rows(model: Model, held, x, v, t) -> list[int]:
     held must not decide whether a cradle's beads move as one block (bead 1 of 3 bouncing
     back at −u/3) or pass the impact on (bead 3 leaving at u)."""
     info = one_sided(model)
-    rows = [k for k in held if k in set(info.rows)]
+    one_sided_rows = set(info.rows)
+    rows = [k for k in held if k in one_sided_rows]
     if not rows:
         return []
     force = np.abs(ActiveSet(model, held).multipliers(x, v, t) * scales(model, x, t))
@@ -353,14 +356,16 @@ class SegmentWatch:
         info = one_sided(model)
         self.model, self.active, self._memo, self.t0 = model, active, (None, None), t0
         self._gap_memo, self._rate_memo = (None, None), (None, None)
+        self._kinds: dict[int, tuple] = {}
         self.rebounding = rebounding or {}
         s = scales(model, x0, t0)
         g0 = gaps(model, x0, t0)
+        held_rows = set(active.rows)  # (sets: thousands of rows, a segment each)
         #: free rows that start the segment touching (|g0| within ``touch``, m: a row found
         #: deeper is a landing the last segment missed, watched as g itself): each one's gap
         #: at the start and the position round-off ρ (``round_off``, m) in the row's units
         self.lifting = {k: (float(g0[k]), round_off * s[k]) for k in info.rows
-                        if k not in active.rows and k not in self.rebounding and abs(g0[k]) <= touch * s[k]}
+                        if k not in held_rows and k not in self.rebounding and abs(g0[k]) <= touch * s[k]}
         #: rows that have just bounced off: each one's gap at the start (a round-off, possibly
         #: below zero: a bounce at a corner, the start projected onto the other wall only)
         self._rebound_start = {k: float(g0[k]) for k in self.rebounding}
@@ -368,7 +373,7 @@ class SegmentWatch:
         self.meaning: list[tuple[str, int | None]] = []
         for k in info.rows:
             label = model.constraint_labels[k]
-            if k in active.rows:
+            if k in held_rows:
                 self.events.append(Event(f"release {label}", self._mu(k), -1, True))
                 self.meaning.append(("release", k))
             else:
@@ -382,19 +387,24 @@ class SegmentWatch:
             self.meaning.append(("user", None))
 
     def _multipliers(self, t, x, v):
-        key = (t, x.tobytes(), v.tobytes())
-        if self._memo[0] != key:
-            self._memo = (key, self.active.multipliers(x, v, t))
+        if not self._same_state(self._memo[0], t, x, v):
+            self._memo = ((t, x, v), self.active.multipliers(x, v, t))
         return self._memo[1]
 
-    def _state_key(self, t, x, v=None) -> tuple:
-        return (t, x.tobytes(), None if v is None else v.tobytes())
+    @staticmethod
+    def _same_state(key, t, x, v=None) -> bool:
+        """Whether (t, x, v) is the state ``key`` was made at: the same arrays (the driver calls
+        every event function with one sample's), else equal ones. (A key of the arrays' bytes
+        cost a 24 KB copy per event function and call: a thousand rows on a floor.)"""
+        if key is None or key[0] != t:
+            return False
+        return all(a is b or (a is not None and b is not None and np.array_equal(a, b))
+                   for a, b in ((key[1], x), (key[2], v)))
 
     def _gaps(self, t, x) -> np.ndarray:
         """Every row's gap at (t, x), one evaluation for all of the rows' events."""
-        key = self._state_key(t, x)
-        if self._gap_memo[0] != key:
-            self._gap_memo = (key, gaps(self.model, x, t))
+        if not self._same_state(self._gap_memo[0], t, x):
+            self._gap_memo = ((t, x, None), gaps(self.model, x, t))
         return self._gap_memo[1]
 
     def _rate(self, k):
@@ -403,9 +413,8 @@ class SegmentWatch:
         side = one_sided(self.model).side[k]
 
         def rate(t, x, v):
-            key = self._state_key(t, x, v)
-            if self._rate_memo[0] != key:
-                self._rate_memo = (key, constraint_velocities(self.model, x, v, t))
+            if not self._same_state(self._rate_memo[0], t, x, v):
+                self._rate_memo = ((t, x, v), constraint_velocities(self.model, x, v, t))
             return side * self._rate_memo[1][k]
 
         return rate
@@ -464,4 +473,7 @@ class SegmentWatch:
         return deflated
 
     def kind(self, event: Event) -> tuple[str, int | None]:
-        return self.meaning[self.events.index(event)]
+        if len(self._kinds) != len(self.events):  # (by identity: index() compared dataclasses)
+            self._kinds = {id(e): m for e, m in zip(self.events, self.meaning, strict=True)}
+        found = self._kinds.get(id(event))
+        return found if found is not None else self.meaning[self.events.index(event)]
