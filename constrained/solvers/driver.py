@@ -23,7 +23,7 @@ import numpy as np
 
 from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
-from .events import dip, locate
+from .events import dense_root, dip, locate
 from .stiffness import StiffnessWatch
 from .watches import CollapseWatch, SingularWatch, past_a_limit
 
@@ -186,15 +186,38 @@ class _Run:
                 lowest = dip(e, self.last, sample, dense, self.rate_last[j], rate_now[j])
                 if lowest is not None:
                     ends[j] = lowest
+        g_before = self.g_last
         self.g_last = [g if g != 0 or self.g_last[j] is not None else None for j, g in enumerate(g_now)]
         self.rate_last = rate_now
-        found = sorted((locate(self.stepper, self.events[j], self.last, end, dense)
-                        for j, end in ends.items()), key=lambda h: h.t)
+        found = self.located(ends, g_before, dense)
         stop = next((hit for hit in found if hit.event.terminal), None)
         # every event at the stop's instant is met too (a user's event y = 0 located at a floor's
         # contact, the same root to a few ulps), whichever the sort put first
         self.hits += [hit for hit in found if stop is None or hit.t <= same_instant(stop.t)]
         return stop
+
+    def located(self, ends: dict, g_before: list, dense) -> list[EventHit]:
+        """The crossings ``ends`` ({event index: the sample, or a dip's lowest state, after
+        it}) located, earliest first. They are refined in the order of their dense-output roots;
+        once a terminal one is found at t*, another is refined only if it has crossed by then on
+        the method's own state at t* (or its root is t* to round-off): the run stops at t*, and
+        the next segment meets the later ones again. (Refining every crossing of a step cost a
+        thousand-bead rope on a floor most of its run.)"""
+        if len(ends) <= 1:
+            return [locate(self.stepper, self.events[j], self.last, end, dense) for j, end in ends.items()]
+        roots = {j: dense_root(self.events[j], self.last, end, dense) for j, end in ends.items()}
+        found, stop = [], None
+        for j in sorted(ends, key=roots.get):
+            e = self.events[j]
+            if stop is not None and roots[j] > same_instant(stop.t):
+                at_stop = e.function(stop.t, stop.x, stop.v)
+                if not e.crossed(g_before[j], at_stop):
+                    continue
+            hit = locate(self.stepper, e, self.last, ends[j], dense)
+            found.append(hit)
+            if e.terminal and (stop is None or hit.t < stop.t):
+                stop = hit
+        return sorted(found, key=lambda h: h.t)
 
     def round_off_flip(self, event: Event, g_before: float, sample, g_after: float) -> bool:
         """Whether a sign change of ``event`` lies within the run's resolution: both values no

@@ -21,13 +21,14 @@ LANDING_STEPS = 200
 BRENTQ_RTOL = 4 * np.finfo(float).eps
 
 
-def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
-    """The crossing of ``event`` between the samples ``before`` and ``after`` ((t, x, v)),
-    to round-off on the method's own solution when it lands on given times."""
+def dense_root(event: Event, before, after, dense, ga: float | None = None, gb: float | None = None) -> float:
+    """The crossing of ``event`` between the samples ``before`` and ``after`` on the dense
+    output (brentq, to round-off), or a secant guess where the interpolant shows no sign change:
+    the first estimate, which ``locate`` refines on the method's own solution."""
     g = event.function
-    ta, xa, va = before
-    tb, xb, vb = after
-    ga, gb = g(ta, xa, va), g(tb, xb, vb)
+    ta, tb = before[0], after[0]
+    ga = g(*before) if ga is None else ga
+    gb = g(*after) if gb is None else gb
 
     def on_dense(t):
         return g(t, *dense(t))
@@ -35,9 +36,19 @@ def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
     from scipy.optimize import brentq  # (0.1 s of imports: only when an event is met)
 
     try:
-        t1 = brentq(on_dense, ta, tb, xtol=1e-15 * max(1.0, abs(tb)), rtol=BRENTQ_RTOL)
+        return brentq(on_dense, ta, tb, xtol=1e-15 * max(1.0, abs(tb)), rtol=BRENTQ_RTOL)
     except ValueError:  # the interpolant does not change sign: a secant guess
-        t1 = ta - ga * (tb - ta) / (gb - ga) if gb != ga else 0.5 * (ta + tb)
+        return ta - ga * (tb - ta) / (gb - ga) if gb != ga else 0.5 * (ta + tb)
+
+
+def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
+    """The crossing of ``event`` between the samples ``before`` and ``after`` ((t, x, v)),
+    to round-off on the method's own solution when it lands on given times."""
+    g = event.function
+    ta, xa, va = before
+    tb, xb, vb = after
+    ga, gb = g(ta, xa, va), g(tb, xb, vb)
+    t1 = dense_root(event, before, after, dense, ga, gb)
     if not stepper.refines_events:
         x1, v1 = stepper.output(t1, *dense(t1))
         return EventHit(event, float(t1), x1, v1)
