@@ -40,6 +40,16 @@ def spring_pendulum_omega2(m1, m2, k, l1=1.0, rest=0.5) -> np.ndarray:
     return np.sort(np.concatenate([double_pendulum_omega2(m1, m2, l1, ell), [k / m2]]))
 
 
+def _noisy_double_pendulum(seed: int, sigma: float = 1e-3):
+    """The parametric double pendulum's lower bob (x, y) over 2 s, with Gaussian noise of
+    ``sigma`` metres: (scene, Measurements, sigma)."""
+    scene = C.load_scene("scenarios/double_pendulum_parametric.toml")
+    t = np.linspace(0.02, 2.0, 100)
+    truth = C.simulate(scene.system, 2.0, t_eval=t, rtol=1e-11, atol=1e-13)
+    noise = sigma * np.random.default_rng(seed).standard_normal((len(t), 2))
+    return scene, C.Measurements(t, ["x_p2", "y_p2"], truth.x[:, 1, :2] + noise), sigma
+
+
 # --- found: each failed before its fix -------------------------------------------------------
 @pytest.mark.parametrize("m, k", [(1.0, 1e7), (1.0, 1e9), (1e-3, 1e9)])
 def test_a_pendulum_whose_bob_hangs_on_a_stiff_spring(m, k):
@@ -94,12 +104,7 @@ def test_fitting_two_masses_that_enter_only_as_their_ratio():
     steps of round-off over round-off), to m1 = −1.17, m2 = −1.39 kg and failed there with
     "start nearer the solution". Now the unseen direction is held at its start, the ratio is
     fitted, and the combination is reported as not determined (infinite standard errors)."""
-    scene = C.load_scene("scenarios/double_pendulum_parametric.toml")
-    t = np.linspace(0.02, 2.0, 100)
-    truth = C.simulate(scene.system, 2.0, t_eval=t, rtol=1e-11, atol=1e-13)
-    rng = np.random.default_rng(1)
-    sigma = 1e-3
-    data = C.Measurements(t, ["x_p2", "y_p2"], truth.x[:, 1, :2] + sigma * rng.standard_normal((len(t), 2)))
+    scene, data, sigma = _noisy_double_pendulum(seed=1)
     start = np.array([1.5, 1.2])
     result = C.fit(scene.system, data, ["m1", "m2"], start=dict(zip(["m1", "m2"], start, strict=True)),
                    sigma=sigma)
@@ -283,12 +288,7 @@ def test_sensitivities_refuse_a_one_sided_rod_naming_the_fix():
 
 
 def test_fitting_g_and_a_length_of_a_double_pendulum_from_noisy_positions():
-    scene = C.load_scene("scenarios/double_pendulum_parametric.toml")
-    t = np.linspace(0.02, 2.0, 100)
-    truth = C.simulate(scene.system, 2.0, t_eval=t, rtol=1e-11, atol=1e-13)
-    rng = np.random.default_rng(3)
-    sigma = 1e-3
-    data = C.Measurements(t, ["x_p2", "y_p2"], truth.x[:, 1, :2] + sigma * rng.standard_normal((len(t), 2)))
+    scene, data, sigma = _noisy_double_pendulum(seed=3)
     result = C.fit(scene.system, data, ["g", "l1"], start={"g": 9.6, "l1": 1.03}, sigma=sigma)
     assert result.success and not result.unidentified
     z = (result.estimates - [G, 1.0]) / result.standard_errors

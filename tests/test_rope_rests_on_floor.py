@@ -15,30 +15,24 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_rope_slams_floor import FLOOR, LINK, MASS
+from test_rope_slams_floor import _rope_over_a_floor as rope_over_a_floor
 
 import constrained as C
 from constrained.model.structure import assemble
 from constrained.run import hybrid
 from constrained.run.unilateral import impact
 
-N, LINK, MASS, FLOOR = 60, 0.01, 0.01, -0.1
+N = 60
 T_END = 1.5 * np.sqrt(2 * abs(FLOOR) / 9.81)  # the free fall to the floor takes 2/3 of it
 G = 9.81
 
 
 def _rope_over_a_floor(n: int = N) -> C.System:
     """n beads on 1 cm links hung from the origin by the first, released horizontal at rest in
-    z = 0 above a one-sided, perfectly inelastic floor y >= FLOOR under every bead."""
-    s = C.System(name="rope over an inelastic floor")
-    for i in range(n):
-        s.add_particle(f"p{i}", MASS, [LINK * (i + 1), 0.0, 0.0], [0.0, 0.0, 0.0])
-    s.add(C.Distance("p0", point=[0.0, 0.0, 0.0], length=LINK))
-    for i in range(1, n):
-        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=LINK))
-    beads = [f"p{i}" for i in range(n)]
-    s.add(C.Plane(beads, [0, 0, 1], 0.0), C.Gravity([0, -G, 0]))
-    s.add(C.Plane(beads, [0, 1, 0], FLOOR, unilateral=True, restitution=0.0))
-    return s
+    z = 0 above a one-sided, perfectly inelastic floor y >= FLOOR under every bead (the rope
+    of test_rope_slams_floor with restitution 0)."""
+    return rope_over_a_floor(n, restitution=0.0)
 
 
 #: Segments the rope may take (30 when written): past it the run is stopped here, so that a
