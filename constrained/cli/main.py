@@ -397,9 +397,9 @@ def _dispatch(args) -> int:
         _say_error(f"cannot write {target}: {exc.strerror or exc}; nothing was written"
                    + (f" ({hint})" if hint else ""))
         return 2
-    except KeyboardInterrupt:  # asked for: one line, not called an error
+    except KeyboardInterrupt as exc:  # asked for: one line, not called an error (with what was kept)
         _ignore_further_ctrl_c()
-        print(f"{PROG}: interrupted (Ctrl-C)", file=sys.stderr)
+        print(f"{PROG}: {exc if str(exc) else 'interrupted (Ctrl-C)'}", file=sys.stderr)
         return 130
     finally:
         if discard_uncommitted is not None:

@@ -401,15 +401,18 @@ def _plot(args) -> int:
         raise InputError(f"plot: {exc}") from None
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"plot: cannot read {results} as a trajectory ({exc})") from None
-    from ..output.figure_style import finite_samples
+    from ..output.figure_style import finite_samples, nonfinite_quantities
 
     try:
         trajectory, dropped = finite_samples(trajectory)
     except InputError as exc:
         raise InputError(f"plot: {results}: {exc}") from None
     if dropped and not args.quiet:
-        print(f"note: {dropped} of {dropped + len(trajectory.t)} samples of {results} have positions or "
-              "velocities that are not finite; the figures leave them out")
+        print(f"note: {dropped} of {dropped + len(trajectory.t)} samples of {results} have times, positions "
+              "or velocities that are not finite; the figures leave them out")
+    for name, bad, total in [] if args.quiet else nonfinite_quantities(trajectory):  # (no NaN unsaid)
+        print(f"note: {name}: {bad} of {total} samples of {results} are not finite; its figure leaves them "
+              "out" + (" (it is empty)" if bad == total else ""))
     system = load_scene(args.scene).system if args.scene else None
     out_dir = Path(args.out) if args.out else results.parent
     outs = OutputSet(out_dir).open()

@@ -194,3 +194,18 @@ def finite_samples(traj: Trajectory) -> tuple[Trajectory, int]:
     cut = {name: None if getattr(traj, name) is None else np.asarray(getattr(traj, name))[ok]
            for name in ("t", "x", "v", *QUANTITIES)}
     return dataclasses.replace(traj, **cut), int(n - ok.sum())
+
+
+def nonfinite_quantities(traj: Trajectory) -> list[tuple[str, int, int]]:
+    """``(name, samples not finite, samples)`` of each saved quantity (energy, multipliers, ...)
+    with values that are not finite at some sample: ``plot`` says so, as it does of positions."""
+    found = []
+    for name in QUANTITIES:
+        values = getattr(traj, name, None)
+        if values is None or not len(traj.t) or np.asarray(values).size == 0:
+            continue
+        rows = np.reshape(np.asarray(values, float), (len(traj.t), -1))
+        bad = int(np.sum(~np.all(np.isfinite(rows), axis=1)))
+        if bad:
+            found.append((name, bad, len(traj.t)))
+    return found

@@ -264,8 +264,11 @@ def principal_coordinate(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, floa
     direction = vt[0]
     if direction[np.argmax(np.abs(direction))] < 0:
         direction = -direction
-    total = float(np.sum(sing**2))
-    share = float(sing[0] ** 2 / total) if total > 0 else 1.0
+    # shares of the singular values, not of their squares: positions of 1e300 m (a hand-made
+    # file) would overflow the squares and print NumPy's RuntimeWarnings into plot's output
+    top = float(sing[0]) if sing.size else 0.0
+    share = float(np.sum((sing / top) ** 2)) if top > 0 and np.isfinite(top) else 0.0
+    share = 1.0 / share if share > 0 and np.isfinite(share) else 1.0
     return c @ direction, v @ direction, share
 
 

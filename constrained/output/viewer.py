@@ -435,6 +435,10 @@ def view_command(results, *, scene=None, out=None) -> Path:
     target = Path(out) if out else (run if run.is_dir() else run.parent) / "viewer.html"
     if target.is_dir():
         raise InputError(f"view: --out {target} is a directory; give the name of the page to write")
+    blocking = next((d for d in target.parents if d.exists() and not d.is_dir()), None)
+    if blocking is not None:  # (mkdir's own words, "File exists", named the wrong cause)
+        raise InputError(f"view: cannot write {target}: {blocking} is a file, not a folder; give an --out "
+                         "in a folder, or move the file")
     system = scene.system if scene is not None else None
     file = run / "trajectory.npz" if run.is_dir() else run
     title = (scene.name if scene is not None else "") or f"{file.parent.name}/{file.name}".lstrip("/")

@@ -16,6 +16,7 @@ than ``max_initial_correction`` × the system's size.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -98,7 +99,7 @@ def _table(model: Model, parameters) -> tuple[tuple[str, ...], np.ndarray]:
     if unknown:
         known = ", ".join(model.parameter_names) or "none"
         raise InputError(f"unknown parameter(s) {', '.join(unknown)} in the table (the system's: {known})")
-    values = [np.asarray(columns[n], float).ravel() for n in names]
+    values = [_column(n, columns[n]) for n in names]
     sizes = {v.size for v in values}
     if len(sizes) != 1 or 0 in sizes:
         raise InputError("every column of the parameter table must have the same, non-zero length")
@@ -107,6 +108,40 @@ def _table(model: Model, parameters) -> tuple[tuple[str, ...], np.ndarray]:
         bad = names[int(np.argmax(~np.all(np.isfinite(table), axis=0)))]
         raise InputError(f"the parameter table holds a value of '{bad}' that is not a finite number")
     return names, table
+
+
+def _column(name: str, values) -> np.ndarray:
+    """One column of the parameter table as floats: a flat sequence of real numbers (not
+    text, booleans, complex numbers, or nested lists, which used to be flattened into more
+    variants than rows) — else an InputError naming the parameter and the entry."""
+    array = np.asarray(values, dtype=object) if not isinstance(values, np.ndarray) else values
+    array = array.reshape(1) if array.ndim == 0 else array  # one value: one variant
+    if array.ndim != 1:
+        raise InputError(f"the column '{name}' of the parameter table must be a flat list of numbers, "
+                         f"got an array of shape {array.shape}")
+    if array.dtype.kind in "iuf":
+        return array.astype(float)
+    for i, v in enumerate(array.tolist()):
+        if isinstance(v, bool | np.bool_) or not isinstance(v, numbers.Real):
+            raise InputError(f"the column '{name}' of the parameter table holds {v!r:.60} at row {i}, "
+                             "which is not a number; give numbers only")
+    return array.astype(float)
+
+
+def _invalid_masses(model: Model, P: np.ndarray) -> np.ndarray:
+    """The variants whose parameter values give a particle a mass that is not a finite positive
+    number (``mass = "m"`` with m = 0 or -1). ``simulate`` refuses such a mass by name; here the
+    variant alone is refused, with status "non-positive mass" — it used to be reported as an
+    "inconsistent start" (or to run with a negative mass), which named the wrong cause."""
+    if not model.masses_follow_parameters:
+        return np.zeros(0, int)
+    entries = getattr(model.structure, "mass_entries", None)
+    if entries is not None:
+        masses = P[:, np.asarray(entries, int)]
+    else:
+        masses = np.asarray(model.parametric("masses").map(P.shape[0])(P.T), float).T
+    with np.errstate(invalid="ignore"):
+        return np.flatnonzero(~np.all(np.isfinite(masses) & (masses > 0), axis=1))
 
 
 def _start_formulas(system) -> tuple:
@@ -269,8 +304,13 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     """
     require_system(system, "simulate_many")
     for key, value in (("t_end", t_end), ("t_start", t_start)):
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
+    t_end, t_start = float(t_end), float(t_start)
+    if isinstance(max_initial_correction, bool) or not isinstance(max_initial_correction, numbers.Real) \
+            or not max_initial_correction >= 0 or not math.isfinite(max_initial_correction):
+        raise InputError("max_initial_correction must be a finite number >= 0 (a fraction of the system's "
+                         f"size), got {max_initial_correction!r}")
     if t_end <= t_start:
         raise InputError(f"t_end ({t_end:g} s) must be later than t_start ({t_start:g} s)")
     if not (isinstance(block, int) and block > 0):
@@ -305,6 +345,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         for k in np.flatnonzero(~np.isfinite(moved) | (moved > max_initial_correction * size)
                                 | ~np.all(np.isfinite(vs), axis=1)):
             status[k] = "inconsistent start"
+        for k in _invalid_masses(model, P):
+            status[k] = "non-positive mass"
         accel = _mapped_acceleration(dopri, width)
         h = _initial_steps(xs, vs, a0, P, t_start, t_end, dopri,
                            lambda x, v, t, p: _blockwise(accel, width, x, v, t, p))

@@ -13,8 +13,12 @@ import numpy as np
 
 from ..errors import InconsistentStateError
 from ..manifold import residual
-from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, redundant_rows
+from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, dense_jacobian, redundant_rows
 from ..model.structure import Model
+
+#: Coordinates up to which the start's gradient is checked densely (above, the sparse rank
+#: decision has its own checks, and a dense Jacobian would cost N² memory).
+DENSE_GRADIENT_CHECK = 3000
 
 
 @dataclass(frozen=True)
@@ -39,13 +43,14 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     """
     x0 = np.asarray(x0, float).ravel()
     v0 = np.asarray(v0, float).ravel()
-    manifold = Manifold(model, rows=redundant_rows(model, x0, t0, policy), policy=policy, compiled=compiled)
-    size = size or max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
     labels = model.constraint_labels
     f0 = constraint_values(model)(x0, t0)[0] if model.n_constraints else np.zeros(0)
     if model.n_constraints and not np.all(np.isfinite(f0)):
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
+    _refuse_undefined_gradient(model, x0, t0)
+    manifold = Manifold(model, rows=redundant_rows(model, x0, t0, policy), policy=policy, compiled=compiled)
+    size = size or max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
     # residuals and tolerances in metres: each row divided by its scale (constrained.residual)
     scales = residual.row_scales(model, x0, t0)[:model.n_position_rows] if model.n_constraints else np.ones(0)
     f0 = f0 / scales if np.all(np.isfinite(scales)) and np.all(scales > 0) else f0
@@ -152,3 +157,21 @@ def _refuse_taut_self_stress(manifold: Manifold, x, v, t: float) -> None:
         "with forces that grow without bound; give the set slack (anchor its ends closer together) "
         "or start it bent (e.g. a sagging edge)")
 
+
+
+def _refuse_undefined_gradient(model: Model, x0: np.ndarray, t0: float) -> None:
+    """A constraint whose gradient is not finite at the start (a rod of length 0, whose
+    particle sits on its anchor: the direction is undefined) is refused with its name. A scene
+    is checked when it is built (scene.build ``regular_start``); this catches the same start
+    reached by ``simulate(..., parameters=...)``, which otherwise failed inside the rank
+    decision's QR with NumPy's bare "array must not contain infs or NaNs"."""
+    if not model.n_constraints or model.n_coordinates > DENSE_GRADIENT_CHECK:
+        return
+    J = np.asarray(dense_jacobian(model)(x0, t0)[0], float).reshape(model.n_coordinates, model.n_constraints)
+    bad = ~np.all(np.isfinite(J), axis=0)
+    if bad.any():
+        label = model.constraint_labels[int(np.argmax(bad))]
+        raise InconsistentStateError(
+            f"constraint '{label}' is undefined at the initial state (t = {t0:g} s): its gradient is not "
+            "finite there (e.g. a particle on the anchor of its rod, or a rod of length 0); move the "
+            "particle, or give parameter values that keep the constraint regular")

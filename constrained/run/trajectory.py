@@ -310,6 +310,7 @@ class Trajectory:
                 raise InputError(f"{path}: the array {name} has shape {a.shape} and type {a.dtype}, not the "
                                  f"{shape}numbers its t {t.shape} and x {x.shape} need; the file is "
                                  "damaged: run the scene again to write it")
+        _refuse_disordered(path, t, meta, N)
         return cls(
             **{k: arrays.get(k) for k in ("t", "x", "v", *QUANTITIES)},
             particle_names=meta.get("particle_names", []),
@@ -397,3 +398,23 @@ def _jsonable(value):
     if isinstance(value, np.ndarray):
         return value.tolist()
     return value
+
+
+def _refuse_disordered(path: Path, t: np.ndarray, meta: dict, n_particles: int) -> None:
+    """A file whose times go backwards, or whose particle names are not one per particle, was
+    not written by a run (hand-edited, or put together from two files): refused as damaged
+    instead of drawn as lines that double back, or labelled with the wrong names. (Equal
+    consecutive times are kept: a run records an impact's state before and after it.)"""
+    with np.errstate(invalid="ignore"):
+        finite = np.asarray(t, float)[np.isfinite(np.asarray(t, float))]
+        back = np.flatnonzero(np.diff(finite) < 0)
+    if back.size:
+        k = int(back[0])
+        raise InputError(f"{path}: its times go backwards (t = {finite[k]:g} s, then {finite[k + 1]:g} s); "
+                         "the file is damaged: run the scene again to write it")
+    names = meta.get("particle_names", [])
+    if names and (not isinstance(names, list) or len(names) != n_particles
+                  or not all(isinstance(n, str) for n in names)):
+        count = len(names) if isinstance(names, list) else "no list of"
+        raise InputError(f"{path}: its meta names {count} particle(s), but x holds {n_particles}; the "
+                         "file is damaged: run the scene again to write it")

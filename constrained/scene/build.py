@@ -50,7 +50,16 @@ def _why_singular(obj, system: System, t0: float) -> str:
     if isinstance(b, str) and b in names and here is not None and np.allclose(here, pos[names.index(b)]):
         return (f": particles '{a}' and '{b}' start at the same position, where the direction "
                 "between them is undefined; move one of them")
-    if point is not None and here is not None:
+    largest = float(np.max(np.abs(pos), initial=0.0))
+    if largest > 1e100:  # (a formula's value: e.g. a length parameter of 1e300 as a position)
+        return (f": the start has coordinates of {largest:.3g} m, whose squares overflow; use units "
+                "(or parameter values) that keep the numbers moderate")
+    try:
+        anchor = np.asarray(point, float) if point is not None else None
+    except (TypeError, ValueError):  # a moving point (formulas): its place at t0 is not known here
+        anchor = np.full(3, np.nan)
+    if anchor is not None and here is not None and (not np.all(np.isfinite(anchor))
+                                                    or np.allclose(here, anchor, rtol=0, atol=1e-12)):
         return (f": particle '{a}' starts on the point {list(point)}, where the direction from "
                 "the point is undefined; move the particle (to the rod's length from the point)")
     return "; move the particles away from the singular point"

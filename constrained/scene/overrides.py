@@ -55,9 +55,12 @@ def parse_override(text: str, *, file=None) -> tuple[list[str | int], Any]:
 
 # --- overrides -------------------------------------------------------------------------------
 
-_SEG = r"[A-Za-z0-9_\-]+(?:\[\d+\])*"
+#: A name segment: letters (any script: particle and parameter names are identifiers, and
+#: ``ballé``, ``λ`` are identifiers), digits, ``_`` and ``-``; then ``[index]`` suffixes.
+_NAME = r"(?:[^\W]|-)+"
+_SEG = rf"{_NAME}(?:\[[0-9]+\])*"
 _KEY_RE = re.compile(rf"{_SEG}(?:\.{_SEG})*")
-_TOKEN_RE = re.compile(r"([A-Za-z0-9_\-]+)|\[(\d+)\]")
+_TOKEN_RE = re.compile(rf"({_NAME})|\[([0-9]+)\]")
 
 
 #: A decimal number as TOML writes one (no leading zeros, digits on both sides of the point).

@@ -158,7 +158,34 @@ def parse_spec(key: str, text: str) -> Spec:
     values = value if isinstance(value, list) else [value]
     if not values:
         raise InputError("the list of values is empty", where=where)
+    _refuse_unusable_values(key, values, where)
     return Spec(key, text, "values", (), tuple(values))
+
+
+def _refuse_unusable_values(key: str, values: list, where: str) -> None:
+    """A listed value that no run can use is refused before anything runs, as ``lin(nan, ...)``
+    and a design file's cells are: a number that is not finite (TOML's ``nan``, ``inf``, or
+    ``1e400``, read as inf) anywhere in a value, and, for a ``parameters.NAME`` key, a value
+    that is not a plain number (a parameter is a number; formulas go in [definitions]).
+    Otherwise each such value would only become a failed row, found after the others ran."""
+    parameter = re.fullmatch(r"parameters\.[^.\[\]]+", key) is not None
+
+    def nonfinite(value) -> bool:
+        if isinstance(value, float):
+            return not math.isfinite(value)
+        if isinstance(value, list):
+            return any(nonfinite(v) for v in value)
+        return False
+
+    for i, value in enumerate(values):
+        if nonfinite(value):
+            raise InputError(f"value {i + 1} ({toml_value(value)}) is not a finite number (inf and nan "
+                             "are not accepted; a number beyond 1.8e308 reads as inf); give finite values",
+                             where=where)
+        if parameter and (isinstance(value, bool) or not isinstance(value, int | float)):
+            raise InputError(f"value {i + 1} ({toml_value(value)}) is not a number: a parameter takes "
+                             "plain numbers (a formula of other parameters goes in [definitions])",
+                             where=where)
 
 
 def parse_vary(text: str) -> Spec:

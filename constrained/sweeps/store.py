@@ -360,7 +360,14 @@ WRITE_BATCH = 256
 def write_table(out: Path, keys: list[str], points: list[dict], files: dict[Path, int],
                 index_of: dict[str, int], *, parquet: bool) -> list[Path]:
     """``out/summary.csv`` (and ``summary.parquet``) of the variants found in ``files``, in design
-    order, each atomically; streamed: WRITE_BATCH rows in memory at a time."""
+    order, each atomically; streamed: WRITE_BATCH rows in memory at a time.
+
+    The files beside it never describe other rows than the new csv: the earlier call's
+    ``summary.parquet`` and ``sweep.png`` are removed before the csv is replaced (the parquet is
+    written again after it, the figure when the sweep ends). A sweep interrupted after its
+    periodic rewrite used to leave a new csv beside the parquet and figure of an earlier call."""
+    for stale in (out / "sweep.png", out / "summary.parquet"):
+        stale.unlink(missing_ok=True)
     columns, kinds = summary_columns(keys, files)
     for k in keys:
         kinds[k] = _kind([p.get(k) for p in points[:1000]])

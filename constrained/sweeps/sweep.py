@@ -279,8 +279,9 @@ def sweep(
     chunks_dir.mkdir(exist_ok=True)
     if save_trajectories:
         runs_dir.mkdir(exist_ok=True)
-    write_json(out / "sweep.json", {**manifest, "vary": list(vary), "samples": samples, "seed": seed,
-                                    "design_file": None if design_file is None else str(design_file)})
+    record_of_sweep = {**manifest, "vary": list(vary), "samples": samples, "seed": seed,
+                       "design_file": None if design_file is None else str(design_file)}
+    write_json(out / "sweep.json", {**record_of_sweep, **_progress_record(done, len(ids))})
     base_raw = apply_overrides(load_raw(scene_text, file), overrides, file=file)
     keys = [s.key for s in specs]
     work = plan({"scene_text": scene_text, "file": file, "base_overrides": overrides, "summaries": summaries,
@@ -305,16 +306,25 @@ def sweep(
         if result.get("interrupted"):
             raise KeyboardInterrupt
         if time.monotonic() - last_write[0] > SUMMARY_EVERY_S:
-            write_table(out, keys, points, files, index_of, parquet=False)
+            write_tables()
             last_write[0] = time.monotonic()
+
+    def write_tables() -> list[Path]:
+        paths = write_table(out, keys, points, files, index_of, parquet=True)
+        write_json(out / "sweep.json", {**record_of_sweep, **_progress_record(done, len(ids))})
+        return paths
 
     try:
         where = execute(work.chunks, record, scheduler, progress=progress, workers=workers)
-    except BaseException:  # interrupted: the finished chunks are on disk; leave a table of them too
+    except KeyboardInterrupt:  # the finished chunks are on disk; leave a table of them too, and say so
         if done:
-            write_table(out, keys, points, files, index_of, parquet=False)
+            write_tables()
+        raise SweepInterrupted(_interrupted_message(out, len(done), len(ids), bool(done))) from None
+    except BaseException:
+        if done:
+            write_tables()
         raise
-    paths = write_table(out, keys, points, files, index_of, parquet=True)
+    paths = write_tables()
     result = SweepResult(out, specs, points, computed=len(todo), skipped=skipped,
                          wall_time_s=0.0, paths=paths, workers=where.workers, batched=work.count("batched"),
                          per_run=work.count("per-run"), where=where, notes=work.notes,
@@ -331,6 +341,27 @@ def sweep(
             paths.append(fig)
     result.wall_time_s = time.perf_counter() - started
     return result
+
+
+class SweepInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped the sweep; the message says how many runs are in the table and how to go
+    on. (A KeyboardInterrupt: callers that stop on Ctrl-C still do.)"""
+
+
+def _progress_record(done: dict, total: int) -> dict:
+    """What ``sweep.json`` says of the table beside it: how many runs it holds, of how many, and
+    whether the sweep is complete — so a table left by an interrupted (or ``--limit``) call is
+    marked as partial in the directory itself, not only in the message of the call."""
+    return {"finished": len(done), "failed": sum(not ok for ok in done.values()), "total": total,
+            "complete": len(done) == total}
+
+
+def _interrupted_message(out: Path, finished: int, total: int, table: bool) -> str:
+    if not table:
+        return (f"sweep interrupted (Ctrl-C) before any of its {total} runs finished; nothing was kept. "
+                "Run the same command again to compute them")
+    return (f"sweep interrupted (Ctrl-C): {finished} of {total} runs are in {out / 'summary.csv'} "
+            "(sweep.json: \"complete\": false); run the same command again to compute the rest")
 
 
 def default_out_dir(scene_path: Path) -> Path:
