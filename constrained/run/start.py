@@ -13,12 +13,8 @@ import numpy as np
 
 from ..errors import InconsistentStateError
 from ..manifold import residual
-from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, dense_jacobian, redundant_rows
+from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, redundant_rows, sparse_jacobian
 from ..model.structure import Model
-
-#: Coordinates up to which the start's gradient is checked densely (above, the sparse rank
-#: decision has its own checks, and a dense Jacobian would cost N² memory).
-DENSE_GRADIENT_CHECK = 3000
 
 
 @dataclass(frozen=True)
@@ -164,14 +160,17 @@ def _refuse_undefined_gradient(model: Model, x0: np.ndarray, t0: float) -> None:
     particle sits on its anchor: the direction is undefined) is refused with its name. A scene
     is checked when it is built (scene.build ``regular_start``); this catches the same start
     reached by ``simulate(..., parameters=...)``, which otherwise failed inside the rank
-    decision's QR with NumPy's bare "array must not contain infs or NaNs"."""
-    if not model.n_constraints or model.n_coordinates > DENSE_GRADIENT_CHECK:
+    decision's QR with NumPy's bare "array must not contain infs or NaNs". One evaluation of
+    J's nonzeros (the sparse Jacobian the runs use), at any size."""
+    if not model.n_constraints:
         return
-    J = np.asarray(dense_jacobian(model)(x0, t0)[0], float).reshape(model.n_coordinates, model.n_constraints)
-    bad = ~np.all(np.isfinite(J), axis=0)
-    if bad.any():
-        label = model.constraint_labels[int(np.argmax(bad))]
-        raise InconsistentStateError(
-            f"constraint '{label}' is undefined at the initial state (t = {t0:g} s): its gradient is not "
-            "finite there (e.g. a particle on the anchor of its rod, or a rod of length 0); move the "
-            "particle, or give parameter values that keep the constraint regular")
+    J = sparse_jacobian(model)(x0, t0)
+    values = np.asarray(J.nonzeros(), float).ravel()
+    if np.all(np.isfinite(values)):
+        return
+    rows, _ = J.sparsity().get_triplet()
+    label = model.constraint_labels[int(np.asarray(rows)[~np.isfinite(values)][0])]
+    raise InconsistentStateError(
+        f"constraint '{label}' is undefined at the initial state (t = {t0:g} s): its gradient is not "
+        "finite there (e.g. a particle on the anchor of its rod, or a rod of length 0); move the "
+        "particle, or give parameter values that keep the constraint regular")
