@@ -88,3 +88,20 @@ def test_an_animation_of_many_particles_moves_a_few_artists_with_every_particle(
     dots = {tuple(np.round(p, 12)) for line in fig.axes[0].lines if line.get_marker() == "o"
             for p in np.column_stack(line.get_data())}
     assert dots >= {tuple(np.round(p, 12)) for p in q}  # every particle's dot where it is
+
+
+def test_a_system_without_constraints_has_no_constraint_figures():
+    """Helper's finding (session 14): `constrained plot` drew empty multiplier and
+    constraint-force figures for a free particle; they are skipped, saying why."""
+    import pytest
+
+    from constrained.errors import InputError
+
+    s = C.System(name="free particle")
+    s.add_particle("b", 1.0, [0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    s.add(C.Gravity([0.0, -9.81, 0.0]))
+    tr = C.simulate(s, 0.5)
+    for figure in (plot.multipliers_figure, plot.constraint_forces_figure):
+        with pytest.raises(InputError, match="no constraints"):
+            figure(tr)
+    assert plot.trajectory_figure(tr).axes  # the others are drawn

@@ -431,7 +431,7 @@ def _plot(args) -> int:
         if written:
             print("wrote: " + ", ".join(str(p) for p in written))
         if skipped:
-            print("skipped (data not in the file): " + "; ".join(skipped))
+            print("skipped (nothing in the file to draw them from): " + "; ".join(skipped))
     return 0 if written or not args.kinds else 1
 
 

@@ -215,9 +215,18 @@ def residual_figure(traj: Trajectory) -> Figure:
     return fig
 
 
+def _refuse_without_constraints(traj: Trajectory, what: str) -> None:
+    """An InputError for a system without constraints, whose figure of ``what`` would be empty
+    (``constrained plot`` lists it as skipped)."""
+    lam = traj.multipliers
+    if lam is not None and np.asarray(lam).size == 0:
+        raise InputError(f"the system has no constraints: no {what} to draw")
+
+
 def constraint_forces_figure(traj: Trajectory) -> Figure:
     """Magnitude of the total constraint force on each particle, |F_con,i|(t) in newtons."""
     forces = need(traj, "constraint_forces", "constraint forces")
+    _refuse_without_constraints(traj, "constraint forces")
     t = np.asarray(traj.t, dtype=float)
     magnitude = np.linalg.norm(forces, axis=2)
     names = particle_names(traj)
@@ -235,6 +244,7 @@ def constraint_forces_figure(traj: Trajectory) -> Figure:
 def multipliers_figure(traj: Trajectory) -> Figure:
     """Each Lagrange multiplier λ_k(t); the legend names the constraint rows."""
     lam = need(traj, "multipliers", "multipliers")
+    _refuse_without_constraints(traj, "multipliers")
     lam = lam.reshape(len(lam), -1)
     t = np.asarray(traj.t, dtype=float)
     labels = constraint_labels(traj, lam.shape[1])
