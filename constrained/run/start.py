@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import interrupt
 from ..errors import InconsistentStateError
 from ..manifold import residual
 from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, redundant_rows, sparse_jacobian
@@ -56,6 +57,11 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
     x, err = result.x, result.residual
     if np.isfinite(err) and err > 1e-8 * size * s_min:
         err = residual.position_residual(model, x, t0)
+    if not err <= 1e-8 * size:  # far off, or light particles between heavy ones: assemble first
+        assembled = assemble_positions(model, x0, t0, scales, tol=1e-10 * size)
+        if assembled is not None:
+            x = manifold.project_positions(assembled, t0, tol=1e-13 * size * s_min, max_iter=50).x
+            err = residual.position_residual(model, x, t0)
     dx = float(np.max(np.linalg.norm((x - x0).reshape(-1, 3), axis=1), initial=0.0))
     if err > 1e-8 * size or not np.isfinite(err):
         f = np.asarray(model.constraint(x, t0)).ravel() / np.where(scales > 0, scales, 1.0)
@@ -96,6 +102,53 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
         "worst_constraint": labels[worst] if f0.size else None,
     }
     return Start(x, v, report, manifold)
+
+
+#: Initial assembly (``assemble_positions``): Gauss–Newton iterations and line-search halvings
+#: at most, and the largest model it takes on (a dense least-squares step each iteration).
+ASSEMBLY_ITERATIONS, ASSEMBLY_HALVINGS, ASSEMBLY_MAX_COORDINATES = 200, 40, 3000
+
+
+def assemble_positions(model: Model, x0, t0: float, scales: np.ndarray, tol: float) -> np.ndarray | None:
+    """A configuration on f(x, t0) = 0 near x0, where the mass-weighted projection failed: the
+    Gauss–Newton method on the rows in metres (f_i / s_i, ``scales`` s) with a backtracking line
+    search on |f|², each step the minimum-norm solution of J dx = −f (least squares: dependent
+    rows and a straightened kink are no obstacle). The mass-weighted step moves light particles
+    most, so from a start a few per cent off, with 1 mg beads between 1 kg ones, it stalls where
+    the light beads alone cannot close the rods; unweighted, the geometry decides. None when
+    |f_i / s_i| ≤ ``tol`` (m) is not reached: |f|² has a minimum above zero there (the
+    constraints cannot all hold), or the model is too large for dense steps."""
+    rows = model.n_position_rows
+    if not rows or model.n_coordinates > ASSEMBLY_MAX_COORDINATES:
+        return None
+    scales = np.where(np.isfinite(scales) & (scales > 0), scales, 1.0)
+    values, jacobian = constraint_values(model), sparse_jacobian(model)
+
+    def scaled(x):
+        f = np.asarray(values(x, t0)[0], float).ravel() / scales
+        return f, float(f @ f)
+
+    x = np.array(x0, float)
+    f, merit = scaled(x)
+    for _ in range(ASSEMBLY_ITERATIONS):
+        if interrupt.requested():
+            raise KeyboardInterrupt
+        if not np.isfinite(merit):
+            return None
+        if np.max(np.abs(f)) <= tol:
+            return x
+        J = np.asarray(jacobian(x, t0).full(), float)[:rows] / scales[:, None]
+        dx = np.linalg.lstsq(J, -f, rcond=None)[0]
+        alpha = 1.0
+        for _ in range(ASSEMBLY_HALVINGS):
+            f_new, merit_new = scaled(x + alpha * dx)
+            if merit_new <= (1.0 - 1e-4 * alpha) * merit:
+                break
+            alpha *= 0.5
+        else:
+            return None  # no descent: a minimum of |f|² above zero
+        x, f, merit = x + alpha * dx, f_new, merit_new
+    return x if np.max(np.abs(f)) <= tol else None
 
 
 def consistent_state(model: Model, x0, v0, t0: float = 0.0, *, max_correction: float = 1e-3,
