@@ -9,7 +9,9 @@ compares them):
   C × 3N dense for a large model);
 - ``schur_solve(J, m⁻¹, b)``: (J M⁻¹ Jᵀ) y = b, scaled, the minimum-norm y for dependent rows;
 - ``full_row_rank(J, m⁻¹)``: True when a cheap factorization shows full rank, None when unsure;
-- ``independent_rows(J, m⁻¹)``: a maximal independent set of rows, in scene order.
+- ``independent_rows(J, m⁻¹)``: a maximal independent set of rows, in scene order;
+- ``multipliers(J, m⁻¹, F, γ)``: λ of the acceleration-level KKT system, refined on the
+  equations of motion (accurate at any spread of the masses).
 """
 
 from __future__ import annotations
@@ -23,6 +25,10 @@ from .sparse_rank import as_dense, as_scipy
 
 #: From this many constraint rows on, a model's linear algebra is the sparse one.
 SPARSE_FROM = 100
+#: Rounds of iterative refinement of the multipliers (``LinearAlgebra.multipliers``), and the
+#: relative residual of J a + γ below which none is needed (that of the sparse LDLᵀ's check).
+REFINEMENTS = 2
+REFINE_ABOVE = 1e-9
 
 
 class LinearAlgebra:
@@ -39,6 +45,31 @@ class LinearAlgebra:
 
     def full_row_rank(self, J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> bool | None:
         raise NotImplementedError
+
+    def multipliers(self, J, inverse_masses: np.ndarray, F: np.ndarray, gamma: np.ndarray, *,
+                    policy: RankPolicy = RANK, full_rank: bool = True, start: np.ndarray | None = None
+                    ) -> np.ndarray:
+        """λ of (J M⁻¹ Jᵀ) λ = −γ − J M⁻¹ F (from ``start`` when given, else ``schur_solve``),
+        refined on the equations of motion themselves: with a = M⁻¹ (F + Jᵀλ), the residual
+        c = J a + γ is solved for again, λ ← λ + δλ with (J M⁻¹ Jᵀ) δλ = −c (REFINEMENTS
+        rounds, where |c| exceeds REFINE_ABOVE of |γ| + |J M⁻¹ F|).
+
+        Forming J M⁻¹ Jᵀ swamps a heavy bead's 1/m by a light one's: a 1 mg bead between two
+        1 t beads on rods gives the 2 × 2 block (1/m_light) [[1, −1], [−1, 1]] plus 1e-3, and
+        the tensions came out wrong by ε × the mass ratio (1.4e-7 of 19.6 kN, 138 times the
+        light bead's weight). The residual c is computed through the forces F + Jᵀλ, where
+        those tensions cancel before 1/m multiplies them, so each round gains the factor the
+        solve loses (the tensions then to round-off)."""
+        load = J @ (inverse_masses * F)
+        lam = (self.schur_solve(J, inverse_masses, -gamma - load, policy=policy, full_rank=full_rank)
+               if start is None else np.asarray(start, float))
+        scale = np.max(np.abs(gamma), initial=0.0) + np.max(np.abs(load), initial=0.0) + 1e-300
+        for _ in range(REFINEMENTS):
+            c = J @ (inverse_masses * (F + J.T @ lam)) + gamma
+            if not np.max(np.abs(c), initial=0.0) > REFINE_ABOVE * scale:
+                break
+            lam = lam + self.schur_solve(J, inverse_masses, -c, policy=policy, full_rank=full_rank)
+        return lam
 
     def independent_rows(self, J, inverse_masses: np.ndarray, policy: RankPolicy = RANK) -> np.ndarray:
         raise NotImplementedError

@@ -219,7 +219,7 @@ def _minimum_norm(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, red
         for i, k in enumerate(redo):
             F, J, gamma = dynamics(X[k], V[k], float(t[k]))
             J = algebra.matrix(J)
-            lam[i] = algebra.schur_solve(J, minv, -gamma - J @ (minv * F), policy=policy, full_rank=full_rank)
+            lam[i] = algebra.multipliers(J, minv, F, gamma, policy=policy, full_rank=full_rank)
         return lam
     per_block = max(1, BLOCK_FLOATS // (C * n3))
     for start in range(0, len(redo), per_block):
@@ -227,8 +227,8 @@ def _minimum_norm(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, red
         F, Jcat, gamma = model.evaluate(model.dynamics, X[rows], V[rows], t[rows])
         J = Jcat.reshape(C, len(rows), n3).transpose(1, 0, 2)
         for i in range(len(rows)):
-            lam[start + i] = algebra.schur_solve(J[i], minv, -gamma[:, i] - J[i] @ (minv * F[:, i]),
-                                                 policy=policy, full_rank=full_rank)
+            lam[start + i] = algebra.multipliers(J[i], minv, F[:, i], gamma[:, i], policy=policy,
+                                                 full_rank=full_rank)
     return lam
 
 

@@ -225,10 +225,16 @@ class _Run:
         return all(abs(g) <= _resolution(event.function, self.stepper.atol, *state)
                    for g, state in ((g_before, self.last), (g_after, sample)))
 
-    def sample_stiffness(self, steps: int, h: float | None) -> None:
-        """h·ρ(∂f/∂y) every STIFFNESS_EVERY accepted steps of an explicit method."""
+    def sample_stiffness(self, steps: int, h: float | None, taken: np.ndarray) -> None:
+        """h·ρ(∂f/∂y) every STIFFNESS_EVERY accepted steps of an explicit method, with h the
+        step it proposes, but no longer than its longest step of the call: ``taken`` (the
+        accepted times, from the one before). A step cut short to land on output times is
+        held down by them, not by stability (a pendulum at rest on its inverted equilibrium,
+        with outputs every 0.01 s, proposed steps of 1.2 s: h·ρ ≈ 3.8, a false "stiff")."""
         if not (self.stepper.explicit and h and steps - self.sampled >= diagnostics.STIFFNESS_EVERY):
             return
+        if len(taken) > 1:
+            h = min(h, float(np.max(np.diff(taken))))
         self.sampled = steps
         y = np.concatenate([self.last[1], self.last[2]])
         rho = diagnostics.spectral_radius(self.stepper.derivative, self.last[0], y)
@@ -348,7 +354,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
             if failure is not None:
                 run.keep_reached()
                 break
-            run.sample_stiffness(steps, adv.h)
+            run.sample_stiffness(steps, adv.h, np.concatenate([[previous_t], adv.t[:k]]))
             if stepper.progress is not None and k:
                 stepper.progress(float(run.last[0]))
     except KeyboardInterrupt:  # Ctrl-C inside a call into C, or from a progress callback

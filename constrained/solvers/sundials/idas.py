@@ -33,7 +33,7 @@ from ...manifold.manifold import constraint_values
 from ...model.cache import ParametricView, structure_cache
 from ..base import DRIVER_OPTIONS, Advance, Status
 from ..driver import Stepper
-from .messages import quiet
+from .messages import quiet, tolerance_cause
 
 #: One SUNDIALS call covers this many output times at first (ggl, pantelides: every restart
 #: builds an integrator and takes tiny first steps again, 2.4x slower at 10 outputs a call than
@@ -221,7 +221,8 @@ class _IdasBase(Stepper):
             if self._calls.retry_smaller(len(seg), failed_after, by_steps=self.project_outputs):
                 return Advance.empty(state, n3)
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
-                                 f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
+                                 f"IDAS stopped after t = {t_prev:.6g} s ({reason})"
+                                 + tolerance_cause(self.rtol, self.atol, self._scale))
         took = time.perf_counter() - called
         stats = integ.stats()
         if self._step0:

@@ -63,3 +63,22 @@ def quiet():
                     if sys.stderr is _installed[0]:
                         sys.stderr = _installed[1]
                     _installed[:] = [None, None]
+
+
+#: Below this, rtol (or atol over the state's size) asks IDAS for a local error at round-off.
+TIGHTEST_TOLERANCE = 1e-13
+
+
+def tolerance_cause(rtol: float, atol: float, scale: float) -> str:
+    """"; likely cause: the tolerance …" for a failed IDAS call whose rtol or atol / scale is
+    below TIGHTEST_TOLERANCE, else "". At rtol = atol = 1e-14 the bead on a rotating hoop
+    stopped `idas` with IDA_LINESEARCH_FAIL at t = 0.3 s and `ggl` with IDA_CONV_FAIL at
+    0.9 s, which were put down to "forces that blow up" at accelerations of 9–17 m/s²; at
+    1e-13 both run. IDAS's Newton corrector cannot bring a step's error below the round-off
+    of its own residual, ε × the size of the terms it sums."""
+    if min(rtol, atol / max(scale, 1.0)) >= TIGHTEST_TOLERANCE:
+        return ""
+    return (f"; likely cause: the tolerance: rtol = {rtol:g}, atol = {atol:g} ask IDAS for a local error "
+            "at the round-off of double precision, where its Newton corrector stops converging; "
+            "loosen both to 1e-12 or above, or use dopri or projection, whose error at the end is "
+            "about rtol (docs/methods.md)")

@@ -26,7 +26,7 @@ from ...errors import InputError
 from ..base import DRIVER_OPTIONS, Advance, Status
 from ..driver import Stepper
 from .idas import SPLIT, STEPS_PER_CALL, CallSize
-from .messages import quiet
+from .messages import quiet, tolerance_cause
 
 #: Output times of pantelides' first IDAS call (see idas.CallSize).
 PANTELIDES_FIRST_CALL_OUTPUTS = 50
@@ -136,7 +136,8 @@ class Pantelides(Stepper):
                 inner = tuple(float(tk) for tk in np.linspace(t_prev, seg[0], SPLIT + 1)[1:-1])
                 return Advance.empty((t_prev, y, z, inner + tuple(times)), n3)
             return Advance.empty(state, n3, Status.SOLVER_FAILED,
-                                 f"IDAS stopped after t = {t_prev:.6g} s ({reason})")
+                                 f"IDAS stopped after t = {t_prev:.6g} s ({reason})"
+                                 + tolerance_cause(self.rtol, self.atol, float(np.max(np.abs(y[:n3])))))
         self._calls.took(time.perf_counter() - called)
         stats = integ.stats()
         for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
