@@ -335,3 +335,19 @@ def test_the_vibrating_plate_through_the_command_line(tmp_path, capsys):
         assert main(["run", str(scene), "--out", str(tmp_path / "bad")]) == 2
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err
+
+
+def test_coinciding_planes_solve_quietly_with_an_even_split(capfd):
+    """A bead held by a two-sided plane and resting on a one-sided plane in the same place: the
+    active set's rows are dependent. Each plane takes m g / 2 (the minimum-norm split), and the
+    solve no longer meets a singular matrix first (CasADi's "LDL factorization has zeros in D",
+    printed 58 times on stderr before; session 14)."""
+    m = 0.1
+    system = System([Particle("b", m, [0.0, 0.0, 0.0], [0.3, 0.0, 0.0])],
+                    [Plane("b", [0, 1, 0], 0.0), Plane("b", [0, 1, 0], 0.0, unilateral=True, restitution=0.5),
+                     Plane("b", [0, 0, 1], 0.0)],
+                    [Gravity([0, -G, 0])])
+    traj = simulate(system, 1.0)
+    np.testing.assert_allclose(traj.multipliers[:, :2], m * G / 2, rtol=1e-12)
+    np.testing.assert_allclose(traj.x[-1, 0], [0.3, 0.0, 0.0], atol=1e-12)  # sliding on, untouched
+    assert "zeros in D" not in capfd.readouterr().err

@@ -156,12 +156,13 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     g = gaps(model, x, t) / scales(model, x, t)
     rows = [k for k in range(model.n_constraints) if k not in info.rows or g[k] <= touch]
     x_given, v_given = x, v
-    x, _, err = ActiveSet(model, rows).project(x, v, t, tol)
+    x, _, err = ActiveSet(model, rows, at=(x, t)).project(x, v, t, tol)
     # velocities onto the two-sided rows only: a touching one-sided row's approach is an
     # impact at the start, its separation a lift-off (_transition), not a correction
     one_sided_rows = set(info.rows)  # (sets: thousands of rows)
     two_sided = [k for k in rows if k not in one_sided_rows]
-    v = ActiveSet(model, two_sided).manifold.project_velocities(x, v, t) if two_sided else np.array(v)
+    v = (ActiveSet(model, two_sided, at=(x, t)).manifold.project_velocities(x, v, t) if two_sided
+         else np.array(v))
     _check_start(model, x_given, x, t, rows, err, size, max_correction)
     start_correction = (float(np.max(np.abs(x - x_given), initial=0.0)),
                         float(np.max(np.abs(v - v_given), initial=0.0)))
@@ -478,7 +479,7 @@ def trajectory_quantities(model: Model, result: HybridRun, wanted, stats) -> Tra
     lam = np.zeros((n, C))
     res_x, res_v = np.zeros(n), np.zeros(n)
     for i0, i1, rows, _, _ in result.segments:
-        active = ActiveSet(model, rows)
+        active = ActiveSet(model, rows, at=(result.x[i0], result.t[i0]) if i1 > i0 else None)
         idx = np.array(rows, dtype=int)
         held_rows = set(rows)
         free = np.array([k for k in info.rows if k not in held_rows], dtype=int)

@@ -46,7 +46,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..manifold import residual
-from ..manifold.algebra import algebra_for
+from ..manifold.algebra import SPARSE_FROM, algebra_for
 from ..manifold.manifold import Manifold, constraint_values
 from ..model.cache import built_once
 from ..model.held import held
@@ -94,11 +94,17 @@ class ActiveSet:
     ones): the manifold of the model holding them (``held``, ``Manifold``: the one KKT solve
     and projection), with its multipliers spread over every model row."""
 
-    def __init__(self, model: Model, rows):
+    def __init__(self, model: Model, rows, at: tuple | None = None):
         self.model = model
         self.rows = tuple(sorted(int(k) for k in rows))
         self._index = np.array(self.rows, dtype=int)
-        self.manifold = Manifold(held(model, self.rows))
+        kept = held(model, self.rows)
+        # dependent held rows (a two-sided plane and a one-sided one that coincide) solved as
+        # such, decided at ``at`` = (x, t): else the solve met a singular matrix (CasADi's
+        # "LDL factorization has zeros in D" on stderr) before it fell back. Dense decisions only
+        # (up to SPARSE_FROM rows): a large active set keeps the fallback
+        dependent = at is not None and 0 < kept.n_constraints <= SPARSE_FROM
+        self.manifold = Manifold.at(kept, *at) if dependent else Manifold(kept)
 
     @property
     def nfev(self) -> int:
@@ -162,14 +168,14 @@ def wrong_sign(model: Model, active: ActiveSet, x, v, t, tol: float) -> list[int
 def holding_set(model: Model, rows, x, v, t, tol: float) -> tuple[ActiveSet, list[int]]:
     """Drop, one at a time, the one-sided row pulling (pushing) the wrong way hardest, until
     every held one-sided row has the allowed sign; returns (active set, dropped rows)."""
-    active = ActiveSet(model, rows)
+    active = ActiveSet(model, rows, at=(x, t))
     dropped = []
     while True:
         bad = wrong_sign(model, active, x, v, t, tol)
         if not bad:
             return active, dropped
         dropped.append(bad[0])
-        active = ActiveSet(model, [k for k in active.rows if k != bad[0]])
+        active = ActiveSet(model, [k for k in active.rows if k != bad[0]], at=(x, t))
 
 
 # --- the impact law ----------------------------------------------------------------------------------
@@ -293,7 +299,7 @@ def unloaded_rows(model: Model, held, x, v, t) -> list[int]:
     rows = [k for k in held if k in one_sided_rows]
     if not rows:
         return []
-    force = np.abs(ActiveSet(model, held).multipliers(x, v, t) * scales(model, x, t))
+    force = np.abs(ActiveSet(model, held, at=(x, t)).multipliers(x, v, t) * scales(model, x, t))
     largest = np.max(force[list(held)], initial=0.0)
     return [k for k in rows if force[k] <= LOAD_ROUND_OFF * largest]
 
