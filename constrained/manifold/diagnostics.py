@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import casadi as ca
 import numpy as np
 
 from .dense import schur_matrix
@@ -350,13 +351,11 @@ def fast_across_constraints(model, x, v, t: float, a, lam) -> str | None:
     acts as a stiffness, so particle i oscillates at ω_i² ≈ ‖K_ii‖ / m_i (a bead of mass m
     between two rods of length ℓ in tension T: 2 T / (m ℓ)). A 1 mg bead between two 1 t beads
     on 0.1 m rods: ω = 4.4e5 rad/s against a swing of 3 rad/s; every step has to follow it, and
-    the stop was called "forces that blow up" at an acceleration of 0.49 m/s². Up to 300
-    coordinates (a dense Hessian); None when no particle is that fast."""
-    import casadi as ca
-
+    the stop was called "forces that blow up" at an acceleration of 0.49 m/s². Up to
+    DENSE_SVD_MAX coordinates (a dense Hessian); None when no particle is that fast."""
     n3 = model.n_coordinates
     x, v, a = (np.asarray(z, float).ravel() for z in (x, v, a))
-    if not model.n_constraints or n3 > 300:
+    if not model.n_constraints or n3 > DENSE_SVD_MAX:
         return None
     X = ca.MX.sym("x", n3)
     f = model.constraint(X, t)
@@ -387,8 +386,6 @@ def nonfinite_cause(model, x, v, t: float) -> str:
     """The likely cause of non-finite values (energy, forces, multipliers) at the state (x, v, t):
     the effects whose term or force is not finite there, else the constraints, else
     ``likely_cause``. A diagnosis only: the equations are not changed."""
-    import casadi as ca
-
     s = model.symbols
     x = np.asarray(x, float).ravel()
     v = np.asarray(v, float).ravel()

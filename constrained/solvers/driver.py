@@ -213,7 +213,7 @@ class _Run:
                 at_stop = e.function(stop.t, stop.x, stop.v)
                 if not e.crossed(g_before[j], at_stop):
                     continue
-            hit = locate(self.stepper, e, self.last, ends[j], dense)
+            hit = locate(self.stepper, e, self.last, ends[j], dense, roots[j])
             found.append(hit)
             if e.terminal and (stop is None or hit.t < stop.t):
                 stop = hit

@@ -41,14 +41,15 @@ def dense_root(event: Event, before, after, dense, ga: float | None = None, gb: 
         return ta - ga * (tb - ta) / (gb - ga) if gb != ga else 0.5 * (ta + tb)
 
 
-def locate(stepper: Solver, event: Event, before, after, dense) -> EventHit:
+def locate(stepper: Solver, event: Event, before, after, dense, root: float | None = None) -> EventHit:
     """The crossing of ``event`` between the samples ``before`` and ``after`` ((t, x, v)),
-    to round-off on the method's own solution when it lands on given times."""
+    to round-off on the method's own solution when it lands on given times; ``root``: its
+    ``dense_root`` when already found."""
     g = event.function
     ta, xa, va = before
     tb, xb, vb = after
     ga, gb = g(ta, xa, va), g(tb, xb, vb)
-    t1 = dense_root(event, before, after, dense, ga, gb)
+    t1 = dense_root(event, before, after, dense, ga, gb) if root is None else root
     if not stepper.refines_events:
         x1, v1 = stepper.output(t1, *dense(t1))
         return EventHit(event, float(t1), x1, v1)
