@@ -62,6 +62,7 @@ from .unilateral import (
     scales,
     unloaded_rows,
 )
+from .user_events import recorded_jumps
 
 #: Default rest speed = this × atol (m/s): rebounds slower than that settle (see the module).
 REST_SPEED_PER_ATOL = 1e3
@@ -171,14 +172,18 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
     touching_set = set(touching)
     rows = [k for k in rows if k not in touching_set]
     history = ImpactHistory(max(ZENO_TIME, 1e3 * np.finfo(float).eps * abs(t_end)))
+    before = (x, v)
     active, x, v, rebounding = _transition(model, x, v, t, rows, touching, rest, tol, record, at_start=True,
                                            history=history, touch=touch)
+    jumped = recorded_jumps(user_events, t, before, (x, v), atol, records, record)
 
     T, X, V, segments = [], [], [], []
     grid = None if t_eval is None else np.asarray(t_eval, float)
     stopped_by, failure, nfev = None, None, 0
+    if jumped is not None:  # a terminal event crossed by the start's impact: the start is the run
+        T, X, V, segments, stopped_by = [t], [x], [v], [(0, 1, active.rows, t, t)], jumped.name
     ended: dict[str, int] = {}  # constraint label -> segments its event ended
-    while True:
+    while stopped_by is None:
         watch = SegmentWatch(model, active, list(user_events), t, x, rebounding, touch=touch, round_off=tol)
         if grid is None:
             seg_eval = None
@@ -229,9 +234,21 @@ def run(model: Model, x0, v0, t0: float, t_end: float, *, t_eval=None, rtol=1e-8
             record(t, model.constraint_labels[row], "release", x, v)
         closing = [row] if kind == "contact" else []
         closing += _also_closing(model, x, v, t, active.rows, closing, touch)
+        before = (x, v)
         active, x, v, rebounding = _transition(model, x, v, t, held, closing, rest, tol, record,
                                                history=history, touch=touch)
         ended[model.constraint_labels[row]] = ended.get(model.constraint_labels[row], 0) + 1
+        jumped = recorded_jumps(user_events, t, before, (x, v), atol, records, record)
+        if jumped is not None:  # a stop: the state after the jump is the run's last sample
+            stopped_by = jumped.name
+            if T and T[-1] == t:  # (the segment's last sample is the state before the jump)
+                X[-1], V[-1] = x, v
+            else:
+                T.append(t)
+                X.append(x)
+                V.append(v)
+                segments.append((len(T) - 1, len(T), active.rows, t, t))
+            break
         if len(records) > max_events or len(segments) > max_events:
             failure = _chattering(records, ended, max_events, t)
             break

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..solvers.base import Event
+from ..solvers.driver import event_resolution, same_instant
 from .event_records import CONSTRAINT_KINDS
 
 #: Direction words of a scene's [[events]] entry.
@@ -93,3 +94,38 @@ class FormulaEvent:
             return float(_f(t, x, v))
 
         return Event(self.name, value, self.direction, self.stop)
+
+
+def jumped_through_zero(events, t: float, before: tuple, after: tuple, atol: float) -> list[Event]:
+    """The ``events`` whose value jumps through zero at t, where the state jumps from
+    ``before`` = (x, v) to ``after`` (an impact: the velocities change at once), in their
+    direction: g(t, before) < −r and g(t, after) > r is a rising crossing, the reverse a
+    falling one. r is the run's resolution (``driver.event_resolution``) for events that ignore
+    round-off, else 0: a plastic impact lands vy on zero, give or take round-off, and that is
+    no crossing. The velocity of a ball bouncing off a floor is such an event: it never passes
+    through zero along the motion, yet its sign changes at the bounce."""
+    out = []
+    for e in events:
+        g0, g1 = float(e.function(t, *before)), float(e.function(t, *after))
+        if not (np.isfinite(g0) and np.isfinite(g1)):
+            continue
+        r = max(event_resolution(e.function, atol, t, *state) for state in (before, after)) \
+            if e.ignore_round_off else 0.0
+        rising, falling = g0 < -r and g1 > r, g0 > r and g1 < -r
+        if (rising and e.direction >= 0) or (falling and e.direction <= 0):
+            out.append(e)
+    return out
+
+
+def recorded_jumps(user_events, t: float, before: tuple, after: tuple, atol: float, records: list, record):
+    """The user's events that the state's jump at t (an impact) takes through zero
+    (``jumped_through_zero``: vy of a bouncing ball) recorded, unless a crossing of the same
+    event was recorded at this instant already; returns the first terminal one, or None."""
+    stop = None
+    for e in jumped_through_zero(user_events, t, before, after, atol):
+        if any(r.kind == e.name and -same_instant(-t) <= r.t <= same_instant(t) for r in records):
+            continue
+        record(t, e.name, e.name, *after)
+        if e.terminal and stop is None:
+            stop = e
+    return stop

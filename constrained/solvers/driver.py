@@ -222,7 +222,7 @@ class _Run:
     def round_off_flip(self, event: Event, g_before: float, sample, g_after: float) -> bool:
         """Whether a sign change of ``event`` lies within the run's resolution: both values no
         larger than the change of g when the state moves by atol (see Event.ignore_round_off)."""
-        return all(abs(g) <= _resolution(event.function, self.stepper.atol, *state)
+        return all(abs(g) <= event_resolution(event.function, self.stepper.atol, *state)
                    for g, state in ((g_before, self.last), (g_after, sample)))
 
     def sample_stiffness(self, steps: int, h: float | None, taken: np.ndarray) -> None:
@@ -282,7 +282,7 @@ def _default_step_limit(stepper: Solver, t0: float, t_end: float) -> int:
     return max(DEFAULT_MAX_STEPS, 2 * needed)
 
 
-def _resolution(g, atol: float, t: float, x, v) -> float:
+def event_resolution(g, atol: float, t: float, x, v) -> float:
     """How much g(t, x, v) moves when x, or v, moves by about atol in every component (fixed
     pseudo-random signs and sizes, so that no combination of coordinates cancels)."""
     x, v = np.asarray(x, float), np.asarray(v, float)
