@@ -87,3 +87,41 @@ def _fmt_value(v) -> str:
     if isinstance(v, float | np.floating):
         return f"{float(v):.3g}"
     return str(v)
+
+
+class ReaderGone:
+    """The command's stdout, quiet once its reader has gone (``constrained run scene.toml |
+    head -3``): the rest of the report is dropped, the run and its files are not. Without it
+    the first line written after the reader left raised BrokenPipeError, which the command
+    took for an unwritable --out folder and discarded the run ("cannot write out: Broken
+    pipe; nothing was written")."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._silence()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._silence()
+
+    def _silence(self) -> None:
+        """The stream's descriptor pointed at /dev/null: what is buffered and what follows go
+        there."""
+        import os
+
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, self._stream.fileno())
+        finally:
+            os.close(devnull)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
