@@ -31,6 +31,7 @@ from ..model import velocity
 from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, one_sided, scales
 from ..threads import one_blas_thread
+from .statics_methods import large as _large
 from .statics_methods.descent import minimize_on_constraints
 from .statics_methods.kkt import IPOPT_CPU_S, IPOPT_ITERATIONS, force_round_off  # noqa: F401 (their home was here)
 from .statics_methods.kkt import KKT as _KKT
@@ -63,8 +64,9 @@ def zero_frequency_squared(knorm: float, degrees_of_freedom: int, acceleration_r
 #: model, statics_methods.kkt.force_round_off), constraints within LENGTH_RTOL × size.
 FORCE_RTOL = 1e-10
 LENGTH_RTOL = 1e-12
-#: The largest KKT system (3N + C unknowns) the statics solve, all dense (0.3 GB a matrix at
-#: 6,000; a 3,000-bead chain, 15,000, took 11 GB and did not finish).
+#: The largest KKT system (3N + C unknowns) the statics solve: the Newton steps are sparse beyond
+#: 100 rows (statics_methods.large), the stability verdict's tangent basis is a dense SVD of J
+#: (a 3,000-bead chain, 15,000, took 11 GB and did not finish when everything was dense).
 MAX_UNKNOWNS = 6000
 
 __all__ = ["Equilibrium", "equilibrium", "virtual_work", "constraint_virtual_work_residual",
@@ -362,11 +364,19 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     n3, C = model.n_coordinates, model.n_constraints
     if n3 + C > MAX_UNKNOWNS:
         raise InputError(
-            f"the statics solve a dense KKT system of 3N + C = {n3 + C} unknowns here ({n3} coordinates, "
-            f"{C} constraint rows): {8 * (n3 + C) ** 2 / 1e9:.2g} GB a matrix and minutes a factorization, "
-            f"above the {MAX_UNKNOWNS} they take; for a large model let a run settle instead (a damping "
-            "effect and `constrained run`), or study a coarser discretization")
+            f"the statics' KKT system has 3N + C = {n3 + C} unknowns here ({n3} coordinates, {C} "
+            f"constraint rows), above the {MAX_UNKNOWNS} they take (their stability verdict takes a dense "
+            f"basis of the tangent space: {8 * n3 * n3 / 1e9:.2g} GB and minutes of SVD); for a large model "
+            "let a run settle instead (a damping effect and `constrained run`), or study a coarser "
+            "discretization")
     kkt = _KKT(model, float(t))
+    large = _large.is_large(model)  # (sparse J, K and multipliers: statics_methods.large)
+    state = (lambda x: _large.forces_at_rest(model, x, t)) if large else (
+        lambda x: _forces_at_rest(model, x, t))
+    balance = (lambda J, F: _large.multipliers(model, J, F)) if large else (
+        lambda J, F: _min_norm_multipliers(model, J, F))
+    stiffness = (lambda x, lam: _large.stiffness(kkt.stiffness, x, lam)) if large else (
+        lambda x, lam: np.asarray(kkt.stiffness(x, lam), float))
     x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
     size = system.size()
     manifold = Manifold.at(model, x0, t)
@@ -374,8 +384,10 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         projected = manifold.project_positions(x0, t, tol=1e-13 * size, max_iter=50)
         if np.isfinite(projected.residual) and np.all(np.isfinite(projected.x)):
             x0 = projected.x
-    F0, J0 = _forces_at_rest(model, x0, t)
-    lam0 = _min_norm_multipliers(model, J0, F0)
+    F0, J0 = state(x0)
+    lam0 = balance(J0, F0)
+    if large:  # (redundant rows: the sparse Newton step holds their multipliers out)
+        kkt.dependent = n3 + _large.dependent_rows(model, J0)
     force_scale = max(
         float(np.max(np.abs(F0), initial=0.0)), float(np.max(np.abs(J0.T @ lam0), initial=0.0)) if C else 0.0
     )
@@ -384,7 +396,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     # (constraint rows in metres: each over its scale, constrained.residual)
     # (a force balance tighter than the stiffness times the positions' round-off cannot be met:
     # kkt.force_round_off; a 1 kg bob below a 1e7 N/m spring failed here)
-    floor = force_round_off(np.asarray(kkt.stiffness(x0, lam0), float), x0, size)
+    floor = force_round_off(stiffness(x0, lam0), x0, size)
     w = np.concatenate(
         [1.0 / np.maximum(FORCE_RTOL * force_scale, floor),
          1.0 / (LENGTH_RTOL * size * residual.row_scales(model, x0, t)[:model.n_position_rows])]
@@ -399,8 +411,8 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
             xr, err = projected.x, projected.residual
             if not (np.isfinite(err) and err <= 1e-10 * size and np.all(np.isfinite(xr))):
                 return z
-            Fr, Jr = _forces_at_rest(model, xr, t)
-            return np.concatenate([xr, _min_norm_multipliers(model, Jr, Fr)])
+            Fr, Jr = state(xr)
+            return np.concatenate([xr, balance(Jr, Fr)])
 
     used, why, descent = "newton", "", None
     iterations, converged, z = 0, False, np.concatenate([x0, lam0])
@@ -417,10 +429,10 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     unbounded = descent is not None and descent.reason == "far"  # (IPOPT would only chase it)
     if not converged and method in ("auto", "ipopt") and conservative_only and not unbounded:
         xi = _ipopt(kkt, x0)
-        Fi, Ji = _forces_at_rest(model, xi, t) if xi is not None else (None, None)
+        Fi, Ji = state(xi) if xi is not None else (None, None)
         # (IPOPT may end where a gradient is 0/0, after V ran downhill without bound)
-        if xi is not None and np.all(np.isfinite(Fi)) and np.all(np.isfinite(Ji)):
-            zi = np.concatenate([xi, _min_norm_multipliers(model, Ji, Fi)])
+        if xi is not None and np.all(np.isfinite(Fi)) and np.all(np.isfinite(Ji.data if large else Ji)):
+            zi = np.concatenate([xi, balance(Ji, Fi)])
             zi, it2, conv2 = _newton(kkt, zi, w, max_iter, restore)
             if conv2 or method == "ipopt":
                 z, iterations, converged, used = zi, iterations + it2, conv2, "ipopt"
@@ -432,24 +444,26 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
             "particles' positions), or check that the forces can be balanced by the constraints"
         )
     x = z[:n3]
-    F, G = _forces_at_rest(model, x, t)  # G: J, then velocity rows' A (d'Alembert: A δx = 0 too)
-    lam = _min_norm_multipliers(model, G, F)
+    F, G = state(x)  # G: J, then velocity rows' A (d'Alembert: A δx = 0 too)
+    lam = balance(G, F)
+    G = G.toarray() if large else G  # (the tangent basis: one dense SVD below the statics' limit)
     note, held = velocity.at_rest(model, x, t, size, G, lam, force_scale)
-    J, Nv = G[:model.n_position_rows], tangent_basis(G, n3)
+    J = G[:model.n_position_rows]
     N = tangent_basis(J, n3)  # stability on the configuration's tangent space
-    K = np.asarray(kkt.stiffness(x, lam), float)
-    knorm = float(np.linalg.norm(K, 2)) if K.size else 0.0
-    conservative = bool(np.linalg.norm(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
+    Nv = N if large else tangent_basis(G, n3)  # (large: no velocity rows, G = J)
+    K = stiffness(x, lam)
+    knorm = _large.spectral_norm(K)
+    conservative = bool(_large.frobenius(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
     Ks = 0.5 * (K + K.T)
     H = N.T @ Ks @ N
     eig = np.linalg.eigvalsh(H) if H.size else np.zeros(0)
     # the verdict on the mass-weighted problem: ω² of (M^(-1/2) K M^(-1/2)) on null(J M^(-1/2)),
     # congruent to H (same signs) but with every particle's scale its own
     r = np.sqrt(model.inverse_masses)
-    Kw = r[:, None] * Ks * r[None, :]
-    Nw = tangent_basis(J * r[None, :], n3) if C else np.eye(n3)
+    Kw = _large.scaled(Ks, r)
+    Nw = (_large.weighted_basis(N, r) if large else tangent_basis(J * r[None, :], n3)) if C else np.eye(n3)
     omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
-    kw_norm = float(np.linalg.norm(Kw, 2)) if Kw.size else 0.0
+    kw_norm = _large.spectral_norm(Kw)
     unbalanced = float(np.max(np.abs((F + G.T @ lam) * model.inverse_masses), initial=0.0)) if C else 0.0
     tol = (zero_frequency_squared(kw_norm, len(omega2), unbalanced, size) if stability_rtol is None
            else stability_rtol * kw_norm)
