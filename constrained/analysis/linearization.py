@@ -308,4 +308,29 @@ def reduced_linearization(reduced, x, v, t: float, *, rate: float = 0.0):
         raise InputError("the reduced coordinates move at this state (q̇ ≠ 0): their linearization is not "
                          "about a fixed point; use coordinates that turn with the frame", where="reduced")
     M0, Rq, Rqd = (np.asarray(a, float) for a in fun(q0, np.zeros(reduced.n), t))
+    if getattr(reduced, "n_velocity_rows", 0):
+        return (*_on_velocity_rows(reduced, q0, t, M0, -Rqd, -Rq), q0)
     return M0, -Rqd, -Rq, q0
+
+
+def _on_velocity_rows(reduced, q0: np.ndarray, t: float, M0, C0, K0):
+    """(M, C, K) of the reduced route restricted to the motions its velocity rows allow, as the
+    Cartesian modes are (null([J; A])): with Ã = ∂c/∂q̇ at (q0, 0, t) and M0 = L Lᵀ, the basis
+    T = L⁻ᵀ null(Ã L⁻ᵀ) (Tᵀ M0 T = I), and the rows' force Ãᵀμ at the state's μ (fixed) added
+    to the stiffness: K = Tᵀ (K0 − ∂(Ãᵀμ)/∂q) T, C = Tᵀ C0 T, M = I."""
+    q, qd, tt = reduced.q, reduced.q_dot, reduced.t
+    c = reduced.expressions["velocity_rows"]
+    A = ca.jacobian(c, qd)
+    mu = type(q).sym("mu", c.numel())
+    rows = ca.Function("reduced_velocity_rows", [q, qd, tt, mu],
+                       [A, ca.jacobian(ca.mtimes(A.T, mu), q)])
+    zero = np.zeros(reduced.n)
+    mu0 = np.asarray(reduced.velocity_multipliers(q0, zero, t), float).ravel()
+    A0, dforce = (np.asarray(a, float) for a in rows(q0, zero, t, mu0))
+    L = np.linalg.cholesky(0.5 * (M0 + M0.T))
+    Linv_T = np.linalg.inv(L).T
+    B = A0 @ Linv_T
+    _, sv, vt = np.linalg.svd(B)
+    rank = int(np.sum(sv > 1e-12 * max(float(sv[0]) if sv.size else 0.0, 1e-300)))
+    T = Linv_T @ vt[rank:].T
+    return T.T @ M0 @ T, T.T @ C0 @ T, T.T @ (K0 - dforce) @ T

@@ -132,8 +132,37 @@ class KnifeEdge(VelocityConstraint):
         if across is not None and normal is not None:
             raise InputError("'normal' goes with 'along'; 'across' gives the forbidden direction itself",
                              where=f"{where}.normal")
+        if (normal is not None and not isinstance(normal, str) and isinstance(normal, Sequence | np.ndarray)
+                and all(isinstance(c, int | float) and not isinstance(c, bool) and c == 0 for c in normal)):
+            raise InputError("the normal vector is zero: the blade's sideways direction is normal × along, "
+                             "so give the normal of the plane the blade moves on", where=f"{where}.normal")
         self.across = list(across) if across is not None else None
         self.along = list(along) if along is not None else None
+
+    def why_undefined(self, names: Sequence[str], positions, t: float = 0.0) -> str:
+        """Why the blade's direction ê is undefined at ``positions`` (N, 3) ('' when it is not):
+        the two particles coincide, or (``along``) the blade is parallel to the normal."""
+        a, b = self.across if self.across is not None else self.along
+        names = list(names)
+        if a not in names or b not in names:
+            return ""
+        pos = np.asarray(positions, float).reshape(-1, 3)
+        d = pos[names.index(b)] - pos[names.index(a)]
+        key = "across" if self.across is not None else "along"
+        if not np.any(d):
+            return (f"the particles '{a}' and '{b}' that give the blade's direction ('{key}') are at the "
+                    "same position, so the direction (x_b − x_a)/|x_b − x_a| is undefined (0/0); move one "
+                    "of them, or name two particles of the body that stay apart")
+        if self.across is None:
+            try:
+                n = np.asarray(self.normal, float)
+            except (TypeError, ValueError):  # a normal given by formulas of t
+                return ""
+            if not np.any(np.cross(n, d)):
+                return (f"the blade '{a}'→'{b}' is parallel to the plane's normal {_fmt(self.normal)}, so "
+                        "the sideways direction n × (x_b − x_a) is 0 and undefined; 'along' names two "
+                        "particles along the blade, in the plane the blade moves on")
+        return ""
 
     @property
     def label(self) -> str:
@@ -337,3 +366,64 @@ def at_rest(model, x: np.ndarray, t: float, size: float, G: np.ndarray, multipli
     return ("velocity constraints: they hold the system at rest here (μ ≠ 0, as a skate's blade holds it "
             "across a slope) and do no work (power −μ·b = 0); such equilibria form families, and the "
             "energy method does not decide their stability", True)
+
+
+# --- a row whose coefficient vanishes along a run -------------------------------------------------
+# A row a(x, t)·v + b whose coefficient a = ∂c/∂v passes through 0 (y·vx = 0 as y crosses 0)
+# loses rank there: at that instant it says nothing, and its multiplier has a pole, μ ~ 1/|a|,
+# while the force Aᵀμ it exerts stays finite. The row-normalized watch of a run (solvers.watches)
+# cannot see it (a normalized row keeps length 1), so the run's samples are checked here.
+
+#: A velocity row whose |∂c/∂v| falls below this fraction of its largest value along a run has
+#: lost rank there.
+VANISHING_RTOL = 1e-6
+#: At most this many samples of a run are checked (evenly spread, the first and last kept).
+VANISHING_SAMPLES = 2000
+
+
+def coefficient_norms(model, X, t) -> np.ndarray:
+    """(K, n): |a_k(x_i, t_i)| = |∂c_k/∂v| of the K velocity rows at the n states (X (n, 3N))."""
+    C_f = model.n_position_rows
+    out = np.empty((model.n_constraints - C_f, len(t)))
+    for i, (x, ti) in enumerate(zip(X, t, strict=True)):
+        A = ca.DM(model.velocity_terms(np.asarray(x, float).ravel(), float(ti))[0])[C_f:, :]
+        out[:, i] = np.sqrt(np.asarray(ca.sum2(A * A), float).ravel())
+    return out
+
+
+def vanishing_rows(model, t, X, reference=None) -> list[dict]:
+    """The velocity rows whose coefficient a_k = ∂c_k/∂v (nearly) vanishes at a sample:
+    |a_k(x_i)| < VANISHING_RTOL · max(|a_k| over the samples and at ``reference`` (x, t)).
+    [{"row": label, "t": the sample's time, "ratio": |a_k| there over that maximum}], the
+    smallest ratio of each row; [] without velocity rows."""
+    C_f, C = model.n_position_rows, model.n_constraints
+    t = np.asarray(t, float).ravel()
+    if C_f == C or t.size == 0:
+        return []
+    X = np.asarray(X, float).reshape(t.size, -1)
+    keep = np.unique(np.linspace(0, t.size - 1, min(t.size, VANISHING_SAMPLES)).round().astype(int))
+    norms = coefficient_norms(model, X[keep], t[keep])
+    scale = norms.max(axis=1)
+    if reference is not None:
+        scale = np.maximum(scale, coefficient_norms(model, [reference[0]], [reference[1]])[:, 0])
+    found = []
+    for k in range(C - C_f):
+        ratio = norms[k] / scale[k] if scale[k] > 0 else np.zeros(len(keep))
+        i = int(np.argmin(ratio))
+        if not ratio[i] >= VANISHING_RTOL:
+            found.append({"row": model.constraint_labels[C_f + k], "t": float(t[keep[i]]),
+                          "ratio": float(ratio[i])})
+    return found
+
+
+def describe_vanishing(found: list[dict]) -> str:
+    """The sentence on ``vanishing_rows``' result (empty when none)."""
+    if not found:
+        return ""
+    rows = "; ".join(f"'{f['row']}' at t = {f['t']:.6g} s (|∂c/∂v| down to {f['ratio']:.2g} of its largest)"
+                     for f in found)
+    return (f"velocity constraint(s) lose rank along the run: {rows}. There the row's coefficient "
+            "a(x) = ∂c/∂v vanishes, so the row says nothing at that instant and its multiplier μ has "
+            "a pole (μ ~ 1/|a|: the multipliers near it are huge, the constraint force Aᵀμ stays "
+            "finite); write the constraint so that its coefficient does not vanish (divide the row "
+            "by the factor that does), or read constraint_forces instead of multipliers there")

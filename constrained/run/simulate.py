@@ -16,7 +16,9 @@ import numpy as np
 from .. import interrupt
 from ..errors import InitialStateWarning, InputError, RunInterrupted, SimulationError
 from ..manifold import diagnostics
+from ..manifold.constraint_report import SingularConfigurationWarning
 from ..manifold.manifold import structural_call
+from ..model import velocity
 from ..model.structure import Model, assemble
 from ..model.system import require_system
 from ..solvers import DEFAULT_METHOD, METHODS
@@ -175,6 +177,10 @@ def simulate(
         traj.info["degrees_of_freedom"] = model.n_coordinates - model.n_position_rows  # configuration
         if model.n_position_rows < model.n_constraints:
             traj.info["velocity_degrees_of_freedom"] = model.n_coordinates - model.n_constraints
+    vanished = velocity.vanishing_rows(model, traj.t, traj.x, (x0, float(t_start))) if not interrupted else []
+    if vanished:  # a row a(x)·v + b whose a(x) passed through 0: μ has a pole there
+        traj.info["velocity_rows_lost_rank"] = vanished
+        warnings.warn(SingularConfigurationWarning(velocity.describe_vanishing(vanished)), stacklevel=2)
     traj.events = [EventRecord(hit.t, hit.event.name, hit.event.name, np.reshape(hit.x, (-1, 3)),
                                np.reshape(hit.v, (-1, 3))) for hit in solution.events]
     if interrupted:
@@ -205,6 +211,8 @@ def simulate(
                   " (likely cause: a singular configuration, stiffness, or forces that blow up)"))
         last = f"t = {traj.t[-1]:.6g} s" if len(traj.t) else "the start"
         traj.info["message"] = f"the run stopped early: {failure}; the last good state is at {last}{cause}"
+        if vanished:
+            traj.info["message"] += f"; {velocity.describe_vanishing(vanished)}"
         raise SimulationError(traj.info["message"], trajectory=traj)
     return traj
 

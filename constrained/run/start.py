@@ -222,8 +222,11 @@ def _refuse_undefined_gradient(model: Model, x0: np.ndarray, t0: float) -> None:
     if np.all(np.isfinite(values)):
         return
     rows, _ = J.sparsity().get_triplet()
-    label = model.constraint_labels[int(np.asarray(rows)[~np.isfinite(values)][0])]
+    row = int(np.asarray(rows)[~np.isfinite(values)][0])
+    label = model.constraint_labels[row]
+    item = model.system.constraints[int(model.constraint_owner[row])]
+    why = item.why_undefined(model.particle_names, x0, t0) if hasattr(item, "why_undefined") else ""
     raise InconsistentStateError(
-        f"constraint '{label}' is undefined at the initial state (t = {t0:g} s): its gradient is not "
-        "finite there (e.g. a particle on the anchor of its rod, or a rod of length 0); move the "
-        "particle, or give parameter values that keep the constraint regular")
+        f"constraint '{label}' is undefined at the initial state (t = {t0:g} s): "
+        + (why or "its gradient is not finite there (e.g. a particle on the anchor of its rod, or a rod of "
+           "length 0); move the particle, or give parameter values that keep the constraint regular"))

@@ -35,6 +35,10 @@ from .validate import _describe, _join, _name_or_value, _suggest
 
 def _why_singular(obj, system: System, t0: float) -> str:
     """The likely reason an item is undefined at the start: two ends at one place."""
+    if hasattr(obj, "why_undefined"):  # the item knows (a knife edge's blade direction)
+        why = obj.why_undefined([p.name for p in system.particles], system.positions, t0)
+        if why:
+            return f": {why}"
     a, b, point = (getattr(obj, k, None) for k in ("a", "b", "point"))
     closest = obj.closest_pair(system, system.positions) if hasattr(obj, "closest_pair") else None
     if closest is not None:

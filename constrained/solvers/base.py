@@ -232,7 +232,8 @@ class Solver:
         if self.refuses_velocity_rows and self.model.n_position_rows < self.model.n_constraints:
             raise InputError(f"method '{self.name}' cannot take velocity constraints: "
                              f"{self.refuses_velocity_rows}; use another method (dopri, projection, "
-                             "baumgarte, idas, ggl, pantelides)")
+                             "rodas, baumgarte, idas, ggl, pantelides, or reduced with [reduced] "
+                             "coordinates)")
         #: The constraint rows the method's own equations use (an independent set).
         self.rows: list[int] = (list(range(manifold.model.n_constraints)) if manifold.rows is None
                                 else list(manifold.rows))
