@@ -236,7 +236,7 @@ class StiffnessWatch:
         if element is not None and element.rigid_like and not (steps and done / steps > element.period):
             return self.describe(element, t, steps, projected)
         damper = self.dampers[0] if self.dampers else None
-        if damper is not None and not (steps and done / steps > self.HELD * damper.period):
+        if damper is not None and steps and done / steps <= self.HELD * damper.period:
             return self.describe_damper(damper, t, steps, projected)
         return None
 
