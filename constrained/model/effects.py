@@ -272,6 +272,14 @@ class Damping(Effect):
         if a is not None and particles is not None:
             raise InputError("give either 'particles' or the pair 'a', 'b', not both", where=self._where())
         self.particles = None if particles is None else _as_list(particles, self._where(), "'particles'")
+        if isinstance(coefficient, int | float) and not isinstance(coefficient, bool) and not (
+                math.isfinite(coefficient) and coefficient >= 0):
+            why = ("a Rayleigh function R = ½ c |v|² with c < 0 is not dissipation but an energy source "
+                   "(the force −c v pushes along v); for a driven particle write the force itself (type = "
+                   "\"force\", expr = [\"g*vx_p\", \"g*vy_p\", \"g*vz_p\"])" if coefficient < 0
+                   else "give a finite number")
+            raise InputError(f"the damping coefficient must be a finite number ≥ 0 N·s/m, got "
+                             f"{coefficient!r}: {why}", where=f"{self._where()}.coefficient")
 
     @property
     def label(self) -> str:

@@ -263,13 +263,18 @@ def _check_keywords(method: str, options: dict) -> None:
 
 
 def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: float, stats: dict) -> str:
-    """'; likely cause: stiffness: ...' when a barely stretched spring far faster than the run
-    explains a stop the solver could not name (diagnostics.StiffnessWatch), else ''."""
+    """'; likely cause: stiffness: ...' when a barely stretched spring far faster than the run,
+    or a damper whose relaxation time m/c held the steps down, explains a stop the solver could
+    not name (diagnostics.StiffnessWatch), else ''."""
     try:
         watch = StiffnessWatch(model, x0, t0, t_end, method=stats.get("method", ""))
         t = float(traj.t[-1]) if len(traj.t) else t0
         element = watch.fastest()  # as at the start: an unstable step stretches it later
+        steps = int(stats.get("steps", 0) or 0)
         if element is None or not element.rigid_like:
+            damper = watch.dampers[0] if watch.dampers else None
+            if damper is not None and steps and (t - t0) / steps < watch.HELD * damper.period:
+                return f"; {watch.describe_damper(damper, t, steps)}"
             return ""
         dt = stats.get("dt")
         limit = (f"; the fixed step dt = {dt:.3g} s is beyond its stability limit 2/ω = "

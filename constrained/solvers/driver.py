@@ -250,6 +250,10 @@ class _Run:
         if e is not None:
             advice += (f"; the fastest spring, '{e.label}' (effect {e.index}), has period {e.period:.3g} s"
                        + (f": {e.constraint_advice()}" if e.rigid_like else ""))
+        d = self.stiffness.dampers[0] if self.stiffness.dampers else None
+        if d is not None:
+            advice += (f"; the damping '{d.label}' (effect {d.index}) relaxes '{d.particle}' in m/c = "
+                       f"{d.period:.3g} s")
         diagnostics.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
 
 
@@ -320,7 +324,8 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
                 break
             verdict = run.stiffness.check(run.last[0], steps, run.last[1])
             if verdict:
-                failure = Failure(Status.STIFF, f"the steps follow a fast oscillation at "
+                fast = "relaxation" if "relaxes velocities" in verdict else "oscillation"
+                failure = Failure(Status.STIFF, f"the steps follow a fast {fast} at "
                                                 f"t = {run.last[0]:.6g} s; {verdict}")
                 break
             t_stop = run.t_stop()

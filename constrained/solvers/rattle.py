@@ -9,8 +9,15 @@ One step of size h from (x_n, v_n, t_n):
               with J(x_{n+1}) v_{n+1} + f_t = 0                    (linear in μ)
 
 It is symplectic and time-reversible for conservative forces F(x). Velocity-dependent forces
-(damping, magnetic) are taken at v_n and v½: the method stays consistent (first order in
-those terms) but is no longer symplectic.
+(damping, magnetic) are taken at v_n in the first half-kick and at v_{n+1} in the second,
+F(x_{n+1}, v_{n+1}, t_{n+1}), solved by Newton (``implicit_kick``; one iteration is exact for
+forces linear in v): the step is then the composition of an explicit half-step and its
+adjoint, so symmetric and second order, and in a uniform magnetic field without constraints
+|v| is kept exactly (the half-kicks form a Cayley map). Taken at v½ instead (as before), the
+step was first order in those forces: a charge circling in B lost 60 % of its kinetic
+energy over 10 turns at 400 steps a turn. Large constrained models in the virtual machine
+(the vectorized build, ``vectorized.rattle_step_graph``) iterate that half-kick to its fixed
+point instead (KICK_ITERATIONS times, each gaining h/2 |M⁻¹ ∂F/∂v|).
 
 The whole step is one CasADi Function: Newton for λ is unrolled (``newton_iterations``
 iterations from the previous step's λ, which converge quadratically), and the last
@@ -150,7 +157,8 @@ class Rattle(Stepper):
         counted = [left - 1, *passed]
         if C and vector:  # large, in the virtual machine: the vectorized build and its LDLᵀ
             x1, v1, lam_k, f1, F1 = vectorized.rattle_step_graph(
-                view, x, v, t, lam, h, F0=F0 if carry else None, iterations=self.newton_iterations)
+                view, x, v, t, lam, h, F0=F0 if carry else None, iterations=self.newton_iterations,
+                velocity_dependent=not carry)
             state = [x, v, t, lam, err, left, *passed]
             out = [x1, v1, t1, lam_k, ca.fmax(err, ca.mmax(ca.fabs(f1) / scales)), *counted]
         elif C:
@@ -170,14 +178,19 @@ class Rattle(Stepper):
             F1, _, _ = view.dynamics(x1, v_half, t1)
             v_pred = v_half + 0.5 * h * minv * F1
             v1 = v_pred - velocity_correction_graph(view, x1, v_pred, t1, rows=rows)
+            if not carry:  # F depends on v: the second half-kick at v_{n+1}
+                v1 = implicit_kick(view, P, x1, v_half, t1, h, v1, rows=rows, constrained=True)
             state = [x, v, t, lam, err, left, *passed]
             out = [x1, v1, t1, lam_k, ca.fmax(err, residual), *counted]
         else:
             v_half = v + 0.5 * h * minv * F0
             x1 = x + h * v_half
             F1, _, _ = view.dynamics(x1, v_half, t1)
+            v1 = v_half + 0.5 * h * minv * F1
+            if not carry:
+                v1 = implicit_kick(view, P, x1, v_half, t1, h, v1, constrained=False)
             state = [x, v, t, err, left, *passed]
-            out = [x1, v_half + 0.5 * h * minv * F1, t1, err, *counted]
+            out = [x1, v1, t1, err, *counted]
         if carry:
             state.append(F0)
             out.append(F1)
@@ -329,6 +342,45 @@ class Rattle(Stepper):
         done = self.stats["steps"]
         self.stats.update({"nfev": 2 * done, "dt": self.h,
                            "evaluation": self._evaluation})
+
+
+def implicit_kick(view, P, x1, v_half, t1, h, v, *, rows=None, constrained: bool = True):
+    """v_{n+1} of the second half-kick with the forces at v_{n+1}: the root of
+
+        G(w) = w − v½ − h/2 M⁻¹ F(x_{n+1}, w, t_{n+1}) − M⁻¹ J(x_{n+1})ᵀ ν = 0,
+        J(x_{n+1}) w + f_t = 0                                  (ν = h/2 μ, when ``constrained``)
+
+    by Newton from ``v`` (the explicit kick, projected): with A = I − h/2 M⁻¹ ∂F/∂v and
+    Y = A⁻¹ [M⁻¹ Jᵀ, G(v)], the step is δv = Y₁ ν − Y_G with (J Y₁) ν = J (Y_G − v) − f_t (the
+    Schur complement ≈ J M⁻¹ Jᵀ, solved with the rows scaled by diag(J M⁻¹ Jᵀ)^(-1/2)). One
+    iteration when ∂F/∂v does not depend on v (magnetic forces, Rayleigh damping: exact), two
+    otherwise (a drag ∝ |v| v)."""
+    n3 = x1.numel()
+    minv = view.inverse_masses if isinstance(view.inverse_masses, ca.MX) else ca.DM(view.inverse_masses)
+    xs, vs, ts = ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t")
+    Fs = view.dynamics(xs, vs, ts)[0]
+    Ks = ca.jacobian(Fs, vs)
+    force = ca.Function("force_and_velocity_jacobian", [xs, vs, ts, P], [Fs, Ks])
+    iterations = 1 if not ca.depends_on(Ks, vs) else 2
+    if constrained:
+        J, f_t = view.velocity_terms(x1, t1)
+        if rows is not None:
+            J, f_t = J[list(rows), :], f_t[list(rows)]
+        C = J.shape[0]
+        d = 1.0 / ca.sqrt(ca.mtimes(J * J, minv))  # row scaling of the Schur complement
+    for _ in range(iterations):
+        F, K = force(x1, v, t1, P)
+        G = v - v_half - 0.5 * h * minv * F
+        A = ca.MX.eye(n3) - 0.5 * h * ca.mtimes(ca.diag(minv), K)
+        if not constrained or C == 0:
+            v = v - ca.solve(A, G, "qr")
+            continue
+        Y = ca.solve(A, ca.horzcat(ca.mtimes(ca.diag(minv), J.T), G), "qr")
+        Y1, YG = Y[:, :C], Y[:, C]
+        S = ca.mtimes(ca.diag(d), ca.mtimes(ca.mtimes(J, Y1), ca.diag(d)))
+        nu = d * ca.solve(S, d * (ca.mtimes(J, YG - v) - f_t), "qr")
+        v = v + ca.mtimes(Y1, nu) - YG
+    return v
 
 
 def _chained(step: ca.Function, k: int) -> ca.Function:

@@ -46,8 +46,15 @@ class Measurements:
         if values.shape != (t.size, len(self.names)):
             raise InputError(f"values have shape {values.shape}, expected ({t.size}, {len(self.names)}): one "
                              "column per name, one row per time", where=where)
-        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-            raise InputError("the times (column t) must be finite and strictly increasing", where=where)
+        if not np.all(np.isfinite(t)):
+            bad = int(np.argmin(np.isfinite(t)))
+            raise InputError(f"{self._row(bad)}: the time {t[bad]} is not a finite number", where=where)
+        if np.any(np.diff(t) <= 0):
+            k = int(np.argmax(np.diff(t) <= 0)) + 1
+            what = "repeats the time before it" if t[k] == t[k - 1] else "goes back in time"
+            raise InputError(f"{self._row(k)}: t = {t[k]:g} s {what} (t = {t[k - 1]:g} s): the times "
+                             "(column t) must be strictly increasing; sort the rows by time, and merge or "
+                             "drop repeated times", where=where)
         if np.any(np.isinf(values)):
             raise InputError("a value is infinite", where=where)
         if not np.any(np.isfinite(values)):
@@ -56,12 +63,18 @@ class Measurements:
         if self.sigma is not None:
             sigma = np.broadcast_to(np.asarray(self.sigma, float), values.shape).copy()
             given = np.isfinite(sigma)
-            if np.any(sigma[given] <= 0):
-                raise InputError("a standard deviation (sigma) is zero or negative", where=where)
+            if np.any(given & (sigma <= 0)):
+                i, j = np.argwhere(given & (sigma <= 0))[0]
+                raise InputError(f"{self._row(int(i))}: the standard deviation of '{self.names[j]}' is "
+                                 f"{sigma[i, j]:g}; it must be positive", where=where)
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "values", values)
         object.__setattr__(self, "sigma", sigma)
         object.__setattr__(self, "names", tuple(self.names))
+
+    def _row(self, i: int) -> str:
+        """Row i named as the file's line (header on line 1) when read from a file, else by index."""
+        return f"line {i + 2}" if self.source != "data" else f"row {i} (from 0)"
 
     @property
     def count(self) -> int:

@@ -123,7 +123,13 @@ def projection_graph(view: ParametricView, x, v, t, *, minv=None):
     return x - minv * J.transpose_times(sol[:, 0]), v - minv * J.transpose_times(sol[:, 1]), residual
 
 
-def rattle_step_graph(view: ParametricView, x, v, t, lam, h, *, F0=None, iterations: int = 4):
+#: Fixed-point iterations of RATTLE's second half-kick on the vectorized build when the forces
+#: depend on v (each gains a factor h/2 |M⁻¹ ∂F/∂v|: 1e-2 for a step that resolves the damping).
+KICK_ITERATIONS = 4
+
+
+def rattle_step_graph(view: ParametricView, x, v, t, lam, h, *, F0=None, iterations: int = 4,
+                      velocity_dependent: bool = False):
     """One RATTLE step on the vectorized build (``solvers.rattle``): (x1, v1, λ, |f(x1)| per row,
     F1). With kick = h²/2 M⁻¹ and x1(λ) = x + h v + kick (F0 + J0ᵀ λ), λ is found by
     ``iterations`` simplified Newton steps on f(x1(λ), t + h) = 0,
@@ -133,8 +139,11 @@ def rattle_step_graph(view: ParametricView, x, v, t, lam, h, *, F0=None, iterati
     A0 in place of Newton's J(x1) M⁻¹ J0ᵀ, which is not symmetric: the loops' LDLᵀ serves it,
     and the iteration contracts by about |J(x1) − J0| / |J0| ~ h|v| / (a rod's length) a step.
     Then v½ = v + h/2 M⁻¹ (F0 + J0ᵀ λ), x1 = x + h v½, and v1 the mass-weighted nearest velocity
-    to v½ + h/2 M⁻¹ F(x1, v½) with J(x1) v1 + f_t = 0. ``F0``: the forces at (x, t) when carried
-    from the step before (else evaluated here, at (x, v, t))."""
+    to v½ + h/2 M⁻¹ F(x1, v½) with J(x1) v1 + f_t = 0 — with ``velocity_dependent`` forces
+    then KICK_ITERATIONS times that of v½ + h/2 M⁻¹ F(x1, v1), towards the implicit half-kick
+    v1 = v½ + h/2 M⁻¹ (F(x1, v1) + J1ᵀ μ) (second order; ``solvers.rattle.implicit_kick``).
+    ``F0``: the forces at (x, t) when carried from the step before (else evaluated here, at
+    (x, v, t))."""
     b = vectorized_build(view._model.structure)
     P, minv = view.P, view.inverse_masses
     minv = minv if isinstance(minv, ca.MX) else ca.DM(minv)
@@ -151,9 +160,18 @@ def rattle_step_graph(view: ParametricView, x, v, t, lam, h, *, F0=None, iterati
     x1 = x + h * v_half
     out = b.evaluate(x1, v_half, t1, P, ("f", "J", "f_t") if b.rheonomic else ("f", "J"), forces_too=True)
     J1, F1 = out["J"], out["F"]
-    v_pred = v_half + 0.5 * h * minv * F1
-    c = J1.times(v_pred) + out["f_t"] if b.rheonomic else J1.times(v_pred)
-    v1 = v_pred - minv * J1.transpose_times(J1.solve(minv, c))
+    solve1 = J1.factorized(minv)
+
+    def kicked(F):  # the mass-weighted nearest velocity to v½ + h/2 M⁻¹ F with J(x1) v + f_t = 0
+        v_pred = v_half + 0.5 * h * minv * F
+        c = J1.times(v_pred) + out["f_t"] if b.rheonomic else J1.times(v_pred)
+        return v_pred - minv * J1.transpose_times(solve1(c))
+
+    v1 = kicked(F1)
+    if velocity_dependent:  # the forces at v_{n+1}: the fixed point, contracting by h/2 |M⁻¹ ∂F/∂v|
+        for _ in range(KICK_ITERATIONS):
+            F1 = b.evaluate(x1, v1, t1, P, (), forces_too=True)["F"]
+            v1 = kicked(F1)
     return x1, v1, lam, out["f"], F1
 
 
