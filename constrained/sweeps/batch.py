@@ -124,7 +124,8 @@ def run_batch(task: dict) -> dict:
         if status == "interrupted":
             continue
         if status != "completed":
-            rows[rid] = {"status": STATUS_TEXT.get(status, status), "row": {}}
+            why = ens.messages[k] if ens.messages else ""  # its own run's words (ensemble_reasons)
+            rows[rid] = {"status": " ".join((why or STATUS_TEXT.get(status, status)).split()), "row": {}}
             continue
         row: dict[str, Any] = {name: _plain(values[k]) for name, values in columns.items()}
         row.update(solver)
