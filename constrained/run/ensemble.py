@@ -426,7 +426,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         for i, k in enumerate(stops):  # the frozen column holds the last good state
             messages[k] = reasons.stop_reason(
                 model, status[k], P[k], S[:n3, k], S[n3:2 * n3, k], float(S[scal["t"], k]),
-                float(S[scal["h"], k]), limit, t_end, diagnose=i < reasons.DIAGNOSED_MAX)
+                float(S[scal["h"], k]), limit, t_end, diagnose=i < reasons.DIAGNOSED_MAX, t0=t_start,
+                steps=int(S[scal["n_acc"], k]))
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - started

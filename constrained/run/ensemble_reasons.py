@@ -86,16 +86,46 @@ def mass_reason(model: Model, p: np.ndarray) -> str:
         return SHORT["non-positive mass"]
 
 
+def stiffness_reason(m: Model, x: np.ndarray, t: float, t0: float, t_end: float, steps: int) -> str | None:
+    """The stiffness watch's sentence for a variant whose mean step (t − t0)/steps is held below
+    the period of its fastest spring (or HELD relaxation times m/c of a damper) — the advice its
+    own run's ``StiffnessWatch`` gives (that watch reads the wall clock, so a batch cannot run it
+    as it goes; it is asked when a variant stops) — else None."""
+    from ..solvers.stiffness import StiffnessWatch
+
+    if not steps or not t > t0:
+        return None
+    watch = StiffnessWatch(m, x, t0, t_end, method="dopri")
+    mean = (t - t0) / steps
+    element = watch.fastest(x, t)
+    if element is not None and mean <= element.period:
+        return watch.describe(element, t, steps)
+    damper = watch.dampers[0] if watch.dampers else None
+    if damper is not None and mean <= watch.HELD * damper.period:
+        return watch.describe_damper(damper, t, steps)
+    return None
+
+
 def stop_reason(model: Model, status: str, p: np.ndarray, x: np.ndarray, v: np.ndarray, t: float,
-                h: float, max_steps: int, t_end: float, diagnose: bool = True) -> str:
-    """The sentence of a run stopped at its last good state (x, v, t) with ``status``."""
+                h: float, max_steps: int, t_end: float, diagnose: bool = True, t0: float = 0.0,
+                steps: int = 0) -> str:
+    """The sentence of a run stopped at its last good state (x, v, t) with ``status``; a step
+    limit or a collapse held down by a stiff spring or damper carries the stiffness watch's advice."""
     if status == "step limit":
-        return (f"more than max_steps = {max_steps} steps before t = {t_end:.6g} s (at t = {t:.6g} s); "
-                "raise max_steps for a longer run")
+        limit = (f"more than max_steps = {max_steps} steps before t = {t_end:.6g} s (at t = {t:.6g} s); "
+                 "raise max_steps for a longer run")
+        try:
+            stiff = stiffness_reason(variant_model(model, p), x, t, t0, t_end, steps) if diagnose else None
+        except Exception:  # a diagnosis must never hide the stop itself
+            stiff = None
+        return f"{limit}; {stiff}" if stiff else limit
     if not diagnose:
         return f"{SHORT.get(status, status)} (at t = {t:.6g} s)"
     try:
         m = variant_model(model, p)
+        stiff = stiffness_reason(m, x, t, t0, t_end, steps) if status == "step size collapsed" else None
+        if stiff:
+            return f"the step size collapsed at t = {t:.6g} s (h = {h:.3g} s); {stiff}"
         if status == "non-finite":
             return f"non-finite state after t = {t:.6g} s; {diagnostics.nonfinite_cause(m, x, v, t)}"
         cause = diagnostics.likely_cause(m, x, v, t)
