@@ -38,7 +38,7 @@ from ..model.system import require_system
 from ..solvers.dopri import NOT_FINITE, PROJECTION_FAIL, SCALARS, Dopri
 from ..solvers.driver import DEFAULT_MAX_STEPS
 from ..threads import available_cores, one_blas_thread
-from . import ensemble_reasons as reasons
+from .variants import reasons
 
 #: Steps (attempts) one call advances every column by.
 CHUNK = 64
@@ -350,7 +350,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         given_v = np.repeat(np.asarray(system.velocities, float).reshape(-1, 1), n_var, axis=1)
         x0, xs, vs, a0, missed = _blockwise(starts, width, P.T, np.full((1, n_var), float(t_start)),
                                             given_x, given_v)
-        # each variant's size and correction as its own run measures them (ensemble_reasons)
+        # each variant's size and correction as its own run measures them (run.variants.reasons)
         sizes = reasons.start_sizes(x0)
         moved = reasons.particle_moves(x0, xs)
         status = ["completed"] * n_var

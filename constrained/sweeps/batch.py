@@ -126,7 +126,7 @@ def run_batch(task: dict) -> dict:
         if status == "interrupted":
             continue
         if status != "completed":
-            why = ens.messages[k] if ens.messages else ""  # its own run's words (ensemble_reasons)
+            why = ens.messages[k] if ens.messages else ""  # its own run's words (run/variants/reasons.py)
             rows[rid] = {"status": " ".join((why or STATUS_TEXT.get(status, status)).split()), "row": {}}
             continue
         row: dict[str, Any] = {name: _plain(values[k]) for name, values in columns.items()}

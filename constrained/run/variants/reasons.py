@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InconsistentStateError
-from ..manifold import diagnostics
-from ..model.structure import Model
+from ...errors import InconsistentStateError
+from ...manifold import diagnostics
+from ...model.structure import Model
 
 #: Failed variants diagnosed in full (each costs a model view and an SVD or two); the others
 #: of a run with more failures get the short sentence with their time.
@@ -63,7 +63,7 @@ def variant_model(model: Model, p: np.ndarray) -> Model:
 def single_start(model: Model, p: np.ndarray, x0: np.ndarray, v0: np.ndarray, t0: float,
                  max_correction: float, size: float):
     """``consistent_start`` for one variant: (x, v, correction, None) or (None, None, nan, reason)."""
-    from .start import consistent_start
+    from ..start import consistent_start
 
     try:
         start = consistent_start(variant_model(model, p), x0, v0, t0, max_correction=max_correction,
@@ -91,7 +91,7 @@ def stiffness_reason(m: Model, x: np.ndarray, t: float, t0: float, t_end: float,
     the period of its fastest spring (or HELD relaxation times m/c of a damper) — the advice its
     own run's ``StiffnessWatch`` gives (that watch reads the wall clock, so a batch cannot run it
     as it goes; it is asked when a variant stops) — else None."""
-    from ..solvers.stiffness import StiffnessWatch
+    from ...solvers.stiffness import StiffnessWatch
 
     if not steps or not t > t0:
         return None
