@@ -231,7 +231,9 @@ def test_a_failing_variant_of_a_batched_chunk_is_a_failed_row_and_the_others_fin
     assert "1 of 3 runs failed" in capsys.readouterr().err
     rows = list(csv.DictReader(open(tmp_path / "summary.csv")))
     assert [r["path"] for r in rows] == ["batched"] * 3
-    assert rows[1]["status"].startswith("the solution became non-finite") and rows[1]["x_p2"] == ""
+    # its own run's words: when, and the effect that overflows (gravity at 1e300 m/s²)
+    assert rows[1]["status"].startswith("non-finite state after t = 0 s") and rows[1]["x_p2"] == ""
+    assert "effect 0 ('gravity" in rows[1]["status"]
     assert rows[0]["status"] == rows[2]["status"] == "ok"
     # gravity sets the time scale: with 4x the gravity the same motion runs twice as fast, so
     # the pendulum at g = 16 at t = 0.15 s stands where the one at g = 4 stands at t = 0.3 s

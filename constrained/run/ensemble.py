@@ -36,7 +36,9 @@ from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
 from ..model.system import require_system
 from ..solvers.dopri import NOT_FINITE, PROJECTION_FAIL, SCALARS, Dopri
+from ..solvers.driver import DEFAULT_MAX_STEPS
 from ..threads import available_cores, one_blas_thread
+from .variants import reasons
 
 #: Steps (attempts) one call advances every column by.
 CHUNK = 64
@@ -52,8 +54,10 @@ START_SWEEPS = 3
 class Ensemble:
     """The variants of a batched run: ``parameters`` (N, k) for ``names``, states at the
     output times ``t`` — ``x``, ``v`` (N, T, particles, 3) — and per variant its ``status``
-    ("completed", or why it stopped: its samples after that are NaN), ``steps`` and
-    ``rejected``. ``stats``: wall time, variants per second, evaluation, block size."""
+    ("completed", or why it stopped: its samples after that are NaN), ``steps``,
+    ``rejected``, ``messages`` (why a variant stopped, as its own run would say) and
+    ``corrections`` (max_i |x_i − x0_i| of its start's projection, m). ``stats``: wall time,
+    variants per second, evaluation, block size."""
 
     names: tuple[str, ...]
     parameters: np.ndarray
@@ -63,6 +67,10 @@ class Ensemble:
     status: tuple[str, ...]
     steps: np.ndarray
     rejected: np.ndarray
+    #: per variant: "" when it completed, else why not, in its own ``simulate``'s words
+    messages: tuple[str, ...] = ()
+    #: per variant: how far the start's projection moved a particle (m; NaN where refused)
+    corrections: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
 
     @property
@@ -198,8 +206,9 @@ def _projector(model: Model, rows) -> ca.Function:
 
 
 def _start_block(model: Model, system, dopri: Dopri, width: int) -> FastCall:
-    """``(p, t0) -> (x0, x, v, a)`` mapped over ``width`` columns: the start's formulas of p,
-    START_SWEEPS projections onto the constraints and the accelerations there; compiled when
+    """``(p, t0) -> (x0, x, v, a, residual)`` mapped over ``width`` columns: the start's formulas
+    of p, START_SWEEPS projections onto the constraints (the residual before the last Newton
+    step, m) and the accelerations there; compiled when
     dopri is (once per structure, row set and width)."""
     cache, prefix = structure_cache(model)
     rows = dopri.manifold.rows
@@ -208,9 +217,9 @@ def _start_block(model: Model, system, dopri: Dopri, width: int) -> FastCall:
         P, T = ca.MX.sym("p", len(model.parameter_vector)), ca.MX.sym("t")
         XG, VG = ca.MX.sym("x_given", model.n_coordinates), ca.MX.sym("v_given", model.n_coordinates)
         x0, v0 = _start_function(model, system)(P, XG, VG)
-        x, v, _ = _projector(model, rows)(x0, v0, T, P)
+        x, v, residual = _projector(model, rows)(x0, v0, T, P)
         a, _ = acceleration_function(model, rows, parametric=True)(x, v, T, P)
-        start = ca.Function("ensemble_start", [P, T, XG, VG], [x0, x, v, a]).map(width)
+        start = ca.Function("ensemble_start", [P, T, XG, VG], [x0, x, v, a, residual]).map(width)
         if dopri.compiled:
             start = compiled_evaluation.compile_function(start)
         return _kept(cache, key, FastCall(start), dopri.compiled)
@@ -303,6 +312,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     bar on stderr).
     """
     require_system(system, "simulate_many")
+    _refuse_events(system, model)
     for key, value in (("t_end", t_end), ("t_start", t_start)):
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
             raise InputError(f"{key} must be a finite number of seconds, got {value!r}")
@@ -330,6 +340,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
             or targets[0] < t_start or targets[-1] > t_end:
         raise InputError(f"t_eval must be increasing finite times within [{t_start:g}, {t_end:g}]")
     dopri = Dopri(model, rtol=rtol, atol=atol, base=base, compiled=compiled, max_steps=max_steps)
+    limit = max_steps or DEFAULT_MAX_STEPS  # the single run's budget: no variant crawls on for ever
     n3 = model.n_coordinates
     with one_blas_thread():
         # the starts: formulas of p, projected onto the constraints, their accelerations
@@ -337,16 +348,34 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         starts = _start_block(model, system, dopri, width)
         given_x = np.repeat(np.asarray(system.positions, float).reshape(-1, 1), n_var, axis=1)
         given_v = np.repeat(np.asarray(system.velocities, float).reshape(-1, 1), n_var, axis=1)
-        x0, xs, vs, a0 = _blockwise(starts, width, P.T, np.full((1, n_var), float(t_start)),
-                                    given_x, given_v)
-        size = max(float(system.size()), 1.0)
-        moved = np.max(np.abs(xs - x0), axis=1)
+        x0, xs, vs, a0, missed = _blockwise(starts, width, P.T, np.full((1, n_var), float(t_start)),
+                                            given_x, given_v)
+        # each variant's size and correction as its own run measures them (run.variants.reasons)
+        sizes = reasons.start_sizes(x0)
+        moved = reasons.particle_moves(x0, xs)
         status = ["completed"] * n_var
-        for k in np.flatnonzero(~np.isfinite(moved) | (moved > max_initial_correction * size)
-                                | ~np.all(np.isfinite(vs), axis=1)):
-            status[k] = "inconsistent start"
-        for k in _invalid_masses(model, P):
-            status[k] = "non-positive mass"
+        messages = [""] * n_var
+        invalid = set(_invalid_masses(model, P).tolist())
+        for k in invalid:
+            status[k], messages[k] = "non-positive mass", reasons.mass_reason(model, P[k])
+        # (a start the mapped Newton steps did not bring onto the constraints, as a rod of negative
+        # length: refused here, it used to run and fail at t = 0 with "projection failed")
+        on = missed[:, 0] <= PROJECTION_FAIL * np.maximum(1.0, np.max(np.abs(xs), axis=1))
+        refused = np.flatnonzero(~np.isfinite(moved) | (moved > max_initial_correction * sizes)
+                                 | ~np.all(np.isfinite(vs), axis=1) | ~on)
+        if refused.size:
+            start_of = _start_function(model, system)
+            accel_of = acceleration_function(model, dopri.manifold.rows, parametric=True)
+        for k in (k for k in refused if k not in invalid):
+            # the single run's start decides: it projects what it can, else says why not
+            xk, vk = (np.asarray(z, float).ravel() for z in start_of(P[k], given_x[:, k], given_v[:, k]))
+            x, v, moved[k], why = reasons.single_start(model, P[k], xk, vk, t_start, max_initial_correction,
+                                                       float(sizes[k]))
+            if why is not None:
+                status[k], messages[k] = "inconsistent start", why
+                continue
+            xs[k], vs[k] = x, v
+            a0[k] = np.asarray(accel_of(x, v, t_start, P[k])[0], float).ravel()
         accel = _mapped_acceleration(dopri, width)
         h = _initial_steps(xs, vs, a0, P, t_start, t_end, dopri,
                            lambda x, v, t, p: _blockwise(accel, width, x, v, t, p))
@@ -386,22 +415,47 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         padded[:, cols.size:] = S[:, cols[:1]]  # (filler columns, results dropped)
                         (out,) = chunk(padded.ravel(order="F"))
                         new = out.reshape(width, -1).T[:, :cols.size]
-                        _judge(new, S, cols, status, running, scal, scale, max_steps)
+                        _judge(new, S, cols, status, running, scal, scale, limit)
                     if report is not None:
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)
                 X[running, j], V[running, j] = S[:n3, running].T, S[n3:2 * n3, running].T
         # Ctrl-C in the last chunk: every variant finished, and the caller must stop all the same
         stopped = interrupt.requested()
+        stops = [k for k, s in enumerate(status) if s not in ("completed", "interrupted") and not messages[k]]
+        for i, k in enumerate(stops):  # the frozen column holds the last good state
+            messages[k] = reasons.stop_reason(
+                model, status[k], P[k], S[:n3, k], S[n3:2 * n3, k], float(S[scal["t"], k]),
+                float(S[scal["h"], k]), limit, t_end, diagnose=i < reasons.DIAGNOSED_MAX, t0=t_start,
+                steps=int(S[scal["n_acc"], k]))
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - started
     shape = (n_var, targets.size, model.n_particles, 3)
     return Ensemble(names, table, targets, X.reshape(shape), V.reshape(shape), tuple(status),
-                    S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int),
+                    S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int), tuple(messages),
+                    np.where([st in ("inconsistent start", "non-positive mass") for st in status],
+                             np.nan, moved),
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
                      "evaluation": evaluation, "block": width, "threads": threads, "method": "dopri",
                      "tableau": dopri.tableau.name, "rtol": rtol, "atol": atol, "interrupted": stopped})
+
+
+def _refuse_events(system, model: Model | None) -> None:
+    """simulate_many is dopri's step loop without event handling: a system with one-sided
+    constraints (contacts, with their impacts) or [[events]] is refused, by name. It used to
+    hold a floor as a two-sided plane, so every ball dropped onto it was "an inconsistent start"."""
+    one_sided = [getattr(c, "label", None) or getattr(c, "name", None) or type(c).__name__
+                 for c in system.constraints if getattr(c, "unilateral", False)]
+    events = getattr(system, "events", None) or ()
+    if not one_sided and not events:
+        return
+    what = (f"one-sided constraint(s) {', '.join(repr(str(n)) for n in one_sided)} (contacts and their "
+            "impacts)" if one_sided else f"{len(events)} [[events]]")
+    raise InputError(f"simulate_many cannot run this system: it has {what}, which need event handling "
+                     "per run, and the batched step loop has none; run each variant with "
+                     "simulate(..., parameters=...), or use constrained sweep, whose per-run path handles "
+                     "them")
 
 
 def _progress(progress, n_var: int):

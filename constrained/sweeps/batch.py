@@ -106,6 +106,8 @@ def run_batch(task: dict) -> dict:
         name = model.parameter_names[0] if model.parameter_names else None
         table = {name: np.full(len(ids), model.parameter_values[0])} if name else {}
     kwargs = {k: options.method_options[k] for k in ("base",) if k in options.method_options}
+    if options.max_steps:  # the scene's step budget holds on this path too
+        kwargs["max_steps"] = options.max_steps
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         ens = simulate_many(scene.system, options.t_end, table, t_eval=t_eval, t_start=options.t_start,
                             rtol=options.rtol, atol=options.atol, model=model, compiled=task["compiled"],
@@ -124,7 +126,8 @@ def run_batch(task: dict) -> dict:
         if status == "interrupted":
             continue
         if status != "completed":
-            rows[rid] = {"status": STATUS_TEXT.get(status, status), "row": {}}
+            why = ens.messages[k] if ens.messages else ""  # its own run's words (run/variants/reasons.py)
+            rows[rid] = {"status": " ".join((why or STATUS_TEXT.get(status, status)).split()), "row": {}}
             continue
         row: dict[str, Any] = {name: _plain(values[k]) for name, values in columns.items()}
         row.update(solver)

@@ -1,0 +1,1 @@
+"""What becomes of the variants of a batched run (``run.ensemble``): why one did not finish."""
