@@ -88,3 +88,35 @@ def test_a_chaotic_double_pendulum_keeps_its_energy_with_fewer_restarts(rtol, re
     mgl = (1.0 + 0.3) * 9.81 * 1.0
     assert np.max(np.abs(tr.energy - tr.energy[0])) < 250 * rtol * mgl
     assert tr.stats["steps"] < 2 / 3 * restarting_steps
+
+
+@pytest.mark.parametrize("method", ["idas", "ggl"])
+def test_a_loaded_machine_takes_the_same_steps(method, monkeypatch):
+    """Calls are sized by their steps, never by the clock (session 15: ``ggl``'s were sized by
+    their seconds, so a run on a loaded machine took other calls and other steps, and the
+    collapse of a rod driven to zero length was predicted at t* = 0.9982 s idle, 0.9999 s
+    under load). A clock on which every call takes 100 s gives the same run."""
+    import time as _time
+
+    from constrained.solvers.sundials import idas as module
+
+    pendulum = C.System(name="pendulum")
+    pendulum.add_particle("p", 1.0, [0.6, -0.8, 0.0], [0.0, 0.0, 0.0])
+    pendulum.add(C.Distance("p", point=[0.0, 0.0, 0.0], length=1.0), C.Plane("p", [0, 0, 1]),
+                 C.Gravity([0.0, -9.81, 0.0]))
+    grid = np.linspace(0.0, 3.0, 2001)  # (several calls)
+    idle = C.simulate(pendulum, 3.0, method=method, rtol=1e-8, atol=1e-10, t_eval=grid)
+
+    class SlowClock:
+        now = 0.0
+
+        @classmethod
+        def perf_counter(cls):
+            cls.now += 50.0
+            return cls.now
+
+    monkeypatch.setattr(module, "time", type("T", (), {"perf_counter": SlowClock.perf_counter,
+                                                        "process_time": _time.process_time}))
+    loaded = C.simulate(pendulum, 3.0, method=method, rtol=1e-8, atol=1e-10, t_eval=grid)
+    assert loaded.stats["steps"] == idle.stats["steps"]
+    np.testing.assert_array_equal(loaded.x, idle.x)
