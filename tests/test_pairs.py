@@ -227,7 +227,7 @@ def test_gas_with_a_cutoff_keeps_momentum_and_energy():
     moved = np.linalg.norm(traj.x[-1] - traj.x[0], axis=1)
     assert np.median(moved) > 10 * term.skin  # the list was rebuilt many times
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
-        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity: None)
+        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity, excluded=None: None)
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), rtol=1e-9, atol=1e-9,
                            t_eval=np.linspace(0, 3, 31), outputs=set())
     np.testing.assert_allclose(traj.x, every.x, atol=1e-6)
@@ -410,7 +410,7 @@ def test_rattle_refreshes_the_neighbour_list_and_matches_every_pair():
     assert np.max(np.abs(P - P[0])) < 1e-13 * scale
     assert np.ptp(traj.energy) < 1e-3 * np.abs(traj.energy).max()  # O(dt²), not drifting
     with pytest.MonkeyPatch.context() as patch:  # no list fits: every pair, all the run
-        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity: None)
+        patch.setattr(pairs.neighbours, "pair_rows", lambda y, reach, capacity, excluded=None: None)
         every = C.simulate(system, 3.0, model=assemble(system, reuse=False), method="rattle", dt=2e-3,
                            t_eval=np.linspace(0, 3, 31), outputs=set())
     np.testing.assert_allclose(traj.x, every.x, atol=1e-9)

@@ -199,7 +199,7 @@ def linearize(model: Model, x: np.ndarray, v: np.ndarray, t: float, frame: Rotat
 def _force_scale(model: Model, J, F, lam, omega, x, *, per_mass: bool = False) -> float:
     """The largest of the applied forces, the constraint forces Jᵀλ and the centrifugal
     forces M Ω×(Ω×r) on any coordinate (divided by its mass: ``per_mass``)."""
-    J = np.asarray(J, float).reshape(model.n_constraints, -1)
+    J = np.asarray(J, float).reshape(model.n_constraints, model.n_coordinates)
     w = 1.0 / model.masses if per_mass else np.ones(model.n_coordinates)
     parts = [w * np.asarray(F, float).ravel(), w * (J.T @ lam) if lam.size else np.zeros(1),
              w * model.masses * float(np.linalg.norm(omega)) ** 2 * _size(x)]

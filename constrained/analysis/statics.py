@@ -178,7 +178,7 @@ def _flat(system, x, what: str = "x") -> np.ndarray:
 def _forces_at_rest(model: Model, x: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     """F(x, v = 0, t) (3N,) and J (C, 3N)."""
     F, J, _ = model.dynamics(x, np.zeros_like(x), t)
-    return np.asarray(F, float).ravel(), np.asarray(J, float).reshape(model.n_constraints, -1)
+    return np.asarray(F, float).ravel(), np.asarray(J, float).reshape(model.n_constraints, x.size)
 
 
 def virtual_work(system, x, t: float = 0.0, *, model: Model | None = None) -> float:

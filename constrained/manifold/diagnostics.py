@@ -334,8 +334,13 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
         k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
         name = model.particle_names[k]
         pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
+        pair = ""  # a pair potential pushing hardest: the two particles closing in on its singularity
+        if strongest is not None and strongest[3] > 0 and hasattr(model.system.effects[strongest[0]],
+                                                                  "closest_pair"):
+            pair = (f"; the strongest force is effect {strongest[0]}'s ('{strongest[1]}')"
+                    + _closest_pair(model, model.system.effects[strongest[0]], x))
         return (f"likely cause: forces that blow up: at the last good state particle '{name}' at "
-                f"({pos}) m has acceleration {acc[k]:.3g} m/s²")
+                f"({pos}) m has acceleration {acc[k]:.3g} m/s²{pair}")
     except Exception:  # a diagnosis must never hide the stop itself
         return "likely cause: a singular configuration, stiffness, or forces that blow up"
 

@@ -404,9 +404,12 @@ class Dopri(Stepper):
                 return Advance(new, **samples, status=Status.NON_FINITE,
                                message=f"non-finite state after t = {new[T]:.6g} s; "
                                + diagnostics.nonfinite_cause(self.model, new[:n], new[n:2 * n], new[T]))
+            held = self.model.structure.pair_potentials.step_held(  # (a list's skin, not the forces)
+                new[n:2 * n], new[3 * n + len(SCALARS):], new[H], self.model.particle_names)
             return Advance(new, **samples, status=Status.STEP_SIZE_COLLAPSED,
                            message=(f"the step size collapsed at t = {new[T]:.6g} s (h = {new[H]:.3g} s); "
-                                    + self.diagnose(new[:n], new[n:2 * n], new[T])))
+                                    + (f"likely cause: {held}" if held
+                                       else self.diagnose(new[:n], new[n:2 * n], new[T]))))
         return Advance(new, **samples)
 
     def stiffness_advice(self) -> tuple[str, str]:

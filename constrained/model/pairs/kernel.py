@@ -49,8 +49,11 @@ this mapped graph but one fused C loop over the same rows (``fused``: gather, pa
 scatter-add in one pass, ~3x cheaper at 10,000 particles); the energy, and every Function
 without a compiler, take the mapped kernel. Both sum the same pairs.
 
-Excluded pairs (``exclude_bonded``: joined by a distance constraint) are subtracted after
-the sums, from a constant list (a few per particle).
+Excluded pairs (``exclude_bonded``: joined by a distance constraint) are never summed: the
+neighbour list leaves them out, and the all-pairs tiles mask them like padding (each particle's
+excluded partners are an input of its block's tiles, K per particle, K the most any has).
+Subtracting them after the sums, as this did before, lost the other pairs to round-off where a
+bond is short inside the repulsion (docs/hard-cases.md, section 12).
 """
 
 from __future__ import annotations
@@ -118,19 +121,25 @@ def _pair(phi: ca.SX, r: ca.SX, t, p) -> ca.Function:
     return ca.Function("pair", [xi, xj, t, p], [v, (-dphi / rij) * d])
 
 
-def _tiles(pair: ca.Function, t, p) -> dict[str, ca.Function]:
+def _tiles(pair: ca.Function, t, p, excluded: int = 0) -> dict[str, ca.Function]:
     """The tile kernels (x_a, x_b, m_a, m_b, t, p) -> (V, F_a, F_b) (3B, 3B, B, B: coordinates
     and 0/1 masks): ``full`` every pair of the two blocks, ``diag`` the pairs i < j of block a
     alone (x_b, m_b unused, F_b = 0), ``zero`` nothing; the conditional ``tile(case, …)``
-    picks one (0 zero, 1 diag, 2 full)."""
-    B = BLOCK
+    picks one (0 zero, 1 diag, 2 full). ``excluded`` K > 0: two more inputs after m_b, e_a
+    (B·K: each particle of block a, its excluded partners, −1 where none) and b (block b's
+    number: its slot j is particle b·B + j); a pair (i, j) with b·B + j among i's partners
+    counts nothing, like padding (not computed and subtracted: see ``neighbours.without``)."""
+    B, K = BLOCK, excluded
     xa, xb, ma, mb = ca.SX.sym("xa", 3 * B), ca.SX.sym("xb", 3 * B), ca.SX.sym("ma", B), ca.SX.sym("mb", B)
-    inputs = [xa, xb, ma, mb, t, p]
+    ea, b = ca.SX.sym("ea", B * K), ca.SX.sym("b")
+    inputs = [xa, xb, ma, mb, *([ea, b] if K else []), t, p]
     zero3 = ca.SX.zeros(3)
 
     def masked(i, j, other, mother):
         v, f = pair(xa[3 * i:3 * i + 3], other[3 * j:3 * j + 3], t, p)
         w = ma[i] * mother[j] > 0  # padding places count nothing (even a NaN of theirs)
+        for k in range(K):  # nor excluded pairs (in the diagonal tile b = a)
+            w = ca.logic_and(w, ea[K * i + k] != b * B + j)
         return ca.if_else(w, v, 0), ca.if_else(w, f, zero3)
 
     V, Fa, Fb = ca.SX(0), [zero3] * B, [zero3] * B
@@ -147,6 +156,18 @@ def _tiles(pair: ca.Function, t, p) -> dict[str, ca.Function]:
     diag = ca.Function("tile_diag", inputs, [Vd, ca.vertcat(*Fd), zero], {"cse": True})
     nothing = ca.Function("tile_zero", inputs, [ca.SX(0), zero, zero])
     return ca.Function.conditional("tile", [nothing, diag], full)
+
+
+def _partners(excluded: np.ndarray, n: int) -> np.ndarray:
+    """(n, K): row i the partners of particle i in the ``excluded`` pairs (E, 2), in both
+    directions, −1 after them; K the most any particle has (0 without exclusions)."""
+    ends = np.concatenate([excluded, excluded[:, ::-1]]) if len(excluded) else np.zeros((0, 2), np.int64)
+    counts = np.bincount(ends[:, 0], minlength=n)
+    out = -np.ones((n, int(counts.max(initial=0))))
+    ends = ends[np.lexsort((ends[:, 1], ends[:, 0]))]
+    place = np.arange(len(ends)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[ends[:, 0]]
+    out[ends[:, 0], place] = ends[:, 1]
+    return out
 
 
 def _case(a, b):
@@ -175,7 +196,9 @@ class PairTerm:
         phi = ca.substitute(phi, p[self._p_used], q) if self._p_used else phi
         self._pair = _pair(phi, spec.r, t, q)
         self._phi_c, self._t, self._q = phi, t, q  # (φ_c of spec.r, t and q)
-        self._tile = _tiles(self._pair, t, q)
+        # each particle's excluded partners (e_a of the tiles: K columns, −1 where none)
+        self._partners = _partners(spec.excluded, self.n_blocks * BLOCK)
+        self._tile = _tiles(self._pair, t, q, self._partners.shape[1])
         self._coordinates = (3 * spec.particles[:, None] + np.arange(3)).ravel()
         self._functions = None
         self._cell_rows = None  # (the cell list's FastCall, or False: NumPy's route)
@@ -186,7 +209,8 @@ class PairTerm:
         #: Capacity of the neighbour list: rows of ROW pairs (whole groups of GROUP_ROWS).
         self.capacity = 0
         if self.cutoff is not None:  # room for the rows the start needs, and more
-            i = neighbours.pairs_within(self._listed(positions), self.reach)[0]
+            i = neighbours.without(*neighbours.pairs_within(self._listed(positions), self.reach), self.n,
+                                   spec.excluded)[0]
             self.capacity = neighbours.capacity_for(neighbours.rows_needed(i, self.n), CAPACITY_FACTOR,
                                                     self.n)
         #: Entries of p this term's data takes (its neighbour list; 0 without a cutoff).
@@ -222,10 +246,11 @@ class PairTerm:
         """``neighbours.pair_rows`` of the points y (n, 3): by the cell list in C when it can
         be had (compiled on the first call), else by SciPy and NumPy."""
         if self._cell_rows is None:
-            function = cells.rows_function(self.n, self.capacity, self.reach, self.cutoff) if CELLS else None
+            function = (cells.rows_function(self.n, self.capacity, self.reach, self.cutoff,
+                                            self.spec.excluded) if CELLS else None)
             self._cell_rows = FastCall(function) if function is not None else False
         if self._cell_rows is False:
-            return neighbours.pair_rows(y, self.reach, self.capacity)
+            return neighbours.pair_rows(y, self.reach, self.capacity, self.spec.excluded)
         out = self._cell_rows(y.ravel())[0]
         if out[0] != 1:
             return None
@@ -263,9 +288,6 @@ class PairTerm:
             both = ca.if_else(self.fresh_graph(X, P), ca.vertcat(*listed(Xl, T, Pp, data)),
                               ca.vertcat(*every(Xl, T, Pp)), True)  # every pair only when stale
             V, F = both[0], both[1:]
-        if len(self.spec.excluded):
-            V_ex, F_ex = self._excluded(Xl, T, Pp)
-            V, F = V - V_ex, F - F_ex
         if np.array_equal(self._coordinates, np.arange(self.n_coordinates)):
             return V, F
         scatter = ca.DM(ca.Sparsity.triplet(self.n_coordinates, 3 * self.n, self._coordinates.tolist(),
@@ -335,26 +357,30 @@ class PairTerm:
 
     def _all_pairs(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
         """Every pair: outer map over blocks a, inner over blocks b (see the module)."""
-        B, nb = BLOCK, self.n_blocks
+        B, nb, K = BLOCK, self.n_blocks, self._partners.shape[1]
         xa, ma, a, xb, mb, b, t, p = self._symbols(Pp.numel())
+        ea = [ca.MX.sym("ea", B * K)] if K else []  # (block a's excluded partners: see _tiles)
         case = ca.if_else(b < a, 0, _case(a, b))
-        inner = ca.Function("pairs_inner", [xa, ma, a, xb, mb, b, t, p],
-                            self._tile(case, xa, xb, ma, mb, t, p))
-        inner = inner.map("pairs_row", "serial", nb, [0, 1, 2, 6, 7], [0, 1])
+        inner = ca.Function("pairs_inner", [xa, ma, a, *ea, xb, mb, b, t, p],
+                            self._tile(case, xa, xb, ma, mb, *ea, *([b] if K else []), t, p))
+        e = len(ea)
+        inner = inner.map("pairs_row", "serial", nb, [0, 1, 2, *([3] if K else []), 6 + e, 7 + e], [0, 1])
         XB, MB, IB = ca.MX.sym("XB", 3 * B, nb), ca.MX.sym("MB", B, nb), ca.MX.sym("IB", 1, nb)
-        outer = ca.Function("pairs_outer", [xa, ma, a, XB, MB, IB, t, p], inner(xa, ma, a, XB, MB, IB, t, p))
+        outer = ca.Function("pairs_outer", [xa, ma, a, *ea, XB, MB, IB, t, p],
+                            inner(xa, ma, a, *ea, XB, MB, IB, t, p))
         pad = nb * B - self.n
         Xb = ca.reshape(ca.vertcat(Xl, ca.MX.zeros(3 * pad)) if pad else Xl, 3 * B, nb)
         index = ca.DM(np.arange(nb, dtype=float)).T
+        EA = ca.DM(self._partners.reshape(nb, B * K).T) if K else None
         V, FA, FB, groups = 0, [], 0, {}
         for start in range(0, nb, GROUP):
             k = min(GROUP, nb - start)
             part = slice(start, start + k)
             if k not in groups:  # (one map per size: at most two)
-                groups[k] = outer.map(f"pairs_group_{k}", "serial", k, [3, 4, 5, 6, 7], [0, 2])
+                groups[k] = outer.map(f"pairs_group_{k}", "serial", k, [3 + e + s for s in range(5)], [0, 2])
             group = groups[k]
-            Vg, FAg, FBg = group(Xb[:, part], self._mask[:, part], index[:, part], Xb, self._mask, index,
-                                 T, Pp)
+            own = [Xb[:, part], self._mask[:, part], index[:, part], *([EA[:, part]] if K else [])]
+            Vg, FAg, FBg = group(*own, Xb, self._mask, index, T, Pp)
             V, FB = V + Vg, FB + FBg
             FA.append(FAg)
         return V, (ca.vec(ca.horzcat(*FA)) + ca.vec(FB))[:3 * self.n]
@@ -410,17 +436,3 @@ class PairTerm:
         full = ca.Function("pairs_group", inputs, outputs, {"cse": True})
         nothing = ca.Function("pairs_none", inputs, zeros)
         return ca.Function.conditional("pairs_rows", [nothing], full)
-
-    def _excluded(self, Xl, T, Pp) -> tuple[ca.MX, ca.MX]:
-        """The excluded pairs' own energy and forces (subtracted from the sums)."""
-        i, j = self.spec.excluded[:, 0], self.spec.excluded[:, 1]
-        E = len(i)
-        Xm = ca.reshape(Xl, 3, self.n)
-        v, f = self._pair.map("pairs_excluded", "serial", E, [2, 3], [0])(
-            Xm[:, i.tolist()], Xm[:, j.tolist()], T, Pp)
-        rows = np.concatenate([(3 * i[None] + np.arange(3)[:, None]).ravel("F"),
-                               (3 * j[None] + np.arange(3)[:, None]).ravel("F")])
-        cols = np.concatenate([np.arange(3 * E), np.arange(3 * E)])
-        signs = np.concatenate([np.ones(3 * E), -np.ones(3 * E)])
-        scatter = ca.DM.triplet(rows.tolist(), cols.tolist(), ca.DM(signs), 3 * self.n, 3 * E)
-        return v, ca.mtimes(scatter, ca.vec(f))

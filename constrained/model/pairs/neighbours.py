@@ -38,6 +38,18 @@ def pairs_within(y: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
     return i[order].astype(np.int64, copy=False), j[order].astype(np.int64, copy=False)
 
 
+def without(i: np.ndarray, j: np.ndarray, n: int,
+            excluded: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs (i, j) (ordered by i) less the ``excluded`` ones ((E, 2), either order). An
+    excluded pair is never summed at all: a bond 0.05 σ long inside an r⁻¹² repulsion has
+    φ ~ 1e15, which added and subtracted again leaves only round-off of the other pairs."""
+    if excluded is None or not len(excluded) or not len(i):
+        return i, j
+    lo, hi = np.minimum(excluded[:, 0], excluded[:, 1]), np.maximum(excluded[:, 0], excluded[:, 1])
+    keep = ~np.isin(i * n + j, lo.astype(np.int64) * n + hi)
+    return i[keep], j[keep]
+
+
 def rows_needed(i: np.ndarray, n: int) -> int:
     """The rows that hold the pairs whose first points are ``i``."""
     return int(np.sum(-(-np.bincount(i, minlength=n) // ROW)))
@@ -51,14 +63,16 @@ def capacity_for(rows: int, factor: float, n: int) -> int:
     return max(1, -(-wanted // GROUP_ROWS)) * GROUP_ROWS
 
 
-def pair_rows(y: np.ndarray, reach: float, capacity: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """(I, J): the pairs of the points y (n, 3) within ``reach`` (``pairs_within``) in rows:
+def pair_rows(y: np.ndarray, reach: float, capacity: int,
+              excluded: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(I, J): the pairs of the points y (n, 3) within ``reach`` (``pairs_within``), less the
+    ``excluded`` ones ((E, 2): never listed), in rows:
     I (capacity,) the row's point, J (capacity·ROW,) its ROW neighbours, row after row; a
     row's empty places hold n + 1, an empty row's point n (two placeholders, which the kernel
     places beyond the cutoff from each other and from every point: they count nothing); as
     floats. None when the pairs need more than ``capacity`` rows."""
     n = len(y)
-    i, j = pairs_within(y, reach)
+    i, j = without(*pairs_within(y, reach), n, excluded)
     counts = np.bincount(i, minlength=n)
     per_point = -(-counts // ROW)
     if per_point.sum() > capacity:

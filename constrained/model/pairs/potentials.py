@@ -116,6 +116,26 @@ class PairPotentials:
             return None
         return limits[0] if len(limits) == 1 else ca.mmin(ca.vertcat(*limits))
 
+    def step_held(self, v, p, h: float, names) -> str | None:
+        """Where a neighbour list's ``step_limit`` at velocities ``v`` (3N) is at most the step h
+        proposed (a step size collapsed by a skin far below the distance particles move): the words
+        naming the effect, its skin, the fastest particle (``names``) and the fix; else None."""
+        v = np.asarray(v, float).reshape(-1, 3)
+        for term in self.terms:
+            if not term.size or p[term.offset] != 1:
+                continue
+            speeds = np.linalg.norm(v[term.spec.particles], axis=1)
+            k = int(np.argmax(speeds))
+            margin = STEP_SHARE * (1 - REFRESH_SHARE) * term.skin / 2
+            limit = margin / max(float(speeds[k]), 1e-300)
+            if limit <= h:  # (a step held by the limit proposes at most MAX_FACTOR times it)
+                return (f"the neighbour list of '{term.label}' holds each step to {limit:.3g} s: a step may "
+                        f"move a particle by {margin:.3g} m at most (a share of the list's skin, "
+                        f"{term.skin:.3g} m), and particle '{names[term.spec.particles[k]]}' moves at "
+                        f"{speeds[k]:.3g} m/s; give the effect a 'skin' (and 'cutoff') of the distances "
+                        "the particles move")
+        return None
+
     def refreshed(self, p: np.ndarray, x) -> np.ndarray | None:
         """p with the neighbour lists rebuilt at positions ``x`` where a particle has moved more
         than REFRESH_SHARE · skin/2 since they were built, or None when every list is good
