@@ -300,6 +300,13 @@ def reduced_linearization(reduced, x, v, t: float, *, rate: float = 0.0):
                          where="reduced.map")
     q0 = best
     Jq = np.asarray(reduced.map_jacobian(q0, t), float)
+    sv = np.linalg.svd(Jq, compute_uv=False)
+    if sv.size < reduced.n or sv[-1] <= 1e-10 * max(float(sv[0]), 1e-300):
+        at = ", ".join(f"{c} = {v:.6g}" for c, v in zip(reduced.coordinates, q0, strict=True))
+        raise InputError(f"the reduced coordinates are singular at this state ({at}: rank ∂x/∂q < "
+                         f"{reduced.n}, M(q) singular, like the pole of spherical angles): Lagrange's "
+                         "equations have no linearization there, so there is nothing to compare; the "
+                         "Cartesian modes do not need coordinates", where="reduced")
     xt = np.asarray(reduced.velocity(q0, np.zeros(reduced.n), t), float).ravel()
     qd0 = np.linalg.lstsq(Jq, v - xt, rcond=None)[0]
     speed = max(float(np.max(np.abs(v), initial=0.0)), float(np.max(np.abs(xt), initial=0.0)), rate * size,
