@@ -41,8 +41,8 @@ from ..model.structure import Model
 from .statics import _newton
 from .statics_methods.kkt import force_round_off
 
-__all__ = ["RotatingFrame", "frame_arrays", "linearize", "omega_velocity", "quadratic_roots",
-           "reduced_linearization", "relative_equilibrium", "zero_root_chain"]
+__all__ = ["RotatingFrame", "balance_function", "frame_arrays", "linearize", "omega_velocity",
+           "quadratic_roots", "reduced_linearization", "relative_equilibrium", "zero_root_chain"]
 
 #: The state must be at rest in the frame: tangential acceleration and frame velocity within
 #: this fraction of the system's acceleration and velocity scales.
@@ -114,6 +114,12 @@ def _balance(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
     if C:
         r = r + ca.mtimes(J.T, lam)
     return ca.Function("frame_balance", [y, u, lam], [r, ca.jacobian(r, y), ca.jacobian(r, u), J, F])
+
+
+def balance_function(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
+    """The CasADi Function (y, u, λ) -> (r, ∂r/∂y, ∂r/∂u, J, F) of the frame's equation of motion
+    (``_balance``), for the sparse route (constrained.modes_sparse)."""
+    return _balance(model, t, omega, centre)
 
 
 def relative_equilibrium(model: Model, x0: np.ndarray, t: float, omega, centre, size: float) -> np.ndarray:
