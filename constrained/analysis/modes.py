@@ -254,6 +254,12 @@ class Modes:
         rate = float(np.max(np.abs(self.eigenvalues), initial=0.0))
         M0, C0, K0, q0 = reduced_linearization(reduced, self.x, self.v, self.t, rate=rate)
         s = quadratic_roots(M0, C0, K0)[0]
+        k = len(self.eigenvalues) // 2
+        if k < M0.shape[0]:  # only the lowest k modes (the sparse route, conservative): the lowest k ω²
+            w2 = np.linalg.eigvalsh(np.linalg.solve(np.linalg.cholesky(M0), np.linalg.solve(
+                np.linalg.cholesky(M0), 0.5 * (K0 + K0.T)).T))[:k]
+            root = np.sqrt(-w2.astype(complex))
+            s = np.concatenate([root, -root])
         return ModesCrossCheck(_sorted_roots(self.eigenvalues), _sorted_roots(s), q0)
 
 
@@ -365,6 +371,12 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         raise InputError("normal modes of a system with one-sided constraints are not defined (their "
                          "force switches off or on at rest); make them two-sided for the modes about a "
                          "state where they hold", where="constraints")
+    n3c = model.n_coordinates + model.n_constraints
+    if count is None and n3c > DENSE_UNKNOWNS:
+        raise InputError(f"every mode of this model takes a dense basis of its tangent space (3N + C = {n3c} "
+                         f"unknowns, above {DENSE_UNKNOWNS}: {8 * model.n_coordinates ** 2 / 1e9:.2g} GB and "
+                         "minutes of SVD); ask for the lowest few (count=K, --count K: a sparse solve)",
+                         where="count")
     omega, centre = frame_arrays(frame, model.n_particles)
     size = system.size()
     if x is None and frame is None:
@@ -390,12 +402,6 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         sparse = lowest_modes(model, balance, x_flat, float(t), count, size, STATIONARY_RTOL)
         if sparse is not None:
             return _sparse_modes(system, model, sparse, x_flat, v_flat, float(t))
-    n3c = model.n_coordinates + model.n_constraints
-    if count is None and n3c > DENSE_UNKNOWNS:
-        raise InputError(f"every mode of this model takes a dense basis of its tangent space (3N + C = {n3c} "
-                         f"unknowns, above {DENSE_UNKNOWNS}: {8 * model.n_coordinates ** 2 / 1e9:.2g} GB and "
-                         "minutes of SVD); ask for the lowest few (count=K, --count K: a sparse solve)",
-                         where="count")
     T, C, K, lam, residual, unbalanced = linearize(model, x_flat, v_flat, float(t), frame)
     n = T.shape[1]
     M = np.eye(n)
