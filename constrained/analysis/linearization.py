@@ -118,7 +118,7 @@ def _balance(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
 
 def balance_function(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
     """The CasADi Function (y, u, λ) -> (r, ∂r/∂y, ∂r/∂u, J, F) of the frame's equation of motion
-    (``_balance``), for the sparse route (constrained.modes_sparse)."""
+    (``_balance``), for the sparse route (statics_methods.large_modes)."""
     return _balance(model, t, omega, centre)
 
 

@@ -38,9 +38,9 @@ from .linearization import (
     relative_equilibrium,
     zero_root_chain,
 )
-from .modes_sparse import lowest_modes
 from .statics import _flat, equilibrium, zero_frequency_squared
 from .statics_methods.large import is_large
+from .statics_methods.large_modes import lowest_modes
 
 __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 
@@ -350,7 +350,7 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     rest in the frame (InputError otherwise: rheonomic constraints, time-dependent or
     velocity-dependent forces are linearized at the instant ``t``). ``count``: only the lowest
     ``count`` modes — for a large conservative model at rest without a frame by a sparse
-    shift-invert solve of the KKT pencil (constrained.modes_sparse: no dense tangent basis),
+    shift-invert solve of the KKT pencil (statics_methods.large_modes: no dense tangent basis),
     otherwise the dense solve's lowest. Without it every mode, densely: refused beyond
     ``DENSE_UNKNOWNS`` (3N + C), where the dense basis takes minutes and gigabytes.
     """
@@ -433,7 +433,8 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
 
 
 def _sparse_modes(system, model: Model, sparse, x_flat: np.ndarray, v_flat: np.ndarray, t: float) -> Modes:
-    """Modes from modes_sparse.lowest_modes: the lowest k, with basis Φ (Φᵀ M Φ = I), K = diag(ω²)."""
+    """Modes from statics_methods.large_modes.lowest_modes: the lowest k, with basis Φ
+    (Φᵀ M Φ = I) and K = diag(ω²)."""
     Phi, w2, lam, residual, unbalanced, dof, knorm = sparse
     k = len(w2)
     root = np.sqrt(-w2.astype(complex))

@@ -1,4 +1,5 @@
-"""The lowest modes of a large conservative model without a dense tangent basis.
+"""The lowest modes of a large conservative model without a dense tangent basis (constrained.modes
+with ``count``; beside the large statics, whose sparse helpers it shares).
 
 For a model with more than ``algebra.SPARSE_FROM`` position rows (statics_methods.large), at
 rest in no frame, whose forces do not depend on the velocities and whose stiffness
@@ -24,10 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
-from ..model.structure import Model
-from .statics_methods import large as _large
-from .statics_methods.kkt import force_round_off
+from ...errors import InputError
+from ...model.structure import Model
+from . import large as _large
+from .kkt import force_round_off
 
 __all__ = ["lowest_modes"]
 
