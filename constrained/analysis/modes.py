@@ -27,7 +27,9 @@ from ..model.structure import Model, assemble
 from ..run.trajectory import Trajectory
 from ..run.unilateral import has_one_sided
 from .linearization import (
+    STATIONARY_RTOL,
     RotatingFrame,
+    balance_function,
     frame_arrays,
     linearize,
     omega_velocity,
@@ -37,6 +39,8 @@ from .linearization import (
     zero_root_chain,
 )
 from .statics import _flat, equilibrium, zero_frequency_squared
+from .statics_methods.large import is_large
+from .statics_methods.large_modes import lowest_modes
 
 __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 
@@ -48,6 +52,10 @@ __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 ON_CONSTRAINTS_RTOL = 1e-6
 #: Roots with Re s > GROWTH_RTOL × max|s| grow (unstable); within it they count as undamped.
 GROWTH_RTOL = 1e-7
+#: Every mode (no ``count``) of a model of more unknowns 3N + C than this is refused: the dense
+#: tangent basis (an SVD of J) of a 1,000-link chain (5,000) took 49 s of its 136 s (statics'
+#: MAX_UNKNOWNS, 6,000, is the same bound).
+DENSE_UNKNOWNS = 6000
 
 
 @dataclass(frozen=True)
@@ -132,12 +140,21 @@ class Modes:
     #: With velocity constraints: 3N − rank J, the configuration's freedom (the modes live in
     #: the velocity freedom, ``degrees_of_freedom``); None without them (the two are equal).
     configuration_degrees_of_freedom: int | None = None
+    #: With ``count``: the tangent space's dimension, of which ``modes`` holds the lowest
+    #: ``len(modes)`` (then ``basis`` spans only theirs and K = diag(ω²)); None: every mode.
+    total_degrees_of_freedom: int | None = None
 
     @property
     def degrees_of_freedom(self) -> int:
         """The dimension of the space the modes live in: the tangent space of the constraints
         (with velocity constraints, null([J; A]): the velocity degrees of freedom)."""
-        return int(self.basis.shape[1])
+        total = self.total_degrees_of_freedom
+        return int(self.basis.shape[1]) if total is None else total
+
+    @property
+    def partial(self) -> bool:
+        """Whether ``modes`` holds only the lowest of them (``count``)."""
+        return self.total_degrees_of_freedom is not None and len(self.modes) < self.total_degrees_of_freedom
 
     def _freedom(self) -> str:
         if self.configuration_degrees_of_freedom is None:
@@ -163,8 +180,9 @@ class Modes:
         """One line per mode: frequency, period, damping, what moves most."""
         frame = "" if self.frame is None else (f" in the frame turning at Ω = {_vec(self.frame.omega)} rad/s "
                                                f"about {_vec(self.frame.point)} m")
+        some = f"; the lowest {len(self.modes)} mode(s)" if self.partial else ""
         lines = [f"{self._freedom()} about the state at t = {self.t:g} s"
-                 f"{frame}: {self.stability}"]
+                 f"{frame}: {self.stability}{some}"]
         names = self.particle_names or [f"p{i}" for i in range(len(self.x))]
         for k, m in enumerate(self.modes, 1):
             amp = np.linalg.norm(np.abs(m.shape), axis=1)
@@ -184,7 +202,7 @@ class Modes:
         return {"t": self.t, "x": self.x.tolist(), "v": self.v.tolist(),
                 "frame": None if self.frame is None else {"omega": list(self.frame.omega),
                                                           "point": list(self.frame.point)},
-                "degrees_of_freedom": self.degrees_of_freedom,
+                "degrees_of_freedom": self.degrees_of_freedom, "modes_computed": len(self.modes),
                 "configuration_degrees_of_freedom": self.configuration_degrees_of_freedom,
                 "stable": self.stable,
                 "stability": self.stability, "conservative": self.conservative,
@@ -236,6 +254,12 @@ class Modes:
         rate = float(np.max(np.abs(self.eigenvalues), initial=0.0))
         M0, C0, K0, q0 = reduced_linearization(reduced, self.x, self.v, self.t, rate=rate)
         s = quadratic_roots(M0, C0, K0)[0]
+        k = len(self.eigenvalues) // 2
+        if k < M0.shape[0]:  # only the lowest k modes (the sparse route, conservative): the lowest k ω²
+            w2 = np.linalg.eigvalsh(np.linalg.solve(np.linalg.cholesky(M0), np.linalg.solve(
+                np.linalg.cholesky(M0), 0.5 * (K0 + K0.T)).T))[:k]
+            root = np.sqrt(-w2.astype(complex))
+            s = np.concatenate([root, -root])
         return ModesCrossCheck(_sorted_roots(self.eigenvalues), _sorted_roots(s), q0)
 
 
@@ -290,8 +314,11 @@ def _modes_from_roots(s, Z, symmetric: bool, T: np.ndarray, zero_s2: float, n_pa
                 kind = "soft" if abs(root) <= soft_s else ("divergent" if root.real > 0 else "overdamped")
                 picked.append((complex(root.real, 0.0), Z[:, j], kind))
     modes = []
-    for root, z, kind in picked:
-        shape = (T @ z).reshape(n_particles, 3)
+    if picked:  # every shape in one product (one per mode: a 3,000 × 1,000 T cast to complex 1,000 times)
+        Zp = np.column_stack([z for _, z, _ in picked])
+        shapes = (T @ Zp.real + 1j * (T @ Zp.imag)) if np.iscomplexobj(Zp) else T @ Zp
+    for j, (root, _z, kind) in enumerate(picked):
+        shape = shapes[:, j].astype(complex).reshape(n_particles, 3)
         k = np.unravel_index(int(np.argmax(np.abs(shape))), shape.shape)
         shape = shape * (abs(shape[k]) / shape[k]) if abs(shape[k]) > 0 else shape
         size = float(np.max(np.linalg.norm(np.abs(shape), axis=1), initial=0.0))
@@ -311,7 +338,8 @@ def _modes_from_roots(s, Z, symmetric: bool, T: np.ndarray, zero_s2: float, n_pa
 
 
 def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None = None,
-          parameters: dict | None = None, model: Model | None = None, refine: bool | None = None) -> Modes:
+          parameters: dict | None = None, model: Model | None = None, refine: bool | None = None,
+          count: int | None = None) -> Modes:
     """Normal modes of ``system`` about a state at rest (in ``frame``, if given).
 
     ``x`` (N, 3): the state's positions; left out, the equilibrium near the system's initial
@@ -320,8 +348,14 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     Ω × (x − c)). ``refine``: Newton from the given x to the state at rest (default: only
     when x is left out). ``parameters``: other values for this call. The state must be at
     rest in the frame (InputError otherwise: rheonomic constraints, time-dependent or
-    velocity-dependent forces are linearized at the instant ``t``).
+    velocity-dependent forces are linearized at the instant ``t``). ``count``: only the lowest
+    ``count`` modes — for a large conservative model at rest without a frame by a sparse
+    shift-invert solve of the KKT pencil (statics_methods.large_modes: no dense tangent basis),
+    otherwise the dense solve's lowest. Without it every mode, densely: refused beyond
+    ``DENSE_UNKNOWNS`` (3N + C), where the dense basis takes minutes and gigabytes.
     """
+    if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 1):
+        raise InputError(f"count must be a positive whole number of modes, got {count!r}", where="count")
     if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
         raise InputError(f"t must be a finite number of seconds, got {t!r}", where="t")
     if frame is not None and not isinstance(frame, RotatingFrame):
@@ -337,6 +371,12 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         raise InputError("normal modes of a system with one-sided constraints are not defined (their "
                          "force switches off or on at rest); make them two-sided for the modes about a "
                          "state where they hold", where="constraints")
+    n3c = model.n_coordinates + model.n_constraints
+    if count is None and n3c > DENSE_UNKNOWNS:
+        raise InputError(f"every mode of this model takes a dense basis of its tangent space (3N + C = {n3c} "
+                         f"unknowns, above {DENSE_UNKNOWNS}: {8 * model.n_coordinates ** 2 / 1e9:.2g} GB and "
+                         "minutes of SVD); ask for the lowest few (count=K, --count K: a sparse solve)",
+                         where="count")
     omega, centre = frame_arrays(frame, model.n_particles)
     size = system.size()
     if x is None and frame is None:
@@ -357,11 +397,20 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
         refine = x is None if refine is None else refine
         x_flat = relative_equilibrium(model, guess, t, omega, centre, size) if refine else guess
     v_flat = omega_velocity(omega, centre, x_flat) if v is None else _flat(system, v, "v")
+    if count is not None and frame is None and is_large(model) and not np.any(v_flat):
+        balance = balance_function(model, float(t), omega, centre)
+        sparse = lowest_modes(model, balance, x_flat, float(t), count, size, STATIONARY_RTOL)
+        if sparse is not None:
+            return _sparse_modes(system, model, sparse, x_flat, v_flat, float(t))
     T, C, K, lam, residual, unbalanced = linearize(model, x_flat, v_flat, float(t), frame)
     n = T.shape[1]
     M = np.eye(n)
     s, Z, symmetric = quadratic_roots(M, C, K)
-    zero_s2 = zero_frequency_squared(float(np.linalg.norm(K, 2)) if n else 0.0, n, unbalanced, size)
+    # ‖K‖₂: for the symmetric problem the largest |ω²| its eigenvalues already give (a second SVD of
+    # a 1,000 × 1,000 K took 8 s)
+    knorm2 = (float(np.max(np.abs(s[:n] ** 2), initial=0.0)) if symmetric else
+              float(np.linalg.norm(K, 2))) if n else 0.0
+    zero_s2 = zero_frequency_squared(knorm2, n, unbalanced, size)
     mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, zero_s2, model.n_particles)
     chain = [] if symmetric or not n else zero_root_chain(M, C, K)
     if len(chain) > 2 and stable is not False:  # a Jordan chain at s = 0 longer than a free direction's
@@ -372,10 +421,32 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     configuration = None
     if model.n_position_rows < model.n_constraints:  # velocity rows: the two freedoms differ
         configuration = constraint_report(system, x_flat, float(t), model=model, samples=0).degrees_of_freedom
+    total = None
+    if count is not None and count < len(mode_list):  # the lowest count of them (the dense route)
+        mode_list, total = mode_list[:count], n
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=float(t), frame=frame, multipliers=lam,
                  basis=T, M=M, G=0.5 * (C - C.T), D=0.5 * (C + C.T), K=K, eigenvalues=s, modes=mode_list,
                  stable=stable, stability=stability, particle_names=list(system.names),
                  conservative=bool(np.linalg.norm(K - K.T) <= 1e-9 * knorm), residual=residual,
-                 parameters=model.parameters, configuration_degrees_of_freedom=configuration)
+                 parameters=model.parameters, configuration_degrees_of_freedom=configuration,
+                 total_degrees_of_freedom=total)
+
+
+def _sparse_modes(system, model: Model, sparse, x_flat: np.ndarray, v_flat: np.ndarray, t: float) -> Modes:
+    """Modes from statics_methods.large_modes.lowest_modes: the lowest k, with basis Φ
+    (Φᵀ M Φ = I) and K = diag(ω²)."""
+    Phi, w2, lam, residual, unbalanced, dof, knorm = sparse
+    k = len(w2)
+    root = np.sqrt(-w2.astype(complex))
+    s = np.concatenate([root, -root])
+    zero_s2 = zero_frequency_squared(knorm, dof, unbalanced, system.size())
+    mode_list, stable, stability = _modes_from_roots(s, np.eye(k), True, Phi, zero_s2, model.n_particles)
+    if stable is False:
+        stability = stability.replace("UNSTABLE (", "UNSTABLE (at least ")
+    return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=t, frame=None, multipliers=lam,
+                 basis=Phi, M=np.eye(k), G=np.zeros((k, k)), D=np.zeros((k, k)), K=np.diag(w2), eigenvalues=s,
+                 modes=mode_list, stable=stable, stability=stability, particle_names=list(system.names),
+                 conservative=True, residual=residual, parameters=model.parameters,
+                 total_degrees_of_freedom=dof)
 
 

@@ -180,6 +180,8 @@ def _add_modes_and_fit(verbs) -> None:
                    help="the animated mode's largest displacement in metres (default 5%% of the system's "
                    "size)")
     m.add_argument("--no-animation", action="store_true", help="skip the GIF and the viewer page")
+    m.add_argument("--count", type=int, metavar="K",
+                   help="only the lowest K modes (a large model: a sparse solve, no dense tangent basis)")
     f = _verb(
         verbs, "fit", "fit [parameters] to measured data with exact Jacobians; standard errors, residuals",
         "Fit the [parameters] named by --params so that the run of SCENE reproduces DATA (a CSV file: a "

@@ -50,13 +50,15 @@ def _modes(args) -> int:
         raise InputError("--frame-point needs --rotating (the frame's angular velocity)")
     if args.amplitude is not None and not (math.isfinite(args.amplitude) and args.amplitude > 0):
         raise InputError(f"--amplitude must be a positive length in metres, got {args.amplitude:g}")
+    if args.count is not None and args.count < 1:
+        raise InputError(f"--count must be a positive number of modes, got {args.count}")
     frame = None if omega is None else RotatingFrame(omega, point or (0.0, 0.0, 0.0))
     system, t0 = scene.system, scene.settings["t_start"]
     at_start = args.at == "start"
     try:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             result = modes(system, x=system.positions if at_start else None,
-                           v=system.velocities if at_start else None, t=t0, frame=frame)
+                           v=system.velocities if at_start else None, t=t0, frame=frame, count=args.count)
     except InputError as exc:
         if exc.where in ("x", "v"):  # the state of the scene: its particles
             exc = InputError(exc.reason, where="particles")

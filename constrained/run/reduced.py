@@ -49,6 +49,14 @@ _RESERVED = frozenset({"t", "x", "y", "z", "r", "vx", "vy", "vz"}) | set(express
 )
 
 
+class _Singular(Exception):
+    """Lagrange's equations gave a non-finite q̈ at (t, y): ends the integration."""
+
+    def __init__(self, t: float, y: np.ndarray):
+        super().__init__(t)
+        self.t, self.y = float(t), np.array(y, float)
+
+
 def _number(value, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float | np.number) or not math.isfinite(value):
         raise InputError(f"must be a finite number, got {value!r}", where=where)
@@ -420,7 +428,10 @@ class ReducedModel:
 
         def fun(t, y):
             nfev[0] += 1
-            return np.asarray(ode(y, t)).ravel()
+            out = np.asarray(ode(y, t)).ravel()
+            if not np.all(np.isfinite(out)):  # (DOP853 given NaN at its start loops forever)
+                raise _Singular(t, y)
+            return out
 
         stopped_at: list[float] = []
 
@@ -435,9 +446,15 @@ class ReducedModel:
 
         stop.terminal = True
         started = time.perf_counter()
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            sol = solve_ivp(fun, (t0, t_end), np.concatenate([q0, qd0]), method="DOP853", rtol=rtol,
-                            atol=atol, t_eval=t_eval, max_step=max_step, events=stop)
+        try:
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                sol = solve_ivp(fun, (t0, t_end), np.concatenate([q0, qd0]), method="DOP853", rtol=rtol,
+                                atol=atol, t_eval=t_eval, max_step=max_step, events=stop)
+        except _Singular as exc:  # at the start: the input's fault (exit 2); later: the run stops
+            text = self._singular_text(exc.t, exc.y[:self.n])
+            if exc.t == t0:
+                raise InputError(text, where="reduced.initial") from None
+            raise SimulationError(text) from None
         wall = time.perf_counter() - started
         Y = sol.y.T
         n = self.n
@@ -465,6 +482,19 @@ class ReducedModel:
         if not sol.success:
             raise SimulationError(f"the reduced route stopped early: {sol.message}", trajectory=traj)
         return traj
+
+    def _singular_text(self, t: float, q: np.ndarray) -> str:
+        """Why Lagrange's equations M(q) q̈ = rhs have no finite q̈ at (q, t): the rank of ∂x/∂q
+        (below n: the coordinates are singular there, M = (∂x/∂q)ᵀ m (∂x/∂q) too)."""
+        Jq = np.asarray(self.map_jacobian(q, t), float)
+        rank = int(np.linalg.matrix_rank(Jq)) if np.all(np.isfinite(Jq)) else -1
+        at = ", ".join(f"{c} = {v:.6g}" for c, v in zip(self.coordinates, q, strict=True))
+        why = (f"the coordinates are singular there (rank ∂x/∂q = {rank} < {self.n}: M(q) is singular, like "
+               "the pole of spherical angles, where the azimuth is undefined)" if 0 <= rank < self.n else
+               "the equations give non-finite accelerations there")
+        return (f"the reduced route stopped at t = {t:.6g} s, q = ({at}): {why}; Lagrange's equations in "
+                "these coordinates have no solution through that point. Start away from it, or choose "
+                "coordinates that are regular along the motion (the Cartesian route has no such point)")
 
     def _vector(self, values, what: str) -> np.ndarray:
         if isinstance(values, Mapping):
