@@ -76,3 +76,10 @@ class InitialStateWarning(UserWarning):
     """The initial state was changed to satisfy the constraints (positions within
     ``max_initial_correction``, or velocities with components the constraints forbid): the run
     starts from the corrected state, in ``trajectory.info["initial_correction"]``."""
+
+
+class UnresolvedStepWarning(UserWarning):
+    """A fixed-step run (``rattle``) of a system whose energy is conserved ended with its energy
+    changed by more than the method's error at a resolved step: the step did not resolve the
+    motion somewhere (a close encounter, a collision in a 1/r potential), in
+    ``trajectory.info["energy_not_conserved"]``."""
