@@ -243,20 +243,27 @@ class StiffnessWatch:
     def describe_damper(self, damper: StiffDamper, t: float, steps: int | None = None,
                         projected: float | None = None) -> str:
         d, length = damper, self.t_end - self.t0
-        pace = ""
-        if steps:
-            h = (float(t) - self.t0) / steps
-            total = steps * length / max(float(t) - self.t0, 1e-300)
-            pace = (f"; {self.method} took {steps} steps to t = {float(t):.3g} s (mean step {h:.3g} s, "
-                    f"{h / d.period:.3g} relaxation times): about {total:.3g} steps to t_end")
-            if projected is not None and np.isfinite(projected):
-                pace += f", {projected:.0f} s of wall time"
+        pace = self._pace(t, steps, projected, lambda h: f"{h / d.period:.3g} relaxation times")
         return (f"likely cause: stiffness: the damping '{d.label}' (effect {d.index}) has c = {d.c:.3g} "
                 f"N·s/m on '{d.particle}' ({d.mass:.3g} kg), so it relaxes velocities in m/c = "
                 f"{d.period:.3g} s, "
                 f"{length / d.period:.3g} times in the run of {length:g} s{pace}. An explicit method's step "
                 "cannot exceed a few m/c: use method = \"rodas\" (L-stable: it steps over the relaxation), "
                 "or a smaller coefficient")
+
+    def _pace(self, t: float, steps: int | None, projected: float | None, per) -> str:
+        """"; METHOD took N steps to t = … (mean step h, ``per(h)``): about M steps to t_end[, P s
+        of wall time]", or "" without ``steps``."""
+        if not steps:
+            return ""
+        length = self.t_end - self.t0
+        h = (float(t) - self.t0) / steps
+        total = steps * length / max(float(t) - self.t0, 1e-300)
+        pace = (f"; {self.method} took {steps} steps to t = {float(t):.3g} s (mean step {h:.3g} s, "
+                f"{per(h)}): about {total:.3g} steps to t_end")
+        if projected is not None and np.isfinite(projected):
+            pace += f", {projected:.0f} s of wall time"
+        return pace
 
     def fastest(self, x=None, t: float | None = None) -> StiffElement | None:
         """The fastest watched spring, re-measured at (x, t) when given."""
@@ -270,14 +277,7 @@ class StiffnessWatch:
     def describe(self, element: StiffElement, t: float, steps: int | None = None,
                  projected: float | None = None) -> str:
         e, length = element, self.t_end - self.t0
-        pace = ""
-        if steps:
-            h = (float(t) - self.t0) / steps
-            total = steps * length / max(float(t) - self.t0, 1e-300)
-            pace = (f"; {self.method} took {steps} steps to t = {float(t):.3g} s (mean step {h:.3g} s, "
-                    f"{e.period / h:.3g} per period): about {total:.3g} steps to t_end")
-            if projected is not None and np.isfinite(projected):
-                pace += f", {projected:.0f} s of wall time"
+        pace = self._pace(t, steps, projected, lambda h: f"{e.period / h:.3g} per period")
         return (f"likely cause: stiffness: the spring '{e.label}' (effect {e.index}) has k = {e.k:.3g} N/m "
                 f"on a reduced mass of {e.reduced_mass:.3g} kg, so it oscillates with period "
                 f"2π/ω = {e.period:.3g} s (ω = {e.omega:.3g} rad/s), {length / e.period:.3g} periods in "
