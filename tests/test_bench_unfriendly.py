@@ -208,3 +208,14 @@ def test_kepler_at_e_09_loses_what_its_energy_error_predicts():
     err = float(np.max(np.abs(np.ravel(tr.x[-1]) - [1.0, 0, 0])))
     predicted = v_p * 1.5 * period * abs(tr.energy[1] - tr.energy[0]) / abs(energy)
     assert predicted / 1.5 < err < 1.5 * predicted and err > 1e4 * 1e-8
+
+
+def test_a_run_that_ends_otherwise_than_the_reference_is_not_compared():
+    from types import SimpleNamespace as NS
+
+    ref = bench.BenchResult(scene="s", t_end=3.0, stop="terminal event", t_stop=0.777)
+    at_event = NS(t=np.array([0.0, 0.7771]), info={"stop": "terminal event"})
+    missed = NS(t=np.array([0.0, 3.0]), info={"stop": "completed"})
+    other_crossing = NS(t=np.array([0.0, 1.9]), info={"stop": "terminal event"})
+    assert bench._same_end(at_event, ref)
+    assert not bench._same_end(missed, ref) and not bench._same_end(other_crossing, ref)
