@@ -36,8 +36,34 @@ from ..run.trajectory import atomic_write
 
 DEFAULT_METHODS = ("dopri", "projection", "projection:CVODES", "baumgarte", "idas", "ggl", "rattle")
 DEFAULT_TOLERANCES = (1e-6, 1e-8, 1e-10, 1e-12)
-#: rattle is fixed-step: tolerance k of the list maps to the k-th of these steps.
+#: rattle is fixed-step: tolerance k of the list maps to the k-th of these steps (continued
+#: 1e-4, 3e-5, ... by :func:`rattle_steps` for longer lists).
 RATTLE_STEPS = (1e-2, 3e-3, 1e-3, 3e-4)
+
+
+def rattle_steps(count: int) -> list[float]:
+    """rattle's ``count`` steps: 1e-2, 3e-3, 1e-3, 3e-4, 1e-4, ... (dt_k = 10^(-2 - k/2) rounded
+    to one digit: two steps per decade, as many as tolerances given, none dropped)."""
+    return [float(f"{10.0 ** (-2 - k / 2):.0e}") for k in range(count)]
+
+
+def check_tolerances(tolerances) -> tuple[float, ...]:
+    """The tolerances of a bench, loosest first: finite, 0 < rtol < 1, strictly decreasing
+    (a repeated value measures the same thing twice; the k-th also picks rattle's k-th step)."""
+    tols = tuple(float(t) for t in tolerances)
+    if not tols:
+        raise InputError("no tolerances given: pass e.g. --tolerances 1e-6,1e-8,1e-10")
+    bad = [t for t in tols if not (math.isfinite(t) and 0 < t < 1)]
+    if bad:
+        raise InputError(f"tolerances must be numbers between 0 and 1 (exclusive), got {bad[0]!r}: "
+                         "a relative tolerance of 0 asks for no error at all, which no method reaches")
+    for a, b in zip(tols[:-1], tols[1:], strict=True):
+        if not b < a:
+            raise InputError(
+                f"tolerances must be strictly decreasing, loosest first (got {a:g} then {b:g}): a "
+                "repeated value measures the same runs twice and the k-th tolerance also picks rattle's "
+                "k-th step; give them as e.g. 1e-6,1e-8,1e-10")
+    return tols
 COLUMNS = ("method", "rtol", "dt", "error", "constraint_residual", "velocity_residual",
            "energy_drift", "wall_time_s", "compile_time_s", "steps", "nfev", "status")
 
@@ -54,6 +80,9 @@ class BenchResult:
     reference_error: float = float("nan")
     conserves_energy: bool = False
     notes: list[str] = field(default_factory=list)
+    interrupted: bool = False  # Ctrl-C stopped it: the rows are those measured before
+    stop: str = ""  # how the reference run ended ("completed", "terminal event", ...)
+    t_stop: float = float("nan")  # where the reference run ended (t_end unless an event stopped it)
 
     def csv(self) -> str:
         buf = io.StringIO()
@@ -66,7 +95,9 @@ class BenchResult:
     def markdown(self) -> str:
         lines = [f"### Work-precision: {self.scene}, t_end = {self.t_end:g} s", ""]
         lines += [f"- {note}" for note in self.notes] + [""]
-        lines.append("| method | rtol / dt | error at t_end [m] | max constraint residual | "
+        early = math.isfinite(self.t_stop) and self.t_stop < self.t_end * (1 - 1e-12)
+        where = f"at the stop, t = {self.t_stop:.6g} s" if early else "at t_end"
+        lines.append(f"| method | rtol / dt | error {where} [m] | max constraint residual | "
                      "energy drift [J] | wall time [s] | first-run compile [s] | steps |")
         lines.append("|---|---|---|---|---|---|---|---|")
         for r in self.rows:
@@ -132,8 +163,7 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
     unknown = [m for m in methods if m.split(":")[0] not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(METHODS)})")
-    if not tolerances or any(not (0 < tol < 1) for tol in tolerances):
-        raise InputError("tolerances must be numbers between 0 and 1")
+    tolerances = check_tolerances(tolerances)
     if repeats < 1:
         raise InputError("repeats must be at least 1")
     result = BenchResult(scene=name or system.name or "scene", t_end=float(t_end))
@@ -142,12 +172,28 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
         "first-run compile: what the warm-up cost beyond a warm run (a step loop compiled to C "
         "once per machine and model, then cached; about 0 with a warm cache), not in the figure")
     # the method the notes name, not the default (dopri): its one-time compile belongs to its rows
-    ref = simulate(system, t_end, method="projection", rtol=1e-13, atol=1e-13, t_eval=[0.0, t_end])
+    try:
+        ref = simulate(system, t_end, method="projection", rtol=1e-13, atol=1e-13, t_eval=[0.0, t_end])
+    except RunInterrupted:  # nothing measured yet: nothing to keep
+        raise KeyboardInterrupt from None
+    except SimulationError as exc:  # no reference, no error column: say so instead of a traceback
+        raise SimulationError(
+            "bench needs a reference run (projection at rtol = atol = 1e-13) to measure every "
+            f"method's error against, and it failed: {str(exc).splitlines()[0]} — no method can be "
+            "compared past that point; shorten t_end (--set simulate.t_end=...) to before it") from None
     x_ref = ref.x[-1]
+    result.stop = str(ref.info.get("stop", ""))
+    result.t_stop = float(ref.t[-1])
+    if result.t_stop < float(t_end) * (1 - 1e-12):
+        result.notes.append(
+            f"the reference run ends at t = {result.t_stop:.10g} s ({result.stop or 'stopped'}), before "
+            f"t_end = {float(t_end):g} s: every error is of the state where each run ends, and a run "
+            "that ends otherwise (a missed or extra event) is marked as not comparable")
     if error_of is not None:
-        result.reference_error = float(error_of(ref))
+        closed = float(error_of(ref))
         result.notes.append(f"reference: {reference_note or 'the closed form'}; projection at rtol 1e-13 "
-                            f"differs from it by {result.reference_error:.1e}")
+                            f"differs from it by {closed:.1e} (every error is against the closed form "
+                            "itself, so none is hidden below that)")
 
         def measure(tr):
             return float(error_of(tr))
@@ -181,8 +227,15 @@ def work_precision(system, t_end: float, *, methods=DEFAULT_METHODS, tolerances=
         "rheonomic", "dissipation", "applied_force", "time_dependent_forces"
     }
     for method in methods:
-        with _casadi_stderr() as printed:
-            _bench_method(result, system, t_end, method, tolerances, repeats, model, measure, progress)
+        try:
+            with _casadi_stderr() as printed:
+                _bench_method(result, system, t_end, method, tolerances, repeats, model, measure, progress)
+        except (KeyboardInterrupt, RunInterrupted):  # Ctrl-C: keep the rows done, say where it stopped
+            result.interrupted = True
+            result.notes.append(f"interrupted (Ctrl-C) during {method}: the table holds the rows measured "
+                                "before; the rest were not run")
+            _report_casadi_messages(result, method, printed)
+            break
         _report_casadi_messages(result, method, printed)
     return result
 
@@ -192,7 +245,7 @@ def _bench_method(result, system, t_end, method, tolerances, repeats, model, mea
     name, _, base = method.partition(":")  # "projection:CVODES" picks a base integrator
     extra = {"base": base} if base else {}
     settings = (
-        [dict(dt=dt) for dt in RATTLE_STEPS[: len(tolerances)]]
+        [dict(dt=dt) for dt in rattle_steps(len(tolerances))]
         if name == "rattle"
         else [dict(rtol=tol, atol=tol, **extra) for tol in tolerances]
     )
@@ -201,6 +254,10 @@ def _bench_method(result, system, t_end, method, tolerances, repeats, model, mea
             progress(method, opts)
         row = {"method": method, "rtol": opts.get("rtol", float("nan")),
                "dt": opts.get("dt", float("nan")), "status": "ok"}
+        if opts.get("dt", 0.0) >= t_end:  # one step cut to t_end: every such row would be the same run
+            row["status"] = f"skipped: step dt = {opts['dt']:g} s is not shorter than t_end = {t_end:g} s"
+            result.rows.append(row)
+            continue
         times, calls = [], []
         try:
             for _ in range(1 + repeats):  # the first: a warm-up (compiles what is compiled once)
@@ -211,8 +268,18 @@ def _bench_method(result, system, t_end, method, tolerances, repeats, model, mea
                 times.append(tr.stats["wall_time_s"])
         except RunInterrupted:  # Ctrl-C: not a failed method; the measurement stops
             raise KeyboardInterrupt from None
-        except (InputError, SimulationError) as exc:
+        except InputError as exc:  # the method refuses the scene: one row says why, not one per setting
+            row["status"] = f"refused: {str(exc).splitlines()[0]}"
+            result.rows.append(row)
+            return
+        except SimulationError as exc:
             row["status"] = f"failed: {str(exc).splitlines()[0][:120]}"
+            result.rows.append(row)
+            continue
+        if not _same_end(tr, result):
+            row["status"] = (f"not comparable: ended at t = {float(tr.t[-1]):.10g} s "
+                             f"({tr.info.get('stop', '')}), the reference at {result.t_stop:.10g} s "
+                             f"({result.stop})")
             result.rows.append(row)
             continue
         try:  # every step's residuals and energy (no output grid)
@@ -236,6 +303,18 @@ def _bench_method(result, system, t_end, method, tolerances, repeats, model, mea
             nfev=int(tr.stats.get("nfev", 0)),
         )
         result.rows.append(row)
+
+
+def _same_end(tr, result: BenchResult) -> bool:
+    """Whether a run ended the way the reference did (same stop, at about the same time):
+    its end state is then comparable with the reference's (|t − t_ref| ≤ 1e-3 max(t_ref, 1 s)
+    for a terminal event, each run locating it on its own solution)."""
+    if not math.isfinite(result.t_stop):
+        return True
+    t = float(tr.t[-1])
+    if str(tr.info.get("stop", "")) != result.stop:
+        return False
+    return abs(t - result.t_stop) <= 1e-3 * max(abs(result.t_stop), 1.0)
 
 
 #: CasADi messages a bench summarizes in a note instead of repeating: pattern -> plain words

@@ -246,18 +246,26 @@ def _projection_preview(model, scene: Scene) -> str:
 
 def _bench(args) -> int:
     """Work-precision measurement of one scene: DIR/bench.csv, bench.md, bench.png."""
-    from ..analysis.bench import DEFAULT_METHODS, DEFAULT_TOLERANCES, work_precision
+    from ..analysis.bench import DEFAULT_METHODS, DEFAULT_TOLERANCES, check_tolerances, work_precision
 
+    methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
+    if not all(methods):
+        raise InputError(f"--methods has an empty name in {args.methods!r}: give e.g. --methods dopri,idas")
+    if len(set(methods)) < len(methods):
+        raise InputError(f"--methods names a method twice in {args.methods!r}: each is measured once")
+    try:
+        tolerances = (tuple(float(x) for x in args.tolerances.split(",") if x.strip())
+                      if args.tolerances is not None else DEFAULT_TOLERANCES)
+    except ValueError:
+        raise InputError(f"--tolerances must be comma-separated numbers, got {args.tolerances!r}") from None
+    try:
+        tolerances = check_tolerances(tolerances)
+    except InputError as exc:
+        raise InputError(f"--tolerances: {exc}") from None
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
     t_end = _end_time(scene, file)
     check_regular_start(scene, loaded=True)
-    methods = tuple(m.strip() for m in args.methods.split(",")) if args.methods else DEFAULT_METHODS
-    try:
-        tolerances = (tuple(float(x) for x in args.tolerances.split(","))
-                      if args.tolerances else DEFAULT_TOLERANCES)
-    except ValueError:
-        raise InputError(f"--tolerances must be comma-separated numbers, got {args.tolerances!r}") from None
     out_dir = Path(args.out) if args.out else Path("out") / Path(file).stem
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} exists and is not a directory")
@@ -282,10 +290,17 @@ def _bench(args) -> int:
                                     repeats=args.repeats, name=scene.name, progress=progress, **kwargs)
     except InputError as exc:
         raise _scene_error(exc, file) from None
+    except SimulationError as exc:  # the reference run failed: nothing to measure against
+        _say_error(f"scene file {file}: {exc}")
+        return 1
     written = outs.commit(result.write(outs.dir))
     if not args.quiet:
         print(result.markdown())
         print("wrote: " + ", ".join(str(p) for p in written))
+    if result.interrupted:
+        _say(f"{PROG}: interrupted (Ctrl-C): kept the {len(result.rows)} row(s) measured before in "
+             + ", ".join(str(p) for p in written), always=True)
+        return 130
     return 0
 
 
