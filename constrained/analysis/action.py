@@ -24,14 +24,13 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from .. import interrupt, tomlparse
+from .. import interrupt
 from ..errors import InputError, RunInterrupted, SimulationError
 from ..manifold.dense import schur_solve, tangent_basis
 from ..manifold.manifold import Manifold
@@ -41,12 +40,13 @@ from ..run.action_integral import (
     StationarityResult,
     action,
     as_model,
+    end_configuration,
     flat_samples,
     independent_rows,
     lagrangian_function,
     require_lagrangian,
     save_action_figure,
-    save_figure,
+    save_path_figure,
     stationarity,
 )
 from ..run.quantities import OUTPUT_NAMES, trajectory_from
@@ -55,6 +55,7 @@ from ..run.trajectory import Trajectory
 __all__ = [
     "ActionResult",
     "PathResult",
+    "end_configuration",
     "StationarityResult",
     "action",
     "lagrangian_function",
@@ -65,6 +66,8 @@ __all__ = [
 ]
 
 QUADRATURES = ("midpoint", "trapezoid")
+#: |conjugate_margin| below which a path is reported as next to a conjugate point.
+NEAR_CONJUGATE = 1e-2
 PATH_METHODS = ("stationary", "minimize")
 
 _NLPSOL_KEYS = ("print_time", "error_on_fail", "iteration_callback")
@@ -83,7 +86,9 @@ class PathResult:
     iterate; ``second_variation``: the smallest eigenvalue of the Hessian of the Lagrangian of
     the NLP on the tangent space of the constraints, divided by h (so that it approximates
     min δ²S / ∫|η|² dt, in N/m); ``is_minimum``: second variation > 0 (a saddle after a
-    conjugate point otherwise).
+    conjugate point otherwise); ``conjugate_margin``: the second variation over the kinetic
+    term's alone (1 − (ωT/π)² for an oscillator; 0 at a conjugate point, where the path is
+    refused when |margin| < min((π/K)², 0.01), and flagged by ``near_conjugate`` below 0.01).
     """
 
     trajectory: Trajectory
@@ -99,6 +104,14 @@ class PathResult:
     method: str
     wall_time_s: float = 0.0
     info: dict = field(default_factory=dict)
+    conjugate_margin: float = math.nan
+
+    @property
+    def near_conjugate(self) -> bool:
+        """The second variation is within 1 % of the kinetic term's (|conjugate_margin| < 0.01):
+        T is next to a conjugate point, the path is ill-conditioned (small changes of the ends
+        or of K move it a lot)."""
+        return bool(abs(self.conjugate_margin) < NEAR_CONJUGATE)
 
     @property
     def t(self) -> np.ndarray:
@@ -120,7 +133,9 @@ class PathResult:
             f"after {self.iterations} iterations, {self.wall_time_s:.3g} s",
             f"action S = {self.action:.12g} J·s",
             f"second variation {self.second_variation:.6g} N/m: {kind}",
-        ])
+        ] + ([f"WARNING: next to a conjugate point (second variation {self.conjugate_margin:.2g} of the "
+              "kinetic term's): the path is ill-conditioned, small changes of T or of the ends move it a lot"]
+             if self.near_conjugate else []))
 
     def __repr__(self) -> str:
         return (f"PathResult(S={self.action:.10g}, converged={self.converged}, "
@@ -178,6 +193,20 @@ def _configuration(value, model: Model, what: str) -> np.ndarray:
     return x
 
 
+def _refuse_one_sided(model: Model) -> None:
+    """One-sided rows (g = side · f ≥ 0) are inequalities; the discrete Euler–Lagrange system
+    here imposes equalities only, so a path along, off or bouncing on them is not computed."""
+    one = [c.label for c in model.system.constraints if getattr(c, "unilateral", False)]
+    if one:
+        raise InputError(
+            f"stationary paths are computed with two-sided constraints only; "
+            f"{', '.join(repr(c) for c in one)} {'is' if len(one) == 1 else 'are'} one-sided "
+            "(unilateral): the particle may leave or hit it, and a path with impacts or lift-off is "
+            "not a solution of the discrete Euler–Lagrange equations with equality constraints. "
+            "Remove 'unilateral' if the path stays in contact, or remove the constraint if the path "
+            "never touches it")
+
+
 def _on_constraints(model: Model, x, t, what: str, tolerance: float) -> np.ndarray:
     """x, projected onto f(x, t) = 0 when it is within ``tolerance``; refused otherwise."""
     if model.n_constraints == 0:
@@ -204,10 +233,21 @@ def _guess(model: Model, guess, xs, xe, tn, rows) -> np.ndarray:
         g_t, g_x, _ = flat_samples(guess)
         W = np.column_stack([np.interp(tn, g_t, g_x[:, i]) for i in range(g_x.shape[1])])
     else:
-        W = np.asarray(guess, float).reshape(K1, -1)
-        if W.shape[1] != model.n_coordinates:
-            raise InputError(f"guess must have shape ({K1}, {model.n_particles}, 3)")
+        try:
+            W = np.asarray(guess, float)
+        except (TypeError, ValueError):
+            raise InputError(f"guess must be a Trajectory or an array of positions ({K1}, "
+                             f"{model.n_particles}, 3), got {type(guess).__name__}") from None
+        if W.size != K1 * model.n_coordinates:
+            raise InputError(f"guess must hold positions at the {K1} nodes: shape ({K1}, "
+                             f"{model.n_particles}, 3) for nodes = {K1 - 1}, got shape {W.shape}")
+        W = W.reshape(K1, -1)
     W = np.array(W, float)
+    if W.shape[1] != model.n_coordinates:
+        raise InputError(f"the guess has {W.shape[1] // 3} particles, the system {model.n_particles}")
+    if not np.all(np.isfinite(W)):
+        bad = int(np.argmax(~np.isfinite(W).all(axis=1)))
+        raise InputError(f"guess has non-finite positions (first at node {bad}, t = {tn[bad]:g} s)")
     if model.n_constraints:
         manifold = Manifold.at(model, W[0], tn[0])
         for k in range(1, K1 - 1):
@@ -268,9 +308,14 @@ def stationary_path(
     model = model or as_model(system)
     system = model.system
     require_lagrangian(model, "the action principle")
+    _refuse_one_sided(model)
     size = system.size()
     t0, T = float(t0), float(T)
     K, h = nodes, T / nodes
+    if not 1e-150 < h < 1e150:  # S_d holds m/h and its Hessian m/h²: both must be finite doubles
+        raise InputError(f"T = {T:g} s over {K} intervals gives a time step h = {h:.3g} s whose square is "
+                         "not a finite double (m/h² overflows or h² underflows); give T in seconds "
+                         "between about 1e-140 and 1e140")
     tn = t0 + h * np.arange(K + 1)
     tn[-1] = t0 + T
     xs = _on_constraints(model, _configuration(x_start, model, "start"), t0, "start", end_tolerance * size)
@@ -338,8 +383,11 @@ def stationary_path(
     history = [float(S_fun(it[: n3 * (K - 1)], p_val)) for it in log.iterates]
     S_val = float(S_fun(w_sol, p_val))
     X = np.vstack([xs, w_sol.reshape(K - 1, n3), xe])
-    second = math.nan if stopped else _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn,
-                                                        X, K, h)
+    second, kinetic = (math.nan, math.nan) if stopped else _second_variation(
+        lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, K, h)
+    # second variation relative to the kinetic term's: 1 − (ωT/π)² for an oscillator, 0 at a conjugate point
+    margin = second / kinetic if math.isfinite(kinetic) and kinetic > 0 else math.nan
+    resolution = min((math.pi / K) ** 2, NEAR_CONJUGATE)  # the discrete lowest mode: relative error (π/K)²/12
     V = _legendre_velocities(model, Ld_fun, X, tn)
     converged = bool(stats.get("success", False))
     status = str(stats.get("return_status", "unknown"))
@@ -352,7 +400,7 @@ def stationary_path(
     traj.info.update({
         "kind": "stationary path", "system": system.name, "quadrature": quadrature, "nodes": K,
         "action": S_val, "converged": converged, "ipopt_status": status,
-        "second_variation": second, "method": method,
+        "second_variation": second, "method": method, "conjugate_margin": margin,
     })
     result = PathResult(
         trajectory=traj, action=S_val, converged=converged, iterations=iterations,
@@ -360,15 +408,40 @@ def stationary_path(
         is_minimum=bool(second > 1e-9 * scale), history=history, nodes=K, quadrature=quadrature,
         method=method, wall_time_s=wall,
         info={"end_points_projected": True, "independent_rows": rows.tolist()},
+        conjugate_margin=margin,
     )
+    conjugate = (f"the second variation is {second:.3g} N/m, {margin:.2g} of the lowest free mode's "
+                 f"{kinetic:.3g} N/m: T = {T:g} s is at or next to a conjugate point of the path, where the "
+                 "Euler–Lagrange boundary-value problem is singular (a family of paths, or none)")
     if not converged:
+        hint = (f"; {conjugate} — try a T further from it" if abs(margin) < NEAR_CONJUGATE else
+                " (try more nodes, a shorter time T, or a start path closer to the motion via guess=; "
+                "or T may be near a conjugate point, π√(l/g) for a pendulum's small swings)")
         exc = RunInterrupted(f"the search was interrupted (Ctrl-C) after {iterations} iterations; the last "
                              "iterate is kept", trajectory=traj) if stopped else SimulationError(
             f"IPOPT did not find a stationary path ({status}) after {iterations} iterations; "
-            "the last iterate is kept (try more nodes, a shorter time T, or a start path "
-            "closer to the motion via guess=)",
+            f"the last iterate is kept{hint}",
             trajectory=traj,
         )
+        exc.path = result
+        raise exc
+    steps = np.linalg.norm(np.diff(X, axis=0), axis=1)
+    if K >= 8 and steps.sum() > 1e-9 * size and steps.max() > 0.25 * steps.sum():
+        k = int(np.argmax(steps))
+        exc = SimulationError(
+            f"the stationary path IPOPT found is not resolved: the step from t = {tn[k]:g} s to "
+            f"{tn[k + 1]:g} s carries {steps[k] / steps.sum():.0%} of the path length ({steps[k]:.3g} m). It "
+            "is a stationary point of the discrete action, not a motion (often from a start path through a "
+            "singular configuration, e.g. the straight line between opposite points of a circle through its "
+            "centre); give a start path with guess=, or more nodes (the path is kept)", trajectory=traj)
+        exc.path = result
+        raise exc
+    if abs(margin) < resolution:
+        exc = SimulationError(
+            f"no well-defined stationary path: {conjugate}. Within the discretization's resolution "
+            f"(π/K)² = {resolution:.2g} the discrete system is singular, so the path IPOPT returned "
+            f"(S_d = {S_val:.6g} J·s) is not determined by the two ends; change T, or the end "
+            "configuration, away from the conjugate point (the path is kept)", trajectory=traj)
         exc.path = result
         raise exc
     return result
@@ -398,8 +471,10 @@ def _to_scipy(M: ca.DM) -> sp.csc_matrix:
     return sp.csc_matrix((np.array(M.nonzeros()), sparsity.row(), sparsity.colind()), shape=M.shape)
 
 
-def _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, K, h) -> float:
-    """λ_min of Zᵀ ∇²_ww(S_d + μ·G) Z over h, Z a block-diagonal null-space basis of the J_k."""
+def _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, K, h) -> tuple[float, float]:
+    """λ_min of Zᵀ ∇²_ww(S_d + μ·G) Z over h, Z a block-diagonal null-space basis of the J_k;
+    and     the lowest mode of a free particle of the smallest tangent mass m_t (min over nodes of
+    λ_min(Z_kᵀ M Z_k)), m_t (2/h)² sin²(π/2K) → m_t π²/T² (the reference for conjugate points)."""
     H = ca.Function("H", [w, mu, P], [ca.hessian(lagr, w)[0]])(w_sol, mu_sol, p_val)
     H = _to_scipy(H)
     n3 = model.n_coordinates
@@ -410,21 +485,26 @@ def _second_variation(lagr, w, mu, P, w_sol, mu_sol, p_val, model, rows, tn, X, 
             blocks.append(tangent_basis(Jk, n3))
         else:
             blocks.append(np.eye(n3))
-    Z = sp.block_diag(blocks, format="csc")
-    Hr = (Z.T @ H @ Z).tocoo()
     d = blocks[0].shape[1]
     if d == 0:
-        return math.inf
-    # block tridiagonal (d × d blocks): band storage, only the smallest eigenvalue
+        return math.inf, math.inf
+    Z = sp.block_diag(blocks, format="csc")
+    masses = np.asarray(model.masses, float)
+    m_tangent = min(float(np.linalg.eigvalsh(B.T @ (masses[:, None] * B))[0]) for B in blocks)
+    free = m_tangent * (2 / h * math.sin(math.pi / (2 * K))) ** 2  # discrete m π²/T²
+    return _lowest(Z.T @ H @ Z, d) / h, free
+
+
+def _lowest(Hr, d: int) -> float:
+    """The smallest eigenvalue of a block-tridiagonal (d × d blocks) symmetric matrix, from band
+    storage."""
     n = Hr.shape[0]
     bw = min(2 * d - 1, n - 1)
     band = np.zeros((bw + 1, n))
-    Hd = Hr.tocsr()
+    Hd = sp.csr_matrix(Hr)
     for off in range(bw + 1):
         band[off, : n - off] = Hd.diagonal(-off)
-    lam_min = float(sla.eig_banded(band, lower=True, select="i", select_range=(0, 0),
-                                   eigvals_only=True)[0])
-    return lam_min / h
+    return float(sla.eig_banded(band, lower=True, select="i", select_range=(0, 0), eigvals_only=True)[0])
 
 
 def _legendre_velocities(model: Model, Ld_fun: ca.Function, X: np.ndarray, tn: np.ndarray) -> np.ndarray:
@@ -446,73 +526,3 @@ def _legendre_velocities(model: Model, Ld_fun: ca.Function, X: np.ndarray, tn: n
     V = model.inverse_masses * (p - W)
     manifold = Manifold.at(model, X[0], tn[0])
     return np.array([manifold.project_velocities(X[k], V[k], tn[k]) for k in range(K + 1)])
-
-
-# --- figures ---------------------------------------------------------------------------------
-
-
-def save_path_figure(result: PathResult, path) -> Path:
-    """The path (the two coordinates with the largest spread) and the action per iteration."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    tr = result.trajectory
-    fig = Figure(figsize=(10, 4.5))
-    FigureCanvasAgg(fig)
-    ax1, ax2 = fig.subplots(1, 2)
-    spread = np.ptp(tr.x.reshape(-1, 3), axis=0)
-    i, j = sorted(np.argsort(spread)[-2:])
-    names = tr.particle_names or [f"p{k}" for k in range(tr.n_particles)]
-    for k, name in enumerate(names):
-        line, = ax1.plot(tr.x[:, k, i], tr.x[:, k, j], label=name)
-        ax1.plot(tr.x[0, k, i], tr.x[0, k, j], "o", color=line.get_color())
-        ax1.plot(tr.x[-1, k, i], tr.x[-1, k, j], "s", color=line.get_color())
-    ax1.set_xlabel(f"{'xyz'[i]} [m]")
-    ax1.set_ylabel(f"{'xyz'[j]} [m]")
-    ax1.set_aspect("equal", adjustable="datalim")
-    ax1.legend(loc="best", fontsize="small")
-    kind = "minimum" if result.is_minimum else "saddle"
-    ax1.set_title(f"stationary path ({kind}), o start, □ end")
-    if result.history:
-        ax2.plot(np.arange(len(result.history)), result.history, "o-")
-    ax2.set_xlabel("IPOPT iteration")
-    ax2.set_ylabel("discrete action S_d [J·s]")
-    ax2.set_title(f"S = {result.action:.8g} J·s ({'converged' if result.converged else 'not converged'})")
-    fig.tight_layout()
-    return save_figure(fig, path)
-
-
-def end_configuration(text: str, system) -> np.ndarray:
-    """Positions (N, 3) from ``--to``: a trajectory ``.npz`` (its last positions) or inline
-    ``"p1=[0,-1,0]; p2=[0,-2,0]"`` naming every particle."""
-    text = str(text).strip()
-    names = system.names
-    if text.lower().endswith(".npz"):
-        traj = Trajectory.load(text)
-        x = np.asarray(traj.x[-1], float)
-        if x.shape != (system.n_particles, 3):
-            raise InputError(f"--to {text}: the trajectory has {x.shape[0]} particles, the scene "
-                             f"{system.n_particles}")
-        return x
-    if "=" not in text:
-        raise InputError(f"--to must be a trajectory .npz or positions like 'p1=[0,-1,0]; p2=[0,-2,0]', "
-                         f"got {text!r}")
-    x = np.full((system.n_particles, 3), np.nan)
-    for part in filter(None, (p.strip() for p in text.split(";"))):
-        name, _, value = part.partition("=")
-        name = name.strip()
-        if name not in names:
-            raise InputError(f"--to names unknown particle {name!r} (particles: {', '.join(names)})")
-        try:
-            vec = tomlparse.loads(f"v = {value.strip()}")["v"]
-            vec = np.asarray(vec, float)
-        except (tomlparse.TOMLDecodeError, TypeError, ValueError, RecursionError):
-            vec = None
-        if vec is None or vec.shape != (3,) or not np.all(np.isfinite(vec)):
-            raise InputError(f"--to: the position of {name!r} must be 3 numbers like [0, -1, 0], "
-                             f"got {value.strip()!r}")
-        x[names.index(name)] = vec
-    missing = [n for n, row in zip(names, x, strict=True) if np.isnan(row).any()]
-    if missing:
-        raise InputError(f"--to gives no end position for {', '.join(missing)} (name every particle)")
-    return x

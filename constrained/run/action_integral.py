@@ -12,14 +12,15 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from .. import tomlparse
 from ..errors import InputError
 from ..manifold.constraint_report import jacobian_rank
 from ..model.structure import Model, assemble
 from .quantities import multipliers_along
 from .trajectory import Trajectory, atomic_write
 
-__all__ = ["ActionResult", "StationarityResult", "action", "lagrangian_function", "save_action_figure",
-           "stationarity"]
+__all__ = ["ActionResult", "StationarityResult", "action", "end_configuration", "lagrangian_function",
+           "save_action_figure", "save_path_figure", "stationarity"]
 
 #: Slots of effects that have no Lagrangian (left out of L, refused by the action principle).
 NON_LAGRANGIAN_SLOTS = ("dissipation", "applied_force")
@@ -367,3 +368,73 @@ def save_figure(fig, path) -> Path:
 
 
 # --- the command line's end configuration ----------------------------------------------------
+
+
+# --- the path verb's figure and end configuration --------------------------------------------
+
+
+def save_path_figure(result, path) -> Path:
+    """The path (the two coordinates with the largest spread) and the action per iteration."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    tr = result.trajectory
+    fig = Figure(figsize=(10, 4.5))
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(1, 2)
+    spread = np.ptp(tr.x.reshape(-1, 3), axis=0)
+    i, j = sorted(np.argsort(spread)[-2:])
+    names = tr.particle_names or [f"p{k}" for k in range(tr.n_particles)]
+    for k, name in enumerate(names):
+        line, = ax1.plot(tr.x[:, k, i], tr.x[:, k, j], label=name)
+        ax1.plot(tr.x[0, k, i], tr.x[0, k, j], "o", color=line.get_color())
+        ax1.plot(tr.x[-1, k, i], tr.x[-1, k, j], "s", color=line.get_color())
+    ax1.set_xlabel(f"{'xyz'[i]} [m]")
+    ax1.set_ylabel(f"{'xyz'[j]} [m]")
+    ax1.set_aspect("equal", adjustable="datalim")
+    ax1.legend(loc="best", fontsize="small")
+    kind = "minimum" if result.is_minimum else "saddle"
+    ax1.set_title(f"stationary path ({kind}), o start, □ end")
+    if result.history:
+        ax2.plot(np.arange(len(result.history)), result.history, "o-")
+    ax2.set_xlabel("IPOPT iteration")
+    ax2.set_ylabel("discrete action S_d [J·s]")
+    ax2.set_title(f"S = {result.action:.8g} J·s ({'converged' if result.converged else 'not converged'})")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def end_configuration(text: str, system) -> np.ndarray:
+    """Positions (N, 3) from ``--to``: a trajectory ``.npz`` (its last positions) or inline
+    ``"p1=[0,-1,0]; p2=[0,-2,0]"`` naming every particle."""
+    text = str(text).strip()
+    names = system.names
+    if text.lower().endswith(".npz"):
+        traj = Trajectory.load(text)
+        x = np.asarray(traj.x[-1], float)
+        if x.shape != (system.n_particles, 3):
+            raise InputError(f"--to {text}: the trajectory has {x.shape[0]} particles, the scene "
+                             f"{system.n_particles}")
+        return x
+    if "=" not in text:
+        raise InputError(f"--to must be a trajectory .npz or positions like 'p1=[0,-1,0]; p2=[0,-2,0]', "
+                         f"got {text!r}")
+    x = np.full((system.n_particles, 3), np.nan)
+    for part in filter(None, (p.strip() for p in text.split(";"))):
+        name, _, value = part.partition("=")
+        name = name.strip()
+        if name not in names:
+            raise InputError(f"--to names unknown particle {name!r} (particles: {', '.join(names)})")
+        try:
+            vec = tomlparse.loads(f"v = {value.strip()}")["v"]
+            vec = np.asarray(vec, float)
+        except (tomlparse.TOMLDecodeError, TypeError, ValueError, RecursionError):
+            vec = None
+        if vec is None or vec.shape != (3,) or not np.all(np.isfinite(vec)):
+            raise InputError(f"--to: the position of {name!r} must be 3 numbers like [0, -1, 0], "
+                             f"got {value.strip()!r}")
+        x[names.index(name)] = vec
+    missing = [n for n, row in zip(names, x, strict=True) if np.isnan(row).any()]
+    if missing:
+        raise InputError(f"--to gives no end position for {', '.join(missing)} (name every particle)")
+    return x

@@ -1,0 +1,180 @@
+"""Least action on scenes nobody in this repository chose (docs/hard-cases.md, section 17):
+closed forms for the oscillator, the rotor, the bouncing ball and a time-dependent force;
+conjugate points; one-sided constraints; bad input to stationary_path and to `constrained path`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import constrained as C
+from constrained.analysis.action import action, stationary_path
+from constrained.cli.main import main
+from constrained.errors import InputError, SimulationError
+
+G = 9.81
+
+
+def oscillator(m: float = 2.0, k: float = 8.0, x0: float = 0.3) -> C.System:
+    s = C.System(name="oscillator")
+    s.add_particle("a", m, [x0, 0.0, 0.0])
+    s.add(C.Spring("a", point=[0.0, 0.0, 0.0], k=k))
+    return s
+
+
+def oscillator_action(m: float, w: float, x0: float, x1: float, T: float) -> float:
+    """S = (m ω / 2 sin ωT) [(x0² + x1²) cos ωT − 2 x0 x1] (the classical action)."""
+    return m * w / (2 * np.sin(w * T)) * ((x0**2 + x1**2) * np.cos(w * T) - 2 * x0 * x1)
+
+
+def rotor(m: float = 1.5, l: float = 0.8) -> C.System:
+    """A particle on a circle of radius l in z = 0, no gravity: S = m l² Δθ² / (2T) per winding."""
+    s = C.System(name="rotor")
+    s.add_particle("bob", m, [l, 0.0, 0.0])
+    s.add(C.Distance("bob", point=[0, 0, 0], length=l), C.Plane("bob", [0, 0, 1]))
+    return s
+
+
+def on_circle(theta, l: float = 0.8) -> np.ndarray:
+    theta = np.atleast_1d(theta)
+    return np.stack([l * np.cos(theta), l * np.sin(theta), 0 * theta], axis=-1)[:, None, :]
+
+
+# --- the oscillator: closed-form action, minimum before and saddle after the conjugate point ---
+
+
+@pytest.mark.parametrize("wT_over_pi", [0.3, 0.9, 1.3])
+def test_oscillator_path_action_and_conjugate_margin(wT_over_pi):
+    m, k, x0, x1 = 2.0, 8.0, 0.3, -0.1
+    w = np.sqrt(k / m)
+    T = wT_over_pi * np.pi / w
+    r = stationary_path(oscillator(m, k, x0), [[x0, 0, 0]], [[x1, 0, 0]], T, nodes=200)
+    S = oscillator_action(m, w, x0, x1, T)
+    assert r.action == pytest.approx(S, rel=2e-3, abs=2e-4)
+    # the nodes lie on x(t) = [x0 sin ω(T − t) + x1 sin ωt] / sin ωT, to O(h²)
+    exact = (x0 * np.sin(w * (T - r.t)) + x1 * np.sin(w * r.t)) / np.sin(w * T)
+    assert np.abs(r.x[:, 0, 0] - exact).max() < 1e-3
+    # second variation over the kinetic term's: (π²/T² − ω²)/(π²/T²) = 1 − (ωT/π)²
+    assert r.conjugate_margin == pytest.approx(1 - wT_over_pi**2, abs=1e-3)
+    assert r.is_minimum == (wT_over_pi < 1)
+    assert not r.near_conjugate
+
+
+def test_oscillator_at_the_conjugate_point_is_refused_not_answered():
+    """At T = π/ω the ends x0 = 0.3, x1 = −0.1 are joined by no motion (x(π/ω) = −x0 for all):
+    the discrete system is singular and IPOPT's answer (S_d ~ −1e3) means nothing."""
+    m, k = 2.0, 8.0
+    T = np.pi / np.sqrt(k / m)
+    with pytest.raises(SimulationError, match="conjugate point") as err:
+        stationary_path(oscillator(m, k), [[0.3, 0, 0]], [[-0.1, 0, 0]], T, nodes=200)
+    assert abs(err.value.path.conjugate_margin) < (np.pi / 200) ** 2
+
+
+@pytest.mark.parametrize("wT_over_pi", [0.999, 1.001])
+def test_oscillator_next_to_the_conjugate_point_is_flagged(wT_over_pi):
+    m, k = 2.0, 8.0
+    T = wT_over_pi * np.pi / np.sqrt(k / m)
+    r = stationary_path(oscillator(m, k), [[0.3, 0, 0]], [[-0.1, 0, 0]], T, nodes=200)
+    assert r.conjugate_margin == pytest.approx(1 - wT_over_pi**2, rel=0.1)
+    assert r.near_conjugate and "conjugate point" in r.summary()
+    assert r.is_minimum == (wT_over_pi < 1)  # the sign is still resolved: a saddle past π/ω
+
+
+def test_action_of_an_oscillator_run_matches_the_closed_form():
+    m, k, x0, T = 2.0, 8.0, 0.3, 2.0  # ωT = 4 > π: past the conjugate point, S still the closed form
+    traj = C.simulate(oscillator(m, k, x0), T, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, T, 2001))
+    x1 = x0 * np.cos(np.sqrt(k / m) * T)
+    assert traj.x[-1, 0, 0] == pytest.approx(x1, abs=1e-8)
+    assert action(oscillator(m, k, x0), traj).total == pytest.approx(
+        oscillator_action(m, np.sqrt(k / m), x0, x1, T), rel=1e-8)
+
+
+# --- the rotor: two ways round, closed paths ---------------------------------------------------
+
+
+@pytest.mark.parametrize("dtheta", [np.pi / 2, -1.5 * np.pi, 0.0, 2 * np.pi, np.pi])
+def test_rotor_paths_between_two_angles(dtheta):
+    """Every winding is a stationary path with S = m l² Δθ²/(2T), all minima (δ²S = m l² ∫ δθ'²);
+    equal ends give rest (S = 0) or a full turn."""
+    m, l, T, K = 1.5, 0.8, 1.0, 100
+    start, end = 0.3, 0.3 + dtheta
+    guess = on_circle(np.linspace(start, end, K + 1)) if dtheta != 0.0 else None
+    r = stationary_path(rotor(m, l), on_circle(start)[0], on_circle(end)[0], T, nodes=K, guess=guess)
+    S = m * l**2 * dtheta**2 / (2 * T)
+    assert r.action == pytest.approx(S, rel=1e-3, abs=1e-12)
+    assert np.allclose(np.linalg.norm(r.x[:, 0], axis=1), l, atol=1e-9)
+    assert r.is_minimum and r.conjugate_margin == pytest.approx(1.0, abs=1e-2)
+
+
+def test_rotor_antipodal_straight_start_is_refused_not_a_jump():
+    """The straight line between opposite points passes through the pivot; projected node by node it
+    is a step (rest, a jump of π, rest), and IPOPT converged on it as a discrete stationary point with
+    S_d = 192 J·s (the true motions have m l² π²/2T = 4.7 J·s): now refused, naming the jump."""
+    with pytest.raises(SimulationError, match="not resolved.*guess="):
+        stationary_path(rotor(), on_circle(0.3)[0], on_circle(0.3 + np.pi)[0], 1.0, nodes=100)
+
+
+# --- a time-dependent potential and a bouncing ball --------------------------------------------
+
+
+def test_time_dependent_force_path_is_the_cubic():
+    """V = −a t x: m x'' = a t, x = c t + a t³/(6m), exact at the nodes (the discrete equations are
+    m Δ²x/h² = a t_k, which a cubic satisfies: its central second difference is exact)."""
+    m, a, T, x1 = 2.0, 3.0, 1.5, 1.0
+    s = C.System(name="pushed")
+    s.add_particle("p", m, [0.0, 0.0, 0.0])
+    s.add(C.Potential(f"-{a}*t*x_p"))
+    c = (x1 - a * T**3 / (6 * m)) / T
+    b = a / (6 * m)  # x = c t + b t³, v = c + 3 b t²; S = ∫ ½ m v² + a t x dt
+    S = 0.5 * m * (c**2 * T + 2 * c * b * T**3 + 9 * b**2 * T**5 / 5) + a * (c * T**3 / 3 + b * T**5 / 5)
+    for quadrature in ("midpoint", "trapezoid"):
+        r = stationary_path(s, [[0, 0, 0]], [[x1, 0, 0]], T, nodes=200, quadrature=quadrature)
+        assert np.abs(r.x[:, 0, 0] - (c * r.t + a * r.t**3 / (6 * m))).max() < 1e-9
+        assert r.action == pytest.approx(S, rel=1e-4)
+
+
+def test_action_of_a_bouncing_ball_and_no_path_through_a_one_sided_floor():
+    s = C.System(name="ball")
+    s.add_particle("a", 1.0, [0.0, 1.0, 0.0])
+    s.add(C.Plane("a", [0, 1, 0], unilateral=True, restitution=1.0, name="floor"), C.Gravity([0, -G, 0]))
+    traj = C.simulate(s, 1.0, rtol=1e-10, atol=1e-12, t_eval=np.linspace(0, 1, 1001))
+    # fall from rest, elastic bounce at √(2/g): L = v² − g (E = g·1 m), ∫₀^τ (g² t² − g) dt per fall
+    th = np.sqrt(2 / G)
+
+    def fall(t):
+        return G**2 * t**3 / 3 - G * t
+
+    assert action(s, traj).total == pytest.approx(2 * fall(th) + fall(1.0 - 2 * th), rel=1e-5)
+    with pytest.raises(InputError, match="'floor' is one-sided"):
+        stationary_path(s, [[0, 1, 0]], [[0.5, 1, 0]], 1.0, nodes=50)
+
+
+# --- bad input ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("guess, match", [
+    (np.zeros((5, 1, 3)), "positions at the 11 nodes"),
+    (np.full((11, 1, 3), np.nan), "non-finite"),
+    ("abc", "Trajectory or an array"),
+])
+def test_bad_guess_is_input_error(guess, match):
+    with pytest.raises(InputError, match=match):
+        stationary_path(rotor(), on_circle(0)[0], on_circle(1)[0], 1.0, nodes=10, guess=guess)
+
+
+@pytest.mark.parametrize("T", [1e300, 1e-300])
+def test_unrepresentable_time_step_is_input_error(T):
+    with pytest.raises(InputError, match="time step"):
+        stationary_path(rotor(), on_circle(0)[0], on_circle(1)[0], T, nodes=10)
+
+
+@pytest.mark.parametrize("time", ["1e300", "1e-300"])
+def test_cli_path_extreme_time_exits_2(tmp_path: Path, capsys, time):
+    scene = Path(__file__).resolve().parents[1] / "scenarios" / "simple_pendulum.toml"
+    out = tmp_path / "out"
+    assert main(["path", str(scene), "--to", "bob=[0,-1,0]", "--time", time, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "time step" in err and "Traceback" not in err
+    assert not (out / "path.npz").exists()
