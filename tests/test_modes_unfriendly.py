@@ -261,3 +261,40 @@ def test_cli_count_and_bad_count(tmp_path, capsys):
     assert main(["modes", str(ROOT / "scenarios" / "hanging_chain.toml"), "--count", "2",
                  "--out", str(tmp_path / "b"), "--no-animation"]) == 0
     assert "the lowest 2 mode(s)" in capsys.readouterr().out
+
+
+def _double_pendulum_without_tolerances(tmp_path):
+    import re
+
+    from conftest import SCENARIOS
+
+    text = (SCENARIOS / "double_pendulum.toml").read_text()
+    path = tmp_path / "dp.toml"
+    path.write_text(re.sub(r"^(rtol|atol) = .*\n", "", text, flags=re.M))
+    return path
+
+
+def test_crosscheck_uses_its_tighter_default_unless_the_scene_or_caller_gives_tolerances(tmp_path, capsys):
+    """A scene without rtol/atol is cross-checked at 1e-10 (not simulate's 1e-8), and both routes
+    then agree to far better than 1e-8 would give: the integrators' error is about the tolerance
+    times the motion's size (1 m) over 1 s, 2e-8 m at 1e-8, 2e-10 m at 1e-10."""
+    from conftest import SCENARIOS
+
+    from constrained.analysis.crosscheck import cross_check
+    from constrained.cli.main import main
+
+    path = _double_pendulum_without_tolerances(tmp_path)
+    scene = C.load_scene(path)
+    assert scene.settings["rtol"] == 1e-8 and "rtol" not in scene.given_settings  # settings unchanged
+    check = cross_check(scene, 1.0)
+    assert check.settings["rtol"] == 1e-10 and check.settings["atol"] == 1e-10
+    assert check.max_position_difference < 2e-9  # 1e-8 gives about 2e-8 m here
+    loose = cross_check(scene, 1.0, rtol=1e-8, atol=1e-8)  # the caller's choice wins
+    assert loose.settings["rtol"] == 1e-8 and loose.max_position_difference > 2e-9
+    given = C.load_scene(SCENARIOS / "bead_on_rotating_hoop.toml")  # gives rtol 1e-10, atol 1e-12
+    assert cross_check(given, 0.5).settings["atol"] == 1e-12
+    assert main(["crosscheck", str(path), "--set", "simulate.t_end=0.5", "--out", str(tmp_path / "a")]) == 0
+    assert "rtol 1e-10" in capsys.readouterr().out
+    assert main(["crosscheck", str(path), "--set", "simulate.t_end=0.5", "--set", "simulate.rtol=1e-7",
+                 "--out", str(tmp_path / "b")]) == 0
+    assert "rtol 1e-07" in capsys.readouterr().out

@@ -21,6 +21,8 @@ from ..run.trajectory import Trajectory, atomic_write
 #: The routes have separated once their position difference exceeds this fraction of the
 #: system's size (CrossCheck.horizon).
 SEPARATED = 1e-3
+#: rtol and atol of both routes when neither the scene's [simulate] nor the caller gives them.
+CROSSCHECK_TOL = 1e-10
 #: Output samples when the scene gives no grid (output_dt, samples) and no t_eval is passed.
 DEFAULT_SAMPLES = 201
 
@@ -41,8 +43,10 @@ def cross_check(scene, t_end: float | None = None, **settings) -> CrossCheck:
         raise InputError("no end time: give t_end, or t_end in the scene's [simulate]",
                          where="simulate.t_end")
     t_end = _number(t_end, "t_end")
-    base.setdefault("rtol", 1e-10)
-    base.setdefault("atol", 1e-10)
+    given = getattr(scene, "given_settings", None)
+    for key in ("rtol", "atol"):  # tighter than simulate's 1e-8 unless the scene or the caller chose
+        if key not in base or (given is not None and key not in given):
+            base[key] = CROSSCHECK_TOL
     if all(settings.get(k) is None and base.get(k) is None for k in ("t_eval", "samples", "output_dt")):
         base["samples"] = DEFAULT_SAMPLES
     options = from_settings(base, scene=scene, t_end=t_end, **settings)

@@ -39,6 +39,7 @@ __all__ = [
     "euler_lagrange",
     "is_symmetry",
     "is_symmetry_reduced",
+    "jacobi_integral",
     "noether_charge",
     "noether_charge_reduced",
     "with_total_derivative",
@@ -251,6 +252,78 @@ def is_symmetry(model, *, translation=None, rotation=None, samples: int = 20, se
                    f"states (largest relative change {max(changes.values(), default=0.0):.2g}); "
                    "its Noether charge is conserved")
     return SymmetryReport(what, not breaking, breaking, changes, message, len(states))
+
+
+# --- constraints moving rigidly: the Jacobi integral ------------------------------------------
+
+
+def _moving_frame(model: Model, samples: int, seed: int) -> tuple[dict | None, str]:
+    """If every constraint moves rigidly at a constant rate, ``f(x, t)`` invariant under
+    ``x → x + s ξ(x), t → t + s`` with ``ξ = Ω × x + b`` (the same for every particle), the
+    generator as ``noether_charge`` keywords plus its ``scale`` (|Ω|, or 1 for a translation);
+    fitted by least squares from ``∂f/∂t + J ξ = 0`` at states on the manifold."""
+    s = model.symbols
+    x, t, n = s.x, s.t, model.n_particles
+    rows = []
+    for constraint in model.system.constraints:
+        if getattr(constraint, "level", "position") == "velocity":
+            return None, "a velocity-level constraint: how it moves is not decided here"
+        rows += [row for row, _ in constraint.rows(s)]
+    if not rows:
+        return None, "no constraints"
+    f = ca.vertcat(*rows)
+    J, ft = ca.jacobian(f, x), ca.jacobian(f, t)
+    xs = ca.reshape(x, 3, n)
+    coeff = []  # per constraint row: the coefficients of (Ω, b) in J ξ = Ω·Σ x_i × g_i + b·Σ g_i
+    for k in range(f.numel()):
+        g = [J[k, 3 * i : 3 * i + 3].T for i in range(n)]
+        coeff.append(ca.vertcat(sum((ca.cross(xs[:, i], g[i]) for i in range(n)), ca.SX.zeros(3)),
+                                sum(g, ca.SX.zeros(3))).T)
+    scale = ft.__abs__() + ca.sum2(J.__abs__()) * (ca.norm_inf(x) + 1.0)
+    fun = ca.Function("moving", [x, s.v, t], [ca.vertcat(*coeff), ft, scale])
+    A, rhs, sc = [], [], []
+    for xv, vv, tv in _manifold_samples(model, samples, seed):
+        a, b, c = (np.asarray(o) for o in fun(xv, vv, tv))
+        A.append(a / c), rhs.append(-b.ravel() / c.ravel()), sc.append(c)
+    A, rhs = np.vstack(A), np.concatenate(rhs)
+    theta = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    misfit = float(np.max(np.abs(A @ theta - rhs)))
+    if misfit > 1e-8:
+        return None, (f"the constraints' time dependence is not a rigid motion at a constant rate "
+                      f"(best fit ∂f/∂t + J(Ω × x + b) off by {misfit:.1g} relative)")
+    theta = np.round(theta, 12) + 0.0  # round-off of the fit out of the description (and -0.0)
+    omega, b = theta[:3], theta[3:]
+    rate = float(np.linalg.norm(omega))
+    if rate < 1e-12 * max(float(np.linalg.norm(b)), 1.0):
+        velocity = ", ".join(f"{e:.6g}" for e in b)
+        return {"translation": b, "scale": 1.0}, f"a translation at velocity ({velocity})"
+    axis = omega / rate
+    centre = np.round(np.cross(omega, b) / rate**2, 12) + 0.0
+    return ({"rotation": (axis, centre), "translation": axis * float(axis @ b) / rate, "scale": rate},
+            f"a rotation at ω = {rate:.6g} rad/s about ({', '.join(f'{a:.6g}' for a in axis)}) through "
+            f"({', '.join(f'{c:.6g}' for c in centre)})")
+
+
+def jacobi_integral(model, *, samples: int = 20, seed: int = 0) -> tuple[ca.Function | None, str]:
+    """For rheonomic constraints moving rigidly (uniform rotation and/or translation, ``ξ``)
+    with L and the other effects invariant under that motion: ``(Q, why)`` with ``Q(x, v, t) =
+    p·ξ`` (for a rotation ``ω n·Σ (x_i − c) × p_i``, ω times the angular momentum about the
+    axis), so that ``h − Q`` is conserved (the Jacobi integral, the energy in the moving frame):
+    ``dh/dt`` is the constraint forces' power ``λ·∂f/∂t`` and ``dQ/dt = δL − λ·J ξ``, equal to
+    it since ``J ξ = −∂f/∂t``. ``(None, why not)`` otherwise."""
+    model = _model(model)
+    frame, what = _moving_frame(model, samples, seed)
+    if frame is None:
+        return None, what
+    spec = {k: frame[k] for k in ("rotation", "translation") if k in frame}
+    report = is_symmetry(model, samples=samples, seed=seed, **spec)
+    others = [b for b in report.breaking if not b.startswith("constraint ")]
+    if others:
+        return None, f"the constraints move as {what}, but that motion changes {', '.join(others)}"
+    s = model.symbols
+    xi, _ = _generator(model, spec.get("translation"), spec.get("rotation"))
+    Q = frame["scale"] * ca.dot(_canonical_momentum(model), xi)
+    return ca.Function("moving_frame_charge", [s.x, s.v, s.t], [Q], ["x", "v", "t"], ["Q"]), what
 
 
 # --- generalized coordinates ------------------------------------------------------------------

@@ -115,6 +115,7 @@ class SceneBuilder(RunSections):
             name=name,
             system=system,
             settings=settings,
+            given_settings=frozenset(self.raw.get("simulate", {})),
             outputs=outputs,
             reduced=reduced,
             raw=self.raw,

@@ -88,6 +88,8 @@ class Scene:
     expectations: list | None = None
     #: [scene] units: name (a parameter, a sweep summary column) -> unit, for axis labels
     units: dict | None = None
+    #: the [simulate] keys the file gave itself (``settings`` fills the rest with defaults)
+    given_settings: frozenset | None = None  # None: not known (a Scene built in Python)
     #: (the System as loaded, its Structure, its plain numbers): built while loading
     structure: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
