@@ -178,3 +178,79 @@ def test_cli_path_extreme_time_exits_2(tmp_path: Path, capsys, time):
     err = capsys.readouterr().err
     assert "time step" in err and "Traceback" not in err
     assert not (out / "path.npz").exists()
+
+
+# --- stationarity with one-sided constraints: per segment, with the rows held there ---------------
+
+
+def bouncing_ball(T: float = 1.6, samples: int = 3201):
+    s = C.System(name="ball")
+    s.add_particle("a", 1.0, [0.0, 1.0, 0.0])
+    s.add(C.Plane("a", [0, 1, 0], unilateral=True, restitution=1.0, name="floor"), C.Gravity([0, -G, 0]))
+    return s, C.simulate(s, T, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, T, samples))
+
+
+def test_bouncing_ball_is_stationary_against_vertical_variations_in_flight():
+    s, traj = bouncing_ball()
+    r = C.stationarity(s, traj)
+    assert r.is_stationary and r.order > 1.8
+    # the pieces are the flights between the elastic impacts at √(2/g)(1 + 2k)
+    th = np.sqrt(2 / G)
+    assert [p[0] for p in r.pieces[1:]] == pytest.approx([th, 3 * th], abs=1e-8)
+    # in flight the floor is not held: the ball is varied vertically, not only along the floor
+    flight = (traj.t > 0.1) & (traj.t < th - 0.1)
+    assert np.abs(r.variation[flight, 0, 1]).max() > 0.1 * r.scale
+    # and η vanishes at the impact instants
+    at_impact = np.abs(traj.t - th) < 1e-3
+    assert np.abs(r.variation[at_impact]).max() < 1e-4 * r.scale
+
+
+def test_bouncing_ball_with_a_wrong_flight_is_not_stationary():
+    """Between the first two impacts the ball follows y = v0 τ − 0.45 g τ² (0.9 g, same impact
+    times): its δS is ∫ m (−g − y'') η_y dt = −0.1 m g ∫ η_y dt on that flight. ε is small enough
+    that ε·δ²S/2 (δ²S ~ 2e2 J·s here) stays below that δS, so ΔS is first order."""
+    s, traj = bouncing_ball()
+    th = np.sqrt(2 / G)
+    t1, t2 = th, 3 * th
+    wrong = traj.head(len(traj.t))
+    x, v = wrong.x.copy(), wrong.v.copy()
+    tau = traj.t - t1
+    mid = (traj.t > t1) & (traj.t < t2)
+    v0 = 0.45 * G * (t2 - t1)
+    x[mid, 0, 1] = v0 * tau[mid] - 0.45 * G * tau[mid] ** 2
+    v[mid, 0, 1] = v0 - 0.9 * G * tau[mid]
+    wrong.x, wrong.v = x, v
+    r = C.stationarity(s, wrong, eps_list=(1e-4, 5e-5, 2.5e-5, 1.25e-5))
+    assert not r.is_stationary and r.order < 1.3
+    eta_y = np.where(mid, r.variation[:, 0, 1], 0.0)
+    expected = -0.1 * 1.0 * G * np.trapezoid(eta_y, traj.t)
+    assert r.first_variation == pytest.approx(expected, rel=1e-2)
+
+
+def test_one_sided_run_without_segments_is_refused():
+    s, traj = bouncing_ball(0.5, 501)
+    bare = traj.head(len(traj.t))
+    bare.info = {}
+    with pytest.raises(InputError, match="one-sided"):
+        C.stationarity(s, bare)
+    r = C.stationarity(s, bare, segments=traj.info["segments"])
+    assert r.is_stationary
+
+
+def test_pendulum_without_one_sided_rows_is_one_piece_as_before():
+    """No one-sided rows: one piece over the whole run, projected on the rod (η ⟂ the rod)."""
+    s = C.System(name="pendulum")
+    s.add_particle("bob", 1.0, [0.8, -0.6, 0.0])
+    s.add(C.Distance("bob", point=[0, 0, 0], length=1.0), C.Gravity([0, -G, 0]))
+    traj = C.simulate(s, 1.5, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, 1.5, 1501))
+    r = C.stationarity(s, traj)
+    assert r.is_stationary and r.pieces == [(0.0, 1.5)]
+    radial = np.einsum("ij,ij->i", r.variation[:, 0], traj.x[:, 0])
+    assert np.abs(radial).max() < 1e-9 * r.scale
+    # the same swing with gravity 0.9 g (a wrong motion for this system) is not stationary
+    s_weak = C.System(name="pendulum")
+    s_weak.add_particle("bob", 1.0, [0.8, -0.6, 0.0])
+    s_weak.add(C.Distance("bob", point=[0, 0, 0], length=1.0), C.Gravity([0, -0.9 * G, 0]))
+    weak = C.simulate(s_weak, 1.5, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, 1.5, 1501))
+    weak.multipliers = None
+    assert not C.stationarity(s, weak).is_stationary

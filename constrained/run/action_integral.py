@@ -195,6 +195,10 @@ class StationarityResult:
     scale: float
     n_bumps: int
     seed: int
+    #: the variation's direction η at each sample (T, N, 3), scaled so that max |η| = size
+    variation: np.ndarray | None = None
+    #: the smooth pieces (t0, t1) varied separately, each with η = dη/dt = 0 at its ends
+    pieces: list = field(default_factory=list)
 
     @property
     def delta_S_over_eps(self) -> np.ndarray:
@@ -254,6 +258,49 @@ def _tangent_function(model: Model, rows: np.ndarray) -> ca.Function:
     return ca.Function("eta", [x, v, t, c, cd], [eta, eta_dot])
 
 
+def _one_sided_rows(model: Model) -> list[int]:
+    owner, constraints = model.constraint_owner, model.system.constraints
+    return [k for k in range(model.n_constraints) if getattr(constraints[owner[k]], "unilateral", False)]
+
+
+def _pieces(model: Model, t: np.ndarray, X: np.ndarray, segments) -> list:
+    """The smooth pieces of the path as (sample indices, t0, t1, rows that project η there).
+
+    Without one-sided constraints: one piece, the whole trajectory, with the independent rows
+    at its first sample. With them: one piece per segment of the run (``segments`` as in
+    ``Trajectory.info["segments"]``), projected with the two-sided rows and the one-sided rows
+    held on that segment; a segment of zero length or with fewer than 3 samples is not varied.
+    """
+    one = _one_sided_rows(model)
+    if not one:
+        return [(np.arange(len(t)), float(t[0]), float(t[-1]), independent_rows(model, X[0], t[0]))]
+    if not segments:
+        raise InputError(
+            "the system has one-sided constraints, and the trajectory does not say where each one is "
+            "held: pass the trajectory returned by constrained.simulate (its info['segments']) or "
+            "segments=[{'t_start': .., 't_end': .., 'held': [labels]}, ...]")
+    labels = list(model.constraint_labels)
+    two = [k for k in range(model.n_constraints) if k not in one]
+    pieces = []
+    for seg in segments:
+        t0, t1 = float(seg["t_start"]), float(seg["t_end"])
+        unknown = [h for h in seg.get("held", []) if h not in labels]
+        if unknown:
+            raise InputError(f"segment {t0:g}..{t1:g} s holds unknown constraints {unknown!r}")
+        idx = np.flatnonzero((t >= t0) & (t <= t1))
+        if not t1 > t0 or len(idx) < 3:
+            continue
+        rows = np.array(sorted(set(two) | {labels.index(h) for h in seg.get("held", [])}), dtype=int)
+        if len(rows):
+            J = np.asarray(model.jacobian(X[idx[0]], t[idx[0]])[1])[rows]
+            rank, order = jacobian_rank(J)
+            rows = np.sort(rows[order[:rank]])
+        pieces.append((idx, t0, t1, rows))
+    if not pieces:
+        raise InputError("no segment of the run has 3 samples or more: nothing to vary")
+    return pieces
+
+
 def stationarity(
     model_or_system,
     trajectory: Trajectory,
@@ -261,6 +308,7 @@ def stationarity(
     eps_list: Sequence[float] = (1e-2, 5e-3, 2.5e-3, 1.25e-3),
     n_bumps: int = 3,
     seed: int = 0,
+    segments: Sequence[dict] | None = None,
 ) -> StationarityResult:
     """Measure how the action changes under admissible variations of ``trajectory``.
 
@@ -271,11 +319,23 @@ def stationarity(
     order. ``δv = ε · size · dη/dt`` exactly (CasADi AD of P along the trajectory's velocity),
     so the varied path's velocity is the derivative of its positions.
 
+    With one-sided constraints the path is smooth only between impacts, lift-offs and
+    landings, and Hamilton's principle holds per smooth piece with its end times fixed. The
+    check is then made per segment of the run (``segments``, default
+    ``trajectory.info["segments"]`` from :func:`constrained.simulate`): on each, c(t) uses
+    s = (t − t_start)/(t_end − t_start), so η and dη/dt vanish at the segment's ends, and P
+    projects with the rows active there only — the two-sided rows and the one-sided rows held
+    on that segment. A ball in free flight is thus varied in every direction, not only along
+    the floor. ΔS is the sum of the segments' ΔS (each by Simpson on its own samples, no
+    quadrature across a kink); the multipliers of rows not held are taken as 0.
+
     The action of each path is taken with the augmented Lagrangian ``L + λ·f`` (λ the
-    trajectory's multipliers, from the KKT system when the trajectory has none), integrated
-    by Simpson on the trajectory's samples: for the true motion the first variation vanishes
-    and ΔS = O(ε²); for a wrong motion ΔS = O(ε). Sample densely: the quadrature error and
-    the integration tolerance of the trajectory set the floor below which ΔS/ε stops falling.
+    trajectory's multipliers, from the KKT system when the trajectory has none; a run with
+    one-sided constraints must carry its own), integrated by Simpson on the trajectory's
+    samples: for the true motion the first variation vanishes and ΔS = O(ε²); for a wrong
+    motion ΔS = O(ε). ``constraint_violation`` is the largest |f| of the projecting rows on
+    the varied samples. Sample densely: the quadrature error and the integration tolerance of
+    the trajectory set the floor below which ΔS/ε stops falling.
     """
     model = as_model(model_or_system)
     require_lagrangian(model, "the stationarity check")
@@ -288,22 +348,31 @@ def stationarity(
     eps = np.sort(eps)[::-1]
     t, X, V = flat_samples(trajectory)
     n, n3 = X.shape
+    pieces = _pieces(model, t, X, trajectory.info.get("segments") if segments is None else segments)
+    one = _one_sided_rows(model)
     lam = trajectory.multipliers
     if lam is None or np.asarray(lam).shape != (n, model.n_constraints):
+        if one:
+            raise InputError("a run with one-sided constraints needs its own multipliers "
+                             "(trajectory.multipliers, (T, C)): the KKT system cannot tell which rows hold")
         lam = multipliers_along(model, X, V, t)
-    lam = np.asarray(lam, float).reshape(n, model.n_constraints)
+    lam = np.array(lam, float).reshape(n, model.n_constraints)
 
-    # the variation η(t) and its exact time derivative along the trajectory
+    # the variation η(t) and its exact time derivative along the trajectory, piece by piece
     rng = np.random.default_rng(seed)
     coeffs = rng.standard_normal((n_bumps, n3))
-    s = (t - t[0]) / (t[-1] - t[0])
     j = np.arange(1, n_bumps + 1)[:, None]
-    b = np.sin(np.pi * j * s) ** 2                                      # (n_bumps, n)
-    bd = np.pi * j / (t[-1] - t[0]) * np.sin(2 * np.pi * j * s)         # d/dt sin²(π j s)
-    c, cd = b.T @ coeffs, bd.T @ coeffs                                 # (n, 3N)
-    rows = independent_rows(model, X[0], t[0])
-    eta, eta_dot = model.evaluate(_tangent_function(model, rows), X, V, t, c, cd)
-    eta, eta_dot = eta.T, eta_dot.T
+    eta, eta_dot = np.zeros((n, n3)), np.zeros((n, n3))
+    for idx, t0, t1, rows in pieces:
+        s = (t[idx] - t0) / (t1 - t0)
+        b = np.sin(np.pi * j * s) ** 2                                  # (n_bumps, n_piece)
+        bd = np.pi * j / (t1 - t0) * np.sin(2 * np.pi * j * s)          # d/dt sin²(π j s)
+        c, cd = b.T @ coeffs, bd.T @ coeffs                             # (n_piece, 3N)
+        e_, ed = model.evaluate(_tangent_function(model, rows), X[idx], V[idx], t[idx], c, cd)
+        eta[idx], eta_dot[idx] = e_.T, ed.T
+        if one:  # a one-sided row not held on this piece pushes with λ = 0
+            free = [k for k in one if k not in set(rows.tolist())]
+            lam[np.ix_(idx, free)] = 0.0
     size = model.system.size()
     peak = float(np.max(np.linalg.norm(eta.reshape(n, -1, 3), axis=2)))
     if peak == 0.0:
@@ -315,21 +384,29 @@ def stationarity(
     lam_sym = ca.SX.sym("lam", model.n_constraints)
     f = model.constraint(s_.x, s_.t)
     L_aug = Lf(s_.x, s_.v, s_.t) + (ca.dot(lam_sym, f) if model.n_constraints else 0)
-    Laug = ca.Function("L_aug", [s_.x, s_.v, s_.t, lam_sym], [L_aug, ca.mmax(ca.fabs(f)) if
-                                                           model.n_constraints else ca.SX(0)])
+    Laug = ca.Function("L_aug", [s_.x, s_.v, s_.t, lam_sym], [L_aug, f if model.n_constraints else ca.SX(0)])
 
-    def S_of(Xp, Vp):
-        Lv, viol = model.evaluate(Laug, Xp, Vp, t, lam)
-        return _integral(Lv.ravel(), t), float(np.max(viol))
+    def L_of(Xp, Vp):
+        Lv, fv = model.evaluate(Laug, Xp, Vp, t, lam)
+        return np.asarray(Lv, float).ravel(), np.asarray(fv, float).reshape(-1, n)
 
-    S0, _ = S_of(X, V)
+    def delta(Lp, L0):
+        return sum(_integral(Lp[idx] - L0[idx], t[idx]) for idx, *_ in pieces)
+
+    def violation(fv):
+        if not one:  # every row, every sample
+            return float(np.max(np.abs(fv), initial=0.0))
+        return max(float(np.max(np.abs(fv[np.ix_(rows, idx)]), initial=0.0)) for idx, _, _, rows in pieces)
+
+    L0, _ = L_of(X, V)
+    S0 = _integral(L0, t)
     dplus, dminus, viol = [], [], []
     for e in eps:
-        Sp, vp = S_of(X + e * eta, V + e * eta_dot)
-        Sm, _ = S_of(X - e * eta, V - e * eta_dot)
-        dplus.append(Sp - S0)
-        dminus.append(Sm - S0)
-        viol.append(vp)
+        Lp, fp = L_of(X + e * eta, V + e * eta_dot)
+        Lm, _ = L_of(X - e * eta, V - e * eta_dot)
+        dplus.append(delta(Lp, L0))
+        dminus.append(delta(Lm, L0))
+        viol.append(violation(fp))
     dplus, dminus = np.array(dplus), np.array(dminus)
     tiny = np.finfo(float).tiny
     order = float(np.polyfit(np.log(eps), np.log(np.abs(dplus) + tiny), 1)[0])
@@ -340,6 +417,7 @@ def stationarity(
         first_variation=float((dplus[-1] - dminus[-1]) / (2 * e)),
         second_variation=float((dplus[-1] + dminus[-1]) / e**2),
         constraint_violation=np.array(viol), action=S0, scale=size, n_bumps=n_bumps, seed=seed,
+        variation=eta.reshape(n, -1, 3), pieces=[(t0, t1) for _, t0, t1, _ in pieces],
     )
 
 
