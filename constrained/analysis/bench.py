@@ -136,7 +136,8 @@ class BenchResult:
                 title="Constraint drift")
         for ax in (ax1, ax2):
             ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=8)
+            if ax.get_legend_handles_labels()[0]:  # (every row failed: nothing to name)
+                ax.legend(fontsize=8)
         fig.tight_layout()
         return fig
 

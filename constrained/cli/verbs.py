@@ -293,6 +293,9 @@ def _bench(args) -> int:
     except SimulationError as exc:  # the reference run failed: nothing to measure against
         _say_error(f"scene file {file}: {exc}")
         return 1
+    if result.interrupted and not result.rows:  # (nothing measured: no empty table, no empty figure)
+        _say(f"{PROG}: interrupted (Ctrl-C) before any row was measured; nothing was written", always=True)
+        return 130
     written = outs.commit(result.write(outs.dir))
     if not args.quiet:
         print(result.markdown())
