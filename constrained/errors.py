@@ -83,3 +83,9 @@ class UnresolvedStepWarning(UserWarning):
     changed by more than the method's error at a resolved step: the step did not resolve the
     motion somewhere (a close encounter, a collision in a 1/r potential), in
     ``trajectory.info["energy_not_conserved"]``."""
+
+
+class LinearRangeWarning(UserWarning):
+    """Sensitivities that grew by orders of magnitude along a run (chaos: e^(λt)): exact
+    derivatives of the run, but a first-order prediction y(p + δp) ≈ y + (∂y/∂p) δp holds only
+    for parameter changes far smaller than their inverse growth."""

@@ -13,6 +13,8 @@ import pytest
 from scipy.special import ellipk
 
 import constrained as C
+from constrained.analysis.fitting.sensitivities import GROWN
+from constrained.errors import LinearRangeWarning
 
 TIGHT = dict(method="dopri", rtol=1e-12, atol=1e-14)
 
@@ -79,10 +81,16 @@ def test_a_chaotic_double_pendulum_agrees_over_short_horizons_and_grows_without_
     for j, name in enumerate(sens.parameters):
         fd = five_point(s, t, lambda r: r.x[:, 1, :2], name, 1e-4)
         np.testing.assert_allclose(sens.d_parameters[:, :, j], fd, atol=1e-6 * np.abs(fd).max())
-    long = C.sensitivities(s, np.linspace(0.0, 40.0, 5), outputs=["x_p2"], parameters=["th1"], rtol=1e-9,
-                           atol=1e-11)
+    assert max(sens.stats["relative_growth"].values()) < GROWN  # (3 s: no warning above)
+    with pytest.warns(LinearRangeWarning, match=r"∂\(x_p2\)/∂th1") as caught:
+        long = C.sensitivities(s, np.linspace(0.0, 40.0, 5), outputs=["x_p2"], parameters=["th1"], rtol=1e-9,
+                               atol=1e-11)
     growth = np.abs(long.d_parameters[:, 0, 0])
     assert np.all(np.isfinite(growth)) and growth[-1] > 1e6 * growth[0]
+    # the warning's number is |∂x/∂θ| |θ| / max |x| at its worst time (session 15: it came back silently)
+    worst = np.max(growth) * 2.0 / np.max(np.abs(long.values[:, 0]))
+    assert long.stats["relative_growth"]["th1"] == pytest.approx(worst, rel=1e-12)
+    assert f"{worst:.2g}" in str(caught[0].message)
 
 
 def test_a_growing_rod_a_velocity_constraint_and_a_doubled_rod_match_finite_differences():

@@ -20,16 +20,17 @@ are reported, not inverted.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...errors import ConstrainedError, InputError
+from ...errors import ConstrainedError, InputError, LinearRangeWarning
 from ...model.structure import Model, assemble
 from .measurements import Measurements
 from .observables import observables as observable_function
-from .sensitivities import MAX_STEPS, sensitivities
+from .sensitivities import GROWN, MAX_STEPS, sensitivities
 
 __all__ = ["FitResult", "fit"]
 
@@ -244,16 +245,18 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
         if key not in cache:
             cache.clear()
             try:
-                s = sensitivities(system, data.t, outputs=formulas, parameters=names, t_start=t_start,
-                                  values=dict(zip(names, theta.tolist(), strict=True)), rtol=rtol, atol=atol,
-                                  base=base, model=model, max_steps=max_steps)
+                with warnings.catch_warnings():  # (said once, for the fitted values: below)
+                    warnings.simplefilter("ignore", LinearRangeWarning)
+                    s = sensitivities(system, data.t, outputs=formulas, parameters=names, t_start=t_start,
+                                      values=dict(zip(names, theta.tolist(), strict=True)), rtol=rtol,
+                                      atol=atol, base=base, model=model, max_steps=max_steps)
             except ConstrainedError as exc:
                 where = ", ".join(f"{k} = {v:.6g}" for k, v in zip(names, theta, strict=True))
                 raise type(exc)(f"the fit reached {where}, where the run fails: {exc}; start nearer the "
                                 "solution, or give bounds") from None
             residual = (weights * (s.values - target))[measured]
             jac = (weights[:, :, None] * s.d_parameters)[measured]
-            cache[key] = (residual, jac, s.values)
+            cache[key] = (residual, jac, s.values, s.stats["relative_growth"])
         return cache[key]
 
     njev = [0]
@@ -276,7 +279,14 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
         held_jacobian = jacobian
     sol = least_squares(held_residual, theta0, jac=held_jacobian, bounds=(lo, hi), method="trf",
                         x_scale="jac", ftol=tolerance, xtol=tolerance, gtol=tolerance, max_nfev=max_nfev)
-    residual, jac, fitted = evaluate(sol.x)
+    residual, jac, fitted, growth = evaluate(sol.x)
+    grown = {k: g for k, g in growth.items() if g > GROWN}
+    if grown:
+        warnings.warn(LinearRangeWarning(
+            "at the fitted values the sensitivities grew by orders of magnitude ("
+            + ", ".join(f"{k}: {g:.2g}" for k, g in grown.items()) + "): the standard errors and "
+            "correlations, which are first-order, hold only for changes far below the inverse of that; "
+            "fit over a shorter span"), stacklevel=2)
     chi2 = float(residual @ residual)
     dof = m - n
     U, sv, Vt = np.linalg.svd(jac, full_matrices=False)

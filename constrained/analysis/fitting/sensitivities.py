@@ -30,7 +30,7 @@ import casadi as ca
 import numpy as np
 
 from ... import interrupt
-from ...errors import InputError, RunInterrupted, SimulationError
+from ...errors import InputError, LinearRangeWarning, RunInterrupted, SimulationError
 from ...manifold.graph import projection_graph
 from ...manifold.manifold import acceleration_function
 from ...model import expressions
@@ -342,7 +342,46 @@ def sensitivities(system, t_eval, *, outputs=None, parameters: Sequence[str] | N
         N = model.n_particles
         d_x0 = J[:, :, n_par:n_par + 3 * N].reshape(T, k, N, 3)
         d_v0 = J[:, :, n_par + 3 * N:].reshape(T, k, N, 3)
+    growth = relative_growth(y.T, J[:, :, :n_par], p[list(chosen)], tuple(names))
+    stats = {"mode": mode, "rejected": seq.rejected, "rtol": rtol, "atol": atol, "base": base,
+             "padded_width": width, "relative_growth": {name: g for name, (g, _, _) in growth.items()}}
+    _warn_if_grown(growth, obs.names, seq.t_out)
     return Sensitivities(t=seq.t_out, outputs=obs.names, values=y.T, parameters=tuple(names),
-                         d_parameters=J[:, :, :n_par], d_x0=d_x0, d_v0=d_v0, steps=seq.steps,
-                         stats={"mode": mode, "rejected": seq.rejected, "rtol": rtol, "atol": atol,
-                                "base": base, "padded_width": width})
+                         d_parameters=J[:, :, :n_par], d_x0=d_x0, d_v0=d_v0, steps=seq.steps, stats=stats)
+
+
+#: Sensitivities grown beyond this (relative: |∂y/∂p| |p| / max |y|) are named by a
+#: LinearRangeWarning: their first-order prediction holds only for relative changes of p far
+#: below its inverse.
+GROWN = 1e6
+
+
+def relative_growth(values: np.ndarray, d_parameters: np.ndarray, p: np.ndarray, names: tuple) -> dict:
+    """Per parameter j (of nonzero value): ``(G_j, output index, time index)`` with
+    G_j = max over outputs k and times i of |∂y_k(t_i)/∂p_j| |p_j| / max_i |y_k(t_i)|: how much a
+    relative change of p_j is magnified in the outputs, relative to their own size."""
+    scale = np.max(np.abs(values), axis=0)  # (k,) each output's size over the run
+    out = {}
+    for j, name in enumerate(names):
+        if not p[j]:
+            continue
+        with np.errstate(all="ignore"):
+            G = np.abs(d_parameters[:, :, j]) * abs(p[j]) / np.where(scale > 0, scale, np.inf)[None, :]
+        i, k = np.unravel_index(int(np.argmax(G)), G.shape)
+        out[name] = (float(G[i, k]), int(k), int(i))
+    return out
+
+
+def _warn_if_grown(growth: dict, outputs: tuple, t: np.ndarray) -> None:
+    grown = {name: g for name, g in growth.items() if g[0] > GROWN}
+    if not grown:
+        return
+    import warnings
+
+    words = "; ".join(f"∂({outputs[k]})/∂{name} × |{name}| / max|{outputs[k]}| = {g:.2g} at t = {t[i]:.6g} s"
+                      for name, (g, k, i) in grown.items())
+    warnings.warn(LinearRangeWarning(
+        f"the sensitivities grew by orders of magnitude ({words}): exact derivatives of this run, but "
+        "y(p + δp) ≈ y + (∂y/∂p) δp holds only for relative changes δp/p far below the inverse of that "
+        "growth (the motion is chaotic, or passes near a bifurcation); use a shorter span, or fit over "
+        "shorter windows"), stacklevel=3)
