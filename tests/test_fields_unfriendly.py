@@ -200,6 +200,37 @@ def test_a_negative_coefficient_is_refused_as_an_energy_source(tmp_path):
     assert out.returncode == 2 and "effects[0].coefficient" in out.stderr and "energy source" in out.stderr
 
 
+def test_a_coefficient_formula_that_turns_negative_is_refused(tmp_path):
+    """Session 15: a coefficient given by a formula was not checked (a fit without bounds, --set
+    b=-0.5 ran as an energy source). Now it is checked over the run: c = b (1 − t) with b = 0.5
+    turns negative after t = 1 s, so a run to 2 s is refused naming a time past 1 s, one to
+    0.9 s runs and decays."""
+    def damped(b: float, expr: str) -> C.System:
+        s = C.System(name="damped", parameters={"b": b})
+        s.add_particle("p", 1.0, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+        s.add(C.Spring("p", point=[0, 0, 0], k=4.0, rest=0.0), C.Damping(expr))
+        return s
+
+    with pytest.raises(C.InputError, match=r"is -0\.5 N·s/m at t = 0 s.*energy source"):
+        C.simulate(damped(-0.5, "b"), 1.0)
+    with pytest.raises(C.InputError, match="energy source") as refused:
+        C.simulate(damped(0.5, "b*(1 - t)"), 2.0)
+    t_bad = float(str(refused.value).split("at t = ")[1].split(" s")[0])
+    assert 1.0 < t_bad <= 2.0
+    ok = C.simulate(damped(0.5, "b*(1 - t)"), 0.9, rtol=1e-10, atol=1e-12)
+    assert ok.energy[-1] < ok.energy[0]  # dissipated: c ≥ 0 all along
+    with pytest.raises(C.InputError, match="energy source"):  # the fit's route too
+        C.sensitivities(damped(-0.5, "b"), [0.5, 1.0], parameters=["b"])
+    scene = tmp_path / "formula.toml"
+    scene.write_text('[scene]\nname = "x"\n[parameters]\nb = 0.5\n[[particles]]\nname = "p"\nmass = 1\n'
+                     'position = [1, 0, 0]\n[[effects]]\ntype = "damping"\ncoefficient = "b"\n'
+                     '[simulate]\nt_end = 1\n[outputs]\nplots = []\n')
+    command = [sys.executable, "-m", "constrained", "run", str(scene), "--out", str(tmp_path / "o"),
+               "--set", "parameters.b=-0.5"]
+    out = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "effects[0].coefficient" in out.stderr and "energy source" in out.stderr
+
+
 def test_a_huge_coefficient_is_named_by_the_stiffness_watch(monkeypatch):
     """c = 1e8 N·s/m on 1 kg relaxes in m/c = 1e-8 s: dopri, held at its stability limit, used
     to crawl through 20 million steps and stop blaming "forces that blow up"; the watch now

@@ -111,6 +111,7 @@ def simulate(
     system = system.with_parameters(parameters)  # its initial state for these values
     build_time = time.perf_counter() - started
     events = user_events(system, events)
+    refuse_negative_damping(model, system, float(t_start), float(t_end))
     if has_one_sided(model):
         traj = hybrid.simulate_hybrid(
             model, system, float(t_start), float(t_end), method=method, rtol=rtol, atol=atol, t_eval=t_eval,
@@ -332,6 +333,29 @@ def _forces_and_energy(model: Model):
                            [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
 
     return structural_call(model, "forces_and_energy", build, "x", "v", "t")
+
+
+#: Times at which a damping coefficient given by a formula is checked for its sign.
+DAMPING_CHECKS = 65
+
+
+def refuse_negative_damping(model: Model, system, t0: float, t_end: float) -> None:
+    """Refuse a Rayleigh coefficient (a formula of t and the parameters) that is negative or not
+    finite at one of DAMPING_CHECKS times of the run: R = ½ c |v|² with c < 0 is an energy source."""
+    dampers = [e for e in system.effects
+               if hasattr(e, "negative_coefficient") and isinstance(e.coefficient, str)]
+    if not dampers:
+        return
+    times = np.linspace(t0, t_end, DAMPING_CHECKS)
+    for effect in dampers:
+        bad = effect.negative_coefficient(model.symbols, times)
+        if bad is not None:
+            raise InputError(
+                f"the damping coefficient {effect.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} s "
+                "for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
+                "dissipation but an energy source (the force −c v pushes along v); give parameter values "
+                "that keep it ≥ 0 (a fit: bounds), or write a driving force itself (type = \"force\")",
+                where=f"{effect._where()}.coefficient")
 
 
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
