@@ -28,6 +28,7 @@ import numpy as np
 
 from ...errors import ConstrainedError, InputError, LinearRangeWarning
 from ...model.structure import Model, assemble
+from ...run.simulate import refuse_negative_damping
 from .measurements import Measurements
 from .observables import observables as observable_function
 from .sensitivities import GROWN, MAX_STEPS, sensitivities
@@ -280,6 +281,13 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
     sol = least_squares(held_residual, theta0, jac=held_jacobian, bounds=(lo, hi), method="trf",
                         x_scale="jac", ftol=tolerance, xtol=tolerance, gtol=tolerance, max_nfev=max_nfev)
     residual, jac, fitted, growth = evaluate(sol.x)
+    fitted_values = dict(zip(names, sol.x.tolist(), strict=True))
+    try:  # (the iterations may pass through negative damping; the answer should not end there)
+        refuse_negative_damping(model.with_parameters(fitted_values), system.with_parameters(fitted_values),
+                                float(t_start), float(data.t[-1]))
+    except InputError as exc:
+        warnings.warn(f"the fitted values make the damping an energy source: {exc}; give the fit "
+                      "bounds that keep the coefficient ≥ 0", stacklevel=2)
     grown = {k: g for k, g in growth.items() if g > GROWN}
     if grown:
         warnings.warn(LinearRangeWarning(

@@ -38,7 +38,6 @@ from ...model.cache import ParametricView, structure_cache
 from ...model.parameters import symbolic as symbolic_parameters
 from ...model.structure import Model, assemble
 from ...run.ensemble import _projector
-from ...run.simulate import refuse_negative_damping
 from ...run.start import consistent_start
 from ...run.unilateral import has_one_sided
 from ...solvers.base import Status
@@ -313,7 +312,6 @@ def sensitivities(system, t_eval, *, outputs=None, parameters: Sequence[str] | N
     obs = observables(model, position_names(model) if outputs is None else outputs)
     seq = step_sequence(model, system, t_eval, float(t_start), rtol=rtol, atol=atol, base=base,
                         max_steps=max_steps, compiled=compiled)
-    refuse_negative_damping(model, system, float(t_start), float(seq.t_out[-1]))  # (as simulate does)
     longest = max((len(i) for i in seq.intervals), default=0)
     width = 1 << max(0, math.ceil(math.log2(max(longest, 1))))
     chosen = tuple(model.parameter_names.index(p) for p in names)
