@@ -139,6 +139,15 @@ def _check_mass(mass, where: str, formula=None) -> float:
     return float(mass)
 
 
+
+def length_scale(x: np.ndarray) -> np.ndarray:
+    """The largest of |x_i| and the spread of the x_i along an axis (max over axes of
+    max_i x_i − min_i x_i), 1 m where both are 0: x (..., n, 3), one value per leading index
+    (``System.size``; a batch of starts, ``run.variants``)."""
+    x = np.asarray(x, float)
+    scale = np.maximum(np.max(np.linalg.norm(x, axis=-1), axis=-1), np.max(np.ptp(x, axis=-2), axis=-1))
+    return np.where(scale > 0, scale, 1.0)
+
 class System:
     """Particles, holonomic constraints and effects, with named ``parameters`` (numbers) and
     ``definitions`` (formulas in parameters and other definitions).
@@ -345,11 +354,7 @@ class System:
     def size(self) -> float:
         """A length scale: the largest of |x_i| and |x_i - x_j| at the start (1 m if all zero)."""
         x = self.positions
-        if len(x) == 0:
-            return 1.0
-        spread = float(np.max(np.ptp(x, axis=0))) if len(x) > 1 else 0.0
-        scale = max(float(np.max(np.linalg.norm(x, axis=1))), spread)
-        return scale if scale > 0 else 1.0
+        return float(length_scale(x)) if len(x) else 1.0
 
     def _repr_html_(self) -> str:
         """Jupyter: one table of what the system holds."""

@@ -313,10 +313,8 @@ def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: fl
         element = watch.fastest()  # as at the start: an unstable step stretches it later
         steps = int(stats.get("steps", 0) or 0)
         if element is None or not element.rigid_like:
-            damper = watch.dampers[0] if watch.dampers else None
-            if damper is not None and steps and (t - t0) / steps < watch.HELD * damper.period:
-                return f"; {watch.describe_damper(damper, t, steps)}"
-            return ""
+            damper = watch.held_damper(t, steps)
+            return f"; {watch.describe_damper(damper, t, steps)}" if damper is not None else ""
         dt = stats.get("dt")
         limit = (f"; the fixed step dt = {dt:.3g} s is beyond its stability limit 2/ω = "
                  f"{2 / element.omega:.3g} s" if dt and dt * element.omega > 2 else "")

@@ -235,10 +235,18 @@ class StiffnessWatch:
         element = self.fastest(x, t)
         if element is not None and element.rigid_like and not (steps and done / steps > element.period):
             return self.describe(element, t, steps, projected)
-        damper = self.dampers[0] if self.dampers else None
-        if damper is not None and steps and done / steps <= self.HELD * damper.period:
+        damper = self.held_damper(t, steps)
+        if damper is not None:
             return self.describe_damper(damper, t, steps, projected)
         return None
+
+    def held_damper(self, t: float, steps: int | None) -> StiffDamper | None:
+        """The fastest damper when the mean step to t, (t − t0)/steps, is at most HELD of its
+        relaxation times m/c (it held the steps down), else None."""
+        damper = self.dampers[0] if self.dampers else None
+        if damper is None or not steps or not (float(t) - self.t0) / steps <= self.HELD * damper.period:
+            return None
+        return damper
 
     def describe_damper(self, damper: StiffDamper, t: float, steps: int | None = None,
                         projected: float | None = None) -> str:

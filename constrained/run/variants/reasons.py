@@ -20,6 +20,7 @@ import numpy as np
 from ...errors import InconsistentStateError
 from ...manifold import diagnostics
 from ...model.structure import Model
+from ...model.system import length_scale
 
 #: Failed variants diagnosed in full (each costs a model view and an SVD or two); the others
 #: of a run with more failures get the short sentence with their time.
@@ -39,14 +40,8 @@ SHORT = {
 
 
 def start_sizes(x0: np.ndarray) -> np.ndarray:
-    """``System.size()`` of every variant's start x0 (N, 3n): max(max_i |x_i|, max over axes of
-    the spread of x_i), 1 m where that is 0."""
-    n = x0.shape[0]
-    pts = x0.reshape(n, -1, 3)
-    radius = np.max(np.linalg.norm(pts, axis=2), axis=1)
-    spread = np.max(np.ptp(pts, axis=1), axis=1) if pts.shape[1] > 1 else np.zeros(n)
-    size = np.maximum(radius, spread)
-    return np.where(size > 0, size, 1.0)
+    """``System.size()`` of every variant's start x0 (N, 3n) (``system.length_scale``)."""
+    return length_scale(x0.reshape(x0.shape[0], -1, 3))
 
 
 def particle_moves(x0: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -100,10 +95,8 @@ def stiffness_reason(m: Model, x: np.ndarray, t: float, t0: float, t_end: float,
     element = watch.fastest(x, t)
     if element is not None and mean <= element.period:
         return watch.describe(element, t, steps)
-    damper = watch.dampers[0] if watch.dampers else None
-    if damper is not None and mean <= watch.HELD * damper.period:
-        return watch.describe_damper(damper, t, steps)
-    return None
+    damper = watch.held_damper(t, steps)
+    return watch.describe_damper(damper, t, steps) if damper is not None else None
 
 
 def stop_reason(model: Model, status: str, p: np.ndarray, x: np.ndarray, v: np.ndarray, t: float,
