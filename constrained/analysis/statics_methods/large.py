@@ -43,13 +43,17 @@ def dependent_rows(model: Model, J) -> np.ndarray:
     return np.setdiff1d(np.arange(J.shape[0]), independent).astype(np.int64)
 
 
-def stiffness(function, x: np.ndarray, lam: np.ndarray):
-    """K = ∇²ₓ(V − λᵀf) from the CasADi ``function`` (x, λ) -> K, as SciPy CSC."""
+def csc(dm):
+    """A CasADi DM as SciPy CSC, straight from its compressed columns."""
     from scipy.sparse import csc_matrix
 
-    K = function(x, lam)
-    colind, row = K.sparsity().get_ccs()
-    return csc_matrix((np.array(K.nonzeros(), float), row, colind), shape=K.shape)
+    colind, row = dm.sparsity().get_ccs()
+    return csc_matrix((np.array(dm.nonzeros(), float), row, colind), shape=dm.shape)
+
+
+def stiffness(function, x: np.ndarray, lam: np.ndarray):
+    """K = ∇²ₓ(V − λᵀf) from the CasADi ``function`` (x, λ) -> K, as SciPy CSC."""
+    return csc(function(x, lam))
 
 
 def spectral_norm(A) -> float:

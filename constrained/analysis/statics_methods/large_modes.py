@@ -36,13 +36,6 @@ __all__ = ["lowest_modes"]
 RESIDUAL_RTOL = 1e-8
 
 
-def _csc(dm):
-    from scipy.sparse import csc_matrix
-
-    colind, row = dm.sparsity().get_ccs()
-    return csc_matrix((np.array(dm.nonzeros(), float), row, colind), shape=dm.shape)
-
-
 def lowest_modes(model: Model, balance, x: np.ndarray, t: float, count: int, size: float,
                  stationary_rtol: float):
     """(Φ (3N, k), ω² (k,), λ, residual, unbalanced, degrees of freedom, ‖M^(-1/2)K₃M^(-1/2)‖) of
@@ -59,10 +52,10 @@ def lowest_modes(model: Model, balance, x: np.ndarray, t: float, count: int, siz
     lam = _large.multipliers(model, J, F0)
     r, Ry, Ru, _, _ = balance(x, np.zeros(n3), lam)
     r = np.asarray(r, float).ravel()
-    Ru = _csc(Ru)
+    Ru = _large.csc(Ru)
     if Ru.nnz and float(np.max(np.abs(Ru.data))) > 0.0:
         return None  # damping, magnetic or gyroscopic forces: the quadratic problem (dense)
-    K3 = -_csc(Ry)
+    K3 = -_large.csc(Ry)
     kf = _large.frobenius(K3)
     if _large.frobenius(K3 - K3.T) > 1e-10 * max(kf, 1e-300):
         return None
