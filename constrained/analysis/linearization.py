@@ -102,9 +102,10 @@ def frame_arrays(frame: RotatingFrame | None, n_particles: int) -> tuple[np.ndar
     return omega, centre
 
 
-def _balance(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
-    """CasADi Function (y, u, λ) -> r: the frame's equation of motion at the multipliers λ,
-    r = F(y, u + Ω×(y − c), t) + Jᵀλ − M(2 Ω×u + Ω×(Ω×(y − c))), with ∂r/∂y, ∂r/∂u."""
+def balance_function(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
+    """CasADi Function (y, u, λ) -> (r, ∂r/∂y, ∂r/∂u, J, F): the frame's equation of motion at the
+    multipliers λ, r = F(y, u + Ω×(y − c), t) + Jᵀλ − M(2 Ω×u + Ω×(Ω×(y − c))) (also the sparse
+    route's, statics_methods.large_modes)."""
     n3, C = model.n_coordinates, model.n_constraints
     y, u, lam = ca.SX.sym("y", n3), ca.SX.sym("u", n3), ca.SX.sym("lam", C)
     arm = y - centre
@@ -116,17 +117,11 @@ def _balance(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
     return ca.Function("frame_balance", [y, u, lam], [r, ca.jacobian(r, y), ca.jacobian(r, u), J, F])
 
 
-def balance_function(model: Model, t: float, omega: np.ndarray, centre: np.ndarray):
-    """The CasADi Function (y, u, λ) -> (r, ∂r/∂y, ∂r/∂u, J, F) of the frame's equation of motion
-    (``_balance``), for the sparse route (statics_methods.large_modes)."""
-    return _balance(model, t, omega, centre)
-
-
 def relative_equilibrium(model: Model, x0: np.ndarray, t: float, omega, centre, size: float) -> np.ndarray:
     """Positions at rest in the frame near x0: r(y, 0, λ) = 0 with f(y, t) = 0 (Newton on the
     KKT conditions, statics' line search and least-squares steps)."""
     n3, C = model.n_coordinates, model.n_constraints
-    fun = _balance(model, t, omega, centre)
+    fun = balance_function(model, t, omega, centre)
     manifold = Manifold.at(model, x0, t)
 
     class Kkt:
@@ -177,7 +172,7 @@ def linearize(model: Model, x: np.ndarray, v: np.ndarray, t: float, frame: Rotat
     omega, centre = frame_arrays(frame, model.n_particles)
     u0 = v - omega_velocity(omega, centre, x)
     _, lam = Manifold.at(model, x, t).accelerations(x, v, t)
-    r, Ry, Ru, J, F = _balance(model, t, omega, centre)(x, u0, lam)
+    r, Ry, Ru, J, F = balance_function(model, t, omega, centre)(x, u0, lam)
     r, Ry, Ru = np.asarray(r, float).ravel(), np.asarray(Ry, float), np.asarray(Ru, float)
     accel = _force_scale(model, J, F, lam, omega, x, per_mass=True)
     J = np.asarray(J, float).reshape(model.n_constraints, n3)
