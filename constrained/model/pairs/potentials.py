@@ -28,6 +28,12 @@ STEP_SHARE = 0.8
 OUTPUTS = {"dynamics": {0: "force"}, "energy": {0: "energy"}, "potential": {0: "energy"}}
 
 
+
+def _step_margin(term) -> float:
+    """How far a listed particle may move in one step (m): STEP_SHARE of the margin a list keeps
+    beyond its refresh, (1 − REFRESH_SHARE) · skin/2 (``step_limit``, ``step_held``)."""
+    return STEP_SHARE * (1 - REFRESH_SHARE) * term.skin / 2
+
 class PairPotentials:
     """The pair potentials of a system built as mapped kernels (``terms``, from the effects
     ``owners``), their data after the ``n_physical`` physical entries of p (``n_p`` in all)."""
@@ -109,7 +115,7 @@ class PairPotentials:
         limits = []
         for term in self.terms:
             if term.size:
-                margin = STEP_SHARE * (1 - REFRESH_SHARE) * term.skin / 2
+                margin = _step_margin(term)
                 limits.append(ca.if_else(term.valid_graph(P), margin / ca.fmax(term.fastest_graph(V), 1e-300),
                                          ca.inf))
         if not limits:
@@ -126,7 +132,7 @@ class PairPotentials:
                 continue
             speeds = np.linalg.norm(v[term.spec.particles], axis=1)
             k = int(np.argmax(speeds))
-            margin = STEP_SHARE * (1 - REFRESH_SHARE) * term.skin / 2
+            margin = _step_margin(term)
             limit = margin / max(float(speeds[k]), 1e-300)
             if limit <= h:  # (a step held by the limit proposes at most MAX_FACTOR times it)
                 return (f"the neighbour list of '{term.label}' holds each step to {limit:.3g} s: a step may "
