@@ -303,7 +303,8 @@ def test_rods_built_together_are_the_expressions_each_rod_builds():
 
     system, numbers = lifting.lift(rope(80, varied=True))
     s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
-    together = constraint_rows(system.constraints, s)
+    together, batches = constraint_rows(system.constraints, s)
+    assert batches  # (the rods of plain lengths: one formula)
     alone = [c.rows(s) for c in system.constraints]
     assert [len(r) for r in together] == [len(r) for r in alone]
     for a, b in zip(together, alone, strict=True):

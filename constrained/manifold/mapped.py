@@ -89,10 +89,13 @@ class MappedBuild:
         self.structure, self.e = structure, e
         self.n3, self.n_rows = structure.n_coordinates, structure.n_constraints
         symbols: dict[int, ca.SX] = {}
-        self.rows, rest_rows = grouped(e.rows, e.x, e.t, e.p, symbols)
+        row_batches = [(b.items + b.offsets, b.particles, b.numbers) for b in e.row_batches]
+        self.rows, rest_rows = grouped(e.rows, e.x, e.t, e.p, symbols, row_batches)
         self.rest_place = np.array(rest_rows, dtype=np.int64)
-        terms = [s for term in e.slots["potential"] for s in summands(term)]
-        self.terms, rest_terms = grouped(terms, e.x, e.t, e.p, symbols)
+        split = _split(e.slots["potential"], e.term_batches)
+        terms = [s for parts in split for s in parts]
+        term_batches = _summand_batches(e.term_batches, split)
+        self.terms, rest_terms = grouped(terms, e.x, e.t, e.p, symbols, term_batches)
         self.rest_slots = {**e.slots, "potential": [terms[k] for k in rest_terms]}
         self._functions: dict[str, ca.Function] = {}
 
@@ -217,6 +220,31 @@ class MappedBuild:
         cols = np.concatenate([g.index.ravel(order="F") for g in self.terms])
         sparsity = ca.Sparsity.triplet(self.n3, len(cols), cols.tolist(), list(range(len(cols))))
         return ca.DM(sparsity, 1.0)
+
+
+def _split(terms: list, batches) -> list[list]:
+    """``summands`` of each term; the terms of a Batch with one summand each (a run of springs)
+    are taken whole when its first one is (they are one formula: the same top operation)."""
+    whole = np.zeros(len(terms), bool)
+    for b in batches:
+        if len(b.items) and not b.offsets.any() and len(np.unique(b.items)) == len(b.items):
+            first = terms[b.items[0]]
+            whole[b.items] = len(parts := summands(first)) == 1 and parts[0] is first
+    return [[term] if whole[j] else summands(term) for j, term in enumerate(terms)]
+
+
+def _summand_batches(batches, split: list) -> list[tuple]:
+    """The term Batches (``items``: a potential's place in its slot, ``offsets``: its summand)
+    as (positions among the summands ``split`` flattened, particles, entries of p); a batch
+    whose summands are not where it says (a term that did not unfold as built) is dropped."""
+    counts = np.array([len(parts) for parts in split], dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else counts
+    out = []
+    for b in batches:
+        if len(b.items) and np.all(b.offsets < counts[b.items]) and np.all(
+                np.bincount(b.items, minlength=len(counts))[b.items] == counts[b.items]):
+            out.append((start[b.items] + b.offsets, b.particles, b.numbers))
+    return out
 
 
 def _gather(X, index: np.ndarray) -> ca.MX:

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from .lifting import Number
+from .symbols import Batch
 
 
 def _fmt(value) -> str:
@@ -92,10 +93,16 @@ class Constraint(Labelled):
         raise NotImplementedError
 
     @classmethod
-    def batch_rows(cls, items: list, s) -> list[list[tuple]] | None:
+    def batch_rows(cls, items: list, s) -> tuple[list, Batch | None] | None:
         """``[item.rows(s) for item in items]`` (items of this class) built together in a few
         CasADi calls — the same expressions — with None for an item that has no such form (its
-        ``rows`` is called instead); None when the class has none."""
+        ``rows`` is called instead), and the Batch of the rows built by one formula (its
+        ``items`` index ``items``); None when the class has none."""
+        return None
+
+    def row_batch(self, s) -> Batch | None:
+        """The Batch of this item's rows when ``rows(s)`` builds them all by one formula (its
+        ``items`` 0), else None."""
         return None
 
     def _one_sided(self, unilateral, restitution) -> None:
@@ -198,19 +205,32 @@ class Distance(Constraint):
         return [(ca.norm_2(xa - xb) - length, self.label)]
 
     @classmethod
-    def batch_rows(cls, items: list, s) -> list[list[tuple]] | None:
+    def batch_rows(cls, items: list, s) -> tuple[list, Batch | None]:
         """|x_a − x_b| − length of rods between two particles with lengths that are plain
         numbers (entries of p, constrained.lifting), as whole rows of CasADi matrices: one call
         per operation instead of several per rod (a 10,000-link chain)."""
         plain, norms = pair_distances(items, s, ("length",))
         out: list = [None] * len(items)
         if not plain:
-            return out
+            return out, None
         rods = [items[k] for k in plain]
         lengths = s.number_column([c.length for c in rods])
         for k, row, c in zip(plain, ca.vertsplit(norms.T - lengths, 1), rods, strict=True):
             out[k] = [(row, c.label)]
-        return out
+        return out, pair_batch(items, plain, s, [[c.length for c in rods]])
+
+
+def pair_batch(items: list, plain: list[int], s, numbers: list[list]) -> Batch | None:
+    """The Batch of the items ``plain`` of ``items`` (each between particles ``a`` and ``b``,
+    one row or term each) whose numbers (``numbers``: one list per field) are all lifted."""
+    entries = [s.number_entries(field) for field in numbers]
+    if any(e is None for e in entries):
+        return None
+    index = s._index
+    particles = np.array([[index[items[k].a], index[items[k].b]] for k in plain], dtype=np.int64)
+    n = len(plain)
+    return Batch(np.asarray(plain, np.int64), np.zeros(n, np.int64), particles,
+                 np.stack(entries, axis=1) if entries else np.zeros((n, 0), np.int64))
 
 
 def pair_distances(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], ca.SX | None]:
@@ -282,6 +302,17 @@ class Plane(Constraint):
         rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
         label = self.label
         return [(row, f"{label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
+
+    def row_batch(self, s) -> Batch | None:
+        """The rows n·x_i − offset over the listed particles: one formula, shared numbers."""
+        shared = [v for v in (*self.normal, self.offset) if not (isinstance(v, int | float) and v == 0)]
+        entries = s.number_entries(shared) if not isinstance(self.normal, str) else None
+        if entries is None:  # (a formula of t or of the parameters: no batch)
+            return None
+        n = len(self.particles)
+        particles = np.array([s.index(p, self._where()) for p in self.particles], dtype=np.int64)
+        return Batch(np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
+                     np.repeat(entries[None, :], n, axis=0))
 
 
 class Surface(Constraint):
@@ -355,20 +386,28 @@ class Custom(Constraint):
 BATCH_FROM = 64
 
 
-def constraint_rows(constraints: list, s) -> list:
+def constraint_rows(constraints: list, s) -> tuple[list, list[Batch]]:
     """Each constraint's ``rows(s)``, in order; runs of BATCH_FROM or more constraints of one
-    class through the class's ``batch_rows`` where it has one (the same expressions)."""
-    out, k = [], 0
+    class through the class's ``batch_rows`` where it has one (the same expressions). And the
+    Batches of rows built by one formula (``items``: indices into ``constraints``): a run's,
+    and a constraint's own rows of BATCH_FROM or more."""
+    out, batches, k = [], [], 0
     while k < len(constraints):
         cls, j = type(constraints[k]), k + 1
         while j < len(constraints) and type(constraints[j]) is cls:
             j += 1
         run = constraints[k:j]
-        batch = cls.batch_rows(run, s) if len(run) >= BATCH_FROM and hasattr(cls, "batch_rows") else None
-        batch = batch if batch is not None else [None] * len(run)
-        out += [rows if rows is not None else c.rows(s) for c, rows in zip(run, batch, strict=True)]
+        built = cls.batch_rows(run, s) if len(run) >= BATCH_FROM else None
+        rows, batch = built if built is not None else ([None] * len(run), None)
+        if batch is not None:
+            batches.append(batch.shifted(np.arange(k, j)))
+        for i, (c, item_rows) in enumerate(zip(run, rows, strict=True), k):
+            out.append(item_rows if item_rows is not None else c.rows(s))
+            own = c.row_batch(s) if item_rows is None and len(out[-1]) >= BATCH_FROM else None
+            if own is not None:
+                batches.append(own.shifted([i]))
         k = j
-    return out
+    return out, batches
 
 
 CONSTRAINT_TYPES = {

@@ -19,7 +19,8 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_distances
+from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_distances
+from .symbols import Batch
 
 
 class Effect(Labelled):
@@ -32,6 +33,16 @@ class Effect(Labelled):
 
     def term(self, s):
         raise NotImplementedError
+
+    @classmethod
+    def batch_terms(cls, items: list, s) -> tuple[list, Batch | None] | None:
+        """``[item.term(s) for item in items]`` built together (None for an item without such a
+        form), and the Batch of those built by one formula; None when the class has none."""
+        return None
+
+    def term_batch(self, s) -> Batch | None:
+        """The Batch of the summands of ``term(s)`` when it builds them all by one formula."""
+        return None
 
 
 def _other_end(s, b, point, where):
@@ -65,6 +76,18 @@ class Gravity(Effect):
         P = s.columns(names, where)
         m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
         return -ca.dot(ca.mtimes(g.T, P), m)
+
+    def term_batch(self, s) -> Batch | None:
+        """The summands −m_i g·x_i, one per particle, of plain masses and g."""
+        names = self.particles if self.particles is not None else list(s._index)
+        g = s.number_entries([v for v in self.g if not (isinstance(v, int | float) and v == 0)])
+        if g is None or s.mass_entries is None or not names:
+            return None
+        particles = np.array([s.index(p, self._where()) for p in names], dtype=np.int64)
+        masses = np.asarray(s.mass_entries, np.int64)[particles]
+        n = len(names)
+        return Batch(np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
+                     np.concatenate([np.repeat(g[None, :], n, axis=0), masses[:, None]], axis=1))
 
 
 class Spring(Effect):
@@ -100,13 +123,13 @@ class Spring(Effect):
         plain, norms = pair_distances(items, s, ("k", "rest"))
         out: list = [None] * len(items)
         if not plain:
-            return out
+            return out, None
         springs = [items[j] for j in plain]
         k = s.number_column([e.k for e in springs]).T
         rest = s.number_column([e.rest for e in springs]).T
         for j, term in zip(plain, ca.horzsplit(0.5 * k * (norms - rest) ** 2, 1), strict=True):
             out[j] = term
-        return out
+        return out, pair_batch(items, plain, s, [[e.k for e in springs], [e.rest for e in springs]])
 
 
 class Potential(Effect):
@@ -367,26 +390,36 @@ class Electromagnetic(Effect):
         return U
 
 
-def effect_terms(effects: list, s, skip=()) -> list:
+def effect_terms(effects: list, s, skip=()) -> tuple[list, list[Batch]]:
     """Each effect's ``term(s)`` in order (``ca.SX(0)`` for the indices in ``skip``); runs of
     BATCH_FROM or more effects of one class through the class's ``batch_terms`` where it has
-    one (the same expressions, as ``constraints.constraint_rows``)."""
-    out, k = [], 0
+    one (the same expressions, as ``constraints.constraint_rows``). And the Batches of terms
+    built by one formula (``items``: indices into ``effects``)."""
+    out, batches, k = [], [], 0
     while k < len(effects):
         cls, j = type(effects[k]), k + 1
         while j < len(effects) and type(effects[j]) is cls:
             j += 1
-        run = [e for i, e in enumerate(effects[k:j], k) if i not in skip]
-        batch = cls.batch_terms(run, s) if len(run) >= BATCH_FROM and hasattr(cls, "batch_terms") else None
-        built = iter(batch if batch is not None else [None] * len(run))
+        kept = [i for i in range(k, j) if i not in skip]
+        run = [effects[i] for i in kept]
+        built = cls.batch_terms(run, s) if len(run) >= BATCH_FROM else None
+        terms, batch = built if built is not None else ([None] * len(run), None)
+        if batch is not None:
+            batches.append(batch.shifted(kept))
+        terms = iter(terms)
         for i in range(k, j):
             if i in skip:
                 out.append(ca.SX(0))
-            else:
-                term = next(built)
-                out.append(term if term is not None else effects[i].term(s))
+                continue
+            term = next(terms)
+            if term is None:
+                term = effects[i].term(s)
+                own = effects[i].term_batch(s) if effects[i].slot == "potential" else None
+                if own is not None and len(own.items) >= BATCH_FROM:
+                    batches.append(own.shifted([i]))
+            out.append(term)
         k = j
-    return out
+    return out, batches
 
 
 def _total(terms: list):

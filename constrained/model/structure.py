@@ -74,9 +74,11 @@ class Structure:
         active = set()
 
         rows, labels, owners = ([], []), ([], []), ([], [])  # position rows, then velocity rows
-        built = constraint_rows(system.constraints, s)  # (runs of rods built together)
+        built, batches = constraint_rows(system.constraints, s)  # (runs of rods built together)
+        first_row = np.zeros(len(system.constraints), np.int64)  # each constraint's first row of f
         for k, constraint in enumerate(system.constraints):
             level = int(getattr(constraint, "level", "position") == "velocity")
+            first_row[k] = len(rows[0]) if not level else -1
             for expr, label in built[k]:
                 rows[level].append(expr)
                 labels[level].append(label)
@@ -122,8 +124,11 @@ class Structure:
         self.pair_potentials = PairPotentials(system, s, n3)
         self.pairs, self.pair_owner = self.pair_potentials.terms, self.pair_potentials.owners
         self.n_physical, self.n_p = self.pair_potentials.n_physical, self.pair_potentials.n_p
-        terms = effect_terms(system.effects, s, skip=self.pair_owner)  # (a pair kernel's term: 0)
+        terms, term_batches = effect_terms(system.effects, s, skip=self.pair_owner)  # (a pair kernel's: 0)
+        in_slot = np.full(len(system.effects), -1, np.int64)  # each potential's place in its slot
         for k, effect in enumerate(system.effects):
+            if k not in self.pair_owner and effect.slot == "potential":
+                in_slot[k] = len(slots["potential"])
             slots[effect.slot] += [] if k in self.pair_owner else [terms[k]]
         F, V, U, dU_dv, forcing = forces(slots, x, v, t, deferred=True)  # F(): built when first asked
         active |= forcing
@@ -137,7 +142,9 @@ class Structure:
         self.active_terms = frozenset(active)
         #: The expressions the Functions are made of: the constraint rows (in order) and the
         #: effects' terms by slot (constrained.mapped cuts them into repeated kernels).
-        self.expressions = Expressions(x, v, t, p, rows, slots, terms)
+        self.expressions = Expressions(x, v, t, p, rows, slots, terms,
+                                       tuple(b.placed(first_row) for b in batches),
+                                       tuple(b.placed(in_slot) for b in term_batches))
 
         #: Whether the masses are symbols of p (plain numbers and formulas are): step graphs
         #: then take them from p, not from a Model's numbers.
@@ -149,7 +156,7 @@ class Structure:
         if self.masses_symbolic:
             m = s.mass_column()
             m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1)  # each mass three times, in place
-            entries = s.mass_entries if s.mass_entries is not None else _entries_of(s.masses, p)
+            entries = s.mass_entries if s.mass_entries is not None else s.entries_of(s.masses)
             if entries is not None:
                 self.mass_entries = np.repeat(np.asarray(entries, dtype=np.int64), 3)
         else:
@@ -254,18 +261,6 @@ class Structure:
         return bound
 
 
-def _entries_of(values: list, p: ca.SX) -> np.ndarray | None:
-    """For each of ``values`` that is a bare entry of the symbol vector ``p``, its index in p;
-    None when one is anything else (a formula, a number)."""
-    symbols = {e.element_hash(): k for k, e in enumerate(ca.vertsplit(p))} if p.numel() else {}
-    out = []
-    for e in values:
-        if not isinstance(e, ca.SX) or not e.is_symbolic() or e.element_hash() not in symbols:
-            return None
-        out.append(symbols[e.element_hash()])
-    return np.array(out, dtype=np.int64)
-
-
 @dataclass(frozen=True)
 class Expressions:
     """A Structure's symbols and the SX expressions it is built from: ``rows`` (f's rows, in
@@ -279,6 +274,12 @@ class Expressions:
     rows: list
     slots: dict
     terms: list
+    #: Rows built by one formula: ``items`` the first row of their constraint in ``rows``
+    #: (``offsets`` counted from it).
+    row_batches: tuple = ()
+    #: Potential terms built by one formula: ``items`` the term's place in ``slots["potential"]``,
+    #: ``offsets`` the summand of it (``grouping.summands``).
+    term_batches: tuple = ()
 
 
 class Model:

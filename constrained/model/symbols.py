@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -16,6 +17,32 @@ import numpy as np
 from ..errors import ExpressionError, InputError
 from . import expressions, parameters
 from .lifting import Number
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Rows of f (or terms of V) built by one vectorized formula: instance k is the formula
+    applied to the particles ``particles[k]`` (n, s) and the plain numbers at the entries
+    ``numbers[k]`` (n, q) of p, and it is row (or summand) ``offsets[k]`` of item ``items[k]``
+    (a constraint's rows, an effect's term unfolded into its summands). What the mapped build
+    (constrained.manifold.vectorized.grouping) would otherwise find by comparing every row
+    with candidate kernels; it still checks a sample of the instances."""
+
+    items: np.ndarray
+    offsets: np.ndarray
+    particles: np.ndarray
+    numbers: np.ndarray
+
+    def shifted(self, items: np.ndarray) -> Batch:
+        """This batch with its items renamed ``items[item]`` (an item's place in a longer list)."""
+        return Batch(np.asarray(items, np.int64)[self.items], self.offsets, self.particles, self.numbers)
+
+    def placed(self, first: np.ndarray) -> Batch:
+        """This batch with its items replaced by ``first[item]`` (a constraint's first row of f,
+        a potential's place among the slot's terms), kept only where that is ≥ 0."""
+        items = first[self.items]
+        keep = items >= 0
+        return Batch(items[keep], self.offsets[keep], self.particles[keep], self.numbers[keep])
 
 
 class Symbols:
@@ -90,6 +117,24 @@ class Symbols:
         if values and all(type(v) is Number for v in values) and self._offset is not None:
             return self.p[[self._offset + v.index for v in values]]
         return ca.vertcat(*[self.number(v) for v in values])
+
+    def number_entries(self, values: list) -> np.ndarray | None:
+        """The entries of p of ``values`` when all are Numbers (lifted plain numbers), else None."""
+        if self._offset is None or not all(type(v) is Number for v in values):
+            return None
+        return np.array([self._offset + v.index for v in values], dtype=np.int64)
+
+    def entries_of(self, values: list) -> np.ndarray | None:
+        """For each of ``values`` that is a bare entry of ``p``, its index in p; None when one
+        is anything else (a formula, a number)."""
+        p = self.p
+        symbols = {e.element_hash(): k for k, e in enumerate(ca.vertsplit(p))} if p.numel() else {}
+        out = []
+        for e in values:
+            if not isinstance(e, ca.SX) or not e.is_symbolic() or e.element_hash() not in symbols:
+                return None
+            out.append(symbols[e.element_hash()])
+        return np.array(out, dtype=np.int64)
 
     def mass_column(self, indices=None):
         """The masses of the particles ``indices`` (all by default) as a column: a DM of

@@ -158,11 +158,16 @@ def _kind(e, x, t, p, index, used, symbols: dict, c) -> _Kind | None:
     return _Kind(key, expr, xl, cs, list(lift[1]), None)
 
 
-def _instances(kind: _Kind, p, reads: np.ndarray) -> tuple[list, ca.SX]:
+def _numbers(kind: _Kind, reads: np.ndarray) -> list:
     """The numbers of instances whose reads of p are ``reads`` (n_p, n): per entry of cs
-    ("p", indices into p (n,)) or ("c", value); and cs as SX (k, n)."""
+    ("p", indices into p (n,)) or ("c", value)."""
+    return [("p", reads[value]) if what == "p" else ("c", value) for what, value in kind.numbers]
+
+
+def _instances(kind: _Kind, p, reads: np.ndarray) -> tuple[list, ca.SX]:
+    """``_numbers`` of the instances, and cs as SX (k, n)."""
     n = reads.shape[1]
-    numbers = [("p", reads[value]) if what == "p" else ("c", value) for what, value in kind.numbers]
+    numbers = _numbers(kind, reads)
     if not numbers:
         return numbers, ca.SX(0, n)
     rows = [ca.reshape(p[value.tolist()], 1, n) if what == "p" else ca.SX(ca.DM.ones(1, n) * value)
@@ -297,16 +302,91 @@ def _buckets(colind: np.ndarray, row: np.ndarray, read_colind: np.ndarray) -> li
     return sorted(out, key=lambda ks: ks[0])
 
 
-def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]]:
+def grouped(exprs: list, x, t, p, symbols: dict, batches=()) -> tuple[list[Group], list[int]]:
     """Groups (MIN_GROUP instances or more) of the scalar ``exprs`` by local function, their
     numbers lifted out as per-instance data, and the indices of the others (the rest).
-    ``symbols``: (name, size) -> the local symbol of that size.
+    ``symbols``: (name, size) -> the local symbol of that size. ``batches``: (positions in
+    ``exprs``, particles (n, s), entries of p (n, q)) of instances built by one formula
+    (``model.symbols.Batch``), grouped from those arrays (``batched``).
 
     Rows of one shape (``_buckets``) are tried against the local function of their first row
     all at once (``_same``); only rows that match none of MAX_KINDS functions are cut out one
     by one, so the work per row is a few array operations."""
     if not exprs:
         return [], []
+    found: dict[tuple, list] = {}
+    c = ca.SX.sym("c", MAX_CONSTANTS)
+    claimed = batched(exprs, batches, x, t, p, symbols, c, found)
+    if claimed.any():
+        others = np.flatnonzero(~claimed)
+        rest = _discovered([exprs[k] for k in others], x, t, p, symbols, c, found, others)
+    else:
+        rest = _discovered(exprs, x, t, p, symbols, c, found, None)
+    return _groups(found, rest, p)
+
+
+def batched(exprs: list, batches, x, t, p, symbols: dict, c, found: dict) -> np.ndarray:
+    """Group the instances of ``batches`` (positions, particles, entries of p) into ``found``
+    (kind key -> [kind, chunks]) without comparing every row: the first instance's local
+    function (``_kind``) and its coordinates and reads of p expressed through the batch's
+    particles and entries, applied to every instance by array operations; instances whose
+    coordinates or reads would not come in the same (ascending) order are left to discovery,
+    and so is a whole batch where a sample of its instances is not that function applied to
+    them (``_same``). Which of ``exprs`` were grouped here."""
+    claimed = np.zeros(len(exprs), bool)
+    for positions, particles, numbers in batches:
+        positions = np.asarray(positions, np.int64)
+        if len(positions) < MIN_GROUP or claimed[positions].any():
+            continue
+        first = exprs[positions[0]]
+        index0 = np.array(ca.jacobian_sparsity(first, x).get_col(), np.int64)
+        reads0 = np.array(ca.jacobian_sparsity(first, p).get_col(), np.int64) if p.numel() else index0[:0]
+        # each local coordinate as (the batch's particle slot, the component); each read as a slot
+        slot = [np.flatnonzero(particles[0] == i // 3) for i in index0]
+        which = [np.flatnonzero(numbers[0] == r) for r in reads0]
+        if not len(index0) or any(len(s) != 1 for s in (*slot, *which)):
+            continue
+        index = (3 * particles[:, [s[0] for s in slot]] + index0 % 3).T  # (d, n)
+        reads = numbers[:, [w[0] for w in which]].T  # (n_p, n)
+        ordered = np.all(np.diff(index, axis=0) > 0, axis=0) & np.all(np.diff(reads, axis=0) > 0, axis=0)
+        kind = _kind(first, x, t, p, index[:, 0], reads[:, 0], symbols, c) if ordered[0] else None
+        if kind is None or np.count_nonzero(ordered) < MIN_GROUP:
+            continue
+        members = np.flatnonzero(ordered)
+        sample = members[np.unique(np.linspace(0, len(members) - 1, 8).round().astype(np.int64))]
+        if not _same(kind, exprs, positions[sample], index[:, sample], reads[:, sample], x, t, p).all():
+            continue
+        # instances whose coordinates come in another order (a spring from b to a): the kernel
+        # on their ascending coordinates, where a sample of each order shows it is the row (the
+        # formula is then symmetric under that exchange: discovery would find them the same)
+        others = np.flatnonzero(~ordered)
+        order = np.concatenate([np.argsort(index[:, others], axis=0), np.argsort(reads[:, others], axis=0)])
+        index[:, others] = np.sort(index[:, others], axis=0)
+        reads[:, others] = np.sort(reads[:, others], axis=0)
+        distinct = np.all(np.diff(index[:, others], axis=0) > 0, axis=0) & np.all(
+            np.diff(reads[:, others], axis=0) > 0, axis=0)
+        others, order = others[distinct], order[:, distinct]
+        if len(others):
+            _, pattern = np.unique(order, axis=1, return_inverse=True)
+            for u in range(int(pattern.max()) + 1):
+                these = others[pattern.ravel() == u]
+                sample = these[np.unique(np.linspace(0, len(these) - 1, 8).round().astype(np.int64))]
+                if _same(kind, exprs, positions[sample], index[:, sample], reads[:, sample], x, t, p).all():
+                    members = np.concatenate([members, these])
+            members = np.sort(members)
+        numbers_of = _numbers(kind, reads[:, members])
+        found.setdefault(kind.key, [kind, []])[1].append(
+            (positions[members], index[:, members], (len(members), numbers_of)))
+        claimed[positions[members]] = True
+    return claimed
+
+
+def _discovered(exprs: list, x, t, p, symbols: dict, c, found: dict, places) -> list[int]:
+    """Group ``exprs`` by comparing them with candidate kernels (into ``found``, their
+    positions ``places[k]``; None: k) and return the positions of the rest."""
+    if not exprs:
+        return []
+    place = (lambda ks: ks) if places is None else (lambda ks: places[ks])
     stacked = ca.vertcat(*exprs)
     if stacked.numel() != len(exprs) or not stacked.is_column():  # (one check, not one per row)
         raise ValueError("the rows and terms of the mapped build are scalars")
@@ -320,9 +400,7 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
         read_colind, read_row = np.array(reads.colind(), np.int64), np.array(reads.row(), np.int64)
     else:
         read_colind, read_row = np.zeros(len(exprs) + 1, np.int64), np.zeros(0, np.int64)
-    c = ca.SX.sym("c", MAX_CONSTANTS)
     values = _row_values(rows, x, t, p)  # (None: each bucket compared in SX)
-    found: dict[tuple, list] = {}
     rest = []
 
     def gathered(ks, colind, row, width):  # (width, len(ks)): each row's entries as a column
@@ -333,7 +411,7 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
     for ks in _buckets(colind, row, read_colind):
         d, n_p = int(colind[ks[0] + 1] - colind[ks[0]]), int(read_colind[ks[0] + 1] - read_colind[ks[0]])
         if d == 0:
-            rest += ks.tolist()
+            rest += place(ks).tolist()
             continue
         index, reads = gathered(ks, colind, row, d), gathered(ks, read_colind, read_row, n_p)
         left = np.ones(len(ks), bool)
@@ -343,7 +421,7 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
             first = int(np.argmax(left))
             kind = _kind(exprs[ks[first]], x, t, p, index[:, first], reads[:, first], symbols, c)
             if kind is None:
-                rest.append(int(ks[first]))
+                rest.append(int(place(ks[first])))
                 left[first] = False
                 continue
             todo = np.flatnonzero(left)
@@ -351,17 +429,23 @@ def grouped(exprs: list, x, t, p, symbols: dict) -> tuple[list[Group], list[int]
                     else _same_at_points(kind, values, ks[todo], index[:, todo], reads[:, todo], x, t, p))
             same[0] = True  # (the row it was cut from, whatever the comparison says)
             members = todo[same]
-            numbers, _ = _instances(kind, p, reads[:, members])
-            chunk = (ks[members], index[:, members], (len(members), numbers))
+            numbers = _numbers(kind, reads[:, members])
+            chunk = (place(ks[members]), index[:, members], (len(members), numbers))
             found.setdefault(kind.key, [kind, []])[1].append(chunk)
             left[members] = False
         for i in np.flatnonzero(left):  # one by one
             kind = _kind(exprs[ks[i]], x, t, p, index[:, i], reads[:, i], symbols, c)
             if kind is None:
-                rest.append(int(ks[i]))
+                rest.append(int(place(ks[i])))
                 continue
-            numbers, _ = _instances(kind, p, reads[:, [i]])
-            found.setdefault(kind.key, [kind, []])[1].append((ks[[i]], index[:, [i]], (1, numbers)))
+            numbers = _numbers(kind, reads[:, [i]])
+            found.setdefault(kind.key, [kind, []])[1].append((place(ks[[i]]), index[:, [i]], (1, numbers)))
+    return rest
+
+
+def _groups(found: dict, rest: list, p) -> tuple[list[Group], list[int]]:
+    """The Groups of ``found`` (kind key -> [kind, chunks of instances]) with MIN_GROUP
+    instances or more, sorted by their first row, and the rest (sorted)."""
     groups = []
     for kind, chunks in found.values():
         place = np.concatenate([k for k, _, _ in chunks])
