@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import re
 import signal
 import sys
 import warnings
@@ -76,6 +77,10 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         verb = self.prog.split()[-1] if " " in self.prog else None
         where = f"{verb}: " if verb else ""
+        missing = re.fullmatch(r"argument (--[\w-]+): expected one argument", message)
+        if missing:  # argparse reads a value such as -k*x as an option
+            option = missing.group(1)
+            message += f"; a value that starts with '-' must be attached with '=', e.g. {option}=-k*x"
         _say_error(f"{where}{message} (see '{PROG} --help')")
         raise SystemExit(2)
 
