@@ -251,6 +251,29 @@ def test_rheonomic_and_driven_scenes():
                                      " - 0.981*(a*cos(nu*t) + l*cos(th))").ok
 
 
+def test_small_terms_random_states_must_not_miss():
+    """Terms that vanish at rest, matter only at large angles, or carry a gram beside a kilogram."""
+    pendulum = C.load_scene(SCENARIOS / "simple_pendulum.toml")  # g = 9.81, l = 1, th0 = 0.2
+    (taylor,) = check_equations(pendulum, ["th_ddot + g/l*(th - th**3/6) = 0"])
+    th = taylor.state["th"]
+    assert not taylor.ok and taylor.residual == pytest.approx(abs(9.81 * (th - th**3 / 6 - math.sin(th))),
+                                                              rel=1e-6)
+    double = C.load_scene(DOUBLE)
+    (at_rest,) = check_equations(double, [DOUBLE_Q1.replace(" + m2*l2*q2_dot**2*sin(q1 - q2)", "")])
+    s = at_rest.state
+    missing = abs(s["q2_dot"] ** 2 * math.sin(s["q1"] - s["q2"]))  # m2 = l2 = 1
+    assert not at_rest.ok and at_rest.residual == pytest.approx(missing, rel=1e-9)
+    (gram,) = check_equations(double, [DOUBLE_Q1.replace("+ m2*l2*q2_dot**2", "- m2*l2*q2_dot**2")],
+                              parameters={"m2": 1e-3})
+    s = gram.state
+    assert not gram.ok and gram.residual == pytest.approx(
+        abs(2e-3 * s["q2_dot"] ** 2 * math.sin(s["q1"] - s["q2"])), rel=1e-6)
+    atwood = C.load_scene(SCENARIOS / "atwood_machine.toml")  # masses 3 kg and 2 kg as numbers
+    (right,) = check_equations(atwood, ["(m1 + m2)*q_ddot = (m1 - m2)*g"])
+    assert right.ok and "m1 = 3, m2 = 2 held" in right.message
+    assert not check_equations(atwood, ["(m1 - m2)*q_ddot = (m1 + m2)*g"])[0].ok
+
+
 # --- bad input ------------------------------------------------------------------------------------
 
 

@@ -333,8 +333,9 @@ def beyond_scene_values(variation: ParameterVariation, check: EquationCheck, nam
         blame = (f"; it fails when {' or '.join(alone)} alone changes: look for a slip in "
                  f"{'them' if len(alone) > 1 else 'it'}" if alone else "")
         finding = other.message[len(other.label):] if other.message.startswith(other.label) else other.message
-        message = (f"{check.label} holds at the scene's parameter values ({was}), which hide a slip: at "
-                   f"{text} it{finding}{blame} (meant for these values only, it is right for them)")
+        where = f"at {text} it{finding}" if finding.startswith(" ") else f"at {text}{finding}"
+        message = (f"{check.label} holds at the scene's parameter values ({was}), which hide a slip: "
+                   f"{where}{blame} (meant for these values only, it is right for them)")
         return EquationCheck(check.equation, False, other.residual, other.relative_residual, message,
                              other.state, check.label, values)
     return _appended(check, f"; also at {VARIANTS} other sets of values of {', '.join(names)}{held}")

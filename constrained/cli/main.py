@@ -138,9 +138,11 @@ def build_parser() -> argparse.ArgumentParser:
         verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
         "Without options print T, V, L, the momenta and Lagrange's equations of "
         "SCENE's [reduced] coordinates, in the names of its [parameters] (--latex: as LaTeX, "
-        "through SymPy, the 'pretty' extra). With options check each candidate at random states "
-        "and print one verdict line per check (OK or WRONG with where it disagrees); exit "
-        "0 when all are right, 1 when one is wrong, 2 on bad input.",
+        "through SymPy, the 'pretty' extra). With options check each candidate at random states, "
+        "and again at other values of the [parameters] it names (a slip such as l1 for l2 is "
+        "invisible at l1 = l2), and print one verdict line per check (OK or WRONG with where it "
+        "disagrees); exit 0 when all are right, 1 when one is wrong, 2 on bad input (also a "
+        "candidate that is not finite at a sampled state).",
         "derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
         "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
         "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",
