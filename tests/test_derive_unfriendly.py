@@ -310,3 +310,8 @@ def test_cli_verdicts_on_unfriendly_scenes(capsys):
     assert main(["derive", str(SCENARIOS / "spherical_pendulum.toml"), "--set", "reduced.initial.th=0",
                  "--equation", "sin(th)*ph_ddot + 2*cos(th)*th_dot*ph_dot = 0"]) == 0
     assert "left out" in capsys.readouterr().out
+    # w = 1e200 rad/s: q̈ overflows everywhere (it was WRONG "by nan", exit 1)
+    assert main(["derive", str(SCENARIOS / "bead_on_rotating_hoop.toml"), "--set", "parameters.w=1e200",
+                 "--equation", "th_ddot = w**2*sin(th)*cos(th) - 9.81*sin(th)"]) == 2
+    err = capsys.readouterr().err
+    assert "the equations overflow" in err and "Traceback" not in err

@@ -119,8 +119,7 @@ class States:
         text = f"; {self.narrowed}" if self.narrowed else ""
         if self.dropped:
             text += (f"; {self.dropped} sampled state(s) left out where the derived equations do not "
-                     f"determine q̈ (the coordinates are singular there: ∂²L/∂q̇² singular), e.g. "
-                     f"{self.dropped_at}")
+                     f"determine q̈, e.g. {self.dropped_at}")
         return text
 
 
@@ -135,6 +134,15 @@ def _singular(M: np.ndarray) -> bool:
     return bool(sv[-1] <= SINGULAR_RTOL * sv[0])
 
 
+#: Why a sampled state was left out: the reason's text in the verdict.
+_DROPPED = {
+    "singular": "the coordinates are singular there: ∂²L/∂q̇² singular, so q̈ is not determined",
+    "map": "the map is not finite there",
+    "overflow": "q̈ is not finite there though ∂²L/∂q̇² is regular: the equations overflow, so check "
+                "the parameter values (rescale the units)",
+}
+
+
 def regular_states(rm: ReducedModel, samples: int, seed: int) -> States:
     """``samples`` random states (``ReducedModel.sample_states``), the rates brought onto the
     velocity constraints, q̈ (and μ) from the derived equations; states where the mass matrix is
@@ -143,6 +151,9 @@ def regular_states(rm: ReducedModel, samples: int, seed: int) -> States:
     keep, acc, mus, dropped = [], [], [], []
     with np.errstate(all="ignore"):
         for i in range(samples):
+            if not np.all(np.isfinite(np.asarray(rm.position(Q[i], Ts[i]), float))):
+                dropped.append((i, "map"))
+                continue
             try:
                 qd = rm.consistent_rates(Q[i], Qd[i], Ts[i])
                 M = np.asarray(rm.mass_rhs(Q[i], qd, Ts[i])[0], float)
@@ -150,31 +161,31 @@ def regular_states(rm: ReducedModel, samples: int, seed: int) -> States:
                 mu = (np.asarray(rm.velocity_multipliers(Q[i], qd, Ts[i]), float).ravel()
                       if rm.n_velocity_rows else np.zeros(0))
             except np.linalg.LinAlgError:
-                dropped.append(i)
+                dropped.append((i, "singular"))
                 continue
             if _singular(M) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(mu))):
-                dropped.append(i)
+                dropped.append((i, "singular" if _singular(M) else "overflow"))
                 continue
             Qd[i] = qd
             keep.append(i)
             acc.append(a)
             mus.append(mu)
-    first = _state_text(_state_of(rm, Q[dropped[0]], Qd[dropped[0]], Ts[dropped[0]])) if dropped else ""
+    first, why = "", ""
+    if dropped:
+        i, reason = dropped[0]
+        first, why = _state_text(_state_of(rm, Q[i], Qd[i], Ts[i])), _DROPPED[reason]
     if not keep:
-        with np.errstate(all="ignore"):
-            undefined = not np.all(np.isfinite(np.asarray(rm.position(Q[0], Ts[0]), float)))
-        why = ("the map is not finite there" if undefined else "the mass matrix ∂²L/∂q̇² is singular "
-               "there, so the coordinates are singular near the [reduced] initial values; move the initial "
-               "values away from that point")
+        advice = ("; move the [reduced] initial values away from that point" if why == _DROPPED["singular"]
+                  else "")
         raise InputError(f"the derived Lagrange equations do not determine q̈ at any of {samples} sampled "
-                         f"states (e.g. at {first}): {why}", where="reduced")
+                         f"states (e.g. at {first}): {why}{advice}", where="reduced")
     narrowed = ""
     if np.any(rm.spread < np.maximum(1.0, np.abs(rm.initial))):  # check_map found the map's domain
         half = zip(rm.coordinates, rm.spread / 2, strict=True)
         narrowed = ("states within " + ", ".join(f"{c} ± {h:.3g}" for c, h in half)
                     + " of the initial values, where the map is defined")
     return States(Q[keep], Qd[keep], Ts[keep], np.array(acc), np.array(mus).reshape(len(keep), -1),
-                  len(dropped), first, narrowed)
+                  len(dropped), f"{first}: {why}" if dropped else "", narrowed)
 
 
 def not_finite(label: str, state: dict, values: str = "") -> InputError:
