@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import re
 import signal
 import sys
 import warnings
@@ -76,6 +77,10 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         verb = self.prog.split()[-1] if " " in self.prog else None
         where = f"{verb}: " if verb else ""
+        missing = re.fullmatch(r"argument (--[\w-]+): expected one argument", message)
+        if missing:  # argparse reads a value such as -k*x as an option
+            option = missing.group(1)
+            message += f"; a value that starts with '-' must be attached with '=', e.g. {option}=-k*x"
         _say_error(f"{where}{message} (see '{PROG} --help')")
         raise SystemExit(2)
 
@@ -133,9 +138,11 @@ def build_parser() -> argparse.ArgumentParser:
         verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
         "Without options print T, V, L, the momenta and Lagrange's equations of "
         "SCENE's [reduced] coordinates, in the names of its [parameters] (--latex: as LaTeX, "
-        "through SymPy, the 'pretty' extra). With options check each candidate at random states "
-        "and print one verdict line per check (OK or WRONG with where it disagrees); exit "
-        "0 when all are right, 1 when one is wrong, 2 on bad input.",
+        "through SymPy, the 'pretty' extra). With options check each candidate at random states, "
+        "and again at other values of the [parameters] it names (a slip such as l1 for l2 is "
+        "invisible at l1 = l2), and print one verdict line per check (OK or WRONG with where it "
+        "disagrees); exit 0 when all are right, 1 when one is wrong, 2 on bad input (also a "
+        "candidate that is not finite at a sampled state).",
         "derive scenarios/double_pendulum.toml --set parameters.g=9.81 "
         "--set parameters.m=1 --set parameters.l=1 \\\n    --lagrangian \"0.5*m*l**2*(2*th1_dot**2 + "
         "th2_dot**2 + 2*th1_dot*th2_dot*cos(th1-th2)) + m*g*l*(2*cos(th1) + cos(th2))\"",

@@ -108,6 +108,61 @@ def parse(text: str | float | int, names: Mapping[str, object], *, where: str = 
     return _Walker(text, names, where).visit(tree.body)
 
 
+def terms(text: str, names: Mapping[str, object], *, where: str = "formula", limit: int = 400) -> list:
+    """The additive terms of a formula, as CasADi expressions whose sum is ``parse(text)``:
+    sums split, signs carried in, products and quotients distributed over sums
+    (``a*(b + c)/d`` → ``a*b/d``, ``a*c/d``) as long as one product gives at most ``limit``
+    terms. A residual is sized against them: terms that cancel in it show its scale.
+
+    Long chains (``a + b + c + …``, thousands of terms) are walked in loops, not recursion,
+    as ``parse`` walks them; ``parse(text)`` runs first, so the limits and messages are its own."""
+    parse(text, names, where=where)
+    tree = _syntax_tree(text, where)
+    walker = _Walker(text, names, where)
+    return [walker.visit(node) for node in _expand(tree.body, limit)]
+
+
+def _spine(node: ast.AST, ops: tuple) -> tuple[ast.AST, list]:
+    """A left-nested chain ``((a op b) op c) …`` as ``a, [(op, b), (op, c), …]`` (in a loop)."""
+    links = []
+    while isinstance(node, ast.BinOp) and isinstance(node.op, ops):
+        links.append((node.op, node.right))
+        node = node.left
+    return node, links[::-1]
+
+
+def _negated(node: ast.AST) -> ast.AST:
+    return node.operand if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub) \
+        else ast.UnaryOp(ast.USub(), node)
+
+
+def _expand(node: ast.AST, limit: int) -> list[ast.AST]:
+    """``terms``' syntax trees: recursion only into nested operands (at most MAX_DEPTH deep)."""
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+        inner = _expand(node.operand, limit)
+        return inner if isinstance(node.op, ast.UAdd) else [_negated(t) for t in inner]
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add | ast.Sub):
+        first, links = _spine(node, (ast.Add, ast.Sub))
+        out = _expand(first, limit)
+        for op, right in links:
+            part = _expand(right, limit)
+            out += part if isinstance(op, ast.Add) else [_negated(t) for t in part]
+        return out
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Mult | ast.Div):
+        first, links = _spine(node, (ast.Mult, ast.Div))
+        out = _expand(first, limit)
+        for op, right in links:
+            if isinstance(op, ast.Div):
+                out = [ast.BinOp(t, ast.Div(), right) for t in out]
+                continue
+            part = _expand(right, limit)
+            if len(out) * len(part) > limit:
+                return [node]
+            out = [ast.BinOp(a, ast.Mult(), b) for a in out for b in part]
+        return out
+    return [node]
+
+
 def _short(text: str, limit: int = 60) -> str:
     """``text`` quoted, shortened to ``limit`` characters for messages."""
     text = text.strip()

@@ -119,6 +119,7 @@ class ReducedModel:
             if k not in own:
                 self.parameters[k] = _number(v, f"parameters.{k}")
         self.initial = self._values(initial, "initial", complete=initial is not None)
+        self.spread = np.maximum(1.0, np.abs(self.initial))  # of sample_states; check_map may narrow it
         self.rates = self._values(rates, "rates", complete=False)
         self.t0 = _number(t0, "t0")
 
@@ -289,11 +290,11 @@ class ReducedModel:
 
     # --- checks of the map -----------------------------------------------------------------
     def sample_states(self, samples: int = 20, seed: int = 0):
-        """Random (q, q̇, t) near the initial values: q = q0 + U(−½, ½)·max(1, |q0|),
-        q̇ ~ N(0, 1) + rates, t ∈ [t0, t0 + 1]. The first sample is (q0, rates, t0)."""
+        """Random (q, q̇, t) near the initial values: q = q0 + U(−½, ½)·``spread`` (max(1, |q0|),
+        narrowed by ``check_map`` where the map is not defined that far out), q̇ ~ N(0, 1) + rates,
+        t ∈ [t0, t0 + 1]. The first sample is (q0, rates, t0)."""
         rng = np.random.default_rng(seed)
-        spread = np.maximum(1.0, np.abs(self.initial))
-        Q = self.initial + rng.uniform(-0.5, 0.5, (samples, self.n)) * spread
+        Q = self.initial + rng.uniform(-0.5, 0.5, (samples, self.n)) * self.spread
         Qd = self.rates + rng.standard_normal((samples, self.n))
         Ts = self.t0 + rng.uniform(0.0, 1.0, samples)
         Q[0], Qd[0], Ts[0] = self.initial, self.rates, self.t0
@@ -329,15 +330,22 @@ class ReducedModel:
     def check_map(self, samples: int = 20, seed: int = 0) -> None:
         """Refuse a map that leaves the constraint manifold or does not parametrize it.
 
-        ``|f(x(q, t), t)| ≤ 1e-9 × size`` at every sample, and ``rank ∂x/∂q = n = DOF``."""
+        ``|f(x(q, t), t)| ≤ 1e-9 × size`` at every sample, and ``rank ∂x/∂q = n = DOF``. Where the
+        map is not finite at some samples but is at the initial values (a domain such as
+        sqrt(l² − X²), |X| < l), the samples' ``spread`` is halved until it is finite at all."""
         from ..manifold.constraint_report import constraint_report
 
-        Q, _, Ts = self.sample_states(samples, seed)
         where = "reduced.map"
-        X = [np.asarray(self.position(q, t)).ravel() for q, t in zip(Q, Ts, strict=True)]
-        if not all(np.all(np.isfinite(x)) for x in X):
-            k = next(i for i, x in enumerate(X) if not np.all(np.isfinite(x)))
-            raise InputError(f"the map is not finite at {self._state_text(Q[k], None, Ts[k])}", where=where)
+        for _ in range(40):
+            Q, _, Ts = self.sample_states(samples, seed)
+            X = [np.asarray(self.position(q, t)).ravel() for q, t in zip(Q, Ts, strict=True)]
+            bad = [i for i, x in enumerate(X) if not np.all(np.isfinite(x))]
+            if not bad or bad[0] == 0:
+                break
+            self.spread = self.spread / 2
+        if bad:
+            raise InputError(f"the map is not finite at {self._state_text(Q[bad[0]], None, Ts[bad[0]])}",
+                             where=where)
         size = max(self.system.size(), max(float(np.max(np.abs(x), initial=0.0)) for x in X), 1e-300)
         report = constraint_report(self.system, X[0], float(Ts[0]), model=self.model)
         dof = report.generic_degrees_of_freedom
