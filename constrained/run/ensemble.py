@@ -5,7 +5,9 @@ Every variant is a column of one state matrix ``[x; v; a; scalars; p]`` (the lay
 step, folded ``CHUNK`` times and mapped over a block of columns — advances all of them in
 one CasADi call, each with its own adaptive step size, error control and projection. A
 column that fails (non-finite values, a projection that no longer converges, the step
-limit) is frozen at its last good state and reported; the others go on.
+limit) is frozen at its last good state (its last good attempt: variants/stops.py) and
+reported, and so is one whose steps a stiff spring or damper holds down, by the single run's
+stiffness watch on its share of the batch's clock (variants/watch.py); the others go on.
 
 The start of each variant is its system's for those parameter values (positions and
 velocities may be formulas of the parameters), projected onto the constraints in one
@@ -35,10 +37,12 @@ from ..model.cache import ParametricView, structure_cache
 from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
 from ..model.system import require_system
-from ..solvers.dopri import NOT_FINITE, PROJECTION_FAIL, SCALARS, Dopri
+from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from ..solvers.driver import DEFAULT_MAX_STEPS
 from ..threads import available_cores, one_blas_thread
 from .variants import reasons
+from .variants.stops import Replay, judge
+from .variants.watch import MemberWatch
 
 #: Steps (attempts) one call advances every column by.
 CHUNK = 64
@@ -393,6 +397,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         running = np.array([s == "completed" for s in status])
         scale = np.maximum(1.0, np.max(np.abs(xs), axis=1))
         report, bar = _progress(progress, n_var)
+        watch = MemberWatch(model, P, xs, t_start, t_end)  # (each member's share of the clock)
+        replay = Replay(dopri._chunks, scal["res"], CHUNK)
         with interrupt.watch():
             for j, target in enumerate(targets):
                 S[scal["t_target"]] = np.where(running, target, S[scal["t"]])
@@ -413,9 +419,14 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         padded = np.zeros((S.shape[0], width))
                         padded[:, :cols.size] = S[:, cols]
                         padded[:, cols.size:] = S[:, cols[:1]]  # (filler columns, results dropped)
+                        tick = watch.clock()
                         (out,) = chunk(padded.ravel(order="F"))
-                        new = out.reshape(width, -1).T[:, :cols.size]
-                        _judge(new, S, cols, status, running, scal, scale, limit)
+                        watch.charge(cols, watch.clock() - tick)
+                        judge(out.reshape(width, -1).T[:, :cols.size], S, cols, status, running, scal,
+                              scale, limit, replay)
+                        held = watch.stops(cols[running[cols]], S[scal["t"]], S[scal["n_acc"]], S[:n3])
+                        for k, why in held:
+                            status[k], running[k], messages[k] = "stiff", False, why
                     if report is not None:
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)
@@ -501,24 +512,3 @@ def _hairer(x, v, a, P, t0: float, t_end: float, dopri: Dopri, accel) -> np.ndar
     h1 = np.where(big <= 1e-15, np.maximum(1e-6, h0 * 1e-3),
                   (0.01 / np.maximum(big, 1e-300)) ** (1 / (order + 1)))
     return np.minimum(np.minimum(100 * h0, h1), t_end - t0)
-
-
-def _judge(new: np.ndarray, S: np.ndarray, cols: np.ndarray, status: list, running: np.ndarray,
-           scal: dict, scale: np.ndarray, max_steps: int | None) -> None:
-    """Take the chunk's columns that stayed good; freeze and report the others."""
-    finite = np.all(np.isfinite(new), axis=0)
-    residual_ok = new[scal["res"]] <= PROJECTION_FAIL * scale[cols]
-    for i, k in enumerate(cols):
-        if not finite[i]:
-            status[k], running[k] = "non-finite", False
-        elif not residual_ok[i]:
-            status[k], running[k] = "projection failed", False
-        else:
-            S[:, k] = new[:, i]
-            if max_steps and S[scal["n_acc"], k] + S[scal["n_rej"], k] > max_steps:
-                status[k], running[k] = "step limit", False
-            elif S[scal["t"], k] < S[scal["t_target"], k] and \
-                    S[scal["h"], k] < 1e-14 * max(1.0, abs(S[scal["t"], k])):
-                # (every trial came out non-finite: dopri.NOT_FINITE)
-                status[k] = "non-finite" if S[scal["rejected"], k] == NOT_FINITE else "step size collapsed"
-                running[k] = False

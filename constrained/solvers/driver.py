@@ -24,7 +24,7 @@ import numpy as np
 from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
 from .events import dense_root, dip, locate
-from .stiffness import StiffnessWatch
+from .stiffness import StiffnessWatch, stiff_stop
 from .watches import CollapseWatch, SingularWatch, past_a_limit
 
 #: A run given no output times keeps its accepted steps, but at most one per this fraction of
@@ -324,9 +324,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
                 break
             verdict = run.stiffness.check(run.last[0], steps, run.last[1])
             if verdict:
-                fast = "relaxation" if "relaxes velocities" in verdict else "oscillation"
-                failure = Failure(Status.STIFF, f"the steps follow a fast {fast} at "
-                                                f"t = {run.last[0]:.6g} s; {verdict}")
+                failure = Failure(Status.STIFF, stiff_stop(verdict, run.last[0]))
                 break
             t_stop = run.t_stop()
             previous_t = run.last[0]

@@ -192,6 +192,13 @@ def _at_t(model, value, where: str, t: float) -> float:
                             float).ravel()[0])
 
 
+def stiff_stop(verdict: str, t: float) -> str:
+    """The sentence of a run the watch stopped at t: the fast motion that held its steps down
+    (a spring's oscillation, a damper's relaxation), then the watch's ``verdict``."""
+    fast = "relaxation" if "relaxes velocities" in verdict else "oscillation"
+    return f"the steps follow a fast {fast} at t = {float(t):.6g} s; {verdict}"
+
+
 class StiffnessWatch:
     """Watches a run for a spring that holds the steps down to its own oscillation.
 
@@ -207,6 +214,8 @@ class StiffnessWatch:
 
     AFTER_S = 2.0
     BUDGET_S = 15.0
+    #: After AFTER_S, the watch looks again every this many seconds of wall time.
+    EVERY_S = 0.5
     MIN_PERIODS = 1e3
     #: Steps averaging less than this many relaxation times m/c are held down by a damper
     #: (an explicit method's stability limit is a few m/c).
@@ -227,11 +236,20 @@ class StiffnessWatch:
         now = self._clock()
         if now < self.next:
             return None
-        self.next = now + 0.5
+        self.next = now + self.EVERY_S
         done = float(t) - self.t0
         projected = np.inf if done <= 0 else (now - self.started) * (self.t_end - self.t0) / done
+        return self.verdict(t, steps, x, projected)
+
+    def verdict(self, t: float, steps: int, x, projected: float) -> str | None:
+        """The diagnosis of a run at (t, x) after ``steps`` accepted steps whose pace projects
+        ``projected`` seconds of wall time to t_end: at least BUDGET_S, and the mean step
+        (t − t0)/steps within the period 2π/ω of a barely stretched spring (or HELD relaxation
+        times m/c of a damper); else None. The caller keeps the clock (``check``: the run's;
+        a batch: each member's share of it, run/variants/watch.py)."""
         if projected < self.BUDGET_S:
             return None
+        done = float(t) - self.t0
         element = self.fastest(x, t)
         if element is not None and element.rigid_like and not (steps and done / steps > element.period):
             return self.describe(element, t, steps, projected)

@@ -84,8 +84,8 @@ def mass_reason(model: Model, p: np.ndarray) -> str:
 def stiffness_reason(m: Model, x: np.ndarray, t: float, t0: float, t_end: float, steps: int) -> str | None:
     """The stiffness watch's sentence for a variant whose mean step (t − t0)/steps is held below
     the period of its fastest spring (or HELD relaxation times m/c of a damper) — the advice its
-    own run's ``StiffnessWatch`` gives (that watch reads the wall clock, so a batch cannot run it
-    as it goes; it is asked when a variant stops) — else None."""
+    own run's ``StiffnessWatch`` gives, for a variant stopped by its step budget or a collapse
+    (one that would take too long is stopped before, by ``watch.MemberWatch``) — else None."""
     from ...solvers.stiffness import StiffnessWatch
 
     if not steps or not t > t0:
