@@ -360,12 +360,14 @@ def batched(exprs: list, batches, x, t, p, symbols: dict, c, found: dict) -> np.
         # on their ascending coordinates, where a sample of each order shows it is the row (the
         # formula is then symmetric under that exchange: discovery would find them the same)
         others = np.flatnonzero(~ordered)
-        order = np.concatenate([np.argsort(index[:, others], axis=0), np.argsort(reads[:, others], axis=0)])
-        index[:, others] = np.sort(index[:, others], axis=0)
-        reads[:, others] = np.sort(reads[:, others], axis=0)
-        distinct = np.all(np.diff(index[:, others], axis=0) > 0, axis=0) & np.all(
-            np.diff(reads[:, others], axis=0) > 0, axis=0)
-        others, order = others[distinct], order[:, distinct]
+        if len(others):
+            order = np.concatenate([np.argsort(index[:, others], axis=0),
+                                    np.argsort(reads[:, others], axis=0)])
+            index[:, others] = np.sort(index[:, others], axis=0)
+            reads[:, others] = np.sort(reads[:, others], axis=0)
+            distinct = np.all(np.diff(index[:, others], axis=0) > 0, axis=0) & np.all(
+                np.diff(reads[:, others], axis=0) > 0, axis=0)
+            others, order = others[distinct], order[:, distinct]
         if len(others):
             _, pattern = np.unique(order, axis=1, return_inverse=True)
             for u in range(int(pattern.max()) + 1):
