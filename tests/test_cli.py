@@ -143,6 +143,33 @@ def test_check_reports_singular_configuration(tmp_path, capsys):
     assert "configuration: SINGULAR" in out
 
 
+def test_check_of_a_large_scene_lists_the_first_items_and_counts_the_rest(tmp_path, capsys):
+    """A 60-bead chain hanging from a point, each rod stated twice (redundant rows of their
+    own): the listing stops at LISTED particles, rows and redundant rows and says how many
+    more there are; the summary is the whole scene's (3·60 − 60 = 120 degrees of freedom);
+    --all lists every one."""
+    from constrained.cli.text import LISTED
+
+    n = 60
+    text = "".join(f'[[particles]]\nname = "p{i}"\nmass = 0.01\nposition = [{0.01 * (i + 1)}, 0, 0]\n'
+                   for i in range(n))
+    text += '[[constraints]]\ntype = "distance"\na = "p0"\npoint = [0, 0, 0]\nlength = 0.01\n'
+    for _ in range(2):
+        text += "".join(f'[[constraints]]\ntype = "distance"\na = "p{i - 1}"\nb = "p{i}"\nlength = 0.01\n'
+                        for i in range(1, n))
+    path = write(tmp_path, text)
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "degrees of freedom 120" in out and "constraint rows 119, rank 60" in out
+    assert f"p{LISTED - 1}: mass" in out and f"p{LISTED}: mass" not in out
+    assert f"… {n - LISTED} more particles (--all lists them)" in out
+    assert f"… {2 * n - 1 - LISTED} more rows (--all lists them)" in out
+    assert f"… {n - 1 - LISTED} more (--all lists them)" in out  # the 59 redundant rods
+    assert main(["check", str(path), "--all"]) == 0
+    every = capsys.readouterr().out
+    assert f"p{n - 1}: mass" in every and f"[{2 * n - 2}] " in every and "more" not in every
+
+
 def test_help_lists_verbs_with_examples(capsys):
     assert main(["--help"]) == 0
     out = capsys.readouterr().out

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 from .._version import __version__
 from ..errors import InputError
-from .text import PROG, ReaderGone, _say_error
+from .text import LISTED, PROG, ReaderGone, _say_error
 
 __all__ = ["main", "build_parser", "trajectory_csv"]  # noqa: F822 (trajectory_csv: __getattr__)
 
@@ -104,11 +104,14 @@ def build_parser() -> argparse.ArgumentParser:
           "Simulate SCENE and write DIR/trajectory.npz (plus trajectory.csv and the "
           "plots the scene's [outputs] asks for).",
           "run scenarios/double_pendulum.toml --out out/dp --set simulate.t_end=2", out=OUT, quiet=True)
-    _verb(verbs, "check", "validate a scene; print DOF, redundancy and initial-state consistency",
-          "Validate SCENE without simulating: particles, constraint rows, degrees of "
-          "freedom, rank and redundancy, singular configuration, consistency of the initial state, "
-          "and the terms the model assembles.",
-          "check scenarios/double_pendulum.toml", quiet=True)
+    check = _verb(verbs, "check", "validate a scene; print DOF, redundancy and initial-state consistency",
+                  "Validate SCENE without simulating: particles, constraint rows, degrees of "
+                  "freedom, rank and redundancy, singular configuration, consistency of the initial "
+                  "state, and the terms the model assembles. A large scene's particles and rows are "
+                  f"listed up to {LISTED} each (--all: every one).",
+                  "check scenarios/double_pendulum.toml", quiet=True)
+    check.add_argument("--all", action="store_true", dest="list_all",
+                       help="list every particle and constraint row, however many")
     _verb(verbs, "crosscheck",
           "compare the Cartesian route with Lagrange's equations in the [reduced] coordinates",
           "Run SCENE both ways from the same start (the [reduced] initial values mapped "

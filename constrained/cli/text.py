@@ -10,6 +10,9 @@ from ..errors import InconsistentStateError, InputError, SceneError
 
 PROG = "constrained"
 
+#: ``check`` lists up to this many particles, constraint rows and redundant rows each.
+LISTED = 40
+
 
 def _end_time(scene, file: str) -> float:
     """The scene's t_end, or the refusal naming simulate.t_end."""

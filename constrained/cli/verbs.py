@@ -13,7 +13,7 @@ from ..errors import InconsistentStateError, InputError, RunInterrupted, Simulat
 from ..output.output_set import OutputSet
 from ..run.trajectory import Trajectory
 from ..scene.load import Scene, check_regular_start, load_scene
-from .text import PROG, _end_time, _needs_reduced, _say, _say_error, _say_stopped, _scene_error, _vec
+from .text import LISTED, PROG, _end_time, _needs_reduced, _say, _say_error, _say_stopped, _scene_error, _vec
 
 # --- crosscheck ------------------------------------------------------------------------------
 
@@ -136,6 +136,11 @@ def _derive(args) -> int:
 # --- check -----------------------------------------------------------------------------------
 
 
+def _more(n: int, shown: int | None, what: str) -> list[str]:
+    """The line saying how many of ``n`` were not listed (none when all were)."""
+    return [] if shown is None or n <= shown else [f"  … {n - shown} more {what} (--all lists them)"]
+
+
 def _check(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     file = args.scene
@@ -159,17 +164,20 @@ def _check(args) -> int:
     if sysm.definitions:
         out.append("definitions: " + ", ".join(f"{k} = {f} = {values[k]:g}"
                                                for k, f in sysm.definitions.items()))
+    shown = None if args.list_all else LISTED
     out.append(f"particles ({sysm.n_particles}):")
-    for p in sysm.particles:
+    for p in sysm.particles[:shown]:
         given = f" ({p.formulas['mass']})" if "mass" in p.formulas else ""
         out.append(
             f"  {p.name}: mass {p.mass:g} kg{given}, position {_vec(p.position)} m, "
             f"velocity {_vec(p.velocity)} m/s"
         )
+    out += _more(sysm.n_particles, shown, "particles")
     labels = list(getattr(report, "labels", None) or getattr(model, "constraint_labels", []))
     out.append(f"constraints ({len(sysm.constraints)} given, {len(labels)} scalar rows):")
-    for k, label in enumerate(labels):
+    for k, label in enumerate(labels[:shown]):
         out.append(f"  [{k}] {label}")
+    out += _more(len(labels), shown, "rows")
     generic = getattr(report, "generic_rank", None)
     rank_text = f"rank {report.rank}"
     if generic is not None and generic != report.rank:
@@ -187,7 +195,9 @@ def _check(args) -> int:
         out.append(f"rank [J; A] {report.velocity_rank}, velocity degrees of freedom "
                    f"{report.velocity_degrees_of_freedom} (configuration: {report.degrees_of_freedom})")
     redundant = list(report.redundant)
-    out.append("redundant constraints: " + ("; ".join(redundant) if redundant else "none"))
+    out.append("redundant constraints: " + ("; ".join(redundant[:shown]) if redundant else "none")
+               + (f"; … {len(redundant) - shown} more (--all lists them)"
+                  if shown is not None and len(redundant) > shown else ""))
     out.append(
         "configuration: "
         + ("SINGULAR (the constraint Jacobian loses rank here)" if report.singular else "regular")
