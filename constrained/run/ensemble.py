@@ -7,7 +7,8 @@ one CasADi call, each with its own adaptive step size, error control and project
 column that fails (non-finite values, a projection that no longer converges, the step
 limit) is frozen at its last good state (its last good attempt: variants/stops.py) and
 reported, and so is one whose steps a stiff spring or damper holds down, by the single run's
-stiffness watch on its share of the batch's clock (variants/watch.py); the others go on.
+stiffness watch on its share of the batch's clock, or whose steps collapse towards a finite-time
+blow-up, by the single run's collapse watch (variants/watch.py); the others go on.
 
 The start of each variant is its system's for those parameter values (positions and
 velocities may be formulas of the parameters), projected onto the constraints in one
@@ -42,7 +43,7 @@ from ..solvers.driver import DEFAULT_MAX_STEPS
 from ..threads import available_cores, one_blas_thread
 from .variants import reasons
 from .variants.stops import Replay, judge
-from .variants.watch import MemberWatch
+from .variants.watch import MemberCollapse, MemberWatch
 
 #: Steps (attempts) one call advances every column by.
 CHUNK = 64
@@ -399,6 +400,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         report, bar = _progress(progress, n_var)
         watch = MemberWatch(model, P, xs, t_start, t_end)  # (each member's share of the clock)
         replay = Replay(dopri._chunks, scal["res"], CHUNK)
+        collapse = MemberCollapse(model, P, t_end)  # (each member's steps, as its own run's)
         with interrupt.watch():
             for j, target in enumerate(targets):
                 S[scal["t_target"]] = np.where(running, target, S[scal["t"]])
@@ -419,7 +421,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         padded = np.zeros((S.shape[0], width))
                         padded[:, :cols.size] = S[:, cols]
                         padded[:, cols.size:] = S[:, cols[:1]]  # (filler columns, results dropped)
-                        tick = watch.clock()
+                        before, tick = S[scal["n_acc"], cols], watch.clock()
                         (out,) = chunk(padded.ravel(order="F"))
                         watch.charge(cols, watch.clock() - tick)
                         judge(out.reshape(width, -1).T[:, :cols.size], S, cols, status, running, scal,
@@ -427,6 +429,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         held = watch.stops(cols[running[cols]], S[scal["t"]], S[scal["n_acc"]], S[:n3])
                         for k, why in held:
                             status[k], running[k], messages[k] = "stiff", False, why
+                        for k, why in collapse.stops(cols[running[cols]], before[running[cols]], S, scal, n3):
+                            status[k], running[k], messages[k] = "step size collapsed", False, why
                     if report is not None:
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)

@@ -25,7 +25,7 @@ from ..manifold import diagnostics
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
 from .events import dense_root, dip, locate
 from .stiffness import StiffnessWatch, stiff_stop
-from .watches import CollapseWatch, SingularWatch, past_a_limit
+from .watches import CollapseWatch, SingularWatch, collapse_stop, past_a_limit
 
 #: A run given no output times keeps its accepted steps, but at most one per this fraction of
 #: its span (a run whose steps collapse would otherwise store millions of samples).
@@ -345,8 +345,8 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
                 h = adv.h if adv.h else (float(adv.t[k - 1]) - previous_t) / k
                 reason = run.collapse.check(steps, run.last[0], h)
                 if reason:
-                    failure = Failure(Status.STEP_SIZE_COLLAPSED, f"{reason}; "
-                                      + stepper.diagnose(run.last[1], run.last[2], run.last[0]))
+                    failure = Failure(Status.STEP_SIZE_COLLAPSED, collapse_stop(
+                        reason, stepper.diagnose(run.last[1], run.last[2], run.last[0])))
             # (a stepper that takes many steps per call, dopri's chunks, may pass the limit in the
             # call that ends the run: that run is complete, not stopped early)
             if failure is None and steps + int(stepper.stats.get("rejected", 0)) > max_steps \

@@ -118,11 +118,20 @@ class CollapseWatch:
         self.h_max = 0.0
 
     def check(self, steps: int, t: float, h: float) -> str | None:
-        """The stop sentence when the steps collapse towards a t* before t_end, else None."""
+        """The stop sentence when the steps collapse towards a t* before t_end, else None: h
+        (the step proposed after ``steps`` accepted steps, at t) counts towards the largest,
+        and from ``next_at`` steps on the window ends there (``sample``)."""
         if h > 0 and np.isfinite(h):
             self.h_max = max(self.h_max, h)
         if steps < self.next_at:
             return None
+        return self.sample(steps, t, self.h_max)
+
+    def sample(self, steps: int, t: float, h_max: float) -> str | None:
+        """A window ends at (steps, t), ``h_max`` the largest step proposed so far: the stop
+        sentence when the last windows collapse towards a t* before t_end, else None. (A
+        batch keeps each member's largest step and next window itself: run/variants/watch.py.)"""
+        self.h_max = h_max
         self.next_at = 2 * max(steps, self.next_at)
         self.samples.append((steps, t))
         if len(self.samples) < 4:
@@ -139,3 +148,10 @@ class CollapseWatch:
         return (f"the step size collapsed: the mean step fell from {self.h_max:.3g} s to {h3:.3g} s, "
                 f"shrinking faster with every step, towards t* ≈ {t_star:.6g} s, where the motion "
                 "becomes singular (a finite-time blow-up: no number of steps reaches t*)")
+
+
+def collapse_stop(reason: str, cause: str) -> str:
+    """The sentence of a run the collapse watch stopped: its ``reason`` (``CollapseWatch.check``:
+    the steps' fall and the instant t* they head for), then the likely cause at its last good
+    state (``diagnostics.likely_cause``) — for the driver and for a batch's members alike."""
+    return f"{reason}; {cause}"

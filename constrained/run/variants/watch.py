@@ -1,11 +1,18 @@
-"""The single run's stiffness watch (``solvers.stiffness.StiffnessWatch``) for each member of a
-batched run, on the batch's wall clock shared out among the members.
+"""The single run's watches for each member of a batched run: the stiffness watch
+(``solvers.stiffness.StiffnessWatch``) on the batch's wall clock shared out among the members
+(``MemberWatch``), and the collapse watch (``solvers.watches.CollapseWatch``) on each member's
+own steps (``MemberCollapse``).
 
 A single run is stopped when, after AFTER_S seconds of wall time, reaching t_end at its pace
 would take BUDGET_S or more and its steps are held down by a barely stretched stiff spring or
 a damper. Inside a batch the wall clock is the whole batch's: a member with a stiff spring
 (k = 1e9 N/m on a 10 g bead among soft members) used to run its whole step budget before it
 was named. Here each member is judged on its own share of the clock and its own steps.
+
+A single run whose steps collapse towards a finite-time blow-up (a rod driven to zero length)
+is stopped within a few thousand steps, naming the instant t*; a batched member used to crawl
+on until its step size reached its floor (10,261,543 steps for a rod of length 1 − t, 2,535
+alone). Here each member's steps are watched as its own run's are.
 """
 
 from __future__ import annotations
@@ -14,8 +21,10 @@ import time
 
 import numpy as np
 
+from ...manifold import diagnostics
 from ...solvers.stiffness import StiffnessWatch, stiff_stop
-from .reasons import variant_model
+from ...solvers.watches import COLLAPSE_FIRST_SAMPLE, CollapseWatch, collapse_stop
+from .reasons import DIAGNOSED_MAX, variant_model
 
 
 class MemberWatch:
@@ -80,3 +89,54 @@ class MemberWatch:
                 watch = None
             self.watches[k] = watch if watch is not None and (watch.elements or watch.dampers) else None
         return self.watches[k]
+
+
+class MemberCollapse:
+    """``CollapseWatch`` for each member, as the driver runs it for a single run: after each
+    call in which a member took accepted steps and is short of t_end, the step it proposes
+    counts towards its largest (kept here for every member, in one array), and a member whose
+    accepted steps reached its next window's end (256, 512, … steps, as its own run's) is
+    sampled: steps that collapse towards a t* before t_end stop it, at the state it reached,
+    with its own run's sentence (``collapse_stop``: the watch's reason, then the likely cause
+    there). The calls are the batch's chunks of attempts, which are its own run's calls when
+    it has no output times in between (dopri chains as many attempts), so it is judged on the
+    same windows; output times split its own run's calls differently, and move its windows' ends
+    by less than a call. The first DIAGNOSED_MAX members stopped get the likely cause (a model
+    view and an SVD or two each), the others the watch's reason alone."""
+
+    def __init__(self, model, P: np.ndarray, t_end: float):
+        self.model, self.P, self.t_end = model, P, float(t_end)
+        self.h_max = np.zeros(len(P))
+        self.next_at = np.full(len(P), float(COLLAPSE_FIRST_SAMPLE))
+        self.watches: dict[int, CollapseWatch] = {}
+        self.diagnosed = 0
+
+    def stops(self, members: np.ndarray, before: np.ndarray, S: np.ndarray, scal: dict, n3: int) -> list:
+        """(member, sentence) of each of ``members`` (running after the call, ``before`` their
+        accepted steps before it) whose steps collapse; ``S`` the batch's state matrix."""
+        t, steps, h = S[scal["t"], members], S[scal["n_acc"], members], S[scal["h"], members]
+        moved = (steps > before) & (t < self.t_end)  # (the driver: a call with accepted steps)
+        seen = moved & (h > 0) & np.isfinite(h)
+        self.h_max[members[seen]] = np.maximum(self.h_max[members[seen]], h[seen])
+        stopped = []
+        for i in np.flatnonzero(moved & (steps >= self.next_at[members])):
+            k = int(members[i])
+            watch = self.watches.setdefault(k, CollapseWatch(self.t_end))
+            reason = watch.sample(int(steps[i]), float(t[i]), float(self.h_max[k]))
+            self.next_at[k] = watch.next_at
+            if reason:
+                stopped.append((k, self.sentence(k, reason, S[:n3, k], S[n3:2 * n3, k], float(t[i]))))
+        return stopped
+
+    def sentence(self, k: int, reason: str, x: np.ndarray, v: np.ndarray, t: float) -> str:
+        """Member k's own run's sentence at its last good state (x, v, t), and where that is
+        (as ``simulate`` ends its message)."""
+        where = f"the last good state is at t = {t:.6g} s"
+        if self.diagnosed >= DIAGNOSED_MAX:
+            return f"{reason}; {where}"
+        self.diagnosed += 1
+        try:
+            cause = diagnostics.likely_cause(variant_model(self.model, self.P[k]), x, v, t)
+        except Exception:  # a diagnosis must never hide the stop itself
+            return f"{reason}; {where}"
+        return f"{collapse_stop(reason, cause)}; {where}"
