@@ -180,6 +180,15 @@ def test_ctrl_c_still_stops_a_batch_with_a_collapsing_member_at_the_next_call(sc
     assert len(calls) == 3
     assert ens.status[COLLAPSING] == "interrupted" and ens.messages[COLLAPSING] == ""
     assert ens.steps[COLLAPSING] + ens.rejected[COLLAPSING] == 3 * 64
+    assert ens.stats["interrupted"]  # (it was read after the watch had forgotten it: always False)
+    # the members that had reached t_end when Ctrl-C came are complete: their end state is
+    # kept (it was NaN, "interrupted") and is their own run's
+    for k, c in enumerate(C_VALUES):
+        if k == COLLAPSING:
+            continue
+        assert ens.status[k] == "completed"
+        own = _own(system, c)
+        np.testing.assert_allclose(ens.x[k, -1].ravel(), np.ravel(own.x[-1]), atol=1e-12)
 
 
 def test_a_sweep_row_of_a_collapsing_member_carries_its_reason(scene, tmp_path, capsys):

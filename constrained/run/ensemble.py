@@ -411,9 +411,11 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                     active = np.flatnonzero(running & (S[scal["t"]] < target))
                     if active.size == 0:
                         break
-                    if interrupt.requested():
+                    if interrupt.requested():  # members that reached this output time keep it
+                        reached = running & (S[scal["t"]] >= target)
+                        X[reached, j], V[reached, j] = S[:n3, reached].T, S[n3:2 * n3, reached].T
                         for k in np.flatnonzero(running):
-                            status[k] = "interrupted"
+                            status[k] = "completed" if reached[k] and j == len(targets) - 1 else "interrupted"
                         running[:] = False
                         break
                     for first in range(0, active.size, width):
@@ -435,8 +437,9 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         report(float((np.min(S[scal["t"], running]) - t_start) / (t_end - t_start))
                                if running.any() else 1.0)
                 X[running, j], V[running, j] = S[:n3, running].T, S[n3:2 * n3, running].T
-        # Ctrl-C in the last chunk: every variant finished, and the caller must stop all the same
-        stopped = interrupt.requested()
+            # (read inside the watch, which forgets it at its end): Ctrl-C in the last chunk,
+            # when every variant finished, is reported all the same, and the caller stops
+            stopped = interrupt.requested()
         stops = [k for k, s in enumerate(status) if s not in ("completed", "interrupted") and not messages[k]]
         for i, k in enumerate(stops):  # the frozen column holds the last good state
             messages[k] = reasons.stop_reason(
