@@ -254,3 +254,202 @@ def test_pendulum_without_one_sided_rows_is_one_piece_as_before():
     weak = C.simulate(s_weak, 1.5, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, 1.5, 1501))
     weak.multipliers = None
     assert not C.stationarity(s, weak).is_stationary
+
+
+# --- one-sided rows held on a segment: the variations stay on the surface -------------------------
+
+ALPHA, SLIDER = 0.4, 2.0  # incline angle (rad), mass (kg)
+NORMAL = np.array([-np.sin(ALPHA), np.cos(ALPHA), 0.0])    # out of the incline
+DOWNHILL = -np.array([np.cos(ALPHA), np.sin(ALPHA), 0.0])  # along it, downwards
+
+
+def sliding_down_an_incline(T: float = 1.0, samples: int = 2001):
+    """A block released at rest on a smooth one-sided incline through the origin: it slides
+    down at g sin α, held by the incline's push N = m g cos α the whole run."""
+    s = C.System(name="incline")
+    s.add_particle("a", SLIDER, [0.0, 0.0, 0.0])
+    s.add(C.Plane("a", list(NORMAL), unilateral=True, name="incline"), C.Gravity([0, -G, 0]))
+    return s, C.simulate(s, T, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, T, samples),
+                         outputs=["multipliers"])
+
+
+def test_a_block_on_a_one_sided_incline_is_stationary_against_variations_along_it():
+    s, traj = sliding_down_an_incline()
+    assert traj.info["segments"] == [{"t_start": 0.0, "t_end": 1.0, "held": ["incline [a]"], "dof": 2}]
+    assert np.abs(traj.x[:, 0] - 0.5 * G * np.sin(ALPHA) * traj.t[:, None] ** 2 * DOWNHILL).max() < 1e-12
+    r = C.stationarity(s, traj)
+    assert r.is_stationary and r.order > 1.9 and r.pieces == [(0.0, 1.0)]
+    # the held row projects η onto the incline: no component along its normal, some along it
+    assert np.abs(r.variation[:, 0] @ NORMAL).max() < 1e-12 * r.scale
+    assert np.abs(r.variation[:, 0] @ DOWNHILL).max() > 0.1 * r.scale
+
+
+def test_a_block_sliding_at_nine_tenths_of_g_sin_alpha_is_not_stationary():
+    """The path x = ½ (0.9 g sin α) t² along the incline: δS = −∫ m (ẍ + g ŷ)·η dt
+    = 0.1 m g sin α ∫ η·d dt (η in the incline: the push N does no work on it)."""
+    s, traj = sliding_down_an_incline()
+    wrong = traj.head(len(traj.t))
+    a = 0.9 * G * np.sin(ALPHA)
+    wrong.x = (0.5 * a * traj.t**2)[:, None, None] * DOWNHILL
+    wrong.v = (a * traj.t)[:, None, None] * DOWNHILL
+    r = C.stationarity(s, wrong, eps_list=(1e-4, 5e-5, 2.5e-5, 1.25e-5))
+    assert not r.is_stationary and r.order < 1.3
+    expected = 0.1 * SLIDER * G * np.sin(ALPHA) * np.trapezoid(r.variation[:, 0] @ DOWNHILL, traj.t)
+    assert r.first_variation == pytest.approx(expected, rel=1e-3)
+
+
+def test_dropping_the_held_incline_lets_the_variation_leave_it_and_the_push_does_work():
+    """Told that the incline is not held, the check varies the block off the surface as well,
+    with λ = 0 for it: the true motion then has δS = −N ∫ η·n dt, N = m g cos α, and fails."""
+    s, traj = sliding_down_an_incline()
+    loose = [{"t_start": 0.0, "t_end": 1.0, "held": []}]
+    r = C.stationarity(s, traj, segments=loose, eps_list=(1e-4, 5e-5, 2.5e-5, 1.25e-5))
+    off = r.variation[:, 0] @ NORMAL
+    assert np.abs(off).max() > 0.1 * r.scale
+    assert not r.is_stationary
+    expected = -SLIDER * G * np.cos(ALPHA) * np.trapezoid(off, traj.t)
+    assert r.first_variation == pytest.approx(expected, rel=1e-3)
+
+
+def test_a_plastic_landing_is_held_on_the_floor_after_the_impact():
+    """A ball thrown level from 0.5 m lands plastically (e = 0) at √(2 h/g) and slides: in
+    flight it is varied in every direction, on the floor only along it. Dropping the floor from
+    the sliding segment gives δS = −m g ∫ η_y dt there (the floor's push, m g)."""
+    m, h = 0.5, 0.5
+    s = C.System(name="landing")
+    s.add_particle("a", m, [0.0, h, 0.0], [1.2, 0.0, 0.0])
+    s.add(C.Plane("a", [0, 1, 0], unilateral=True, restitution=0.0, name="floor"), C.Gravity([0, -G, 0]))
+    traj = C.simulate(s, 1.0, rtol=1e-11, atol=1e-12, t_eval=np.linspace(0, 1, 2001), outputs=["multipliers"])
+    landing = np.sqrt(2 * h / G)
+    assert [seg["held"] for seg in traj.info["segments"]] == [[], ["floor [a]"]]
+    assert traj.info["segments"][1]["t_start"] == pytest.approx(landing, abs=1e-9)
+    r = C.stationarity(s, traj)
+    assert r.is_stationary and r.order > 1.9
+    sliding = traj.t > landing
+    assert np.abs(r.variation[sliding, 0, 1]).max() < 1e-12 * r.scale
+    assert np.abs(r.variation[~sliding, 0, 1]).max() > 0.1 * r.scale
+    loose = [dict(seg) for seg in traj.info["segments"]]
+    loose[1]["held"] = []
+    r = C.stationarity(s, traj, segments=loose)
+    eta_y = np.where(sliding, r.variation[:, 0, 1], 0.0)
+    assert not r.is_stationary
+    assert r.first_variation == pytest.approx(-m * G * np.trapezoid(eta_y, traj.t), rel=1e-3)
+
+
+# --- a run saved to a file keeps its segments -----------------------------------------------------
+
+BALL_SCENE = """
+[scene]
+name = "ball on a floor"
+[[particles]]
+name = "a"
+mass = 1.0
+position = [0.0, 1.0, 0.0]
+[[constraints]]
+name = "floor"
+type = "plane"
+particles = ["a"]
+normal = [0.0, 1.0, 0.0]
+unilateral = true
+restitution = 0.7
+[[effects]]
+type = "gravity"
+g = [0.0, -9.81, 0.0]
+[simulate]
+t_end = 1.6
+rtol = 1e-11
+atol = 1e-12
+output_dt = 0.0005
+[outputs]
+quantities = ["energy"]
+plots = []
+"""
+
+
+def bouncing_ball_run(tmp_path: Path):
+    """The ball (e = 0.7) run by `constrained run`, which saves no multipliers unless asked, and
+    the same scene in memory."""
+    scene = tmp_path / "ball.toml"
+    scene.write_text(BALL_SCENE)
+    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    saved = C.Trajectory.load(tmp_path / "out" / "trajectory.npz")
+    system = C.load_scene(scene).system
+    return system, saved, C.simulate(system, 1.6, rtol=1e-11, atol=1e-12, t_eval=saved.t,
+                                     outputs=["multipliers"])
+
+
+def test_a_bouncing_ball_reloaded_from_its_file_gives_the_same_stationarity(tmp_path):
+    system, saved, live = bouncing_ball_run(tmp_path)
+    assert saved.multipliers is None and saved.info["segments"] == live.info["segments"]
+    # impacts at √(2/g), then each flight e times the one before
+    first = np.sqrt(2 / G)
+    assert [seg["t_start"] for seg in saved.info["segments"][1:3]] == pytest.approx(
+        [first, first + 2 * 0.7 * first], abs=1e-8)
+    r_live, r_saved = C.stationarity(system, live), C.stationarity(system, saved)
+    assert r_live.is_stationary and r_saved.is_stationary and r_live.order > 1.8
+    assert r_saved.pieces == r_live.pieces
+    np.testing.assert_allclose(r_saved.delta_S, r_live.delta_S, rtol=1e-9, atol=1e-15)
+    assert r_saved.first_variation == pytest.approx(r_live.first_variation, rel=1e-6, abs=1e-12)
+
+
+def test_an_incline_run_saved_without_multipliers_takes_them_from_its_held_rows(tmp_path):
+    """No multipliers in the file: on each segment they come from the KKT system of the rows it
+    holds (the incline pushes with m g cos α), and the check gives the in-memory numbers."""
+    s, traj = sliding_down_an_incline()
+    path = traj.save(tmp_path / "incline.npz", quantities=["energy"])
+    saved = C.Trajectory.load(path)
+    assert saved.multipliers is None
+    np.testing.assert_allclose(traj.multipliers[:, 0], SLIDER * G * np.cos(ALPHA), rtol=1e-9)
+    r_live, r_saved = C.stationarity(s, traj), C.stationarity(s, saved)
+    np.testing.assert_allclose(r_saved.delta_S, r_live.delta_S, rtol=1e-8)
+    assert r_saved.second_variation == pytest.approx(r_live.second_variation, rel=1e-8)
+
+
+def _rewrite_segments(path: Path, edit) -> None:
+    import json
+
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    edit(meta["info"])
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize("edit, key, why", [
+    (lambda info: info["segments"][1].update(t_end=99.0), "info['segments'][1]", "outside the run"),
+    (lambda info: info["segments"][1].update(t_start="soon"), "info['segments'][1]['t_start']",
+     "not a time"),
+    (lambda info: info["segments"][1].update(held=["no such row"]), "info['segments'][1]['held']",
+     "not a constraint row"),
+    (lambda info: info["segments"][1].update(t_start=0.0), "info['segments'][1]", "before segment 0 ends"),
+    (lambda info: info["segments"][0].update(t_end=-1.0), "info['segments'][0]", "before it starts"),
+    (lambda info: info.update(segments={"t_start": 0}), "info['segments']", "not a list"),
+])
+def test_a_damaged_segments_entry_is_refused_naming_the_file_and_key(tmp_path, edit, key, why):
+    _, traj = bouncing_ball(0.9, 901)
+    path = traj.save(tmp_path / "ball.npz")
+    _rewrite_segments(path, edit)
+    with pytest.raises(InputError) as err:
+        C.Trajectory.load(path)
+    text = str(err.value)
+    assert str(path) in text and key in text and why in text and "run the scene again" in text
+
+
+def test_an_old_file_without_segments_loads_and_is_refused_as_before(tmp_path):
+    s, traj = bouncing_ball(0.9, 901)
+    path = traj.save(tmp_path / "ball.npz")
+    _rewrite_segments(path, lambda info: info.pop("segments"))
+    old = C.Trajectory.load(path)
+    assert "segments" not in old.info and np.array_equal(old.x, traj.x)
+    with pytest.raises(InputError, match="does not say where each one is held"):
+        C.stationarity(s, old)
+    assert C.stationarity(s, old, segments=traj.info["segments"]).is_stationary
+
+
+def test_segments_given_by_hand_are_checked_against_the_run():
+    s, traj = bouncing_ball(0.5, 501)
+    with pytest.raises(InputError, match=r"segments=\[0\] spans t = 0 \.\. 7 s, outside the run"):
+        C.stationarity(s, traj, segments=[{"t_start": 0.0, "t_end": 7.0, "held": []}])
+    with pytest.raises(InputError, match=r"segments=\[0\]\['held'\] names 'wall'"):
+        C.stationarity(s, traj, segments=[{"t_start": 0.0, "t_end": 0.5, "held": ["wall"]}])

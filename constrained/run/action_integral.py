@@ -16,8 +16,10 @@ from .. import tomlparse
 from ..errors import InputError
 from ..manifold.constraint_report import jacobian_rank
 from ..model.structure import Model, assemble
+from .event_records import checked_segments
 from .quantities import multipliers_along
 from .trajectory import Trajectory, atomic_write
+from .unilateral import ActiveSet, one_sided
 
 __all__ = ["ActionResult", "StationarityResult", "action", "end_configuration", "lagrangian_function",
            "save_action_figure", "save_path_figure", "stationarity"]
@@ -258,47 +260,58 @@ def _tangent_function(model: Model, rows: np.ndarray) -> ca.Function:
     return ca.Function("eta", [x, v, t, c, cd], [eta, eta_dot])
 
 
-def _one_sided_rows(model: Model) -> list[int]:
-    owner, constraints = model.constraint_owner, model.system.constraints
-    return [k for k in range(model.n_constraints) if getattr(constraints[owner[k]], "unilateral", False)]
-
-
-def _pieces(model: Model, t: np.ndarray, X: np.ndarray, segments) -> list:
-    """The smooth pieces of the path as (sample indices, t0, t1, rows that project η there).
+def _pieces(model: Model, t: np.ndarray, X: np.ndarray, segments, where: str, t_end=None) -> list:
+    """The smooth pieces of the path as (sample indices, t0, t1, rows that project η there, rows
+    held there).
 
     Without one-sided constraints: one piece, the whole trajectory, with the independent rows
     at its first sample. With them: one piece per segment of the run (``segments`` as in
-    ``Trajectory.info["segments"]``), projected with the two-sided rows and the one-sided rows
-    held on that segment; a segment of zero length or with fewer than 3 samples is not varied.
+    ``Trajectory.info["segments"]``, checked by ``checked_segments``), projected with the
+    independent ones of the rows held there: the two-sided rows and the one-sided rows the
+    segment names; a segment of zero length or with fewer than 3 samples is not varied.
     """
-    one = _one_sided_rows(model)
+    one = one_sided(model).rows
     if not one:
-        return [(np.arange(len(t)), float(t[0]), float(t[-1]), independent_rows(model, X[0], t[0]))]
+        rows = independent_rows(model, X[0], t[0])
+        return [(np.arange(len(t)), float(t[0]), float(t[-1]), rows, rows)]
     if not segments:
         raise InputError(
             "the system has one-sided constraints, and the trajectory does not say where each one is "
             "held: pass the trajectory returned by constrained.simulate (its info['segments']) or "
             "segments=[{'t_start': .., 't_end': .., 'held': [labels]}, ...]")
     labels = list(model.constraint_labels)
-    two = [k for k in range(model.n_constraints) if k not in one]
+    segments = checked_segments(segments, t, labels, where, "pass the segments of the run, as "
+                                "constrained.simulate records them in trajectory.info['segments']", t_end)
+    two = set(one_sided(model).bilateral)
     pieces = []
     for seg in segments:
-        t0, t1 = float(seg["t_start"]), float(seg["t_end"])
-        unknown = [h for h in seg.get("held", []) if h not in labels]
-        if unknown:
-            raise InputError(f"segment {t0:g}..{t1:g} s holds unknown constraints {unknown!r}")
+        t0, t1 = seg["t_start"], seg["t_end"]
         idx = np.flatnonzero((t >= t0) & (t <= t1))
         if not t1 > t0 or len(idx) < 3:
             continue
-        rows = np.array(sorted(set(two) | {labels.index(h) for h in seg.get("held", [])}), dtype=int)
+        held = np.array(sorted(two | {labels.index(h) for h in seg["held"]}), dtype=int)
+        rows = held
         if len(rows):
             J = np.asarray(model.jacobian(X[idx[0]], t[idx[0]])[1])[rows]
             rank, order = jacobian_rank(J)
             rows = np.sort(rows[order[:rank]])
-        pieces.append((idx, t0, t1, rows))
+        pieces.append((idx, t0, t1, rows, held))
     if not pieces:
         raise InputError("no segment of the run has 3 samples or more: nothing to vary")
     return pieces
+
+
+def held_multipliers(model: Model, X: np.ndarray, V: np.ndarray, t: np.ndarray, pieces) -> np.ndarray:
+    """λ (T, C) on each piece from the KKT system of the rows held there (M a = F + Jᵀλ,
+    J a = −J̇ v over those rows, minimum-norm where they are dependent), 0 on the other rows and
+    outside the pieces: the multipliers a hybrid run records, for a trajectory saved without them."""
+    lam = np.zeros((len(t), model.n_constraints))
+    for idx, _, _, _, held in pieces:
+        if len(held):
+            active = ActiveSet(model, held, at=(X[idx[0]], t[idx[0]]))
+            for i in idx:
+                lam[i] = active.multipliers(X[i], V[i], t[i])
+    return lam
 
 
 def stationarity(
@@ -322,7 +335,8 @@ def stationarity(
     With one-sided constraints the path is smooth only between impacts, lift-offs and
     landings, and Hamilton's principle holds per smooth piece with its end times fixed. The
     check is then made per segment of the run (``segments``, default
-    ``trajectory.info["segments"]`` from :func:`constrained.simulate`): on each, c(t) uses
+    ``trajectory.info["segments"]`` from :func:`constrained.simulate`, kept by
+    ``Trajectory.save`` and checked by ``Trajectory.load``): on each, c(t) uses
     s = (t − t_start)/(t_end − t_start), so η and dη/dt vanish at the segment's ends, and P
     projects with the rows active there only — the two-sided rows and the one-sided rows held
     on that segment. A ball in free flight is thus varied in every direction, not only along
@@ -330,12 +344,12 @@ def stationarity(
     quadrature across a kink); the multipliers of rows not held are taken as 0.
 
     The action of each path is taken with the augmented Lagrangian ``L + λ·f`` (λ the
-    trajectory's multipliers, from the KKT system when the trajectory has none; a run with
-    one-sided constraints must carry its own), integrated by Simpson on the trajectory's
-    samples: for the true motion the first variation vanishes and ΔS = O(ε²); for a wrong
-    motion ΔS = O(ε). ``constraint_violation`` is the largest |f| of the projecting rows on
-    the varied samples. Sample densely: the quadrature error and the integration tolerance of
-    the trajectory set the floor below which ΔS/ε stops falling.
+    trajectory's multipliers; without them, the KKT system's, over the rows each segment holds
+    where there are one-sided rows: ``held_multipliers``), integrated by Simpson on the samples:
+    for the true motion the first variation vanishes and ΔS = O(ε²); for a wrong motion
+    ΔS = O(ε). ``constraint_violation`` is the largest |f| of the projecting rows on the varied
+    samples. Sample densely: the quadrature error and the integration tolerance of the
+    trajectory set the floor below which ΔS/ε stops falling.
     """
     model = as_model(model_or_system)
     require_lagrangian(model, "the stationarity check")
@@ -348,14 +362,14 @@ def stationarity(
     eps = np.sort(eps)[::-1]
     t, X, V = flat_samples(trajectory)
     n, n3 = X.shape
-    pieces = _pieces(model, t, X, trajectory.info.get("segments") if segments is None else segments)
-    one = _one_sided_rows(model)
+    asked = trajectory.info.get("t_end")
+    pieces = _pieces(model, t, X, trajectory.info.get("segments") if segments is None else segments,
+                     "trajectory.info['segments']" if segments is None else "segments=",
+                     asked if isinstance(asked, int | float) and not isinstance(asked, bool) else None)
+    one = one_sided(model).rows
     lam = trajectory.multipliers
-    if lam is None or np.asarray(lam).shape != (n, model.n_constraints):
-        if one:
-            raise InputError("a run with one-sided constraints needs its own multipliers "
-                             "(trajectory.multipliers, (T, C)): the KKT system cannot tell which rows hold")
-        lam = multipliers_along(model, X, V, t)
+    if lam is None or np.asarray(lam).shape != (n, model.n_constraints):  # (a file saved without them)
+        lam = held_multipliers(model, X, V, t, pieces) if one else multipliers_along(model, X, V, t)
     lam = np.array(lam, float).reshape(n, model.n_constraints)
 
     # the variation η(t) and its exact time derivative along the trajectory, piece by piece
@@ -363,7 +377,7 @@ def stationarity(
     coeffs = rng.standard_normal((n_bumps, n3))
     j = np.arange(1, n_bumps + 1)[:, None]
     eta, eta_dot = np.zeros((n, n3)), np.zeros((n, n3))
-    for idx, t0, t1, rows in pieces:
+    for idx, t0, t1, rows, held in pieces:
         s = (t[idx] - t0) / (t1 - t0)
         b = np.sin(np.pi * j * s) ** 2                                  # (n_bumps, n_piece)
         bd = np.pi * j / (t1 - t0) * np.sin(2 * np.pi * j * s)          # d/dt sin²(π j s)
@@ -371,7 +385,7 @@ def stationarity(
         e_, ed = model.evaluate(_tangent_function(model, rows), X[idx], V[idx], t[idx], c, cd)
         eta[idx], eta_dot[idx] = e_.T, ed.T
         if one:  # a one-sided row not held on this piece pushes with λ = 0
-            free = [k for k in one if k not in set(rows.tolist())]
+            free = [k for k in one if k not in set(held.tolist())]
             lam[np.ix_(idx, free)] = 0.0
     size = model.system.size()
     peak = float(np.max(np.linalg.norm(eta.reshape(n, -1, 3), axis=2)))
@@ -396,7 +410,7 @@ def stationarity(
     def violation(fv):
         if not one:  # every row, every sample
             return float(np.max(np.abs(fv), initial=0.0))
-        return max(float(np.max(np.abs(fv[np.ix_(rows, idx)]), initial=0.0)) for idx, _, _, rows in pieces)
+        return max(float(np.max(np.abs(fv[np.ix_(rows, idx)]), initial=0.0)) for idx, _, _, rows, _ in pieces)
 
     L0, _ = L_of(X, V)
     S0 = _integral(L0, t)
@@ -417,7 +431,7 @@ def stationarity(
         first_variation=float((dplus[-1] - dminus[-1]) / (2 * e)),
         second_variation=float((dplus[-1] + dminus[-1]) / e**2),
         constraint_violation=np.array(viol), action=S0, scale=size, n_bumps=n_bumps, seed=seed,
-        variation=eta.reshape(n, -1, 3), pieces=[(t0, t1) for _, t0, t1, _ in pieces],
+        variation=eta.reshape(n, -1, 3), pieces=[(t0, t1) for _, t0, t1, _, _ in pieces],
     )
 
 
@@ -443,9 +457,6 @@ def save_figure(fig, path) -> Path:
     path = Path(path)
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
     return path
-
-
-# --- the command line's end configuration ----------------------------------------------------
 
 
 # --- the path verb's figure and end configuration --------------------------------------------

@@ -1,4 +1,5 @@
-"""Event records: what a Trajectory keeps of each event of a run, and the report's lines.
+"""Event records: what a Trajectory keeps of each event of a run and of the smooth segments
+between them (``checked_segments``), and the report's lines.
 
 An ``EventRecord`` holds the time, the constraint (or the user event's name), the kind
 (``release``, ``contact``, ``impact`` or the user event's name), the state there, and for
@@ -12,6 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ..errors import InputError
 
 #: The kinds of events the one-sided constraints produce (user events are named by the user).
 CONSTRAINT_KINDS = ("release", "contact", "impact")
@@ -68,6 +71,56 @@ def records_from(arrays: dict, meta: list) -> list[EventRecord]:
                         arrays["event_v"][k], float(arrays["event_impulse"][k]),
                         float(arrays["event_energy_lost"][k]), dict(m.get("extra", {})))
             for k, m in enumerate(meta)]
+
+
+def checked_segments(segments, t, labels, where: str, fix: str, t_end: float | None = None) -> list[dict]:
+    """The segments of a hybrid run (``Trajectory.info["segments"]``: ``t_start``, ``t_end`` in
+    seconds, ``held`` the labels of the rows held there, and ``dof``), as plain dicts, checked
+    against the run they describe: times finite, t_start ≤ t_end, in order without overlap and
+    within the run (its first sample to its last, or to the ``t_end`` it was asked for, which a
+    run that stopped early records), held rows among ``labels`` (unchecked when None). Anything
+    else raises InputError naming ``where`` with the entry and key, and ``fix``."""
+    def refuse(what: str):
+        raise InputError(f"{where}{what}; {fix}")
+
+    if not isinstance(segments, list | tuple):
+        refuse(f" is {type(segments).__name__}, not a list of segments {{t_start, t_end, held}}")
+    t = np.asarray(t, float)
+    first = float(t[0]) if len(t) else 0.0
+    last = max(float(t[-1]) if len(t) else 0.0, float(t_end) if t_end is not None else -np.inf)
+    slack = 1e-9 * max(last - first, abs(first), abs(last), 1e-300)  # (JSON keeps floats exactly)
+    known = None if labels is None else set(labels)
+    out, previous_end = [], -np.inf
+    for k, seg in enumerate(segments):
+        if not isinstance(seg, dict):
+            refuse(f"[{k}] is {type(seg).__name__}, not a table {{t_start, t_end, held}}")
+        times = []
+        for key in ("t_start", "t_end"):
+            value = seg.get(key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+                refuse(f"[{k}]['{key}'] is {value!r}, not a time in seconds")
+            times.append(float(value))
+        t0, t1 = times
+        if t1 < t0:
+            refuse(f"[{k}] ends (t_end = {t1:g} s) before it starts (t_start = {t0:g} s)")
+        if t0 < first - slack or t1 > last + slack:
+            refuse(f"[{k}] spans t = {t0:g} .. {t1:g} s, outside the run ({first:g} .. {last:g} s)")
+        if t0 < previous_end - slack:
+            refuse(f"[{k}] starts at t = {t0:g} s, before segment {k - 1} ends ({previous_end:g} s)")
+        previous_end = t1
+        held = seg.get("held", [])
+        if not isinstance(held, list | tuple) or not all(isinstance(h, str) for h in held):
+            refuse(f"[{k}]['held'] is {held!r}, not a list of constraint labels")
+        unknown = [h for h in held if known is not None and h not in known]
+        if unknown:
+            rows = ", ".join(repr(h) for h in list(labels)[:6]) + (" …" if len(known) > 6 else "")
+            refuse(f"[{k}]['held'] names {', '.join(repr(h) for h in unknown)}, not a constraint row "
+                   f"(the rows: {rows})")
+        dof = seg.get("dof")
+        if dof is not None and (isinstance(dof, bool) or not isinstance(dof, int) or dof < 0):
+            refuse(f"[{k}]['dof'] is {dof!r}, not a number of degrees of freedom")
+        out.append({**seg, "t_start": t0, "t_end": t1, "held": list(held)})
+    return out
 
 
 #: Events listed one by one in a run's report (the rest are counted).

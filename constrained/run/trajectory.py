@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .event_records import records_from, records_to_arrays
+from .event_records import checked_segments, records_from, records_to_arrays
 
 #: Arrays a Trajectory may carry besides t, x, v (in the order files list them).
 QUANTITIES = (
@@ -311,12 +311,25 @@ class Trajectory:
                                  f"{shape}numbers its t {t.shape} and x {x.shape} need; the file is "
                                  "damaged: run the scene again to write it")
         _refuse_disordered(path, t, meta, N)
+        info = meta.get("info", {})
+        if not isinstance(info, dict):
+            raise InputError(f"{path}: its meta 'info' is not a table; the file is damaged: run the scene "
+                             "again to write it")
+        if "segments" in info:  # (the smooth pieces of a run with one-sided constraints: stationarity's)
+            asked = info.get("t_end")
+            labels = meta.get("constraint_labels")
+            if not (isinstance(labels, list) and labels and all(isinstance(a, str) for a in labels)):
+                labels = None  # (a file without the rows' labels: the held rows are checked on use)
+            info["segments"] = checked_segments(
+                info["segments"], t, labels, f"{path}: info['segments']",
+                "the file is damaged: run the scene again to write it",
+                t_end=asked if isinstance(asked, int | float) and not isinstance(asked, bool) else None)
         return cls(
             **{k: arrays.get(k) for k in ("t", "x", "v", *QUANTITIES)},
             particle_names=meta.get("particle_names", []),
             constraint_labels=meta.get("constraint_labels", []),
             stats=meta.get("stats", {}),
-            info=meta.get("info", {}),
+            info=info,
             events=records_from(arrays, meta.get("events", [])),
         )
 

@@ -72,6 +72,14 @@ def _canonical(grid: tuple) -> tuple:
     return even if np.max(np.abs(np.subtract(grid, even))) <= 1e-13 else grid
 
 
+def _steps_taken(integ) -> int | None:
+    """The steps an IDAS integrator took in its last call (None when it has no statistics)."""
+    try:
+        return int(integ.stats()["nsteps"])
+    except (AttributeError, KeyError, RuntimeError, TypeError, ValueError):
+        return None
+
+
 class CallSize:
     """How many output times the next SUNDIALS call covers (see FIRST_CALL_OUTPUTS)."""
 
@@ -186,30 +194,35 @@ class _IdasBase(Stepper):
         grid = _canonical(tuple((np.asarray(seg) - t_prev) / span))
         p = np.concatenate([[t_prev, span], self._weights, m.parameter_vector])
         called = time.perf_counter()
+        integ = None
         try:
             res = None
             if not self.needs_derivatives:
                 try:  # the integrator built once for these options (see _integrator)
                     integ = self._integrator(grid, span)
                     with interrupt.external(), quiet():
-                        res = integ(x0=y, z0=z, p=p)
+                        res = integ(x0=self.call_state(y, span), z0=self.call_algebraic(z, span), p=p)
                 except RuntimeError:
                     if self.stop_requested():
                         raise
             if res is None:  # a call of its own, given the derivatives at its start
                 a_prev, _ = self.manifold.accelerations(y[:n3], y[n3:], t_prev)
-                integ = self._integrator(grid, span, init_xdot=span * np.concatenate([y[n3:], a_prev]))
+                integ = self._integrator(grid, span, init_xdot=self.call_rates(y[n3:], a_prev, span))
                 with interrupt.external(), quiet():
-                    res = integ(x0=y, z0=z, p=p)
+                    res = integ(x0=self.call_state(y, span), z0=self.call_algebraic(z, span), p=p)
         except RuntimeError as exc:
             if self.stop_requested():
                 raise KeyboardInterrupt from None
             reason = str(exc).splitlines()[-1][:200]
-            if self._step0 and t_prev > self._t0 and "CONV_FAIL" in reason and self._retries:
-                # ggl's index-2 corrector can fail on a restart's first step: the next
-                # first step in RESTART_STEPS usually passes
-                self._step0_next = self._step0 * self._retries.pop(0)
-                return Advance.empty(state, n3)
+            if self._step0 and t_prev > self._t0 and "CONV_FAIL" in reason:
+                if self._retries and _steps_taken(integ) == 0:
+                    # ggl's index-2 corrector can fail on a restart's first step: the next
+                    # first step in RESTART_STEPS usually passes
+                    self._step0_next = self._step0 * self._retries.pop(0)
+                    return Advance.empty(state, n3)
+                # a failure further on (near a singular configuration), or at every first step
+                # tried: a smaller call (below), from the first step the last good call gave
+                self._step0_next = self._step0_after
             if "TOO_MUCH_WORK" in reason and span > 1e-9 * max(abs(seg[-1]), 1e-300):
                 # more than STEPS_PER_CALL steps for this span: the pace is at least SPLIT times
                 # that, and the next call is cut to fit it (``pieces`` above: fewer output times,
@@ -230,12 +243,12 @@ class _IdasBase(Stepper):
             # retries other first steps should the corrector fail there); IDAS steps in τ
             last = float(stats.get("hlast", 0.0)) * span
             self._step0_next = 0.1 * last if np.isfinite(last) and last > 0 else self._step0
-            self._retries = list(RESTART_STEPS)
+            self._step0_after, self._retries = self._step0_next, list(RESTART_STEPS)
         self._pace = int(stats.get("nsteps", 0)) / max(span, 1e-300)  # steps per second
         for key, skey in (("steps", "nsteps"), ("nfev", "nfevals"), ("nlu", "nlinsetups"),
                           ("rejected", "netfails")):
             self.stats[key] = self.stats.get(key, 0) + int(stats.get(skey, 0))
-        X = res["xf"].full()
+        X = self.real_states(res["xf"].full(), span)
         # calls sized by their steps (idas: and the drift at their end), never by the clock: ggl's
         # were sized by their seconds, so on a loaded machine a run took other calls, other steps,
         # and a collapse's predicted instant moved by 3e-3 s
@@ -270,18 +283,38 @@ class _IdasBase(Stepper):
     def extra_options(self) -> dict:
         return {}
 
+    # IDAS's variables in a call: (x, v) and the algebraic ones as ``dae`` has them, unless a
+    # method integrates in the call's own unit of time (GGL.tau_dae)
+    def call_state(self, y, span):
+        return y
+
+    def call_algebraic(self, z, span):
+        return z
+
+    def call_rates(self, v, a, span):
+        """d/dτ of the call's state at its start, from the velocities and accelerations."""
+        return span * np.concatenate([v, a])
+
+    def real_states(self, Y, span):
+        """The call's (x, v) columns from IDAS's states."""
+        return Y
+
+    def absolute_tolerances(self, span) -> dict:
+        return {"abstol": self.atol}
+
     #: Whether every call needs the derivatives at its start (``init_xdot``: IDAS computes no
     #: consistent initial condition), so that no integrator is shared between calls; else a
     #: shared one is tried first and a call of its own, given them, where its solve fails.
     needs_derivatives = False
     _step0_next: float | None = None
+    _step0_after: float | None = None  # the first step after the last good call
 
     def _integrator(self, grid: tuple, span: float, init_xdot=None):
         """IDAS over τ ∈ [0, 1] with output times ``grid`` in τ, on the DAE in τ (``_scaled_dae``):
         built once per structure, method, row set, grid and options and kept with the
         structure's cache (building an integrator costs about as much as a call integrates);
         a call with ``init_xdot`` (dy/dτ at its start) is built for that call alone."""
-        opts = {"abstol": self.atol, "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL,
+        opts = {**self.absolute_tolerances(span), "reltol": self.rtol, "max_num_steps": STEPS_PER_CALL,
                 "calc_ic": True, "print_stats": False, **self.extra_options()}
         step0 = self._step0_next if self._step0_next is not None else self._step0
         if step0:
@@ -318,10 +351,14 @@ class _IdasBase(Stepper):
             span = kind.sym("span", 2)
             tau = kind.sym("tau")
             # (differentiable: IDAS takes its Jacobian)
-            dae = self.dae(ParametricView(m, P, differentiable=True), W, span[0] + span[1] * tau)
-            cache[key] = {"x": dae["x"], "z": dae["z"], "p": ca.vertcat(span, W, P), "t": tau,
-                          "ode": span[1] * dae["ode"], "alg": dae["alg"]}
+            dae = self.tau_dae(ParametricView(m, P, differentiable=True), W, span[0], span[1], tau)
+            cache[key] = {**dae, "p": ca.vertcat(span, W, P), "t": tau}
         return cache[key]
+
+    def tau_dae(self, m, w, t_a, span, tau) -> dict:
+        """The DAE {x, z, ode, alg} in τ: ``dae`` at t = t_a + Δ τ with its rates times Δ."""
+        dae = self.dae(m, w, t_a + span * tau)
+        return {"x": dae["x"], "z": dae["z"], "ode": span * dae["ode"], "alg": dae["alg"]}
 
 
 class Idas(_IdasBase):
@@ -348,30 +385,43 @@ class Idas(_IdasBase):
 
 
 class GGL(_IdasBase):
+    """Each call integrates in its own unit of time, the call's span Δ: τ = (t − t_a)/Δ, with
+    u = Δ v (metres per unit τ) and the multipliers taken as Δ²λ and Δμ:
+
+        x' = u + M⁻¹Jᵀ(Δμ),   u' = Δ² M⁻¹F(x, u/Δ, t) + M⁻¹Jᵀ(Δ²λ),   0 = f,   0 = J u + Δ f_t
+
+    the same motion and the same tolerances (atol on u is Δ atol), but a Newton matrix that does
+    not depend on the span. Written in seconds, its rows mixed α/h with 1 and its constraint
+    block shrank like h: on a 1 ns run (h ~ 1e-14 s) the corrector did not converge with
+    CasADi's sparse LU (a dense LU did), and IDAS stopped at t = 0 with IDA_CONV_FAIL
+    (docs/hard-cases.md, section 18)."""
+
     name = "ggl"
     #: IDAS picks a first step from the tolerances; at tight ones it is so small that the
     #: index-2 Newton matrix (conditioned like 1/h²) defeats the corrector at t = 0
     #: (atol < 1e-10 failed on the double pendulum). A first step of 1e-5 of the run avoids it.
     first_step_fraction = 1e-5
 
-    def dae(self, m, w, t) -> dict:
+    def tau_dae(self, m, w, t_a, span, tau) -> dict:
         """Velocity rows (model/velocity.py) are held at the velocity level only: μ is one per
-        row of f (``_position``), and x' = v + M⁻¹Jᵀμ takes those rows of J."""
+        row of f (``_position``), and x' = u + M⁻¹Jᵀμ takes those rows of J."""
         n3, C = m.n_coordinates, len(self.rows)
         kind = type(m.P)  # (MX where pair potentials are mapped kernels)
-        x, v = kind.sym("x", n3), kind.sym("v", n3)
+        x, u = kind.sym("x", n3), kind.sym("u", n3)
+        t = t_a + span * tau
         pos = self._position()
-        lam, mu = kind.sym("lam", C), kind.sym("mu", len(pos))
+        impulse, mu = kind.sym("span2_lam", C), kind.sym("span_mu", len(pos))
         minv = _inverse_masses(m)
-        F, J, _ = m.dynamics(x, v, t)
+        F, J, _ = m.dynamics(x, u / span, t)
         _, f_t = m.velocity_terms(x, t)
         f = m.constraint(x, t)
         Jf, f = ((w[pos] * J[self.rows, :][pos, :], w[pos] * f[[self.rows[k] for k in pos]]) if pos
                  else (kind(0, n3), kind(0, 1)))
         J, f_t = w * J[self.rows, :], w * f_t[self.rows]  # rows in metres
-        return {"x": ca.vertcat(x, v), "z": ca.vertcat(lam, mu),
-                "ode": ca.vertcat(v + minv * ca.mtimes(Jf.T, mu), minv * (F + ca.mtimes(J.T, lam))),
-                "alg": ca.vertcat(f, ca.mtimes(J, v) + f_t)}
+        return {"x": ca.vertcat(x, u), "z": ca.vertcat(impulse, mu),
+                "ode": ca.vertcat(u + minv * ca.mtimes(Jf.T, mu),
+                                  minv * (span**2 * F + ca.mtimes(J.T, impulse))),
+                "alg": ca.vertcat(f, ca.mtimes(J, u) + span * f_t)}
 
     def _position(self) -> list[int]:
         """Indices into ``rows`` of the rows of f."""
@@ -380,6 +430,27 @@ class GGL(_IdasBase):
     def algebraic_guess(self, x, v, t):
         return np.concatenate([(self.manifold.accelerations(x, v, t)[1] * self.row_scales)[self.rows],
                                np.zeros(len(self._position()))])
+
+    def call_state(self, y, span):
+        n3 = self.model.n_coordinates
+        return np.concatenate([y[:n3], span * y[n3:]])
+
+    def call_algebraic(self, z, span):
+        C = len(self.rows)
+        return np.concatenate([span**2 * z[:C], span * z[C:]])
+
+    def call_rates(self, v, a, span):
+        return np.concatenate([span * v, span**2 * a])
+
+    def real_states(self, Y, span):
+        n3 = self.model.n_coordinates
+        return np.concatenate([Y[:n3], Y[n3:] / span])
+
+    def absolute_tolerances(self, span) -> dict:
+        """atol on x and v, atol Δ on u = Δ v, and the algebraic ones' likewise."""
+        n3, C = self.model.n_coordinates, len(self.rows)
+        return {"abstolv": [self.atol] * n3 + [self.atol * span] * n3 + [self.atol * span**2] * C
+                + [self.atol * span] * len(self._position())}
 
     needs_derivatives = True  # IDAS's initial-condition solve is for index-1 DAEs
 
