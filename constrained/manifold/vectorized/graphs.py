@@ -70,8 +70,10 @@ def statics(view: ParametricView) -> tuple:
     b = vectorized_build(view._model.structure)
     if b.forces_vary():  # (asked of the SX: an MX graph through C loops has no cheap sparsity)
         return view.inverse_masses, None
-    X, V, T = ca.MX.sym("x", b.n3), ca.MX.sym("v", b.n3), ca.MX.sym("t")
-    return view.inverse_masses, b.evaluate(X, V, T, view.P, (), forces_too=True)["F"]
+    # F reads none of x, v, t, so it is evaluated at zeros: symbols here would be free in the
+    # step's graph wherever a call takes them as inputs (the rest's, with no effects at all)
+    zeros = ca.MX.zeros(b.n3)
+    return view.inverse_masses, b.evaluate(zeros, zeros, ca.MX(0), view.P, (), forces_too=True)["F"]
 
 
 def acceleration_graph(view: ParametricView, X, V, T, *, minv=None, forces=None):
