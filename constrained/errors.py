@@ -72,6 +72,19 @@ def one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+#: A message lists at most this many names (the particles of a 10,000-bead scene are not).
+LISTED_NAMES = 12
+
+
+def listed(names, shown: int = LISTED_NAMES) -> str:
+    """``names`` joined for a message: all of a short list; of a long one the first few, the
+    last and how many in all ("p0, p1, …, p9999: 10000 in all")."""
+    names = [str(n) for n in names]
+    if len(names) <= shown:
+        return ", ".join(names)
+    return f"{', '.join(names[:shown - 1])}, …, {names[-1]}: {len(names)} in all"
+
+
 class InitialStateWarning(UserWarning):
     """The initial state was changed to satisfy the constraints (positions within
     ``max_initial_correction``, or velocities with components the constraints forbid): the run

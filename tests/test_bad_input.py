@@ -202,3 +202,44 @@ def test_with_reduced_coordinates_the_particle_start_is_checked_by_the_verbs_tha
     assert code == 2
     one_line(err, f"scene file {scene}", "key constraints[0]", "starts on the point")
     assert not (tmp_path / "out").exists()
+
+
+def _rope_toml(n: int, *, rod_end: str | None = None, potential: str | None = None) -> str:
+    text = "".join(f'[[particles]]\nname = "p{i}"\nmass = 0.01\nposition = [{0.01 * (i + 1)}, 0, 0]\n'
+                   for i in range(n))
+    text += '[[constraints]]\ntype = "distance"\na = "p0"\npoint = [0, 0, 0]\nlength = 0.01\n'
+    ends = [f"p{i - 1}" for i in range(1, n)]
+    ends[-1] = rod_end or ends[-1]
+    text += "".join(f'[[constraints]]\ntype = "distance"\na = "{a}"\nb = "p{i}"\nlength = 0.01\n'
+                    for i, a in enumerate(ends, 1))
+    if potential:
+        text += f'[[effects]]\ntype = "potential"\nexpr = "{potential}"\n'
+    return text + "[simulate]\nt_end = 0.01\n"
+
+
+def test_a_large_scene_s_refusals_name_a_few_particles_not_all(tmp_path, capsys):
+    """A 2,000-bead rope with one misspelt particle, one unknown name in a formula, and a run
+    viewed with another scene: each refusal names the cause in a line, not the 2,000 particles
+    (or 6,000 coordinate names) it used to list; the count, the first names and the last
+    remain, and the suggestion for the typo."""
+    n = 2000
+    bad = tmp_path / "typo.toml"
+    bad.write_text(_rope_toml(n, rod_end="p19q7"))
+    assert main(["check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "unknown particle 'p19q7'" in err and f"p{n - 1}: {n} in all" in err and "did you mean" in err
+    assert len(err) < 600
+    formula = tmp_path / "formula.toml"
+    formula.write_text(_rope_toml(n, potential="0.1*yp5"))
+    assert main(["check", str(formula)]) == 2
+    err = capsys.readouterr().err
+    assert "unknown name 'yp5'" in err and f"{3 * n + 1} in all" in err and len(err) < 600
+    good = tmp_path / "rope.toml"
+    good.write_text(_rope_toml(n))
+    other = tmp_path / "other.toml"
+    other.write_text(_rope_toml(n).replace('name = "p7"', 'name = "q7"').replace('"p7"', '"q7"'))
+    assert main(["run", str(good), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    page = str(tmp_path / "v.html")
+    assert main(["view", str(tmp_path / "out"), "--scene", str(other), "--out", page]) == 2
+    err = capsys.readouterr().err
+    assert "the first to differ is number 8: 'q7' against 'p7'" in err and len(err) < 600

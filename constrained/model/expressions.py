@@ -19,7 +19,7 @@ from collections.abc import Mapping
 
 import casadi as ca
 
-from ..errors import ExpressionError
+from ..errors import ExpressionError, listed
 
 FUNCTIONS = {
     "sin": ca.sin,
@@ -276,7 +276,7 @@ class _Walker:
                 return CONSTANTS[node.id]
             if node.id in FUNCTIONS:
                 self.fail(f"'{node.id}' is a function; call it as {node.id}(...)")
-            known = ", ".join(sorted(self.names)) or "(none)"
+            known = listed(sorted(self.names)) or "(none)"
             self.fail(f"unknown name '{node.id}' (known names: {known})")
         if isinstance(node, ast.BinOp):
             op = _BINARY.get(type(node.op))

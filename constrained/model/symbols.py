@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..errors import ExpressionError, InputError
+from ..errors import ExpressionError, InputError, listed
 from . import expressions, parameters
 from .lifting import Number
 
@@ -177,7 +177,7 @@ class Symbols:
 
     def index(self, name: str, where: str) -> int:
         if not isinstance(name, str) or name not in self._index:
-            known = ", ".join(self._index) or "(none)"
+            known = listed(self._index) or "(none)"
             raise InputError(f"names unknown particle {name!r} (particles: {known})", where=where)
         return self._index[name]
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, listed
 
 
 def as_vector3(value, *, where: str, what: str = "vector") -> np.ndarray:
@@ -335,7 +335,7 @@ class System:
         for i, p in enumerate(self.particles):
             if p.name == name:
                 return i
-        known = ", ".join(self.names) or "(none)"
+        known = listed(self.names) or "(none)"
         raise InputError(f"unknown particle '{name}' (particles: {known})", where=where)
 
     def with_state(self, x: np.ndarray, v: np.ndarray | None = None) -> System:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, listed
 from ..model.effects import Gravity
 from ..run.trajectory import Trajectory, atomic_write
 from .shapes import shapes
@@ -253,11 +253,15 @@ def up_direction(system) -> np.ndarray | None:
 def _check_scene(system, names: list[str], n: int) -> None:
     scene_names = [p.name for p in system.particles]
     if len(scene_names) != n or (names and scene_names != names):
-        have = ", ".join(names) if names else f"{n} particles"
+        have = listed(names, 6) if names else f"{n} particles"
+        differ = next((k for k, (a, b) in enumerate(zip(scene_names, names, strict=False)) if a != b), None)
+        where = (f"; the first to differ is number {differ + 1}: {scene_names[differ]!r} against "
+                 f"{names[differ]!r}" if differ is not None else "")
         raise InputError(
-            f"the scene's particles ({', '.join(scene_names) or 'none'}) are not the run's "
-            f"({have}): give the scene the run was made from"
+            f"the scene's particles ({listed(scene_names, 6) or 'none'}) are not the run's "
+            f"({have}){where}: give the scene the run was made from"
         )
+
 
 
 # --------------------------------------------------------------------------------- page

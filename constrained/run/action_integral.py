@@ -13,7 +13,7 @@ import casadi as ca
 import numpy as np
 
 from .. import tomlparse
-from ..errors import InputError
+from ..errors import InputError, listed
 from ..manifold.constraint_report import jacobian_rank
 from ..model.structure import Model, assemble
 from .event_records import checked_segments
@@ -513,7 +513,7 @@ def end_configuration(text: str, system) -> np.ndarray:
         name, _, value = part.partition("=")
         name = name.strip()
         if name not in names:
-            raise InputError(f"--to names unknown particle {name!r} (particles: {', '.join(names)})")
+            raise InputError(f"--to names unknown particle {name!r} (particles: {listed(names)})")
         try:
             vec = tomlparse.loads(f"v = {value.strip()}")["v"]
             vec = np.asarray(vec, float)

@@ -11,7 +11,7 @@ import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from ..errors import SceneError
+from ..errors import SceneError, listed
 from ..model import expressions
 
 
@@ -118,7 +118,7 @@ class Validator:
         if not isinstance(value, str):
             self.fail(key, f"must be a particle name, got {_describe(value)}")
         if value not in self.name_set():
-            known = ", ".join(self.names)
+            known = listed(self.names)
             self.fail(
                 key,
                 f"names unknown particle '{value}' (particles: {known}){_suggest(value, self.names)}",
