@@ -441,7 +441,7 @@ def _plot(args) -> int:
     for name, bad, total in [] if args.quiet else nonfinite_quantities(trajectory):  # (no NaN unsaid)
         print(f"note: {name}: {bad} of {total} samples of {results} are not finite; its figure leaves them "
               "out" + (" (it is empty)" if bad == total else ""))
-    system = load_scene(args.scene).system if args.scene else None
+    system = load_scene(args.scene, equations=False).system if args.scene else None
     out_dir = Path(args.out) if args.out else results.parent
     outs = OutputSet(out_dir).open()
     written, skipped = [], []
@@ -469,7 +469,7 @@ def _view(args) -> int:
 
     if args.overrides and not args.scene:
         raise InputError("view: --set changes the scene; give it with --scene")
-    scene = load_scene(args.scene, args.overrides) if args.scene else None
+    scene = load_scene(args.scene, args.overrides, equations=False) if args.scene else None
     path = view_command(args.results, scene=scene, out=args.out)
     if not args.quiet:
         print(f"wrote: {path}")

@@ -73,6 +73,10 @@ class SceneBuilder(RunSections):
     """Validates a scene's sections in turn (``build``) with the checks of Validator."""
 
     # sections ---------------------------------------------------------------------------
+    #: False: the System without its equations (no Structure, no start checks): enough to draw
+    #: the scene (``load_scene(..., equations=False)``).
+    equations = True
+
     def build(self) -> dict:
         """Validate every section and build the System: the fields of the Scene."""
         for k in self.raw:
@@ -101,11 +105,11 @@ class SceneBuilder(RunSections):
                     c.coefficient_of_restitution(system.parameter_values)
         except InputError as exc:
             self.fail(exc.where, exc.reason)
-        structure = self.structure(system)
+        structure = self.structure(system) if self.equations else None
         system.events = self.events_section(system)
         settings = self.simulate()
-        if "reduced" not in self.raw:  # with [reduced], crosscheck starts from the mapped state
-            self.regular_start(system, settings["t_start"], structure)
+        if "reduced" not in self.raw and self.equations:  # with [reduced], crosscheck starts from
+            self.regular_start(system, settings["t_start"], structure)  # the mapped state
         outputs = self.outputs()
         reduced = self.reduced({**parameters, **definitions})
         expect = self.raw.get("expect")
@@ -123,7 +127,7 @@ class SceneBuilder(RunSections):
             description=description,
             expectations=expectations,
             units=dict(self.raw.get("scene", {}).get("units", {})),
-            structure=(system, *structure),
+            structure=None if structure is None else (system, *structure),
         )
 
     def scene_section(self) -> tuple[str, str]:

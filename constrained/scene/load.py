@@ -217,13 +217,16 @@ class RunResult:
 # --- public entry points ---------------------------------------------------------------------
 
 
-def load_scene(path: str | Path, overrides: Iterable[str] | None = None) -> Scene:
-    """Read the TOML scene at ``path``, apply ``--set`` style ``overrides``, validate, build."""
+def load_scene(path: str | Path, overrides: Iterable[str] | None = None, *, equations: bool = True) -> Scene:
+    """Read the TOML scene at ``path``, apply ``--set`` style ``overrides``, validate, build.
+    ``equations=False``: the scene checked and its System built, but not its equations of motion
+    (no Structure, its formulas not differentiated, no start checks): what drawing it needs
+    (``view``, ``plot``), at a fraction of a large scene's cost; such a scene is not kept."""
     with collector_paused():  # (constrained.bulk: a third of a 10,000-particle scene's reading)
-        return _load_scene(path, overrides)
+        return _load_scene(path, overrides, equations)
 
 
-def _load_scene(path: str | Path, overrides: Iterable[str] | None) -> Scene:
+def _load_scene(path: str | Path, overrides: Iterable[str] | None, equations: bool = True) -> Scene:
     path = Path(path)
     file = str(path)
     if not path.exists():
@@ -241,14 +244,14 @@ def _load_scene(path: str | Path, overrides: Iterable[str] | None) -> Scene:
         plain = _LOADED.get((*digest, ()))
     if loaded is not None:
         return _copied(loaded)
-    if plain is None and overrides and all(_sets_a_parameter(text) for text in overrides):
+    if equations and plain is None and overrides and all(_sets_a_parameter(text) for text in overrides):
         try:  # read (and keep) the file's own scene: the overrides are values on it
             load_scene(path)
         except SceneError:
             pass  # (the file's own values may be the invalid ones): read it with the overrides
         with _LOADED_LOCK:
             plain = _LOADED.get((*digest, ()))
-    values = _parameter_values(overrides, plain, file)
+    values = _parameter_values(overrides, plain, file) if equations else None
     if values is not None:  # only new parameter values for a scene read before
         return _with_parameter_values(plain, values, file)
     raw, kept = _parsed(data, digest, file)
@@ -256,14 +259,10 @@ def _load_scene(path: str | Path, overrides: Iterable[str] | None) -> Scene:
         raw, set_paths = _apply_overrides(raw, overrides, file)
     else:  # the kept parse is copied; a big one is not kept, and is this call's own
         raw, set_paths = (data_copy(raw) if kept else raw), []
+    if not equations:  # (a full scene kept serves too; this one is not kept)
+        return _built(raw, path, file, set_paths, equations=False)
     key = (*digest, tuple(overrides))
-    try:
-        scene = build_scene(raw, path=path)
-    except SceneError as exc:
-        origin = _override_origin(exc.key, set_paths)
-        if origin is None:
-            raise
-        raise SceneError(f"{exc.reason} (value given by --set {origin})", file=file, key=exc.key) from None
+    scene = _built(raw, path, file, set_paths)
     if scene.system.n_particles > KEPT_PARTICLES:  # not kept: the caller's own, no copy
         return scene
     with _LOADED_LOCK:
@@ -395,9 +394,23 @@ def _copied(scene: Scene, system=None, raw_update: dict | None = None) -> Scene:
 
 
 
-def build_scene(raw: Mapping, path: str | Path | None = None) -> Scene:
-    """Validate a parsed scene dictionary (TOML layout) and build the Scene."""
-    return Scene(**SceneBuilder(raw, None if path is None else Path(path)).build())
+def _built(raw: Mapping, path: Path, file: str, set_paths: list, *, equations: bool = True) -> Scene:
+    """``build_scene``, a refusal of a value given by --set naming that override."""
+    try:
+        return build_scene(raw, path=path, equations=equations)
+    except SceneError as exc:
+        origin = _override_origin(exc.key, set_paths)
+        if origin is None:
+            raise
+        raise SceneError(f"{exc.reason} (value given by --set {origin})", file=file, key=exc.key) from None
+
+
+def build_scene(raw: Mapping, path: str | Path | None = None, *, equations: bool = True) -> Scene:
+    """Validate a parsed scene dictionary (TOML layout) and build the Scene (``equations``: as
+    ``load_scene``'s)."""
+    builder = SceneBuilder(raw, None if path is None else Path(path))
+    builder.equations = equations
+    return Scene(**builder.build())
 
 
 def check_regular_start(scene: Scene, *, loaded: bool = False) -> None:
