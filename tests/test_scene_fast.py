@@ -124,3 +124,43 @@ def test_plain_particles_share_no_arrays():
     system = build_scene(_raw()).system
     system.particles[0].position[0] = 9.0
     assert system.particles[1].position[0] == 2.0 and np.all(system.particles[1].velocity == [0, 2, 0.25])
+
+
+def test_a_scene_read_without_its_equations_draws_the_same_page(tmp_path, capsys):
+    """``load_scene(path, equations=False)`` (``view`` and ``plot`` with --scene): the same
+    System — particles, constraints, effects — without a Structure built or the start checked,
+    and the viewer's page from it is the page from the fully loaded scene, byte for byte. A
+    scene with a bad formula is read so (its formulas are not parsed: ``check`` and ``run``
+    refuse it), while its layout is still checked."""
+    from pathlib import Path
+
+    from constrained.cli.main import main
+    from constrained.model.structure import Structure
+    from constrained.scene.load import load_scene
+
+    root = Path(__file__).resolve().parents[1]
+    path = root / "scenarios" / "four_bar_linkage.toml"
+    out = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out), "--quiet", "--set", "simulate.t_end=0.2"]) == 0
+    built = Structure.builds
+    light = load_scene(path, ["simulate.t_end=0.3"], equations=False)
+    assert Structure.builds == built and light.structure is None and light.loaded_model() is None
+    full = load_scene(path, ["simulate.t_end=0.3"])
+    assert [p.name for p in light.system.particles] == [p.name for p in full.system.particles]
+    np.testing.assert_array_equal(light.system.positions, full.system.positions)
+    assert [c.label for c in light.system.constraints] == [c.label for c in full.system.constraints]
+    assert [e.label for e in light.system.effects] == [e.label for e in full.system.effects]
+    from constrained.output.viewer import view_command
+
+    pages = [view_command(out, scene=scene, out=tmp_path / f"{name}.html")
+             for name, scene in (("light", light), ("full", full))]
+    assert pages[0].read_bytes() == pages[1].read_bytes()
+    bad = tmp_path / "bad.toml"
+    potential = '[[effects]]\ntype = "potential"\nexpr = "x_B +* 2"\n'
+    bad.write_text(path.read_text().replace("[simulate]", potential + "[simulate]"))
+    assert load_scene(bad, equations=False).system.n_particles == full.system.n_particles
+    with pytest.raises(SceneError, match="cannot read formula"):
+        load_scene(bad)
+    bad.write_text(bad.read_text().replace('a = "B"', 'a = "Z"', 1))
+    with pytest.raises(SceneError, match="names unknown particle 'Z'"):
+        load_scene(bad, equations=False)
