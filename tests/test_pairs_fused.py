@@ -52,6 +52,21 @@ def test_the_fused_loop_gives_the_mapped_kernel_and_the_numpy_sum(monkeypatch):
     np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-9, atol=1e-10 * np.abs(F_ref).max())
 
 
+@needs_compiler
+def test_the_fused_loop_sums_the_energy_with_the_forces_when_asked(monkeypatch):
+    """``forces_and_potential`` (RATTLE's energy watch at every step) takes the fused loop with
+    its energy: W = Σ φ_c(r_ij) over the pairs within r_c (plus the trap's ½ k |x|²) equals the
+    NumPy sum and the mapped kernel's energy, and F the force Function's."""
+    model, term, x, (V, F) = _listed_forces(monkeypatch, True)
+    assert term._sums("both")[1].class_name() == "JitFunction"
+    F_both, W = model.structure.function("forces_and_potential")(x, 0 * x, 0.0, model.parameter_vector)
+    V_trap, _ = trap_parts(model.system, x)
+    V_ref, _ = numpy_pair_sum(x, range(5, 140), 1.7, excluded={(10, 11), (11, 12), (40, 41)})
+    assert float(W) - V_trap == pytest.approx(V_ref, rel=1e-11)
+    assert float(W) == pytest.approx(V, rel=1e-13)  # (the mapped kernel's, through "potential")
+    np.testing.assert_allclose(np.asarray(F_both).ravel(), F, rtol=1e-14, atol=1e-14 * np.abs(F).max())
+
+
 def _whitelist_cases():
     r = ca.SX.sym("r")
     u = r / 2  # in (0.55, 0.95): asin, acos, atanh defined; acosh of r ≥ 1.1
