@@ -5,8 +5,8 @@ negative or not finite over a whole span, however briefly, or to prove that it i
 
 Each operation maps the intervals of its operands to one that contains every value it can
 take (monotone functions at the ends, sin and cos with the extrema they pass, a product from
-the four corners, ...), widened by one ulp either side for the rounding of the operation
-itself. Where an operation may leave its domain on the piece (the square root of an interval
+the four corners, ...), widened by ROUNDING ulps either side for the rounding of the
+operation itself. Where an operation may leave its domain on the piece (the square root of an interval
 reaching below 0, a division by one holding 0) the bound is NaN or infinite: the piece is
 not proven, and is split until its samples show the non-finite value or the bound holds.
 An operation outside ``RULES`` bounds nothing (NaN), and the search falls back on samples.
@@ -14,11 +14,10 @@ An operation outside ``RULES`` bounds nothing (NaN), and the search falls back o
 
 from __future__ import annotations
 
-import math
-
 import casadi as ca
 import numpy as np
 from scipy.optimize import minimize_scalar
+from scipy.special import erf
 
 #: Pieces of the span the search holds at once at most; beyond (a formula that keeps touching
 #: 0, or an operation without a rule) it falls back on ``FALLBACK_SAMPLES`` samples.
@@ -143,8 +142,6 @@ def _apart(a, b):
     return (a[1] < b[0]) | (b[1] < a[0])
 
 
-_PI = (np.full(1, -np.pi), np.full(1, np.pi))
-
 #: op -> rule(a[, b][, exponent]) giving (lower, upper) arrays.
 RULES = {
     ca.OP_ASSIGN: lambda a: a,
@@ -167,14 +164,14 @@ RULES = {
     ca.OP_COS: _periodic(np.cos, 0.0),
     ca.OP_TAN: _tan,
     ca.OP_ASIN: _within(np.arcsin, -1.0, 1.0),
-    ca.OP_ACOS: lambda a: _within(np.arccos, -1.0, 1.0)((a[1], a[0])),  # (decreasing)
+    ca.OP_ACOS: lambda a: _within(np.arccos, -1.0, 1.0)(a)[::-1],  # (decreasing)
     ca.OP_ATAN: _increasing(np.arctan),
     ca.OP_SINH: _increasing(np.sinh),
     ca.OP_TANH: _increasing(np.tanh),
     ca.OP_ASINH: _increasing(np.arcsinh),
     ca.OP_ACOSH: _within(np.arccosh, 1.0, np.inf),
     ca.OP_ATANH: _within(np.arctanh, np.nextafter(-1.0, 0.0), np.nextafter(1.0, 0.0)),
-    ca.OP_ERF: _increasing(lambda x: np.vectorize(math.erf, otypes=[float])(x)),
+    ca.OP_ERF: _increasing(erf),
     ca.OP_FLOOR: _increasing(np.floor),
     ca.OP_CEIL: _increasing(np.ceil),
     ca.OP_SIGN: _increasing(np.sign),
@@ -182,7 +179,7 @@ RULES = {
     ca.OP_FMAX: lambda a, b: (np.maximum(a[0], b[0]), np.maximum(a[1], b[1])),
     ca.OP_HYPOT: lambda a, b: (np.hypot(_magnitude(a)[0], _magnitude(b)[0]),
                                np.hypot(_magnitude(a)[1], _magnitude(b)[1])),
-    ca.OP_ATAN2: lambda a, b: (_PI[0] + 0 * a[0], _PI[1] + 0 * a[0]),
+    ca.OP_ATAN2: lambda a, b: (np.full_like(a[0], -np.pi), np.full_like(a[0], np.pi)),
     ca.OP_FMOD: lambda a, b: (-_magnitude(b)[1], _magnitude(b)[1]),
     ca.OP_COPYSIGN: _copysign,
     ca.OP_POW: lambda a, b: _power(a, b, None),
