@@ -67,6 +67,24 @@ def test_the_fused_loop_sums_the_energy_with_the_forces_when_asked(monkeypatch):
     np.testing.assert_allclose(np.asarray(F_both).ravel(), F, rtol=1e-14, atol=1e-14 * np.abs(F).max())
 
 
+@needs_compiler
+def test_a_compiled_rattle_runs_energy_watch_is_the_trajectorys_energy():
+    """A gas with a cutoff, RATTLE compiled: the fused loop's energy at every step (the watch)
+    gives the largest change of h that the trajectory's energy, summed over every pair after
+    the run, shows at the same steps."""
+    system = gas(64, cutoff=1.8)
+    dt, steps = 2e-3, 100
+    run = C.simulate(system, steps * dt, method="rattle", dt=dt, compiled=True,
+                     t_eval=np.linspace(0.0, steps * dt, steps + 1))
+    assert run.stats["evaluation"] == "compiled"
+    change = run.energy - run.energy[0]
+    k = int(np.argmax(np.abs(change)))
+    assert abs(change[k]) > 1e-9 * abs(run.energy[0])  # (the energy moved at all)
+    assert run.stats["energy_start"] == pytest.approx(run.energy[0], rel=1e-12)
+    assert run.stats["energy_change"] == pytest.approx(change[k], rel=1e-6)
+    assert run.stats["energy_change_t"] == pytest.approx(run.t[k], abs=1e-12)
+
+
 def _whitelist_cases():
     r = ca.SX.sym("r")
     u = r / 2  # in (0.55, 0.95): asin, acos, atanh defined; acosh of r ≥ 1.1
