@@ -344,9 +344,10 @@ def refuse_negative_damping(model: Model, system, t0: float, t_end: float) -> No
     for effect in dampers:
         bad = effect.negative_coefficient(model.symbols, t0, t_end)
         if bad is not None:
+            lowest = " (its lowest over the run)" if math.isfinite(bad[1]) else ""
             raise InputError(
-                f"the damping coefficient {effect.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} s "
-                "for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
+                f"the damping coefficient {effect.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} "
+                f"s{lowest} for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
                 "dissipation but an energy source (the force −c v pushes along v); give parameter values "
                 "that keep it ≥ 0 (a fit: bounds), or write a driving force itself (type = \"force\")",
                 where=f"{effect._where()}.coefficient")
