@@ -242,6 +242,30 @@ def test_a_coefficient_formula_that_turns_negative_is_refused(tmp_path):
     assert out.returncode == 2 and "effects[0].coefficient" in out.stderr and "energy source" in out.stderr
 
 
+def test_a_dip_below_zero_between_any_sampled_times_is_refused():
+    """c = b − 0.2 exp(−((t − 0.4137)/τ)²), b = 0.1, τ = 1 ms, is negative only for
+    |t − 0.4137| < τ √(ln 2) (1.7 ms of a 1 s run), between the 65 times the check used to look
+    at (every 1/64 s: none in that stretch). The coefficient is now bounded over every instant:
+    the run is refused naming its lowest value, b − 0.2 = −0.1 N·s/m, at t = 0.4137 s. A formula
+    that comes within 1e-6 of zero and stays above it runs, and dissipates at every sample."""
+    def damped(expr: str) -> C.System:
+        s = C.System(name="damped", parameters={"b": 0.1})
+        s.add_particle("p", 1.0, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+        s.add(C.Spring("p", point=[0, 0, 0], k=4.0, rest=0.0), C.Damping(expr))
+        return s
+
+    half_width = 1e-3 * np.sqrt(np.log(2))
+    assert np.min(np.abs(np.linspace(0.0, 1.0, 65) - 0.4137)) > half_width  # (the old samples miss it)
+    with pytest.raises(C.InputError, match="energy source") as refused:
+        C.simulate(damped("b - 0.2*exp(-((t - 0.4137)/0.001)**2)"), 1.0)
+    message = str(refused.value)
+    t_named = float(message.split("at t = ")[1].split(" s")[0])
+    assert abs(t_named - 0.4137) < half_width
+    assert float(message.split(" is ")[1].split(" N·s/m")[0]) == pytest.approx(-0.1, rel=1e-4)
+    ok = C.simulate(damped("0.1*(t - 0.5)**2 + 1e-6"), 1.0, rtol=1e-10, atol=1e-12)
+    assert np.all(np.diff(ok.energy) <= 1e-12)  # dE/dt = −c |v|² ≤ 0 all along
+
+
 def test_a_huge_coefficient_is_named_by_the_stiffness_watch(monkeypatch):
     """c = 1e8 N·s/m on 1 kg relaxes in m/c = 1e-8 s: dopri, held at its stability limit, used
     to crawl through 20 million steps and stop blaming "forces that blow up"; the watch now

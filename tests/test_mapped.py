@@ -70,13 +70,18 @@ def test_mapped_functions_give_the_structures_numbers(options):
     # the parameters, then the plain numbers (constrained.lifting)
     p = [1.1, 0.8, 7.0, 3.0] * bool(options.get("parametric")) + lifting.numbers(system).tolist()
     for name, args in (("constraint", (x, t)), ("jacobian", (x, t)), ("velocity_terms", (x, t)),
-                       ("dynamics", (x, v, t))):
+                       ("dynamics", (x, v, t)), ("forces_and_potential", (x, v, t))):
         want = structure.function(name)(*args, p)
         got = build.function(name)(*args, p)
         want, got = (want, got) if isinstance(want, tuple) else ((want,), (got,))
         for a, b in zip(want, got, strict=True):
             assert a.shape == b.shape
             np.testing.assert_allclose(_dense(b), _dense(a), rtol=1e-13, atol=1e-13, err_msg=name)
+    # W = h − ½ vᵀMv (the energy watch's): the energy Function's, less the kinetic energy
+    masses = np.asarray(structure.function("masses")(p)).ravel()
+    W = float(build.function("forces_and_potential")(x, v, t, p)[1])
+    assert W == pytest.approx(float(structure.function("energy")(x, v, t, p)) - 0.5 * masses @ (v * v),
+                              rel=1e-12, abs=1e-12)
     from constrained.manifold.graph import row_scales_expr
 
     J = structure.function("jacobian")(x, t, p)[1]

@@ -52,6 +52,39 @@ def test_the_fused_loop_gives_the_mapped_kernel_and_the_numpy_sum(monkeypatch):
     np.testing.assert_allclose(F - F_trap, F_ref, rtol=1e-9, atol=1e-10 * np.abs(F_ref).max())
 
 
+@needs_compiler
+def test_the_fused_loop_sums_the_energy_with_the_forces_when_asked(monkeypatch):
+    """``forces_and_potential`` (RATTLE's energy watch at every step) takes the fused loop with
+    its energy: W = Σ φ_c(r_ij) over the pairs within r_c (plus the trap's ½ k |x|²) equals the
+    NumPy sum and the mapped kernel's energy, and F the force Function's."""
+    model, term, x, (V, F) = _listed_forces(monkeypatch, True)
+    assert term._sums("both")[1].class_name() == "JitFunction"
+    F_both, W = model.structure.function("forces_and_potential")(x, 0 * x, 0.0, model.parameter_vector)
+    V_trap, _ = trap_parts(model.system, x)
+    V_ref, _ = numpy_pair_sum(x, range(5, 140), 1.7, excluded={(10, 11), (11, 12), (40, 41)})
+    assert float(W) - V_trap == pytest.approx(V_ref, rel=1e-11)
+    assert float(W) == pytest.approx(V, rel=1e-13)  # (the mapped kernel's, through "potential")
+    np.testing.assert_allclose(np.asarray(F_both).ravel(), F, rtol=1e-14, atol=1e-14 * np.abs(F).max())
+
+
+@needs_compiler
+def test_a_compiled_rattle_runs_energy_watch_is_the_trajectorys_energy():
+    """A gas with a cutoff, RATTLE compiled: the fused loop's energy at every step (the watch)
+    gives the largest change of h that the trajectory's energy, summed over every pair after
+    the run, shows at the same steps."""
+    system = gas(64, cutoff=1.8)
+    dt, steps = 2e-3, 100
+    run = C.simulate(system, steps * dt, method="rattle", dt=dt, compiled=True,
+                     t_eval=np.linspace(0.0, steps * dt, steps + 1))
+    assert run.stats["evaluation"] == "compiled"
+    change = run.energy - run.energy[0]
+    k = int(np.argmax(np.abs(change)))
+    assert abs(change[k]) > 1e-9 * abs(run.energy[0])  # (the energy moved at all)
+    assert run.stats["energy_start"] == pytest.approx(run.energy[0], rel=1e-12)
+    assert run.stats["energy_change"] == pytest.approx(change[k], rel=1e-6)
+    assert run.stats["energy_change_t"] == pytest.approx(run.t[k], abs=1e-12)
+
+
 def _whitelist_cases():
     r = ca.SX.sym("r")
     u = r / 2  # in (0.55, 0.95): asin, acos, atanh defined; acosh of r ≥ 1.1

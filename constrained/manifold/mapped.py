@@ -18,7 +18,8 @@ gather: index data) and C_g = [c_1, …, c_n], gathered from [p; the constants] 
     f[r_k] = φ_g(x_l, c_k, t, p),   J[r_k, I_k] = ∂φ_g/∂x_l,      f_t[r_k] = ∂φ_g/∂t,
     γ[r_k] = ∂w/∂x_l · v_l + ∂w/∂t  with  w = J_l v_l + f_t,
     s[r_k] = max over the row's particles q of |∂φ_g/∂x_q|    (the row scale, as manifold's),
-    F = F_rest − S · vec([∇V_g(X_g)]_g)    (S: the 0/1 matrix scattering local gradients).
+    F = F_rest − S · vec([∇V_g(X_g)]_g)    (S: the 0/1 matrix scattering local gradients),
+    W = W_rest + Σ_g Σ_k V_g(X_g[:, k])   (``forces_and_potential``: h − ½ vᵀMv with F).
 
 The rest (rows and summands of small groups, the other force slots) is one SX graph built as
 the Structure builds it (``model.forces``). J's sparsity, the permutations back to scene
@@ -45,11 +46,11 @@ from .vectorized.grouping import MAX_KINDS, MIN_GROUP, Group, grouped, lifted, s
 #: the C compiler minutes (docs/performance.md, "Compile time").
 MAPPED_FROM = 150
 #: The Functions the mapped build provides (the others are the Structure's).
-NAMES = ("constraint", "jacobian", "velocity_terms", "dynamics", "row_scales")
+NAMES = ("constraint", "jacobian", "velocity_terms", "dynamics", "forces_and_potential", "row_scales")
 #: Their constraint outputs and whether they take the velocities.
 _OUTPUTS = {"constraint": (("f",), False), "jacobian": (("f", "J"), False),
             "velocity_terms": (("J", "f_t"), False), "dynamics": (("J", "gamma"), True),
-            "row_scales": (("scale",), False)}
+            "forces_and_potential": ((), True), "row_scales": (("scale",), False)}
 
 
 def _row_scale(J_row, parts) -> ca.SX:
@@ -105,14 +106,16 @@ class MappedBuild:
         return sum(g.index.shape[1] for g in (*self.rows, *self.terms))
 
     # --- the SX pieces: one kernel per group, the rest -------------------------------------
-    def _rest(self, outputs: tuple, with_v: bool, with_forces: bool) -> ca.Function:
+    def _rest(self, outputs: tuple, with_v: bool, with_forces: bool,
+              with_potential: bool = False) -> ca.Function:
         e = self.e
         f = ca.vertcat(*[e.rows[k] for k in self.rest_place]) if len(self.rest_place) else ca.SX(0, 1)
         terms = _row_terms(f, e.x, e.v, e.t, lambda i: i // 3)
         terms["J"] = ca.vertcat(*terms["J"].nonzeros()) if terms["J"].nnz() else ca.SX(0, 1)
         out = [terms[k] for k in outputs]
         if with_forces:
-            out.append(ca.sparsify(forces(self.rest_slots, e.x, e.v, e.t)[0]))
+            F, V, U, dU_dv, _ = forces(self.rest_slots, e.x, e.v, e.t)
+            out += [ca.sparsify(F), *([V + U - ca.dot(e.v, dU_dv)] if with_potential else [])]
         inputs = [e.x, e.v, e.t, e.p] if with_v else [e.x, e.t, e.p]
         return ca.Function("rest", inputs, out)
 
@@ -134,10 +137,13 @@ class MappedBuild:
     def _p_argument(self, g: Group, P):
         return P if ca.depends_on(g.local, self.e.p) else ca.MX(0, 1)
 
-    def _potential_kernel(self, g: Group, name: str) -> ca.Function:
+    def _potential_kernel(self, g: Group, name: str, with_value: bool = False) -> ca.Function:
+        """The group's ∇V_k (and V_k: ``with_value``) mapped over its instances."""
         e = self.e
         gradient = ca.densify(ca.gradient(g.local, g.xl))
-        kernel = ca.Function(f"{name}_kernel", [g.xl, g.c, e.t, self._p(g)], [gradient])
+        inputs = [g.xl, g.c, e.t, self._p(g)]
+        kernel = (ca.Function(f"{name}_kernel", inputs, [gradient, g.local], {"cse": True}) if with_value
+                  else ca.Function(f"{name}_kernel", inputs, [gradient]))
         return kernel.map(f"{name}_map", "serial", g.index.shape[1], [2, 3], [])
 
     # --- the assembled MX Functions --------------------------------------------------------
@@ -154,11 +160,12 @@ class MappedBuild:
         structure = self.structure
         P_full = ca.MX.sym("p", structure.n_p)  # the physical p, then the pairs' neighbour lists
         P = P_full[:structure.n_physical] if structure.n_p != structure.n_physical else P_full
-        dynamics = name == "dynamics"
-        rest = self._rest(outputs, with_v, dynamics)(*([X, V, T, P] if with_v else [X, T, P]))
+        dynamics = name in ("dynamics", "forces_and_potential")
+        potential = name == "forces_and_potential"  # (F, W = h − ½ vᵀMv: V, and U's part)
+        rest = self._rest(outputs, with_v, dynamics, potential)(*([X, V, T, P] if with_v else [X, T, P]))
         rest = rest if isinstance(rest, list | tuple) else [rest]
         pieces = {k: [rest[i]] for i, k in enumerate(outputs)}
-        for j, g in enumerate(self.rows):
+        for j, g in enumerate(self.rows if outputs else ()):
             velocities = [_gather(V, g.index)] if with_v else []
             gather = [_gather(X, g.index), *velocities, g.data(P), T, self._p_argument(g, P)]
             out = self._kernel(g, outputs, with_v, f"{name}_{j}")(*gather)
@@ -172,14 +179,23 @@ class MappedBuild:
         if name == "velocity_terms" and not self.structure.rheonomic:
             outs[1] = ca.MX(self.n_rows, 1)  # structurally zero, as the Structure's
         if dynamics:
-            gradients = [ca.vec(self._potential_kernel(g, f"potential_{j}")(
-                _gather(X, g.index), g.data(P), T, self._p_argument(g, P))) for j, g in enumerate(self.terms)]
-            F = rest[-1]
+            W = rest[-1] if potential else None
+            F = rest[-2] if potential else rest[-1]
+            gradients = []
+            for j, g in enumerate(self.terms):
+                out = self._potential_kernel(g, f"potential_{'value_' * potential}{j}", potential)(
+                    _gather(X, g.index), g.data(P), T, self._p_argument(g, P))
+                gradients.append(ca.vec(out[0] if potential else out))
+                W = W + ca.sum2(out[1]) if potential else W
             if gradients:
                 F = F - ca.mtimes(self._scatter(), ca.vertcat(*gradients))
             for term in structure.pairs:  # each pair potential: its own mapped kernel
-                F = F + term.energy_and_forces(X, T, P_full, structure.n_physical, want="force")[1]
+                e, f = term.energy_and_forces(X, T, P_full, structure.n_physical,
+                                              want="both" if potential else "force")
+                F, W = F + f, (W + e if potential else W)
             outs, out_names = [ca.densify(F), *outs], ["F", *out_names]
+            if potential:
+                outs, out_names = [*outs, W], [*out_names, "W"]
         inputs, in_names = (([X, V, T, P_full], ["x", "v", "t", "p"]) if with_v
                             else ([X, T, P_full], ["x", "t", "p"]))
         return ca.Function(name, inputs, outs, in_names, out_names)

@@ -69,6 +69,10 @@ class ParametricView:
     def energy(self, X, V, T):
         return self._call("energy", X, V, T)
 
+    def forces_and_potential(self, X, V, T):
+        """(F, W): the forces and the energy less the kinetic, W = h − ½ vᵀMv, from one pass."""
+        return self._call("forces_and_potential", X, V, T)
+
 
 def structure_cache(model: Model) -> tuple[dict, tuple]:
     """(cache, key prefix) for what is built with the parameters as inputs (``ParametricView``):

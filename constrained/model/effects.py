@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 import casadi as ca
 import numpy as np
 
+from ..codegen.interval import where_negative
 from ..errors import InputError
 from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_distances
 from .symbols import Batch
@@ -309,18 +310,16 @@ class Damping(Effect):
         on = f"{self.a}–{self.b}" if self.a else ", ".join(self.particles or ["all"])
         return self.name or f"damping c={_fmt(self.coefficient)} N·s/m on {on}"
 
-    def negative_coefficient(self, s, times) -> tuple[float, float] | None:
-        """(t, c(t)) where a coefficient given by a formula is negative or not finite at one of
-        ``times`` (for the Symbols ``s`` of a system with its parameter values), else None: a
-        plain number is checked when the effect is made, a formula only once its parameters have
-        values (a fit without bounds, ``--set``)."""
+    def negative_coefficient(self, s, t0: float, t_end: float) -> tuple[float, float] | None:
+        """(t, c(t)), the lowest found, where a coefficient given by a formula of t is negative or
+        not finite anywhere on [t0, t_end], however briefly (for the Symbols ``s`` of a system with
+        its parameter values; bounded over every instant in interval arithmetic, not sampled:
+        ``codegen.interval.where_negative``), else None. A plain number is checked when the effect
+        is made, a formula only once its parameters have values (a fit without bounds, ``--set``)."""
         if not isinstance(self.coefficient, str):
             return None
         c = s.time_function(self.coefficient, f"{self._where()}.coefficient")
-        values = np.asarray(ca.Function("c", [s.t], [c]).map(len(times))(np.asarray(times, float)[None, :]),
-                            float).ravel()
-        bad = np.flatnonzero(~(np.isfinite(values) & (values >= 0)))
-        return None if not bad.size else (float(times[bad[0]]), float(values[bad[0]]))
+        return where_negative(ca.Function("c", [s.t], [c]), t0, t_end)
 
     def term(self, s):
         where = self._where()

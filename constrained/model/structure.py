@@ -162,7 +162,8 @@ class Structure:
         else:
             m3 = ca.DM(np.repeat(np.asarray(s.masses, float), 3))
         T = 0.5 * ca.dot(m3 * v, v)
-        energy = T + V + U - ca.dot(v, dU_dv)
+        potential_part = V + U - ca.dot(v, dU_dv)  # h − T: what a step adds to ½ vᵀMv for h
+        energy = T + potential_part
         # The Functions are made when first asked for (making one sorts its whole graph).
         self._p = p
         # every Function takes the whole p, the neighbour lists' entries after the physical ones
@@ -185,6 +186,8 @@ class Structure:
         function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F(), kinematics()[1], kinematics()[3]],
                  ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], [energy], ["E"])
+        function("forces_and_potential", [x, v, t], ["x", "v", "t"], lambda: [F(), potential_part],
+                 ["F", "W"])
         function("potential", [x, t], ["x", "t"], [V], ["V"])
         function("kinetic", [v], ["v"], [T], ["T"])
         function("masses", [], [], [ca.SX(m3)], ["m"])  # (3N,): formulas of p, or numbers

@@ -182,7 +182,7 @@ def simulate(
     if vanished:  # a row a(x)·v + b whose a(x) passed through 0: μ has a pole there
         traj.info["velocity_rows_lost_rank"] = vanished
         warnings.warn(SingularConfigurationWarning(velocity.describe_vanishing(vanished)), stacklevel=2)
-    unresolved = None if interrupted else _unresolved_energy(model, traj, method)
+    unresolved = None if interrupted else _unresolved_energy(model, traj)
     if unresolved:
         traj.info["energy_not_conserved"] = unresolved
         warnings.warn(UnresolvedStepWarning(unresolved["message"]), stacklevel=2)
@@ -258,34 +258,36 @@ def _own_keywords() -> tuple[str, ...]:
 UNRESOLVED_ENERGY = 0.05
 
 
-def _unresolved_energy(model: Model, traj, method: str) -> dict | None:
-    """For ``rattle`` on a system whose energy h = T + V is conserved (no time-dependent or
-    velocity-dependent forces, scleronomic, no velocity rows): where max |h − h₀| exceeds
-    UNRESOLVED_ENERGY × the scale max(|h₀|, T₀, |V₀|, the median T over the samples), the
-    worst sample and the words; else None. A gram falling onto a kilogram under V = −1/r "completed"
-    at dt = 1 ms with its energy gone from −1 J to +92 J: the steps jumped the close encounter."""
-    if method != "rattle" or traj.energy is None or len(traj.t) < 2 or model.rheonomic:
+def _unresolved_energy(model: Model, traj) -> dict | None:
+    """For a ``rattle`` run whose steps watched the energy h = T + V (a system that conserves
+    it: ``solvers.rattle.conserves_energy``), at every step and not only at the output samples
+    (``stats``: the largest h − h₀ and the largest one-step change, with their times): where
+    max |h − h₀| exceeds UNRESOLVED_ENERGY × the scale max(|h₀|, T₀, |V₀|, the median T over the
+    samples), the step that changed h most (the one that did not resolve the motion), the change
+    and the words; else None. A gram falling onto a kilogram under V = −1/r "completed" at dt =
+    1 ms with its energy gone from −1 J to +92 J: the steps jumped the close encounter."""
+    stats = traj.stats
+    if "energy_change" not in stats or not len(traj.t):
         return None
-    if {"time_dependent_forces", "velocity_constraints"} & model.active_terms \
-            or model.structure.forces_depend_on_velocity:
-        return None
-    h = np.asarray(traj.energy, float).ravel()
+    h0, change = float(stats["energy_start"]), float(stats["energy_change"])
     v = np.asarray(traj.v, float).reshape(len(traj.t), -1)
     T = 0.5 * (v * v) @ model.masses
-    if not (np.all(np.isfinite(h)) and np.all(np.isfinite(T))):
+    if not (np.isfinite(h0) and np.isfinite(change) and np.all(np.isfinite(T))):
         return None
-    scale = max(abs(h[0]), T[0], abs(h[0] - T[0]), float(np.median(T)))
-    k = int(np.argmax(np.abs(h - h[0])))
-    change = float(h[k] - h[0])
+    scale = max(abs(h0), T[0], abs(h0 - T[0]), float(np.median(T)))
     if not scale > 0 or abs(change) <= UNRESOLVED_ENERGY * scale:
         return None
-    dt = traj.stats.get("dt")
+    t_step, step_change = float(stats["energy_step_change_t"]), float(stats["energy_step_change"])
+    dt = stats.get("dt")
     step = f"the fixed step dt = {dt:.3g} s" if dt else "the fixed step"
-    return {"t": float(traj.t[k]), "change": change, "scale": scale, "message": (
-        f"the energy, which this system conserves, changed by {change:.3g} J (from {h[0]:.6g} J) by "
-        f"t = {traj.t[k]:.6g} s, {abs(change) / scale:.3g} of its scale {scale:.3g} J: {step} did not "
-        "resolve the motion there (a close encounter or a collision); reduce dt, or use an adaptive "
-        "method (dopri), which follows such an encounter or names the collapse")}
+    t_change = float(stats["energy_change_t"])
+    return {"t": t_step, "step_change": step_change, "change": change, "t_change": t_change, "scale": scale,
+            "message": (
+                f"the energy, which this system conserves, changed by {change:.3g} J (from {h0:.6g} J; "
+                f"the most at t = {t_change:.6g} s), {abs(change) / scale:.3g} of its scale {scale:.3g} J, "
+                f"and by {step_change:.3g} J in the one step to t = {t_step:.6g} s: {step} did not resolve "
+                "the motion there (a close encounter or a collision); reduce dt, or use an adaptive method "
+                "(dopri), which follows such an encounter or names the collapse")}
 
 
 def _check_keywords(method: str, options: dict) -> None:
@@ -333,24 +335,19 @@ def _forces_and_energy(model: Model):
     return structural_call(model, "forces_and_energy", build, "x", "v", "t")
 
 
-#: Times at which a damping coefficient given by a formula is checked for its sign.
-DAMPING_CHECKS = 65
-
-
 def refuse_negative_damping(model: Model, system, t0: float, t_end: float) -> None:
     """Refuse a Rayleigh coefficient (a formula of t and the parameters) that is negative or not
-    finite at one of DAMPING_CHECKS times of the run: R = ½ c |v|² with c < 0 is an energy source."""
+    finite at any instant of [t0, t_end], however briefly (``Damping.negative_coefficient``:
+    bounded, not sampled): R = ½ c |v|² with c < 0 is an energy source."""
     dampers = [e for e in system.effects
                if hasattr(e, "negative_coefficient") and isinstance(e.coefficient, str)]
-    if not dampers:
-        return
-    times = np.linspace(t0, t_end, DAMPING_CHECKS)
     for effect in dampers:
-        bad = effect.negative_coefficient(model.symbols, times)
+        bad = effect.negative_coefficient(model.symbols, t0, t_end)
         if bad is not None:
+            lowest = " (its lowest over the run)" if math.isfinite(bad[1]) else ""
             raise InputError(
-                f"the damping coefficient {effect.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} s "
-                "for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
+                f"the damping coefficient {effect.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} "
+                f"s{lowest} for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
                 "dissipation but an energy source (the force −c v pushes along v); give parameter values "
                 "that keep it ≥ 0 (a fit: bounds), or write a driving force itself (type = \"force\")",
                 where=f"{effect._where()}.coefficient")

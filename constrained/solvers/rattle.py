@@ -25,6 +25,13 @@ iteration's residual |f(x_{n+1})| is carried in the state as a running maximum, 
 after every chunk. Many steps are chained per call (``_chained``), so no Python runs per
 step, and the chained steps can be compiled to machine code (``compiled``; see
 constrained.codegen.compiled).
+
+On a system that conserves its energy h = T + V (``conserves_energy``) the steps also carry
+the energy watch (``ENERGY_WATCH``): h after every step, the largest |h − h₀| and the largest
+one-step change |h_{n+1} − h_n|, with their times, returned in the run's stats. A close
+encounter that a step jumps between two output times is seen there (constrained.run.simulate
+decides whether to warn). V comes with the forces F(x_{n+1}) from one evaluation
+(``forces_and_potential``: for pair potentials one pass of their kernel), T is ½ vᵀMv.
 """
 
 from __future__ import annotations
@@ -62,6 +69,10 @@ DEFAULT_SAMPLES = 2000
 CHUNK_WORK = 1 << 19
 #: Chains up to this many steps are written out call by call (p shared, not carried).
 UNROLLED_STEPS = 16
+#: The energy watch's entries at the end of the step's state (h₀, h after the last step, the
+#: largest h − h₀ and its time, the largest one-step change and its time), named as in the stats.
+ENERGY_WATCH = ("energy_start", "energy_last", "energy_change", "energy_change_t", "energy_step_change",
+                "energy_step_change_t")
 #: Steps chained per call: the shortest that covers the steps to the next output is called;
 #: steps past the count asked for are skipped (nearly free). The same few Functions serve every
 #: dt, so a new step size compiles nothing.
@@ -125,6 +136,11 @@ class Rattle(Stepper):
         O(N²) kernel once, as velocity Verlet)."""
         return not self.model.structure.forces_depend_on_velocity
 
+    def watches_energy(self) -> bool:
+        """Whether the steps carry the energy watch (``ENERGY_WATCH``): the system conserves
+        its energy (``conserves_energy``; its forces then do not depend on v and are carried)."""
+        return conserves_energy(self.model)
+
     def _step(self) -> ca.Function:
         """One RATTLE step (state, p) -> state on the state (x, v, t, λ, err, left, h, s[, F]) —
         err: running max of |f| after Newton (in metres: each row over its scale s at the run's
@@ -133,7 +149,7 @@ class Rattle(Stepper):
         most of the numbers at 10,000 particles) are a second input, read and never copied from
         step to step, so one Function (one compile) serves every step size, start and parameter
         value of the structure; F: the forces at (x, t) when they do not depend on v
-        (``carries_forces``)."""
+        (``carries_forces``); the energy watch after them (``watches_energy``)."""
         m = self.model
         rows = self.manifold.rows
         n3, C, n_all = m.n_coordinates, len(self.rows), m.n_constraints
@@ -145,6 +161,8 @@ class Rattle(Stepper):
         minv = view.inverse_masses if isinstance(view.inverse_masses, ca.MX) else ca.DM(view.inverse_masses)
         carry = self.carries_forces()
         vector = self.vectorized()
+        watch = self.watches_energy()
+        W1 = None  # (the energy less the kinetic at x_{n+1}, with the forces there: the watch)
         if carry:
             F0 = ca.MX.sym("F", n3)
             J0 = view.jacobian(x, t)[1] if C and not vector else None
@@ -175,7 +193,7 @@ class Rattle(Stepper):
             v_half = v + 0.5 * h * minv * (F0 + ca.mtimes(J0.T, lam_k))
             x1 = x + h * v_half
             residual = ca.mmax(ca.fabs(view.constraint(x1, t1)) / scales)
-            F1, _, _ = view.dynamics(x1, v_half, t1)
+            F1, W1 = forces_after(view, x1, v_half, t1, watch)
             v_pred = v_half + 0.5 * h * minv * F1
             v1 = v_pred - velocity_correction_graph(view, x1, v_pred, t1, rows=rows)
             if not carry:  # F depends on v: the second half-kick at v_{n+1}
@@ -185,7 +203,7 @@ class Rattle(Stepper):
         else:
             v_half = v + 0.5 * h * minv * F0
             x1 = x + h * v_half
-            F1, _, _ = view.dynamics(x1, v_half, t1)
+            F1, W1 = forces_after(view, x1, v_half, t1, watch)
             v1 = v_half + 0.5 * h * minv * F1
             if not carry:
                 v1 = implicit_kick(view, P, x1, v_half, t1, h, v1, constrained=False)
@@ -194,6 +212,15 @@ class Rattle(Stepper):
         if carry:
             state.append(F0)
             out.append(F1)
+        if watch:
+            watched = [ca.MX.sym(name) for name in ENERGY_WATCH]
+            if W1 is None:  # (the vectorized build: its energy, O(N) as its forces)
+                energy = vectorized.VectorizedView(m, P).energy(x1, v1, t1)
+            else:
+                masses = view.masses if isinstance(view.masses, ca.MX) else ca.DM(view.masses)
+                energy = 0.5 * ca.dot(masses * v1, v1) + W1
+            state += watched
+            out += energy_watch(watched, energy, t1)
         state, out = ca.vertcat(*state), ca.vertcat(*out)
         step = ca.Function("rattle_attempt", [state, P], [out])
         # once the steps asked for are done, a step is skipped (short-circuit: nearly free); so
@@ -215,7 +242,7 @@ class Rattle(Stepper):
         every dt, start and parameter value of the structure shares them."""
         cache, prefix = structure_cache(self.model)
         key = (*prefix, "rattle", self.manifold.rows, self.newton_iterations, self.compiled,
-               self.carries_forces(), self.vectorized())
+               self.carries_forces(), self.vectorized(), self.watches_energy())
         chunks = cache.get(key)
         if chunks is None:
             with vectorized.shared_nodes():  # (a step's repeated products built once)
@@ -275,8 +302,12 @@ class Rattle(Stepper):
         if self.carries_forces():
             F0 = m.parametric("dynamics")(x0, v0, t0, m.parameter_vector)[0]
             carried = [np.asarray(F0, float).ravel()]
-        state = [x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, *carried]
         self._p = np.array(m.parameter_vector, float)  # (the neighbour lists refreshed in it)
+        if self.watches_energy():
+            if not hasattr(self, "energy_start"):  # (the run's, from its start)
+                self.energy_start = float(m.parametric("energy")(x0, v0, t0, self._p))
+            carried.append([self.energy_start, self.energy_start, 0.0, t0, 0.0, t0])
+        state = [x0, v0, [t0], lam0, [0.0, 0.0, self.h], scales, *carried]
         return round((t0 - self._t0) / self.h), np.concatenate(state)
 
     def step(self, state, t_stop) -> Advance:
@@ -315,6 +346,8 @@ class Rattle(Stepper):
                                f"{self.newton_iterations} iterations): reduce dt"
                                + (" or raise newton_iterations" if self.vectorized() else "")))
         self.stats["steps"] = done + k
+        if self.watches_energy():
+            self.stats.update(zip(ENERGY_WATCH, map(float, new[-len(ENERGY_WATCH):]), strict=True))
         return Advance((done + k, new), np.array([t_new]), new[None, :n3], new[None, n3:2 * n3], h=self.h)
 
     def round_off_floor(self, state) -> float:
@@ -381,6 +414,34 @@ def implicit_kick(view, P, x1, v_half, t1, h, v, *, rows=None, constrained: bool
         nu = d * ca.solve(S, d * (ca.mtimes(J, YG - v) - f_t), "qr")
         v = v + ca.mtimes(Y1, nu) - YG
     return v
+
+
+def conserves_energy(model) -> bool:
+    """Whether the energy h = T + V of ``model`` is conserved by its motion: no time-dependent
+    or velocity-dependent forces, scleronomic constraints, no velocity rows."""
+    return not (model.rheonomic or {"time_dependent_forces", "velocity_constraints"} & model.active_terms
+                or model.structure.forces_depend_on_velocity)
+
+
+def forces_after(view, x1, v_half, t1, watch: bool) -> tuple:
+    """(F(x_{n+1}, v½, t_{n+1}), W): with the energy watch W = h − ½ vᵀMv there, from the same
+    evaluation (``forces_and_potential``), else None."""
+    if watch:
+        return view.forces_and_potential(x1, v_half, t1)
+    return view.dynamics(x1, v_half, t1)[0], None
+
+
+def energy_watch(watched: list, energy, t1) -> list:
+    """The energy watch (``ENERGY_WATCH``) after a step that ends at t1 with energy h_{n+1}:
+    h₀ kept, h_{n+1} the last, and the largest |h_{n+1} − h₀| and |h_{n+1} − h_n| so far with
+    their times. A value that is not finite is not taken (the run's own checks name it)."""
+    start, last, change, t_change, step_change, t_step = watched
+    finite = ca.fabs(energy) < ca.inf
+    larger = ca.logic_and(finite, ca.fabs(energy - start) > ca.fabs(change))
+    jumped = ca.logic_and(finite, ca.fabs(energy - last) > ca.fabs(step_change))
+    return [start, ca.if_else(finite, energy, last),
+            ca.if_else(larger, energy - start, change), ca.if_else(larger, t1, t_change),
+            ca.if_else(jumped, energy - last, step_change), ca.if_else(jumped, t1, t_step)]
 
 
 def _chained(step: ca.Function, k: int) -> ca.Function:

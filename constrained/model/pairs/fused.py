@@ -15,7 +15,9 @@ The physics stays CasADi's: the pair's scalar
 is derived symbolically (SX) and its algorithm translated to C statements one instruction at
 a time (``codegen.scalar_c``) from a whitelist of operations; a φ with any other operation is
 not fused (the mapped kernel serves it). A pair at r ≥ r_c is skipped before the square root,
-which changes nothing: φ_c is 0 there.
+which changes nothing: φ_c is 0 there. Where the energy V = Σ φ_c(r_ij) is asked for with the
+forces (``forces_and_potential``: RATTLE's energy watch at every step), the same pass sums it,
+φ_c sharing its work with g (a second loop, taken only then).
 
 The fused Function has no derivatives (finite differences are turned off): what needs ∂F/∂x
 of a listed sum takes the every-pair Function (``lists=False``).
@@ -32,25 +34,37 @@ from ...codegen.scalar_c import scalar_c
 from .neighbours import ROW
 
 
-def force_body(r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, n: int, capacity: int, cutoff: float) -> str | None:
+def force_body(r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, n: int, capacity: int, cutoff: float,
+               phi: ca.SX | None = None) -> str | None:
     """The C body of the fused force sum: inputs ``x`` (3n), ``t``, ``q`` (φ's parameters),
-    ``data`` (the list: valid, x_ref (3n), I (capacity), J (ROW·capacity)); outputs ``V``
-    (0: the force Function computes no energy) and ``F`` (3n). ``g`` is −φ_c'(r)/r in the
-    symbols r, t and q. Its parts that depend on t and q alone (φ_c's shift: φ'(r_c), φ''(r_c))
-    are computed once before the loop (``casadi.extract_parametric``), not once per pair."""
-    per_pair, names, invariant = ca.extract_parametric(g, ca.vertcat(t, q))
+    ``data`` (the list: valid, x_ref (3n), I (capacity), J (ROW·capacity)); outputs ``V`` and
+    ``F`` (3n). ``g`` is −φ_c'(r)/r in the symbols r, t and q; ``phi`` φ_c itself, summed into V
+    when V is asked for (a null V pointer: the loop without it; no ``phi``: V = 0). Their parts
+    that depend on t and q alone (φ_c's shift: φ(r_c), φ'(r_c), φ''(r_c)) are computed once
+    before the loop (``casadi.extract_parametric``), not once per pair."""
+    with_energy = phi is not None
+    per_pair, names, invariant = ca.extract_parametric(ca.vertcat(g, phi) if with_energy else g,
+                                                       ca.vertcat(t, q))
     e = ca.vertcat(*names) if names else ca.SX.sym("e", 0)
     before = scalar_c(ca.Function("invariant", [t, q], list(invariant)), ["tt", "qv[]"],
                       [f"e[{k}]" for k in range(len(invariant))], prefix="u") if names else ""
-    scalar = scalar_c(ca.Function("pair_scale", [r, t, q, e], [ca.cse(per_pair)]), ["r", "tt", "qv[]", "e[]"],
-                      ["gr"], reciprocals={"r": "rinv"})
-    if scalar is None or before is None:
+    pair = ca.cse(per_pair)
+    names_in = ["r", "tt", "qv[]", "e[]"]
+    scalar = scalar_c(ca.Function("pair_scale", [r, t, q, e], [pair[0]]), names_in, ["gr"],
+                      reciprocals={"r": "rinv"})
+    both = scalar_c(ca.Function("pair_scale_energy", [r, t, q, e], [pair[0], pair[1]]), names_in,
+                    ["gr", "vr"], reciprocals={"r": "rinv"}) if with_energy else ""
+    if scalar is None or before is None or both is None:
         return None
     start, n_q, n_e = 1 + 3 * n, max(1, q.numel()), max(1, e.numel())
+    loops = _loop(scalar, energy=False)
+    if with_energy:  # (two loops: the force Function's, that never asks for V, pays nothing for it)
+        loops = f"if (V) {{\n{_loop(both, energy=True)}}} else {{\n{loops}}}\n"
     return f"""
 const casadi_int n = {n}, rows = {capacity}, row = {ROW};
 const casadi_real rc2 = {float(cutoff) ** 2!r};
 casadi_int k, s, c;
+casadi_real energy = 0;
 if (V) V[0] = 0;
 if (!F) return 0;
 for (c = 0; c < 3 * n; ++c) F[c] = 0;
@@ -63,7 +77,18 @@ for (c = 0; c < {q.numel()}; ++c) qv[c] = q ? q[c] : 0;
 {before}
 }}
 const casadi_real *I = data + {start}, *J = data + {start} + rows;
-for (k = 0; k < rows; ++k) {{
+{loops}
+if (V) V[0] = energy;
+return 0;
+"""
+
+
+def _loop(scalar: str, energy: bool) -> str:
+    """The loop over the list's rows: each pair within the cutoff adds g(r) (x_i − x_j) to F_i
+    and its opposite to F_j (and φ_c(r) to the energy)."""
+    declared = "casadi_real gr, vr;" if energy else "casadi_real gr;"
+    add = "energy += vr;" if energy else ""
+    return f"""for (k = 0; k < rows; ++k) {{
   const casadi_real ik = I[k];
   if (!(ik >= 0 && ik < n)) break;  /* the empty rows are last */
   const casadi_int i = (casadi_int) ik;
@@ -77,26 +102,26 @@ for (k = 0; k < rows; ++k) {{
     const casadi_real r2 = d0 * d0 + d1 * d1 + d2 * d2;
     if (r2 >= rc2) continue;  /* phi_c is 0 beyond the cutoff */
     const casadi_real r = sqrt(r2), rinv = 1. / r;
-    casadi_real gr;
+    {declared}
     {{
 {scalar}
     }}
+    {add}
     fi0 += gr * d0; fi1 += gr * d1; fi2 += gr * d2;
     F[3 * j] -= gr * d0; F[3 * j + 1] -= gr * d1; F[3 * j + 2] -= gr * d2;
   }}
   F[3 * i] += fi0; F[3 * i + 1] += fi1; F[3 * i + 2] += fi2;
 }}
-return 0;
 """
 
 
-def fused_forces(name: str, r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, *, n: int, size: int, capacity: int,
-                 cutoff: float) -> ca.Function | None:
-    """(x (3n), t, q (n_q), data (size)) -> (V = 0, F (3n)): the listed pairs' forces in one C
-    loop (``force_body``), or None where that cannot be had: no C compiler, compiled code
-    turned off (``CONSTRAINED_COMPILE=0``), an operation of φ outside the whitelist, or a
-    failed compilation (``jit``)."""
-    body = force_body(r, t, q, g, n, capacity, cutoff)
+def fused_forces(name: str, r: ca.SX, t: ca.SX, q: ca.SX, g: ca.SX, phi: ca.SX | None = None, *, n: int,
+                 size: int, capacity: int, cutoff: float) -> ca.Function | None:
+    """(x (3n), t, q (n_q), data (size)) -> (V, F (3n)): the listed pairs' energy (given ``phi``,
+    else 0) and forces in one C loop (``force_body``), or None where that cannot be had: no C
+    compiler, compiled code turned off (``CONSTRAINED_COMPILE=0``), an operation of φ outside
+    the whitelist, or a failed compilation (``jit``)."""
+    body = force_body(r, t, q, g, n, capacity, cutoff, phi)
     if body is None:
         return None
     sparsity_in = [ca.Sparsity.dense(3 * n, 1), ca.Sparsity.dense(1, 1), ca.Sparsity.dense(q.numel(), 1),

@@ -283,11 +283,14 @@ class PairTerm:
         every, listed = self._sums(want, differentiable)
         if self.cutoff is None or not lists:
             V, F = every(Xl, T, Pp)
-        else:
+        else:  # every pair only when the list is stale; of each, only the outputs asked for
             data = P[self.offset:self.offset + self.size]
-            both = ca.if_else(self.fresh_graph(X, P), ca.vertcat(*listed(Xl, T, Pp, data)),
-                              ca.vertcat(*every(Xl, T, Pp)), True)  # every pair only when stale
-            V, F = both[0], both[1:]
+            used = {"force": [1], "energy": [0]}.get(want, [0, 1])
+            through_list, through_all = listed(Xl, T, Pp, data), every(Xl, T, Pp)
+            both = ca.if_else(self.fresh_graph(X, P), ca.vertcat(*[through_list[k] for k in used]),
+                              ca.vertcat(*[through_all[k] for k in used]), True)
+            V = both[0] if 0 in used else ca.MX(0)
+            F = both[1 if 0 in used else 0:] if 1 in used else ca.MX.zeros(3 * self.n, 1)
         if np.array_equal(self._coordinates, np.arange(self.n_coordinates)):
             return V, F
         scatter = ca.DM(ca.Sparsity.triplet(self.n_coordinates, 3 * self.n, self._coordinates.tolist(),
@@ -300,8 +303,8 @@ class PairTerm:
         of the Structure that holds them: ``every(x_l, t, p_φ) -> (V, F)`` over every pair and
         (a cutoff) ``listed(x_l, t, p_φ, data) -> (V, F)`` through the neighbour list, which
         computes only what ``want`` asks ("both", "force": V = 0, "energy": F = 0): the forces
-        by the fused C loop where it can be had and derivatives are not asked for
-        (``differentiable``)."""
+        (and with them the energy: "both") by the fused C loop where it can be had and
+        derivatives are not asked for (``differentiable``)."""
         if self._functions is None:
             Xl, T, Pp = ca.MX.sym("x", 3 * self.n), ca.MX.sym("t"), ca.MX.sym("p", len(self._p_used))
             self._functions = {"every": ca.Function("pairs_every", [Xl, T, Pp],
@@ -309,7 +312,7 @@ class PairTerm:
         every = self._functions["every"]
         if self.cutoff is None:
             return every, None
-        if want == "force" and not differentiable:
+        if want in ("force", "both") and not differentiable:
             if "fused" not in self._functions:
                 self._functions["fused"] = self._fused()
             if self._functions["fused"] is not None:
@@ -332,7 +335,8 @@ class PairTerm:
             return None
         r = self.spec.r
         return fused.fused_forces("pairs_fused_force", r, self._t, self._q, -ca.jacobian(self._phi_c, r) / r,
-                                  n=self.n, size=self.size, capacity=self.capacity, cutoff=self.cutoff)
+                                  self._phi_c, n=self.n, size=self.size, capacity=self.capacity,
+                                  cutoff=self.cutoff)
 
     def fresh_graph(self, X, P, share: float = 1.0):
         """MX: whether the neighbour list in P holds at positions X (``fresh``; false for a

@@ -25,7 +25,8 @@ REFRESH_SHARE = 0.5
 #: changes within the step: the rest of the margin is for that).
 STEP_SHARE = 0.8
 #: The Functions that carry the pair potentials, and where: output index -> "force" or "energy".
-OUTPUTS = {"dynamics": {0: "force"}, "energy": {0: "energy"}, "potential": {0: "energy"}}
+OUTPUTS = {"dynamics": {0: "force"}, "energy": {0: "energy"}, "potential": {0: "energy"},
+           "forces_and_potential": {0: "force", 1: "energy"}}
 
 
 
