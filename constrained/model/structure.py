@@ -277,11 +277,9 @@ class Expressions:
     rows: list
     slots: dict
     terms: list
-    #: Rows built by one formula: ``items`` the first row of their constraint in ``rows``
-    #: (``offsets`` counted from it).
+    #: Rows built by one formula (Batches: ``items`` their constraint's first row in ``rows``).
     row_batches: tuple = ()
-    #: Potential terms built by one formula: ``items`` the term's place in ``slots["potential"]``,
-    #: ``offsets`` the summand of it (``grouping.summands``).
+    #: Potential terms built so (``items`` the term's place in slots["potential"], ``offsets`` its summand).
     term_batches: tuple = ()
 
 
