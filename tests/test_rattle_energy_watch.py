@@ -113,3 +113,20 @@ def test_a_resolved_orbit_on_a_coarse_grid_says_nothing():
     assert "energy_not_conserved" not in traj.info
     assert traj.stats["energy_start"] == pytest.approx(-1 / (2 * a), rel=1e-6)
     assert 0 < abs(traj.stats["energy_change"]) < 1e-3 / (2 * a)
+
+
+def test_a_chain_at_rest_with_no_forces_says_nothing():
+    """A 40-bead chain of 1 cm links at rest, nothing acting on it: h = 0, and the steps'
+    round-off (1e-48 J) was "17 × its scale" and warned. The watch's scale has the round-off's
+    own floor, the system moving its size at ε a step; the chain stays where it is."""
+    s = C.System(name="chain at rest")
+    for i in range(40):
+        s.add_particle(f"p{i}", 0.01, [0.01 * (i + 1), 0.0, 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=0.01))
+    for i in range(1, 40):
+        s.add(C.Distance(f"p{i - 1}", f"p{i}", length=0.01))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UnresolvedStepWarning)
+        traj = C.simulate(s, 0.01, method="rattle", dt=1e-4, t_eval=[0.0, 0.01])
+    assert "energy_not_conserved" not in traj.info
+    np.testing.assert_allclose(traj.x[-1], traj.x[0], atol=1e-14)

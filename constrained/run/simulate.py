@@ -20,7 +20,7 @@ from ..manifold.constraint_report import SingularConfigurationWarning
 from ..manifold.manifold import structural_call
 from ..model import velocity
 from ..model.structure import Model, assemble
-from ..model.system import require_system
+from ..model.system import length_scale, require_system
 from ..solvers import DEFAULT_METHOD, METHODS
 from ..solvers.base import Event, Status
 from ..solvers.stiffness import StiffnessWatch
@@ -263,9 +263,10 @@ def _unresolved_energy(model: Model, traj) -> dict | None:
     it: ``solvers.rattle.conserves_energy``), at every step and not only at the output samples
     (``stats``: the largest h − h₀ and the largest one-step change, with their times): where
     max |h − h₀| exceeds UNRESOLVED_ENERGY × the scale max(|h₀|, T₀, |V₀|, the median T over the
-    samples), the step that changed h most (the one that did not resolve the motion), the change
-    and the words; else None. A gram falling onto a kilogram under V = −1/r "completed" at dt =
-    1 ms with its energy gone from −1 J to +92 J: the steps jumped the close encounter."""
+    samples, M (ε size / dt)² the round-off's), the step that changed h most (the one that did not
+    resolve the motion), the change and the words; else None. A gram falling onto a kilogram
+    under V = −1/r "completed" at dt = 1 ms with its energy gone from −1 J to +92 J: the steps
+    jumped the close encounter."""
     stats = traj.stats
     if "energy_change" not in stats or not len(traj.t):
         return None
@@ -274,11 +275,16 @@ def _unresolved_energy(model: Model, traj) -> dict | None:
     T = 0.5 * (v * v) @ model.masses
     if not (np.isfinite(h0) and np.isfinite(change) and np.all(np.isfinite(T))):
         return None
-    scale = max(abs(h0), T[0], abs(h0 - T[0]), float(np.median(T)))
+    dt = stats.get("dt")
+    # round-off's own energy: the system moving its size at ε a step (a chain at rest with no
+    # forces has h = 0, and the projections' round-off of 1e-48 J was "17 × its scale")
+    x = np.asarray(traj.x, float)
+    size = float(length_scale(x[0])) if x.size else 1.0
+    noise = float(np.sum(model.masses) / 3) * (np.finfo(float).eps * size / dt) ** 2 if dt else 0.0
+    scale = max(abs(h0), T[0], abs(h0 - T[0]), float(np.median(T)), noise)
     if not scale > 0 or abs(change) <= UNRESOLVED_ENERGY * scale:
         return None
     t_step, step_change = float(stats["energy_step_change_t"]), float(stats["energy_step_change"])
-    dt = stats.get("dt")
     step = f"the fixed step dt = {dt:.3g} s" if dt else "the fixed step"
     t_change = float(stats["energy_change_t"])
     return {"t": t_step, "step_change": step_change, "change": change, "t_change": t_change, "scale": scale,
