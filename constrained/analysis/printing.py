@@ -199,8 +199,9 @@ def symbolic_reduced(rm: ReducedModel) -> ReducedModel:
                         symbolic_parameters=True)
 
 
-def _describe_latex(rm: ReducedModel) -> str:
-    """describe's lines as LaTeX: q̇ as \\dot q, q̈ as \\ddot q."""
+def latex_printer(rm: ReducedModel):
+    """``(tex, name)``: ``tex(expr)`` an expression of ``rm`` as LaTeX (q̇ as \\dot q, q̈ as \\ddot q,
+    expanded and trigonometrically simplified), ``name(c)`` a coordinate's LaTeX name. Needs SymPy."""
     sympy = _sympy(required=True)
     names: dict = {}
     for c in rm.coordinates:
@@ -213,17 +214,22 @@ def _describe_latex(rm: ReducedModel) -> str:
         s = s.xreplace({f: sympy.Integer(int(f)) for f in s.atoms(sympy.Float) if float(f).is_integer()})
         return sympy.latex(s)
 
+    return tex, lambda c: sympy.latex(sympy.Symbol(c))
+
+
+def _describe_latex(rm: ReducedModel) -> str:
+    """describe's lines as LaTeX: q̇ as \\dot q, q̈ as \\ddot q."""
+    tex, name = latex_printer(rm)
     ex = rm.expressions
     lines = []
-    for name in ("T", "V", "U", "R", "L"):
-        if name in ("U", "R") and ca.SX(ex[name]).is_zero():
+    for key in ("T", "V", "U", "R", "L"):
+        if key in ("U", "R") and ca.SX(ex[key]).is_zero():
             continue
-        lines.append(f"{name} = {tex(ex[name])}")
+        lines.append(f"{key} = {tex(ex[key])}")
     for j, c in enumerate(rm.coordinates):
-        lines.append(f"p_{{{sympy.latex(sympy.Symbol(c))}}} = {tex(ex['p'][j])}")
+        lines.append(f"p_{{{name(c)}}} = {tex(ex['p'][j])}")
     E, rows = _equations(rm)
     for j in range(len(rm.coordinates)):
         lines.append(f"{tex(E[j])} = 0")
     lines += [f"{tex(rows[k])} = 0" for k in range(rows.numel())]
     return "\n".join(lines)
-

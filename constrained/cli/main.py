@@ -44,8 +44,9 @@ verbs:
             constrained plot out/dp/trajectory.npz --kinds trajectory,animation
   view    one self-contained interactive HTML page of a run (works offline)
             constrained view out/dp/trajectory.npz --scene scenarios/double_pendulum.toml --out dp.html
-  derive  print T, V, L and Lagrange's equations; check hand-derived equations,
-          Lagrangians and generalized forces (exit 1 when one is wrong)
+  derive  print T, V, L, Lagrange's equations and the conserved quantities; check hand-derived
+          equations, Lagrangians, generalized forces and constants of the motion (exit 1 when one
+          is wrong)
             constrained derive scenarios/double_pendulum.toml --set parameters.g=9.81 \
               --equation "th2_ddot + th1_ddot*cos(th1-th2) - th1_dot**2*sin(th1-th2) + g*sin(th2) = 0"
   sweep   many runs of one scene on Dask: --vary KEY=SPEC (grid / random); summary.csv
@@ -138,10 +139,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--tolerances", help="comma-separated rtol values (default: 1e-6,1e-8,1e-10,1e-12)")
     bench.add_argument("--repeats", type=int, default=3, help="timed repeats per row, after a warm-up")
     derive = _verb(
-        verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces",
+        verbs, "derive", "print Lagrange's equations; check hand-derived equations, Lagrangians, forces, "
+        "constants of the motion",
         "Without options print T, V, L, the momenta and Lagrange's equations of "
-        "SCENE's [reduced] coordinates, in the names of its [parameters] (--latex: as LaTeX, "
-        "through SymPy, the 'pretty' extra). With options check each candidate at random states, "
+        "SCENE's [reduced] coordinates, in the names of its [parameters], and the conserved quantities "
+        "found (momenta of cyclic coordinates, the energy function h when ∂L/∂t = 0 and nothing does "
+        "work), or why there are none (--latex: as LaTeX, through SymPy, the 'pretty' extra). With "
+        "options check each candidate at random states, "
         "and again at other values of the [parameters] it names (a slip such as l1 for l2 is "
         "invisible at l1 = l2), and print one verdict line per check (OK or WRONG with where it "
         "disagrees); exit 0 when all are right, 1 when one is wrong, 2 on bad input (also a "
@@ -159,6 +163,10 @@ def build_parser() -> argparse.ArgumentParser:
     derive.add_argument("--force", action="append", default=[], metavar="Q",
                         help="a candidate generalized force, one per coordinate in coordinate order "
                         "(repeat once per coordinate; write --force=-k*x when the formula starts with '-')")
+    derive.add_argument("--conserved", action="append", default=[], metavar="C",
+                        help="a candidate constant of the motion in q, q_dot, t (or 'NAME = formula'): "
+                        "OK when dC/dt = 0 along the equations of motion (repeatable; write "
+                        "--conserved=-C when the formula starts with '-')")
     _add_sweep(verbs)
     _add_modes_and_fit(verbs)
     _add_plot(verbs)

@@ -94,8 +94,16 @@ def _statics(args) -> int:
 
 
 def _derive(args) -> int:
-    """describe(scene), or one verdict line per candidate check; 1 when a candidate is wrong."""
-    from ..analysis.derivation import check_equations, check_generalized_forces, check_lagrangian, describe
+    """describe(scene) and its conserved quantities, or one verdict line per candidate check; 1 when
+    a candidate is wrong."""
+    from ..analysis.derivation import (
+        check_constant_of_motion,
+        check_equations,
+        check_generalized_forces,
+        check_lagrangian,
+        describe,
+        describe_conserved,
+    )
     from ..run.reduced import ReducedModel
 
     scene = load_scene(args.scene, args.overrides)
@@ -106,10 +114,11 @@ def _derive(args) -> int:
         rm = ReducedModel.from_scene(scene)
     except InputError as exc:
         raise _scene_error(exc, file) from None
-    if not (args.equation or args.lagrangian or args.force):
+    if not (args.equation or args.lagrangian or args.force or args.conserved):
         if not args.quiet:
             try:
                 print(describe(rm, latex=args.latex))
+                print(describe_conserved(rm, latex=args.latex))
             except InputError as exc:  # --latex without SymPy
                 raise InputError(f"derive {file}: {exc}") from None
         return 0
@@ -121,6 +130,8 @@ def _derive(args) -> int:
             checks.append(check_lagrangian(rm, text))
         if args.force:
             checks += check_generalized_forces(rm, args.force)
+        for text in args.conserved:
+            checks.append(check_constant_of_motion(rm, text))
     except InputError as exc:
         raise InputError(f"derive {file}: {exc}") from None
     if not args.quiet:
