@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import minimize_scalar
-from scipy.special import erf
 
 #: Pieces of the span the search holds at once at most; beyond (a formula that keeps touching
 #: 0, or an operation without a rule) it falls back on ``FALLBACK_SAMPLES`` samples.
@@ -32,6 +30,13 @@ FALLBACK_SAMPLES = 1 << 16
 ROUNDING = 8
 #: Operations whose result is 0 or 1 (no rounding to widen).
 _LOGICAL = {ca.OP_LT, ca.OP_LE, ca.OP_EQ, ca.OP_NE, ca.OP_NOT, ca.OP_AND, ca.OP_OR}
+
+
+def _erf():
+    """SciPy's erf, imported when a formula has one (a run without SciPy stays without it)."""
+    from scipy.special import erf
+
+    return erf
 
 
 def _increasing(f):
@@ -171,7 +176,7 @@ RULES = {
     ca.OP_ASINH: _increasing(np.arcsinh),
     ca.OP_ACOSH: _within(np.arccosh, 1.0, np.inf),
     ca.OP_ATANH: _within(np.arctanh, np.nextafter(-1.0, 0.0), np.nextafter(1.0, 0.0)),
-    ca.OP_ERF: _increasing(erf),
+    ca.OP_ERF: lambda a: _increasing(_erf())(a),
     ca.OP_FLOOR: _increasing(np.floor),
     ca.OP_CEIL: _increasing(np.ceil),
     ca.OP_SIGN: _increasing(np.sign),
@@ -306,6 +311,8 @@ def _lowest_near(function, t: float, lo: float, hi: float) -> tuple[float, float
     value = float(function(t))
     if hi <= lo:
         return t, value
+    from scipy.optimize import minimize_scalar  # (when a coefficient dips: SciPy only then)
+
     found = minimize_scalar(lambda u: float(function(t + u)), bounds=(lo - t, hi - t), method="bounded",
                             options={"xatol": 1e-14 * max(1.0, abs(t))})
     if np.isfinite(found.fun) and found.fun < value:
