@@ -55,9 +55,10 @@ class Conditioning:
         return int(np.argmin(self.sigma_min))
 
 
-def _row_normalized(J: np.ndarray) -> np.ndarray:
-    norms = np.linalg.norm(J, axis=1)
-    return J / np.where(norms > 0, norms, 1.0)[:, None]
+def row_normalized(J: np.ndarray) -> np.ndarray:
+    """J (C, 3N), or a stack of them (n, C, 3N), with every nonzero row of unit length."""
+    norms = np.linalg.norm(J, axis=-1)
+    return J / np.where(norms > 0, norms, 1.0)[..., None]
 
 
 def conditioning(model, trajectory) -> Conditioning:
@@ -76,7 +77,7 @@ def conditioning(model, trajectory) -> Conditioning:
         d = 1.0 / np.sqrt(np.maximum(np.diag(A), np.finfo(float).tiny))
         svs = np.linalg.svd(A * d[:, None] * d[None, :], compute_uv=False)
         cond_s[k] = svs[0] / svs[-1] if svs[-1] > 0 else np.inf
-        svj = np.linalg.svd(_row_normalized(J[k]), compute_uv=False)
+        svj = np.linalg.svd(row_normalized(J[k]), compute_uv=False)
         smin[k] = svj[-1] if svj.size >= J[k].shape[0] else 0.0
         rank[k] = int(np.sum(svj > SINGULAR_SIGMA * max(svj[0], 1e-300)))
     return Conditioning(t, cond, cond_s, smin, rank.astype(int), list(model.constraint_labels))
@@ -105,7 +106,7 @@ class Singularity:
 
 def _normalized_jacobian(model, x, t) -> np.ndarray:
     J = dense_jacobian(model)(np.asarray(x, float).ravel(), t)[0]  # (a FunctionBuffer call)
-    return _row_normalized(J.reshape(model.n_coordinates, model.n_constraints).T)
+    return row_normalized(J.reshape(model.n_coordinates, model.n_constraints).T)
 
 
 def numerical_rank(model, x, t: float = 0.0) -> int:
@@ -117,8 +118,13 @@ def numerical_rank(model, x, t: float = 0.0) -> int:
 def rank_sigma(model, x, t: float, rank: int) -> float:
     """The rank-th singular value of the row-normalized J at (x, t): it falls to 0 where the
     constraints lose rank (redundant rows beyond ``rank`` do not count)."""
-    sv = np.linalg.svd(_normalized_jacobian(model, x, t), compute_uv=False)
-    return float(sv[rank - 1]) if 0 < rank <= sv.size else 0.0
+    return float(rank_sigmas(_normalized_jacobian(model, x, t)[None], rank)[0])
+
+
+def rank_sigmas(Jn: np.ndarray, rank: int) -> np.ndarray:
+    """``rank_sigma`` of a stack of row-normalized J (n, C, 3N): many states at once (a batch's)."""
+    sv = np.linalg.svd(Jn, compute_uv=False)
+    return sv[:, rank - 1] if 0 < rank <= sv.shape[1] else np.zeros(len(Jn))
 
 
 def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: float = 0.05,
@@ -132,7 +138,11 @@ def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: fl
     if model.n_coordinates > DENSE_SVD_MAX:
         chosen = list(range(model.n_constraints)) if rows is None else list(rows)
         return sparse_singularity(model, x, t, chosen, ignore=ignore)[0]
-    Jn = _normalized_jacobian(model, x, t)
+    return dependency(_normalized_jacobian(model, x, t), model.constraint_labels, rank=rank, ignore=ignore)
+
+
+def dependency(Jn: np.ndarray, labels, *, rank: int | None = None, ignore: float = 0.05) -> Singularity:
+    """``singularity`` from a row-normalized J (C, 3N) at hand (a batch's member's)."""
     U, sv, _ = np.linalg.svd(Jn, full_matrices=True)
     k = min(Jn.shape) if rank is None else rank
     if k > sv.size or k <= 0:
@@ -141,7 +151,6 @@ def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: fl
         sigma, u = float(sv[k - 1]), U[:, k - 1]
     w = u**2
     order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
-    labels = model.constraint_labels
     return Singularity(sigma, order, [labels[k] for k in order], [float(w[k]) for k in order])
 
 

@@ -8,7 +8,8 @@ column that fails (non-finite values, a projection that no longer converges, the
 limit) is frozen at its last good state (its last good attempt: variants/stops.py) and
 reported, and so is one whose steps a stiff spring or damper holds down, by the single run's
 stiffness watch on its share of the batch's clock, or whose steps collapse towards a finite-time
-blow-up, by the single run's collapse watch (variants/watch.py); the others go on.
+blow-up, by the single run's collapse watch, or that reaches a singular configuration, by the
+single run's singular watch on its share of the clock (variants/watch.py); the others go on.
 
 The start of each variant is its system's for those parameter values (positions and
 velocities may be formulas of the parameters), projected onto the constraints in one
@@ -38,12 +39,13 @@ from ..model.cache import ParametricView, structure_cache
 from ..model.parameters import symbolic
 from ..model.structure import Model, assemble
 from ..model.system import require_system
+from ..solvers.base import SINGULAR_TOL
 from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from ..solvers.driver import DEFAULT_MAX_STEPS
 from ..threads import available_cores, one_blas_thread
 from .variants import reasons
 from .variants.stops import Replay, judge
-from .variants.watch import MemberCollapse, MemberWatch
+from .variants.watch import MemberCollapse, MemberSingular, MemberWatch
 
 #: Steps (attempts) one call advances every column by.
 CHUNK = 64
@@ -301,7 +303,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                   rtol: float = 1e-8, atol: float = 1e-10, model: Model | None = None,
                   compiled="auto", base: str = "DOP853", max_steps: int | None = None,
                   max_initial_correction: float = 1e-3, block: int = BLOCK, threads: int | None = None,
-                  progress: Callable[[float], None] | bool | None = None) -> Ensemble:
+                  progress: Callable[[float], None] | bool | None = None,
+                  singular_tol: float | None = SINGULAR_TOL) -> Ensemble:
     """Simulate ``system`` for every row of the ``parameters`` table in one batched run.
 
     ``parameters``: ``{name: [values, ...]}`` (or a list of ``{name: value}``) over the
@@ -314,7 +317,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     columns at most — 1.8× on the 2-core machine of docs/performance.md; pass 1 where the
     cores are busy already, e.g. in one Dask worker per core).
     ``progress(fraction)`` is told how far the slowest running variant is (``True``: a tqdm
-    bar on stderr).
+    bar on stderr). ``singular_tol``: the singular watch's threshold, as ``simulate``'s (None: off).
     """
     require_system(system, "simulate_many")
     _refuse_events(system, model)
@@ -344,7 +347,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     if targets.size == 0 or not np.all(np.isfinite(targets)) or np.any(np.diff(targets) <= 0) \
             or targets[0] < t_start or targets[-1] > t_end:
         raise InputError(f"t_eval must be increasing finite times within [{t_start:g}, {t_end:g}]")
-    dopri = Dopri(model, rtol=rtol, atol=atol, base=base, compiled=compiled, max_steps=max_steps)
+    dopri = Dopri(model, rtol=rtol, atol=atol, base=base, compiled=compiled, max_steps=max_steps,
+                  singular_tol=singular_tol)  # (which checks singular_tol as simulate does)
     limit = max_steps or DEFAULT_MAX_STEPS  # the single run's budget: no variant crawls on for ever
     n3 = model.n_coordinates
     with one_blas_thread():
@@ -401,6 +405,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         watch = MemberWatch(model, P, xs, t_start, t_end)  # (each member's share of the clock)
         replay = Replay(dopri._chunks, scal["res"], CHUNK)
         collapse = MemberCollapse(model, P, t_end)  # (each member's steps, as its own run's)
+        singular = MemberSingular(model, P, dopri.rows, singular_tol, t_end, watch.share)
         with interrupt.watch():
             for j, target in enumerate(targets):
                 S[scal["t_target"]] = np.where(running, target, S[scal["t"]])
@@ -431,6 +436,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
                         held = watch.stops(cols[running[cols]], S[scal["t"]], S[scal["n_acc"]], S[:n3])
                         for k, why in held:
                             status[k], running[k], messages[k] = "stiff", False, why
+                        for k, why in singular.stops(cols[running[cols]], before[running[cols]], S, scal, n3):
+                            status[k], running[k], messages[k] = "singular configuration", False, why
                         for k, why in collapse.stops(cols[running[cols]], before[running[cols]], S, scal, n3):
                             status[k], running[k], messages[k] = "step size collapsed", False, why
                     if report is not None:
@@ -440,6 +447,8 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
             # (read inside the watch, which forgets it at its end): Ctrl-C in the last chunk,
             # when every variant finished, is reported all the same, and the caller stops
             stopped = interrupt.requested()
+        for k, why in singular.last_looks(status, S, scal, n3):  # (a failed step at a singular configuration)
+            status[k], messages[k] = "singular configuration", why
         stops = [k for k, s in enumerate(status) if s not in ("completed", "interrupted") and not messages[k]]
         for i, k in enumerate(stops):  # the frozen column holds the last good state
             messages[k] = reasons.stop_reason(

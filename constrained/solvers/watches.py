@@ -34,7 +34,7 @@ class SingularWatch:
     """
 
     def __init__(self, manifold: Manifold, rows: list[int], tol: float | None):
-        m = manifold.model
+        m = manifold.model if isinstance(manifold, Manifold) else manifold  # (a Model: a batch's member)
         self.model, self.rows, self.tol = m, rows, tol
         self.on = bool(tol) and bool(rows)
         self.dense = m.n_coordinates <= DENSE_WATCH_MAX
@@ -63,8 +63,14 @@ class SingularWatch:
         self.next_check = now + (time.perf_counter() - now) / WATCH_SHARE
         if sigma >= self.tol:
             return None
-        found = self.singularity(x, t)
-        return f"singular configuration reached at t = {t:.6g} s; likely cause: {found.describe()}"
+        return singular_stop(t, self.singularity(x, t))
+
+
+def singular_stop(t: float, found: diagnostics.Singularity) -> str:
+    """The sentence of a run the singular watch stopped at t: the instant and the rows of the
+    near-dependency ``found`` there — for the driver and for a batch's members alike
+    (run/variants/watch.MemberSingular)."""
+    return f"singular configuration reached at t = {t:.6g} s; likely cause: {found.describe()}"
 
 
 def past_a_limit(stepper: Solver, last, t_next: float) -> str | None:

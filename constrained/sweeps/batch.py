@@ -58,6 +58,7 @@ STATUS_TEXT = {
                          "configuration?); try a smaller rtol or other parameter values",
     "step limit": "the step limit was reached before t_end",
     "step size collapsed": "the step size collapsed (stiff or singular motion)",
+    "singular configuration": "the constraints became dependent (a singular configuration)",
     "non-positive mass": "a particle's mass (a formula of the parameters) is not a finite positive number "
                          "for these parameter values; give values that make every mass positive",
 }

@@ -1,7 +1,8 @@
 """The single run's watches for each member of a batched run: the stiffness watch
 (``solvers.stiffness.StiffnessWatch``) on the batch's wall clock shared out among the members
-(``MemberWatch``), and the collapse watch (``solvers.watches.CollapseWatch``) on each member's
-own steps (``MemberCollapse``).
+(``MemberWatch``), the collapse watch (``solvers.watches.CollapseWatch``) on each member's
+own steps (``MemberCollapse``), and the singular-configuration watch
+(``solvers.watches.SingularWatch``) on each member's share of the clock (``MemberSingular``).
 
 A single run is stopped when, after AFTER_S seconds of wall time, reaching t_end at its pace
 would take BUDGET_S or more and its steps are held down by a barely stretched stiff spring or
@@ -13,17 +14,34 @@ A single run whose steps collapse towards a finite-time blow-up (a rod driven to
 is stopped within a few thousand steps, naming the instant t*; a batched member used to crawl
 on until its step size reached its floor (10,261,543 steps for a rod of length 1 − t, 2,535
 alone). Here each member's steps are watched as its own run's are.
+
+A single run stops where the constraints lose rank (a mechanism driven to its limit position,
+two rods pulled collinear), naming the rows; a batched member used to go on until a projection
+failed or its steps collapsed there, with a generic cause. Here each member is checked as its
+own run is, on its share of the clock.
 """
 
 from __future__ import annotations
 
 import time
 
+import casadi as ca
 import numpy as np
 
+from ...codegen.fast_call import FastCall
 from ...manifold import diagnostics
+from ...model.cache import ParametricView, structure_cache
 from ...solvers.stiffness import StiffnessWatch, stiff_stop
-from ...solvers.watches import COLLAPSE_FIRST_SAMPLE, CollapseWatch, collapse_stop
+from ...solvers.watches import (
+    COLLAPSE_FIRST_SAMPLE,
+    DENSE_WATCH_MAX,
+    FIRST_CHECK_S,
+    WATCH_SHARE,
+    CollapseWatch,
+    SingularWatch,
+    collapse_stop,
+    singular_stop,
+)
 from .reasons import DIAGNOSED_MAX, variant_model
 
 
@@ -140,3 +158,108 @@ class MemberCollapse:
         except Exception:  # a diagnosis must never hide the stop itself
             return f"{reason}; {where}"
         return f"{collapse_stop(reason, cause)}; {where}"
+
+
+class MemberSingular:
+    """``SingularWatch`` for each member, on its share of the batch's clock (``share``: the
+    seconds ``MemberWatch`` charges it). A single run checks σ, the rank-th singular value of
+    the row-normalized J (rank: the run's rows), after a call that took accepted steps short of
+    t_end, once FIRST_CHECK_S / WATCH_SHARE of wall time has passed, and then whenever the time
+    since its last check is its cost / WATCH_SHARE. Here a member is due when its share has
+    reached as much: the due members of a call are checked together, σ from one mapped
+    evaluation of their J and one stacked SVD (``diagnostics.rank_sigmas``), and each is charged
+    its part of that cost. A member whose σ < ``tol`` is stopped at the state it reached, with
+    its own run's sentence (``singular_stop``: the instant and the rows of the near-dependency,
+    ``diagnostics.dependency``). Members that never take FIRST_CHECK_S / WATCH_SHARE of the
+    clock (5 ms: a short batch's) are not checked on the way, as such a run is not. Beyond
+    DENSE_WATCH_MAX coordinates each due member's own SingularWatch takes σ on the sparse J.
+
+    A batched member costs far less wall time than its own run (a compiled batch of four beads
+    on two rods, two of them driven to their limit, ended in 5 ms), so its share may never come
+    due where its own run's clock does. ``last_looks``: a member stopped by a failed step or a collapse
+    (FAILURES) is looked at once more at its last good state; at a singular configuration it is
+    reported as one, in the watch's words, as its own run's watch, looking there, reports it."""
+
+    #: The clock the checks are timed with (a test may put a fake one here).
+    clock = staticmethod(time.perf_counter)
+    #: The stops a singular configuration at the last good state explains (the driver's
+    #: STEP_FAILURES, and the collapse watch's).
+    FAILURES = ("projection failed", "step size collapsed")
+
+    def __init__(self, model, P: np.ndarray, rows, tol: float | None, t_end: float, share: np.ndarray):
+        self.model, self.P, self.rows, self.tol = model, P, list(rows), tol
+        self.t_end, self.share = float(t_end), share
+        self.on = bool(tol) and bool(self.rows)
+        self.due = np.full(len(P), FIRST_CHECK_S / WATCH_SHARE)
+        self.dense = model.n_coordinates <= DENSE_WATCH_MAX
+        self.watches: dict[int, SingularWatch] = {}  # (the sparse path's, per member)
+
+    def stops(self, members: np.ndarray, before: np.ndarray, S: np.ndarray, scal: dict, n3: int) -> list:
+        """(member, sentence) of each of ``members`` (running after the call, ``before`` their
+        accepted steps before it) that is due and at a singular configuration."""
+        if not self.on or not members.size:
+            return []
+        t = S[scal["t"], members]
+        moved = (S[scal["n_acc"], members] > before) & (t < self.t_end)  # (the driver's condition)
+        due = members[moved & (self.share[members] >= self.due[members])]
+        if not due.size:
+            return []
+        tick = self.clock()
+        found = self._singular(due, S, scal["t"], n3)
+        cost = (self.clock() - tick) / due.size
+        # (a member whose evaluation failed stays off: its due is infinite)
+        self.due[due] = np.maximum(self.due[due], self.share[due] + cost / WATCH_SHARE)
+        return found
+
+    def last_looks(self, status: list, S: np.ndarray, scal: dict, n3: int) -> list:
+        """(member, sentence) of each member stopped with one of FAILURES whose last good state
+        (its frozen column of S) is a singular configuration (the sparse path: the first
+        DIAGNOSED_MAX such members)."""
+        failed = np.array([k for k, st in enumerate(status) if st in self.FAILURES], int)
+        if not self.on or not failed.size:
+            return []
+        return self._singular(failed if self.dense else failed[:DIAGNOSED_MAX], S, scal["t"], n3)
+
+    def _singular(self, members: np.ndarray, S: np.ndarray, t_slot: int, n3: int) -> list:
+        """(member, sentence) of each of ``members`` whose σ at its state in S is below tol."""
+        try:
+            sigma, found = self._sigmas(members, S, t_slot, n3)
+        except Exception:  # a diagnosis only: a watch that cannot judge lets the members run
+            self.due[members] = np.inf
+            return []
+        where = "the last good state is at t = {:.6g} s"
+        return [(int(k), f"{singular_stop(S[t_slot, k], found(i))}; {where.format(S[t_slot, k])}")
+                for i, k in enumerate(members) if sigma[i] < self.tol]
+
+    def _sigmas(self, due: np.ndarray, S: np.ndarray, t_slot: int, n3: int):
+        """(σ of each due member, i -> the near-dependency of the i-th)."""
+        if not self.dense:  # each member's own run's sparse watch (its inverse-iteration vector kept)
+            found = [self._watch(int(k)).singularity(S[:n3, k], float(S[t_slot, k])) for k in due]
+            return np.array([f.sigma for f in found]), found.__getitem__
+        n, c = 1 << (due.size - 1).bit_length(), self.model.n_constraints  # (calls of 1, 2, 4, … columns)
+        cols = np.concatenate([due, np.repeat(due[-1:], n - due.size)])
+        (G,) = mapped_jacobian(self.model, n)(S[:n3, cols].ravel(order="F"), S[t_slot, cols],
+                                              self.P[cols].ravel())
+        Jn = diagnostics.row_normalized(G.reshape(n, n3, c).transpose(0, 2, 1)[:due.size])
+        rank, labels = len(self.rows), self.model.constraint_labels
+        return (diagnostics.rank_sigmas(Jn, rank),
+                lambda i: diagnostics.dependency(Jn[i], labels, rank=rank))
+
+    def _watch(self, k: int) -> SingularWatch:
+        if k not in self.watches:
+            self.watches[k] = SingularWatch(variant_model(self.model, self.P[k]), self.rows, self.tol)
+        return self.watches[k]
+
+
+def mapped_jacobian(model, n: int) -> FastCall:
+    """``(x, t, p) -> G`` for n columns at once (each G the dense C × 3N matrix of every row,
+    ``manifold.dense_jacobian``'s, with the column's parameters): once per structure and n."""
+    cache, prefix = structure_cache(model)
+    key = (*prefix, "ensemble jacobian", n)
+    if key not in cache:
+        kind = ca.MX if getattr(model.structure, "pairs", ()) else ca.SX
+        X, T = kind.sym("x", model.n_coordinates), kind.sym("t")
+        P = kind.sym("p", len(model.parameter_vector))
+        G = ca.densify(ParametricView(model, P).velocity_terms(X, T)[0])
+        cache[key] = FastCall(ca.Function("ensemble_jacobian", [X, T, P], [G]).map(n))
+    return cache[key]
