@@ -234,6 +234,7 @@ def test_a_large_scene_s_refusals_name_a_few_particles_not_all(tmp_path, capsys)
     assert main(["check", str(formula)]) == 2
     err = capsys.readouterr().err
     assert "unknown name 'yp5'" in err and f"{3 * n + 1} in all" in err and len(err) < 600
+    assert "did you mean 'y_p5'?" in err
     good = tmp_path / "rope.toml"
     good.write_text(_rope_toml(n))
     other = tmp_path / "other.toml"

@@ -13,6 +13,7 @@ MAX_MAGNITUDE in size.
 from __future__ import annotations
 
 import ast
+import difflib
 import functools
 import math
 from collections.abc import Mapping
@@ -277,7 +278,9 @@ class _Walker:
             if node.id in FUNCTIONS:
                 self.fail(f"'{node.id}' is a function; call it as {node.id}(...)")
             known = listed(sorted(self.names)) or "(none)"
-            self.fail(f"unknown name '{node.id}' (known names: {known})")
+            close = difflib.get_close_matches(node.id, list(self.names), n=1)
+            self.fail(f"unknown name '{node.id}' (known names: {known})"
+                      + (f"; did you mean '{close[0]}'?" if close else ""))
         if isinstance(node, ast.BinOp):
             op = _BINARY.get(type(node.op))
             if op is None:
