@@ -140,9 +140,16 @@ def singularity(model, x, t: float = 0.0, *, rank: int | None = None, ignore: fl
     else:
         sigma, u = float(sv[k - 1]), U[:, k - 1]
     w = u**2
-    order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+    order = _leading(w, ignore)
     labels = model.constraint_labels
     return Singularity(sigma, order, [labels[k] for k in order], [float(w[k]) for k in order])
+
+
+def _leading(w: np.ndarray, ignore: float) -> list[int]:
+    """Rows by their weight, those above ``ignore``; of a dependency spread thinly over many rows
+    (none above it, as along a long chain), the three largest, so that rows are named."""
+    order = [int(k) for k in np.argsort(-w)]
+    return [k for k in order if w[k] > ignore] or order[:3]
 
 
 def sparse_singularity(model, x, t: float, rows: list[int], *, start=None,
@@ -162,7 +169,7 @@ def sparse_singularity(model, x, t: float, rows: list[int], *, start=None,
 
     def described(sigma: float, u: np.ndarray) -> Singularity:
         w = u**2
-        order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+        order = _leading(w, ignore)
         labels = model.constraint_labels
         return Singularity(sigma, [rows[k] for k in order], [labels[rows[k]] for k in order],
                            [float(w[k]) for k in order])
@@ -304,18 +311,19 @@ def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, ad
 
 
 def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str:
-    """The likely cause of a stop at its last good state (x, v, t): a rank drop below the run's
-    rank, rows dropped as redundant at the start and bent apart since, or a particle's blow-up."""
+    """The likely cause of a stop at its last good state (x, v, t): a rank drop (``RANK.singular_cause``),
+    rows dropped as redundant at the start and bent apart since, or a particle's blow-up."""
     try:
         manifold = manifold or Manifold.at(model, x, t)
         if model.n_constraints:
             n3, rows = model.n_coordinates, manifold.rows
             rank = model.n_constraints if rows is None else len(rows)
             sing = singularity(model, x, t, rank=min(rank, n3), rows=rows)
-            if sing.sigma < 1e-3:
+            if sing.sigma < RANK.singular_cause(rank):
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
             full = rows is not None and singularity(model, x, t, rank=min(model.n_constraints, n3))
-            if full and full.sigma < 1e-3:  # rows dependent at the start, bent apart since
+            # rows dependent at the start, bent apart since
+            if full and full.sigma < RANK.singular_cause(model.n_constraints):
                 return (f"likely cause: a taut, self-stressed set bent by the motion at t = {t:.6g} s "
                         f"(e.g. a straight edge pinned at both ends that the rest pulls sideways, which "
                         f"it allows only by stretching): {full.describe()}; give the set slack")
@@ -332,6 +340,9 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
             return fast
         acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
         k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
+        if acc[k] == 0:  # (ggl at t = 0 on a 1,000-bead chain at rest: "forces that blow up … 0 m/s²")
+            return ("likely cause: none found at the last good state: its constraints are regular and no "
+                    "particle accelerates there (no force blows up); try another method or tolerance")
         name = model.particle_names[k]
         pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
         pair = ""  # a pair potential pushing hardest: the two particles closing in on its singularity
