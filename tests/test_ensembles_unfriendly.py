@@ -16,7 +16,7 @@ from scipy.special import ellipj, ellipk
 
 import constrained as C
 from constrained.cli.main import main
-from constrained.manifold.diagnostics import StiffnessWarning
+from constrained.solvers.stiffness import StiffnessWarning
 
 G = 9.81
 PARAMETRIC = Path(__file__).resolve().parent.parent / "scenarios" / "double_pendulum_parametric.toml"

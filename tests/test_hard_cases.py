@@ -19,6 +19,7 @@ from constrained.manifold.dense import schur_solve
 from constrained.manifold.manifold import Manifold
 from constrained.run.quantities import multipliers_along
 from constrained.run.simulate import consistent_state
+from constrained.solvers.stiffness import StiffnessWarning
 
 HARD = Path(__file__).resolve().parent.parent / "scenarios" / "hard"
 
@@ -149,14 +150,14 @@ def test_stiff_axle_implicit_base_takes_few_steps():
 
 def test_stiff_axle_explicit_base_is_warned_about():
     sc = scene("stiff_axle")
-    with pytest.warns(diagnostics.StiffnessWarning, match="Radau"):
+    with pytest.warns(StiffnessWarning, match="Radau"):
         tr = C.simulate(sc.system, 0.15, base="DOP853", rtol=1e-6, atol=1e-8)
     assert tr.stats["stiffness"]["stiff"] and tr.stats["stiffness"]["rho_max"] > 5e3
 
 
 def test_smooth_scene_is_not_called_stiff():
     with warnings.catch_warnings():
-        warnings.simplefilter("error", diagnostics.StiffnessWarning)
+        warnings.simplefilter("error", StiffnessWarning)
         _, tr = run("slider_crank_dead_centre", t_end=3.0)
     assert not tr.stats["stiffness"]["stiff"]
 
@@ -310,11 +311,11 @@ def test_hard_scene_expect_checks_pass(name, tmp_path, capsys):
 
 def test_stiff_axle_is_warned_about_by_dopri_too():
     sc = scene("stiff_axle")
-    with pytest.warns(diagnostics.StiffnessWarning, match="dopri's explicit DOP853.*Radau"):
+    with pytest.warns(StiffnessWarning, match="dopri's explicit DOP853.*Radau"):
         tr = C.simulate(sc.system, 0.15, method="dopri", rtol=1e-6, atol=1e-8, compiled=False)
     assert tr.stats["stiffness"]["stiff"] and tr.stats["stiffness"]["rho_max"] > 5e3
     with warnings.catch_warnings():
-        warnings.simplefilter("error", diagnostics.StiffnessWarning)
+        warnings.simplefilter("error", StiffnessWarning)
         _, smooth = run("slider_crank_dead_centre", t_end=3.0, method="dopri", compiled=False)
     assert not smooth.stats["stiffness"]["stiff"]
 

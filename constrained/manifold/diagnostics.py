@@ -24,10 +24,6 @@ SINGULAR_SIGMA = RANK.singular_sigma
 DENSE_SVD_MAX = 300
 
 
-class StiffnessWarning(UserWarning):
-    """An explicit integrator's step is held down by stability, not accuracy: use an implicit base."""
-
-
 def _jacobians(model, X: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Every row's gradient (J, then velocity rows' A) at each sample: (T, C, 3N)."""
     n = len(t)
@@ -150,8 +146,15 @@ def dependency(Jn: np.ndarray, labels, *, rank: int | None = None, ignore: float
     else:
         sigma, u = float(sv[k - 1]), U[:, k - 1]
     w = u**2
-    order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+    order = _leading(w, ignore)
     return Singularity(sigma, order, [labels[k] for k in order], [float(w[k]) for k in order])
+
+
+def _leading(w: np.ndarray, ignore: float) -> list[int]:
+    """Rows by their weight, those above ``ignore``; of a dependency spread thinly over many rows
+    (none above it, as along a long chain), the three largest, so that rows are named."""
+    order = [int(k) for k in np.argsort(-w)]
+    return [k for k in order if w[k] > ignore] or order[:3]
 
 
 def sparse_singularity(model, x, t: float, rows: list[int], *, start=None,
@@ -171,7 +174,7 @@ def sparse_singularity(model, x, t: float, rows: list[int], *, start=None,
 
     def described(sigma: float, u: np.ndarray) -> Singularity:
         w = u**2
-        order = [int(k) for k in np.argsort(-w) if w[k] > ignore]
+        order = _leading(w, ignore)
         labels = model.constraint_labels
         return Singularity(sigma, [rows[k] for k in order], [labels[rows[k]] for k in order],
                            [float(w[k]) for k in order])
@@ -258,73 +261,20 @@ def incompatible_constraints(model, x0=None, t: float = 0.0, *, tol: float = 1e-
     return Incompatibility(compatible, res, [labels[k] for k in bad], [float(f[k]) for k in bad], x)
 
 
-# --- stiffness ------------------------------------------------------------------------------------
-def spectral_radius(rhs, t: float, y: np.ndarray, f0: np.ndarray | None = None, *,
-                    iterations: int = 12, seed: int = 0) -> float:
-    """Estimate the largest |eigenvalue| of ∂rhs/∂y at (t, y): power iteration on directional
-    differences (a diagnostic only; the equations themselves are never differenced)."""
-    f0 = rhs(t, y) if f0 is None else f0
-    rng = np.random.default_rng(seed)
-    w = rng.standard_normal(y.shape)
-    w /= np.linalg.norm(w)
-    eps = 1e-7 * max(np.linalg.norm(y), 1.0)
-    growth = []
-    for _ in range(iterations):
-        jw = (rhs(t, y + eps * w) - f0) / eps
-        nrm = float(np.linalg.norm(jw))
-        if not np.isfinite(nrm) or nrm == 0:
-            break
-        growth.append(nrm)
-        w = jw / nrm
-    if not growth:
-        return 0.0
-    # complex pairs make single ratios oscillate: the geometric mean of the last few is robust
-    tail = np.array(growth[len(growth) // 2:])
-    return float(np.exp(np.mean(np.log(tail))))
-
-
-#: An explicit run is called stiff when, over at least STIFFNESS_MIN_STEPS steps, the median
-#: of h·ρ (sampled every STIFFNESS_EVERY accepted steps) sits near the stability boundary of
-#: the explicit method (about 3.3 for DOP853 on the negative real axis, 2.8 for RK45): the
-#: step is then held down by stability, not accuracy.
-STIFFNESS_EVERY = 50
-STIFFNESS_MIN_STEPS = 500
-STIFFNESS_H_RHO = 1.0
-
-
-def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, advice: str,
-                      stacklevel: int = 5) -> None:
-    """Record h·ρ in ``stats["stiffness"]``; warn (StiffnessWarning) when the explicit
-    method's steps were held down by stability over many steps."""
-    import warnings
-
-    med = float(np.median(h_rho)) if h_rho else 0.0
-    stiff = stats["steps"] >= STIFFNESS_MIN_STEPS and len(h_rho) >= 5 and med >= STIFFNESS_H_RHO
-    stats["stiffness"] = {"h_rho_median": med, "rho_max": rho_max, "checks": len(h_rho),
-                          "stiff": bool(stiff)}
-    if stiff:
-        warnings.warn(
-            f"the problem looks stiff: {what} took {stats['steps']} steps with h·ρ ≈ {med:.2g} "
-            f"(ρ ≈ {rho_max:.3g} /s, the fastest rate of the equations), so its step size is "
-            f"limited by stability, not accuracy; {advice}",
-            StiffnessWarning,
-            stacklevel=stacklevel,
-        )
-
-
 def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str:
-    """The likely cause of a stop at its last good state (x, v, t): a rank drop below the run's
-    rank, rows dropped as redundant at the start and bent apart since, or a particle's blow-up."""
+    """The likely cause of a stop at its last good state (x, v, t): a rank drop (``RANK.singular_cause``),
+    rows dropped as redundant at the start and bent apart since, or a particle's blow-up."""
     try:
         manifold = manifold or Manifold.at(model, x, t)
         if model.n_constraints:
             n3, rows = model.n_coordinates, manifold.rows
             rank = model.n_constraints if rows is None else len(rows)
             sing = singularity(model, x, t, rank=min(rank, n3), rows=rows)
-            if sing.sigma < 1e-3:
+            if sing.sigma < RANK.singular_cause(rank):
                 return f"likely cause: a singular configuration at t = {t:.6g} s: {sing.describe()}"
             full = rows is not None and singularity(model, x, t, rank=min(model.n_constraints, n3))
-            if full and full.sigma < 1e-3:  # rows dependent at the start, bent apart since
+            # rows dependent at the start, bent apart since
+            if full and full.sigma < RANK.singular_cause(model.n_constraints):
                 return (f"likely cause: a taut, self-stressed set bent by the motion at t = {t:.6g} s "
                         f"(e.g. a straight edge pinned at both ends that the rest pulls sideways, which "
                         f"it allows only by stretching): {full.describe()}; give the set slack")
@@ -341,6 +291,9 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
             return fast
         acc = np.linalg.norm(np.asarray(a).reshape(-1, 3), axis=1)
         k = int(np.nanargmax(np.where(np.isfinite(acc), acc, np.inf)))
+        if acc[k] == 0:  # (ggl at t = 0 on a 1,000-bead chain at rest: "forces that blow up … 0 m/s²")
+            return ("likely cause: none found at the last good state: its constraints are regular and no "
+                    "particle accelerates there (no force blows up); try another method or tolerance")
         name = model.particle_names[k]
         pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
         pair = ""  # a pair potential pushing hardest: the two particles closing in on its singularity

@@ -21,11 +21,26 @@ class RankPolicy:
 
     ``singular_sigma``: a configuration is (nearly) singular when the smallest singular value
     of the row-normalized ``J`` falls below this; the diagnostics name the rows involved.
+
+    ``cause_sigma``, ``cause_sigma_rows``: a stop is put down to a singular configuration
+    (``diagnostics.likely_cause``) when that σ is below ``singular_cause(R)`` for R rows.
     """
 
     dependent_rtol: float = 1e-9
     cholesky_rtol: float = 1e-6
     singular_sigma: float = 1e-6
+    cause_sigma: float = 1e-3
+    cause_sigma_rows: float = 0.1
+
+    def singular_cause(self, rows: int) -> float:
+        """The σ below which a stop's last state, with ``rows`` independent rows, is called a
+        singular configuration: ``cause_sigma``, or ``cause_sigma_rows`` / rows where that is less.
+        A straight chain of R rods hanging from a point is regular, yet its rows couple each to the
+        next by 1/2 (its rods in line), and its smallest σ, ≈ 1.1 / R, is its longest mode (R = 2,000:
+        5.6e-4): a stop of ggl at t = 0 on such a chain was put down to "a singular configuration"
+        at σ = 5.6e-4 < 1e-3. The threshold stays a tenth of that chain's σ; up to 100 rows (a
+        four-bar at its dead centre) it is 1e-3 as before."""
+        return min(self.cause_sigma, self.cause_sigma_rows / max(rows, 1))
 
 
 #: The policy every module uses unless a caller passes its own.

@@ -22,6 +22,7 @@ import bisect
 import numpy as np
 
 from ..manifold import diagnostics
+from . import stiffness
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
 from .events import dense_root, dip, locate
 from .stiffness import StiffnessWatch, stiff_stop
@@ -74,7 +75,7 @@ class _Run:
         self.collapse = CollapseWatch(t_end) if stepper.adaptive and stepper.dt is None else None
         self.stiffness = StiffnessWatch(stepper.model, x0, t0, t_end, method=stepper.name)
         self.h_rho, self.rho_max = [], 0.0
-        self.sampled = diagnostics.STIFFNESS_MIN_STEPS // 2
+        self.sampled = stiffness.STIFFNESS_MIN_STEPS // 2
 
     def keep(self, t: float, x, v) -> None:
         self.ts.append(np.array([t]))
@@ -231,18 +232,18 @@ class _Run:
         accepted times, from the one before). A step cut short to land on output times is
         held down by them, not by stability (a pendulum at rest on its inverted equilibrium,
         with outputs every 0.01 s, proposed steps of 1.2 s: h·ρ ≈ 3.8, a false "stiff")."""
-        if not (self.stepper.explicit and h and steps - self.sampled >= diagnostics.STIFFNESS_EVERY):
+        if not (self.stepper.explicit and h and steps - self.sampled >= stiffness.STIFFNESS_EVERY):
             return
         if len(taken) > 1:
             h = min(h, float(np.max(np.diff(taken))))
         self.sampled = steps
         y = np.concatenate([self.last[1], self.last[2]])
-        rho = diagnostics.spectral_radius(self.stepper.derivative, self.last[0], y)
+        rho = stiffness.spectral_radius(self.stepper.derivative, self.last[0], y)
         self.rho_max = max(self.rho_max, rho)
         self.h_rho.append(h * rho)
 
     def stiffness_verdict(self, stats: dict, failure) -> None:
-        """The end-of-run StiffnessWarning of an explicit method (diagnostics.stiffness_verdict)."""
+        """The end-of-run StiffnessWarning of an explicit method (stiffness.stiffness_verdict)."""
         if not self.stepper.explicit or getattr(failure, "status", None) is Status.STIFF:
             return
         what, advice = self.stepper.stiffness_advice()
@@ -254,7 +255,7 @@ class _Run:
         if d is not None:
             advice += (f"; the damping '{d.label}' (effect {d.index}) relaxes '{d.particle}' in m/c = "
                        f"{d.period:.3g} s")
-        diagnostics.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
+        stiffness.stiffness_verdict(stats, self.h_rho, self.rho_max, what=what, advice=advice, stacklevel=6)
 
 
 #: Two located events this many ulps of t apart are at the same instant (``same_instant``).

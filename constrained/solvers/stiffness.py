@@ -6,6 +6,7 @@ says to make it a rigid link, or names the damper and says to use an L-stable me
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import casadi as ca
@@ -310,3 +311,59 @@ class StiffnessWatch:
                 f"the run of {length:g} s{pace}. Its stretch is {e.stretch:.2g} m of {e.rest:g} m: "
                 f"{e.constraint_advice()}; or, to keep the spring, use a method that steps over the "
                 'fast mode (method = "projection" with base = "Radau" or "CVODES_BDF" and a looser rtol)')
+
+
+# --- an explicit method held down by stability (the end-of-run warning) ------------------------
+class StiffnessWarning(UserWarning):
+    """An explicit integrator's step is held down by stability, not accuracy: use an implicit base."""
+
+
+def spectral_radius(rhs, t: float, y: np.ndarray, f0: np.ndarray | None = None, *,
+                    iterations: int = 12, seed: int = 0) -> float:
+    """Estimate the largest |eigenvalue| of ∂rhs/∂y at (t, y): power iteration on directional
+    differences (a diagnostic only; the equations themselves are never differenced)."""
+    f0 = rhs(t, y) if f0 is None else f0
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal(y.shape)
+    w /= np.linalg.norm(w)
+    eps = 1e-7 * max(np.linalg.norm(y), 1.0)
+    growth = []
+    for _ in range(iterations):
+        jw = (rhs(t, y + eps * w) - f0) / eps
+        nrm = float(np.linalg.norm(jw))
+        if not np.isfinite(nrm) or nrm == 0:
+            break
+        growth.append(nrm)
+        w = jw / nrm
+    if not growth:
+        return 0.0
+    # complex pairs make single ratios oscillate: the geometric mean of the last few is robust
+    tail = np.array(growth[len(growth) // 2:])
+    return float(np.exp(np.mean(np.log(tail))))
+
+
+#: An explicit run is called stiff when, over at least STIFFNESS_MIN_STEPS steps, the median
+#: of h·ρ (sampled every STIFFNESS_EVERY accepted steps) sits near the stability boundary of
+#: the explicit method (about 3.3 for DOP853 on the negative real axis, 2.8 for RK45): the
+#: step is then held down by stability, not accuracy.
+STIFFNESS_EVERY = 50
+STIFFNESS_MIN_STEPS = 500
+STIFFNESS_H_RHO = 1.0
+
+
+def stiffness_verdict(stats: dict, h_rho: list, rho_max: float, *, what: str, advice: str,
+                      stacklevel: int = 5) -> None:
+    """Record h·ρ in ``stats["stiffness"]``; warn (StiffnessWarning) when the explicit
+    method's steps were held down by stability over many steps."""
+    med = float(np.median(h_rho)) if h_rho else 0.0
+    stiff = stats["steps"] >= STIFFNESS_MIN_STEPS and len(h_rho) >= 5 and med >= STIFFNESS_H_RHO
+    stats["stiffness"] = {"h_rho_median": med, "rho_max": rho_max, "checks": len(h_rho),
+                          "stiff": bool(stiff)}
+    if stiff:
+        warnings.warn(
+            f"the problem looks stiff: {what} took {stats['steps']} steps with h·ρ ≈ {med:.2g} "
+            f"(ρ ≈ {rho_max:.3g} /s, the fastest rate of the equations), so its step size is "
+            f"limited by stability, not accuracy; {advice}",
+            StiffnessWarning,
+            stacklevel=stacklevel,
+        )
