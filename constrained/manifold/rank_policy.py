@@ -42,6 +42,13 @@ class RankPolicy:
         four-bar at its dead centre) it is 1e-3 as before."""
         return min(self.cause_sigma, self.cause_sigma_rows / max(rows, 1))
 
+    def singular_watch(self, tol: float, rows: int) -> float:
+        """The singular watch's threshold for a run's ``singular_tol`` and ``rows`` independent
+        rows: ``tol`` scaled as ``singular_cause`` (1/rows beyond 100 rows). A straight chain of
+        12,000 rods at rest (σ ≈ 9.3e-5, its longest mode) was stopped at its first check as "a
+        singular configuration" by tol = 1e-4."""
+        return tol * self.singular_cause(rows) / self.cause_sigma
+
 
 #: The policy every module uses unless a caller passes its own.
 RANK = RankPolicy()

@@ -35,8 +35,10 @@ class SingularWatch:
 
     def __init__(self, manifold: Manifold, rows: list[int], tol: float | None):
         m = manifold.model if isinstance(manifold, Manifold) else manifold  # (a Model: a batch's member)
-        self.model, self.rows, self.tol = m, rows, tol
+        self.model, self.rows = m, rows
         self.on = bool(tol) and bool(rows)
+        # (σ of a long straight chain is ≈ 1.1 / rows: the threshold scales with it)
+        self.tol = diagnostics.RANK.singular_watch(tol, len(rows)) if self.on else tol
         self.dense = m.n_coordinates <= DENSE_WATCH_MAX
         # as if a first check had cost FIRST_CHECK_S: a run shorter than FIRST_CHECK_S / WATCH_SHARE
         # is not slowed by the watch at all

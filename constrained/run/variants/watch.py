@@ -190,6 +190,8 @@ class MemberSingular:
         self.model, self.P, self.rows, self.tol = model, P, list(rows), tol
         self.t_end, self.share = float(t_end), share
         self.on = bool(tol) and bool(self.rows)
+        # (the dense checks' threshold, as SingularWatch scales it for the sparse path)
+        self.threshold = diagnostics.RANK.singular_watch(tol, len(self.rows)) if self.on else tol
         self.due = np.full(len(P), FIRST_CHECK_S / WATCH_SHARE)
         self.dense = model.n_coordinates <= DENSE_WATCH_MAX
         self.watches: dict[int, SingularWatch] = {}  # (the sparse path's, per member)
@@ -229,7 +231,7 @@ class MemberSingular:
             return []
         where = "the last good state is at t = {:.6g} s"
         return [(int(k), f"{singular_stop(S[t_slot, k], found(i))}; {where.format(S[t_slot, k])}")
-                for i, k in enumerate(members) if sigma[i] < self.tol]
+                for i, k in enumerate(members) if sigma[i] < self.threshold]
 
     def _sigmas(self, due: np.ndarray, S: np.ndarray, t_slot: int, n3: int):
         """(σ of each due member, i -> the near-dependency of the i-th)."""
