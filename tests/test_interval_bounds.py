@@ -91,3 +91,25 @@ def test_equal_troughs_and_a_formula_not_finite_are_named():
     assert abs(phase - round(phase)) < 1e-6 and value == pytest.approx(-1e-4, rel=1e-6)
     t, value = where_negative(_function("sqrt(t - 0.7) + 1"), 0.0, 1.0)
     assert t < 0.7 and not np.isfinite(value)
+
+
+@pytest.mark.parametrize("text, t0, t1, found", [
+    ("2.5 + t", -2.0, -1.0, None),  # ≥ 0.5 all over a span before t = 0
+    ("0.5", -2.0, -1.0, None),
+    ("0.5 + t", -2.0, -1.0, (-2.0, -1.5)),  # lowest at the start
+    ("0.3 - 0.5", 0.0, 1.0, (0.0, -0.2)),  # no t: its value, at the start
+    ("0", 0.0, 1.0, None),
+])
+def test_a_span_before_zero_and_a_formula_without_t(text, t0, t1, found):
+    """The search began with the pair (t0, t1) as its lowest sample, so over [−2, −1] it took
+    t1 = −1 for a value found and refused 2.5 + t, which is ≥ 0.5 there, naming 0.5 at t = −2.
+    A formula without t is its value at t0, as the search finds it (without minimizing a constant);
+    one that is not finite (a graph built in code: the parser refuses it) is named so."""
+    t = ca.SX.sym("t")
+    assert where_negative(ca.Function("f", [t], [ca.SX(np.inf)]), 0.0, 1.0) == (0.0, np.inf)
+    result = where_negative(_function(text), t0, t1)
+    if found is None:
+        assert result is None
+    else:
+        assert result[0] == pytest.approx(found[0], abs=1e-9)
+        assert result[1] == pytest.approx(found[1], rel=1e-9)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..codegen.interval import where_negative
 from ..errors import InputError
+from . import expressions
 from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_distances
 from .symbols import Batch
 
@@ -310,16 +311,35 @@ class Damping(Effect):
         on = f"{self.a}–{self.b}" if self.a else ", ".join(self.particles or ["all"])
         return self.name or f"damping c={_fmt(self.coefficient)} N·s/m on {on}"
 
-    def negative_coefficient(self, s, t0: float, t_end: float) -> tuple[float, float] | None:
+    def negative_coefficient(self, values: Mapping[str, float], t0: float,
+                             t_end: float) -> tuple[float, float] | None:
         """(t, c(t)), the lowest found, where a coefficient given by a formula of t is negative or
-        not finite anywhere on [t0, t_end], however briefly (for the Symbols ``s`` of a system with
-        its parameter values; bounded over every instant in interval arithmetic, not sampled:
-        ``codegen.interval.where_negative``), else None. A plain number is checked when the effect
-        is made, a formula only once its parameters have values (a fit without bounds, ``--set``)."""
+        not finite anywhere on [t0, t_end], however briefly (for the parameters' and definitions'
+        ``values``, name -> number, as ``System.parameter_values``; bounded over every instant in
+        interval arithmetic, not sampled: ``codegen.interval.where_negative``), else None. A plain
+        number is checked when the effect is made, a formula only once its parameters have values
+        (a fit without bounds, ``--set``, a member of ``simulate_many``)."""
         if not isinstance(self.coefficient, str):
             return None
-        c = s.time_function(self.coefficient, f"{self._where()}.coefficient")
-        return where_negative(ca.Function("c", [s.t], [c]), t0, t_end)
+        t = ca.SX.sym("t")  # (as Symbols.time_function parses it)
+        c = expressions.parse(self.coefficient, {"t": t, **values}, where=f"{self._where()}.coefficient")
+        return where_negative(ca.Function("c", [t], [c]), t0, t_end)
+
+    def refusal(self, values: Mapping[str, float], t0: float, t_end: float) -> InputError | None:
+        """The InputError refusing this coefficient for these ``values`` when it is negative or
+        not finite somewhere on [t0, t_end] (``negative_coefficient``), naming the key, the lowest
+        value and its time; else None. ``simulate`` raises it; ``simulate_many`` gives its text
+        to the member it refuses (run/variants/refusals.py): one sentence for both."""
+        bad = self.negative_coefficient(values, t0, t_end)
+        if bad is None:
+            return None
+        lowest = " (its lowest over the run)" if math.isfinite(bad[1]) else ""
+        return InputError(
+            f"the damping coefficient {self.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} "
+            f"s{lowest} for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
+            "dissipation but an energy source (the force −c v pushes along v); give parameter values "
+            "that keep it ≥ 0 (a fit: bounds), or write a driving force itself (type = \"force\")",
+            where=f"{self._where()}.coefficient")
 
     def term(self, s):
         where = self._where()
@@ -329,6 +349,12 @@ class Damping(Effect):
             return 0.5 * c * ca.dot(dv, dv)
         names = self.particles if self.particles is not None else list(s._index)
         return 0.5 * c * sum(ca.dot(s.velocity(p, where), s.velocity(p, where)) for p in names)
+
+
+def damping_formulas(effects) -> list[Damping]:
+    """The dampers among ``effects`` whose coefficient is a formula (checked by ``Damping.refusal``
+    once the parameters have values)."""
+    return [e for e in effects if isinstance(e, Damping) and isinstance(e.coefficient, str)]
 
 
 class Force(Effect):

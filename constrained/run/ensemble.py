@@ -10,6 +10,9 @@ reported, and so is one whose steps a stiff spring or damper holds down, by the 
 stiffness watch on its share of the batch's clock, or whose steps collapse towards a finite-time
 blow-up, by the single run's collapse watch, or that reaches a singular configuration, by the
 single run's singular watch on its share of the clock (variants/watch.py); the others go on.
+A variant its own run would refuse before stepping — a mass that is not positive, a damping
+coefficient (a formula of the parameters and t) negative or not finite somewhere in
+[t_start, t_end] — is not run, with its own run's sentence (variants/refusals.py).
 
 The start of each variant is its system's for those parameter values (positions and
 velocities may be formulas of the parameters), projected onto the constraints in one
@@ -43,7 +46,7 @@ from ..solvers.base import SINGULAR_TOL
 from ..solvers.dopri import PROJECTION_FAIL, SCALARS, Dopri
 from ..solvers.driver import DEFAULT_MAX_STEPS
 from ..threads import available_cores, one_blas_thread
-from .variants import reasons
+from .variants import reasons, refusals
 from .variants.stops import Replay, judge
 from .variants.watch import MemberCollapse, MemberSingular, MemberWatch
 
@@ -141,22 +144,6 @@ def _column(name: str, values) -> np.ndarray:
             raise InputError(f"the column '{name}' of the parameter table holds {v!r:.60} at row {i}, "
                              "which is not a number; give numbers only")
     return array.astype(float)
-
-
-def _invalid_masses(model: Model, P: np.ndarray) -> np.ndarray:
-    """The variants whose parameter values give a particle a mass that is not a finite positive
-    number (``mass = "m"`` with m = 0 or -1). ``simulate`` refuses such a mass by name; here the
-    variant alone is refused, with status "non-positive mass" — it used to be reported as an
-    "inconsistent start" (or to run with a negative mass), which named the wrong cause."""
-    if not model.masses_follow_parameters:
-        return np.zeros(0, int)
-    entries = getattr(model.structure, "mass_entries", None)
-    if entries is not None:
-        masses = P[:, np.asarray(entries, int)]
-    else:
-        masses = np.asarray(model.parametric("masses").map(P.shape[0])(P.T), float).T
-    with np.errstate(invalid="ignore"):
-        return np.flatnonzero(~np.all(np.isfinite(masses) & (masses > 0), axis=1))
 
 
 def _start_formulas(system) -> tuple:
@@ -364,9 +351,11 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
         moved = reasons.particle_moves(x0, xs)
         status = ["completed"] * n_var
         messages = [""] * n_var
-        invalid = set(_invalid_masses(model, P).tolist())
-        for k in invalid:
-            status[k], messages[k] = "non-positive mass", reasons.mass_reason(model, P[k])
+        # members refused before running, as their own runs refuse them (run.variants.refusals):
+        # a mass that is not positive, a damping coefficient negative somewhere in [t_start, t_end]
+        invalid = refusals.before_running(model, system, P, t_start, t_end)
+        for k, (why_status, why) in invalid.items():
+            status[k], messages[k] = why_status, why
         # (a start the mapped Newton steps did not bring onto the constraints, as a rod of negative
         # length: refused here, it used to run and fail at t = 0 with "projection failed")
         on = missed[:, 0] <= PROJECTION_FAIL * np.maximum(1.0, np.max(np.abs(xs), axis=1))
@@ -461,7 +450,7 @@ def simulate_many(system, t_end: float, parameters, *, t_eval=None, t_start: flo
     shape = (n_var, targets.size, model.n_particles, 3)
     return Ensemble(names, table, targets, X.reshape(shape), V.reshape(shape), tuple(status),
                     S[scal["n_acc"]].astype(int), S[scal["n_rej"]].astype(int), tuple(messages),
-                    np.where([st in ("inconsistent start", "non-positive mass") for st in status],
+                    np.where([st == "inconsistent start" or k in invalid for k, st in enumerate(status)],
                              np.nan, moved),
                     {"wall_time_s": wall, "variants_per_s": n_var / wall if wall > 0 else math.inf,
                      "evaluation": evaluation, "block": width, "threads": threads, "method": "dopri",

@@ -19,6 +19,7 @@ from ..manifold import diagnostics
 from ..manifold.constraint_report import SingularConfigurationWarning
 from ..manifold.manifold import structural_call
 from ..model import velocity
+from ..model.effects import damping_formulas
 from ..model.structure import Model, assemble
 from ..model.system import length_scale, require_system
 from ..solvers import DEFAULT_METHOD, METHODS
@@ -343,20 +344,15 @@ def _forces_and_energy(model: Model):
 
 def refuse_negative_damping(model: Model, system, t0: float, t_end: float) -> None:
     """Refuse a Rayleigh coefficient (a formula of t and the parameters) that is negative or not
-    finite at any instant of [t0, t_end], however briefly (``Damping.negative_coefficient``:
-    bounded, not sampled): R = ½ c |v|² with c < 0 is an energy source."""
-    dampers = [e for e in system.effects
-               if hasattr(e, "negative_coefficient") and isinstance(e.coefficient, str)]
+    finite at any instant of [t0, t_end], however briefly (``Damping.refusal``: bounded, not
+    sampled): R = ½ c |v|² with c < 0 is an energy source. (simulate_many refuses such a member
+    with the same sentence: run/variants/refusals.py.)"""
+    dampers = damping_formulas(system.effects)
+    values = model.system.parameter_values if dampers else {}
     for effect in dampers:
-        bad = effect.negative_coefficient(model.symbols, t0, t_end)
-        if bad is not None:
-            lowest = " (its lowest over the run)" if math.isfinite(bad[1]) else ""
-            raise InputError(
-                f"the damping coefficient {effect.coefficient!r} is {bad[1]:g} N·s/m at t = {bad[0]:g} "
-                f"s{lowest} for these parameter values: a Rayleigh function R = ½ c |v|² with c < 0 is not "
-                "dissipation but an energy source (the force −c v pushes along v); give parameter values "
-                "that keep it ≥ 0 (a fit: bounds), or write a driving force itself (type = \"force\")",
-                where=f"{effect._where()}.coefficient")
+        error = effect.refusal(values, t0, t_end)
+        if error is not None:
+            raise error
 
 
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:

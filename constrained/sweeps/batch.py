@@ -61,6 +61,8 @@ STATUS_TEXT = {
     "singular configuration": "the constraints became dependent (a singular configuration)",
     "non-positive mass": "a particle's mass (a formula of the parameters) is not a finite positive number "
                          "for these parameter values; give values that make every mass positive",
+    "negative damping": "a damping coefficient (a formula of the parameters and t) is negative or not finite "
+                        "during the run for these parameter values: an energy source, not dissipation",
 }
 
 
