@@ -32,6 +32,7 @@ from ..model.structure import Model, assemble
 from ..run.unilateral import gaps, has_one_sided, one_sided, scales
 from ..threads import one_blas_thread
 from .statics_methods import large as _large
+from .statics_methods import prestress as _prestress
 from .statics_methods.descent import minimize_on_constraints
 from .statics_methods.kkt import IPOPT_CPU_S, IPOPT_ITERATIONS, force_round_off  # noqa: F401 (their home was here)
 from .statics_methods.kkt import KKT as _KKT
@@ -118,6 +119,11 @@ class Equilibrium:
     #: Each constraint row's scale max_p |∂f/∂x_p| at x (constrained.residual): λ_k times it is
     #: a force in N, so the solve's force accuracy bounds |λ_k| by it over this scale.
     row_scales: np.ndarray | None = None
+    #: The Hessian at the minimum-norm λ has negative ω², but the redundant rows' self-stress
+    #: changes it on the tangent space (statics_methods.prestress): another valid split of the
+    #: multipliers may hold those directions at second order (a net with both diagonals hanging
+    #: in a plane), so ``stable`` is None, not False.
+    undecided_by_self_stress: bool = False
 
     @property
     def degrees_of_freedom(self) -> int:
@@ -147,6 +153,7 @@ class Equilibrium:
             "constraint_virtual_work_residual": self.constraint_virtual_work_residual,
             "max_constraint_residual": self.max_constraint_residual, "slack": list(self.slack),
             "velocity_constraints": self.velocity_constraints,
+            "undecided_by_self_stress": self.undecided_by_self_stress,
         }
 
     def __repr__(self) -> str:
@@ -455,21 +462,24 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     knorm = _large.spectral_norm(K)
     conservative = bool(_large.frobenius(K - K.T) <= 1e-9 * max(knorm, 1e-300) or knorm == 0.0)
     Ks = 0.5 * (K + K.T)
-    H = N.T @ Ks @ N
-    eig = np.linalg.eigvalsh(H) if H.size else np.zeros(0)
     # the verdict on the mass-weighted problem: ω² of (M^(-1/2) K M^(-1/2)) on null(J M^(-1/2)),
     # congruent to H (same signs) but with every particle's scale its own
     r = np.sqrt(model.inverse_masses)
     Kw = _large.scaled(Ks, r)
     Nw = (_large.weighted_basis(N, r) if large else tangent_basis(J * r[None, :], n3)) if C else np.eye(n3)
+    H = N.T @ Ks @ N
+    eig = np.linalg.eigvalsh(H) if H.size else np.zeros(0)
     omega2, vec = np.linalg.eigh(Nw.T @ Kw @ Nw) if Nw.size else (np.zeros(0), np.zeros((0, 0)))
     kw_norm = _large.spectral_norm(Kw)
     unbalanced = float(np.max(np.abs((F + G.T @ lam) * model.inverse_masses), initial=0.0)) if C else 0.0
     tol = (zero_frequency_squared(kw_norm, len(omega2), unbalanced, size) if stability_rtol is None
            else stability_rtol * kw_norm)
     soft = np.abs(omega2) <= tol
+    self_stress = False
     if not conservative or held or note and np.any(omega2 <= tol):  # see velocity.at_rest
         stable = None
+    elif np.any(omega2 < -tol) and _prestress.stress_matters(model, stiffness, x, J, large, N):
+        stable, self_stress = None, True  # another valid split of the self-stress may hold them
     elif np.any(omega2 < -tol):
         stable = False
     elif np.any(soft):
@@ -505,4 +515,5 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
         max_constraint_residual=residual.position_residual(model, x, t),  # metres
         velocity_constraints=note,
         row_scales=residual.row_scales(model, x, t) if C else np.zeros(0),
+        undecided_by_self_stress=self_stress,
     )

@@ -69,6 +69,9 @@ def format_equilibrium(eq: Equilibrium, title: str | None = None) -> str:
                else "not assessed (forces are not conservative)"}[eq.stable]
     if eq.stable is None and eq.velocity_constraints:
         verdict = "not decided by the energy method (velocity constraints: see below)"
+    if getattr(eq, "undecided_by_self_stress", False):
+        verdict = ("not decided: negative ω² at the minimum-norm multipliers, but redundant constraints "
+                   "carry a self-stress that changes them (another valid split may hold the motions)")
     out.append(f"stability: {verdict}")
     # round-off here too: ω² below the verdict's tolerance is 0, and an eigenvalue of the
     # tangent-space Hessian below the same fraction of the largest one

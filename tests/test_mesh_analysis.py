@@ -1,0 +1,241 @@
+"""Statics and modes on 2-D meshes (docs/hard-cases.md, section 21): a drum of springs, nets of
+rods hanging under gravity, a net with both diagonals in every cell (redundant rods).
+
+Closed forms used:
+- Drum: an (n+2) × (n+2) grid of beads of mass m at spacing a, the border pinned, neighbours
+  joined by springs of stiffness k and rest length ρ (tension T = k (a − ρ)). At the flat
+  equilibrium a spring's stiffness is k along it and T/a across it, so the interior's z motion is
+  (T/a) times the grid Laplacian and the x motion k along x plus T/a along y:
+  ω²_z(p, q) = (4T/(m a)) (S_p + S_q), ω²_x(p, q) = (4/m) (k S_p + (T/a) S_q), S_p = sin²(pπ/(2(n+1))),
+  with the shape sin(p i π/(n+1)) sin(q j π/(n+1)).
+- A net pinned along one edge hangs with each column a vertical chain; the rod above the bead
+  j rows below the edge carries m g (n − j) (the beads below it), the rods across carry nothing.
+  Its small motions: out of the hanging plane every column swings as a hanging chain on its own;
+  in the plane the rods across tie each row together, so the net swings as one hanging chain of
+  rows: n + 1 copies of the spectrum of the hanging chain of n − 1 beads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import constrained as C
+from constrained.analysis.modes import modes
+from constrained.analysis.statics import equilibrium
+
+G = 9.81
+
+
+def drum(n, *, m=0.01, k=50.0, a=0.1, rest=0.05, centre=None):
+    s = C.System(name=f"drum {n}")
+    N = n + 2
+    for i in range(N):
+        for j in range(N):
+            heavy = centre is not None and i == j == (N - 1) // 2
+            s.add_particle(f"b{i}_{j}", centre if heavy else m, [i * a, j * a, 0.0])
+    for i in range(N):
+        for j in range(N):
+            if i in (0, N - 1) or j in (0, N - 1):
+                s.add(C.Pin(f"b{i}_{j}", [i * a, j * a, 0.0]))
+            if i + 1 < N and j not in (0, N - 1):
+                s.add(C.Spring(f"b{i}_{j}", f"b{i + 1}_{j}", k=k, rest=rest))
+            if j + 1 < N and i not in (0, N - 1):
+                s.add(C.Spring(f"b{i}_{j}", f"b{i}_{j + 1}", k=k, rest=rest))
+    return s
+
+
+def membrane_spectrum(n, m, k, a, rest):
+    T = k * (a - rest)
+    S = np.sin(np.arange(1, n + 1) * np.pi / (2 * (n + 1))) ** 2
+    z = (4 * T / (m * a)) * (S[:, None] + S[None, :])
+    x = (4 / m) * (k * S[:, None] + (T / a) * S[None, :])
+    return z, x, np.sort(np.concatenate([z.ravel(), x.ravel(), x.T.ravel()]))
+
+
+def test_a_small_drum_has_every_mode_of_the_discrete_membrane():
+    n, m, k, a, rest = 4, 0.01, 50.0, 0.1, 0.05
+    s = drum(n, m=m, k=k, a=a, rest=rest)
+    eq = equilibrium(s)
+    assert eq.converged and eq.stable is True
+    np.testing.assert_allclose(eq.x, s.positions, atol=1e-12)  # flat: the springs balance
+    _, _, every = membrane_spectrum(n, m, k, a, rest)
+    np.testing.assert_allclose(np.sort(eq.frequencies_squared), every, rtol=1e-10)
+    md = modes(s)
+    assert md.stable is True and len(md.modes) == 3 * n * n
+    np.testing.assert_allclose(np.sort(md.frequencies ** 2), every, rtol=1e-10)
+
+
+def _interior_z(shape, n):
+    """The z displacements of the interior beads, (n, n), from a mode shape (N, 3) in grid order."""
+    return np.asarray(shape).real.reshape(n + 2, n + 2, 3)[1:-1, 1:-1, 2]
+
+
+def test_the_lowest_modes_of_a_10_by_10_drum_and_their_degenerate_pair():
+    """count=6 (the sparse route: 132 pin rows) gives the lowest six: z (1, 1), the in-plane
+    (1, 1) in x and in y, the z pair (1, 2), (2, 1), whose two computed shapes span the two sine
+    products (any basis of that plane), and the in-plane (1, 2)."""
+    n, m, k, a, rest = 10, 0.01, 50.0, 0.1, 0.05
+    s = drum(n, m=m, k=k, a=a, rest=rest)
+    md = modes(s, count=6)
+    assert md.partial and md.total_degrees_of_freedom == 3 * n * n and md.stable is True
+    z, x, every = membrane_spectrum(n, m, k, a, rest)
+    np.testing.assert_allclose(md.frequencies ** 2, every[:6], rtol=1e-9)
+    assert np.isclose(every[3], z[0, 1]) and np.isclose(every[4], z[1, 0])  # modes 4, 5: z's pair
+    assert np.isclose(every[1], x[0, 0]) and np.isclose(every[2], x[0, 0])  # 2, 3: in-plane (1, 1), x and y
+    i = np.arange(1, n + 1)
+    sines = [np.outer(np.sin(p * i * np.pi / (n + 1)), np.sin(q * i * np.pi / (n + 1))).ravel()
+             for p, q in ((1, 2), (2, 1))]
+    want = np.linalg.qr(np.column_stack(sines))[0]
+    got = np.linalg.qr(np.column_stack([_interior_z(md.modes[j].shape, n).ravel() for j in (3, 4)]))[0]
+    np.testing.assert_allclose(np.linalg.svd(want.T @ got, compute_uv=False), 1.0, atol=1e-8)  # same plane
+    for j in (3, 4):  # and no in-plane motion in them
+        assert np.max(np.abs(np.asarray(md.modes[j].shape).real[:, :2])) < 1e-8
+
+
+def test_a_drum_with_a_heavy_centre_bead_against_its_own_eigenproblem():
+    """Centre bead 20 m: the z motion solves (T/a) L z = ω² M z, L the grid Laplacian, the x
+    motion (k Lx + (T/a) Ly) x = ω² M x (Lx, Ly the second differences along x and y), y the
+    same turned: all three computed here independently."""
+    n, m, k, a, rest = 9, 0.01, 50.0, 0.1, 0.05
+    s = drum(n, m=m, k=k, a=a, rest=rest, centre=20 * m)
+    md = modes(s, count=6)
+    L1 = 2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
+    Lx, Ly = np.kron(L1, np.eye(n)), np.kron(np.eye(n), L1)  # (bead index i * n + j, i along x)
+    masses = np.full(n * n, m)
+    masses[(n // 2) * n + n // 2] = 20 * m
+    d = 1 / np.sqrt(masses)
+    T = k * (a - rest)
+    blocks = ((T / a) * (Lx + Ly), k * Lx + (T / a) * Ly, (T / a) * Lx + k * Ly)  # z, x, y
+    w2 = np.sort(np.concatenate([np.linalg.eigvalsh(d[:, None] * K * d[None, :]) for K in blocks]))
+    np.testing.assert_allclose(md.frequencies ** 2, w2[:6], rtol=1e-9)
+    even = (4 * T / (m * a)) * 2 * np.sin(np.pi / (2 * (n + 1))) ** 2
+    assert md.frequencies[0] ** 2 < 0.5 * even  # the heavy bead lowers the fundamental
+
+
+def net(n, *, m=0.01, a=0.1, pin="edge", diagonals=False, shrink=1.0):
+    """n × n beads laid flat in z = 0 at spacing a·shrink, rods of length a between neighbours
+    (and across each cell's diagonals), pinned along the row y = 0 or at the four corners;
+    gravity −z."""
+    s = C.System(name=f"net {n}")
+    for i in range(n):
+        for j in range(n):
+            s.add_particle(f"b{i}_{j}", m, [i * a * shrink, j * a * shrink, 0.0])
+    if pin == "edge":
+        for i in range(n):
+            s.add(C.Pin(f"b{i}_0", [i * a, 0.0, 0.0]))
+    else:
+        for i, j in [(0, 0), (n - 1, 0), (0, n - 1), (n - 1, n - 1)]:
+            s.add(C.Pin(f"b{i}_{j}", [i * a * shrink, j * a * shrink, 0.0]))
+    for i in range(n):
+        for j in range(n):
+            if i + 1 < n and not (pin == "edge" and j == 0):
+                s.add(C.Distance(f"b{i}_{j}", f"b{i + 1}_{j}", length=a))
+            if j + 1 < n:
+                s.add(C.Distance(f"b{i}_{j}", f"b{i}_{j + 1}", length=a))
+            if diagonals and i + 1 < n and j + 1 < n:
+                s.add(C.Distance(f"b{i}_{j}", f"b{i + 1}_{j + 1}", length=a * np.sqrt(2)))
+                s.add(C.Distance(f"b{i + 1}_{j}", f"b{i}_{j + 1}", length=a * np.sqrt(2)))
+    s.add(C.Gravity([0, 0, -G]))
+    return s
+
+
+def hanging_chain_spectrum(beads, m, a):
+    """ω² of a chain of ``beads`` beads (mass m, links a) hanging from a point, computed directly:
+    m ÿ_j = (T_j (y_{j-1} − y_j) − T_{j+1} (y_j − y_{j+1}))/a, T_j = m g (beads − j) (j from 0)."""
+    T = m * G * (beads - np.arange(beads + 1))  # T_j above bead j; T_beads = 0
+    K = np.zeros((beads, beads))
+    for j in range(beads):
+        K[j, j] = (T[j] + T[j + 1]) / a
+        if j + 1 < beads:
+            K[j, j + 1] = K[j + 1, j] = -T[j + 1] / a
+    return np.linalg.eigvalsh(K / m)
+
+
+def test_a_net_pinned_along_one_edge_released_flat_hangs_straight_down():
+    n, m, a = 6, 0.01, 0.1
+    s = net(n, m=m, a=a)
+    eq = equilibrium(s)  # flat: every rod at right angles to gravity
+    assert eq.converged and eq.stable is True and eq.method == "descent"
+    row = np.array([int(name.split("_")[1]) for name in s.names])
+    col = np.array([int(name.split("_")[0][1:]) for name in s.names])
+    np.testing.assert_allclose(eq.x[:, 0], col * a, atol=1e-9)
+    np.testing.assert_allclose(eq.x[:, 1], 0.0, atol=1e-9)
+    np.testing.assert_allclose(eq.x[:, 2], -row * a, atol=1e-9)
+    labels = eq.constraint_labels
+    for k, label in enumerate(labels):
+        if label.startswith("distance"):
+            names = label.split()[1].split("–")
+            rows = sorted(int(nm.split("_")[1]) for nm in names)
+            down = rows[0] != rows[1]
+            tension = m * G * (n - rows[1]) if down else 0.0  # beads at rows[1] and below in the column
+            assert eq.multipliers[k] == pytest.approx(-tension, abs=1e-9), label
+    support = np.sum([f for _, f in eq.anchor_reactions], axis=0)
+    np.testing.assert_allclose(support, [0, 0, n * n * m * G], atol=1e-9)
+    chain = hanging_chain_spectrum(n - 1, m, a)
+    np.testing.assert_allclose(np.sort(eq.frequencies_squared), np.sort(np.repeat(chain, n + 1)), rtol=1e-8)
+
+
+def test_a_net_hung_from_four_corners_nearer_than_its_width():
+    """Corners 0.8 of the flat width apart, started flat (off the rods' lengths): the net sags,
+    symmetric under both mirror lines, each corner carries a quarter of the weight."""
+    n, m, a = 5, 0.01, 0.1
+    s = net(n, m=m, a=a, pin="corners", shrink=0.8)
+    eq = equilibrium(s)
+    assert eq.converged and eq.stable is True and eq.max_constraint_residual < 1e-12
+    X = eq.x.reshape(n, n, 3)
+    np.testing.assert_allclose(X[::-1, :, 2], X[:, :, 2], atol=1e-9)
+    np.testing.assert_allclose(X[:, ::-1, 2], X[:, :, 2], atol=1e-9)
+    assert np.all(X[1:-1, 1:-1, 2] < -0.05)  # it sags
+    assert len(eq.anchor_reactions) == 4
+    for _, f in eq.anchor_reactions:
+        assert f[2] == pytest.approx(n * n * m * G / 4, rel=1e-9)
+    assert eq.virtual_work_residual < 1e-10
+
+
+def test_a_net_stretched_flat_between_its_corners_has_no_equilibrium():
+    """Pinned at the corners of its flat extent, inextensible rods cannot sag at all: the flat net
+    is the only configuration, and its horizontal rods cannot carry the weight."""
+    with pytest.raises(C.InputError, match="no static equilibrium"):
+        equilibrium(net(4, pin="corners"))
+
+
+@pytest.mark.parametrize("n", [5, 8])  # 83 rows (dense), 227 (the large statics' sparse route)
+def test_a_hanging_net_with_both_diagonals_is_not_called_unstable(n):
+    """Both diagonals in every cell: rigid squares, hinged along the lines between rows, so the
+    hanging net swings as a chain of rigid strips (stable); 28 self-stresses. The minimum-norm
+    multipliers give negative ω² out of the plane (−49 /s²), which the old code reported as
+    unstable; another valid split of the self-stress holds those first-order motions. The verdict
+    is now undecided (None), the multipliers still minimum-norm (no part along the self-stresses)."""
+    m, a = 0.01, 0.1
+    s = net(n, m=m, a=a, diagonals=True)
+    x = s.positions.copy()
+    row = np.array([int(name.split("_")[1]) for name in s.names])
+    x[:, 1], x[:, 2] = 0.0, -row * a
+    eq = equilibrium(s, x)
+    assert eq.converged and np.min(eq.frequencies_squared) < -1.0
+    assert eq.stable is None and eq.undecided_by_self_stress
+    np.testing.assert_allclose(eq.x, x, atol=1e-12)
+    from constrained.analysis.statics import _forces_at_rest
+    from constrained.model.structure import assemble
+
+    model = assemble(s)
+    F, J = _forces_at_rest(model, eq.x.ravel(), 0.0)
+    import scipy.linalg as sla
+
+    S = sla.null_space(J.T)
+    assert S.shape[1] == J.shape[0] - (J.shape[1] - len(eq.frequencies_squared)) > 0  # rows − rank
+    assert np.linalg.norm(S.T @ eq.multipliers) < 1e-9 * np.linalg.norm(eq.multipliers)
+    np.testing.assert_allclose(F + J.T @ eq.multipliers, 0.0, atol=1e-10)
+    support = np.sum([f for _, f in eq.anchor_reactions], axis=0)
+    np.testing.assert_allclose(support, [0, 0, n * n * m * G], atol=1e-9)
+
+
+def test_a_rod_stated_twice_still_gets_a_verdict():
+    """The self-stress of a doubled rod has a zero stress matrix: an inverted pendulum on two
+    identical rods is still UNSTABLE (ω² = −g/L), not undecided."""
+    s = C.System([C.Particle("p", 1.0, [0.0, 1.0, 0.0])],
+                 [C.Distance("p", point=[0, 0, 0], length=1.0), C.Distance("p", point=[0, 0, 0], length=1.0),
+                  C.Plane("p", [0, 0, 1], 0.0)], [C.Gravity([0, -G, 0])])
+    eq = equilibrium(s)
+    assert eq.stable is False and not eq.undecided_by_self_stress
+    np.testing.assert_allclose(eq.frequencies_squared, [-G], rtol=1e-9)
