@@ -239,3 +239,25 @@ def test_a_rod_stated_twice_still_gets_a_verdict():
     eq = equilibrium(s)
     assert eq.stable is False and not eq.undecided_by_self_stress
     np.testing.assert_allclose(eq.frequencies_squared, [-G], rtol=1e-9)
+
+
+def test_modes_of_the_hanging_net_with_both_diagonals_say_undecided_as_statics():
+    """``modes`` about the same hanging net: its growing modes at the minimum-norm multipliers
+    (ω² = −49 /s² out of the plane) were "UNSTABLE" though another split of the self-stress holds
+    them; the verdict is now undecided, as statics', and says why. The doubled rod of an inverted
+    pendulum, whose self-stress changes nothing, is still UNSTABLE with its ω² = −g/L."""
+    a = 0.1
+    s = net(5, m=0.01, a=a, diagonals=True)
+    x = s.positions.copy()
+    row = np.array([int(name.split("_")[1]) for name in s.names])
+    x[:, 1], x[:, 2] = 0.0, -row * a
+    md = modes(s, x)
+    assert md.stable is None and "undecided" in md.stability and "self-stress" in md.stability
+    assert sum(m.growth_rate > 0 for m in md.modes) == 2  # (the modes themselves are unchanged)
+    pendulum = C.System([C.Particle("p", 1.0, [0.0, 1.0, 0.0])],
+                        [C.Distance("p", point=[0, 0, 0], length=1.0),
+                         C.Distance("p", point=[0, 0, 0], length=1.0), C.Plane("p", [0, 0, 1], 0.0)],
+                        [C.Gravity([0, -G, 0])])
+    inverted = modes(pendulum)
+    assert inverted.stable is False and inverted.stability.startswith("UNSTABLE")
+    assert [m.growth_rate for m in inverted.modes] == pytest.approx([np.sqrt(G)], rel=1e-9)

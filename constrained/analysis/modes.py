@@ -39,8 +39,10 @@ from .linearization import (
     zero_root_chain,
 )
 from .statics import _flat, equilibrium, zero_frequency_squared
+from .statics_methods.kkt import KKT
 from .statics_methods.large import is_large
 from .statics_methods.large_modes import lowest_modes
+from .statics_methods.prestress import stress_matters
 
 __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 
@@ -412,6 +414,10 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
               float(np.linalg.norm(K, 2))) if n else 0.0
     zero_s2 = zero_frequency_squared(knorm2, n, unbalanced, size)
     mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, zero_s2, model.n_particles)
+    if stable is False and symmetric and frame is None and _self_stress_holds(model, x_flat, float(t), T):
+        held = "; another split of the redundant rows' self-stress may hold them, as statics says"
+        stable = None
+        stability = stability.replace("UNSTABLE (", "undecided (at the minimum-norm multipliers ") + held
     chain = [] if symmetric or not n else zero_root_chain(M, C, K)
     if len(chain) > 2 and stable is not False:  # a Jordan chain at s = 0 longer than a free direction's
         stable, stability = False, (f"UNSTABLE (the root s = 0 is defective, a Jordan chain of length "
@@ -430,6 +436,17 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
                  conservative=bool(np.linalg.norm(K - K.T) <= 1e-9 * knorm), residual=residual,
                  parameters=model.parameters, configuration_degrees_of_freedom=configuration,
                  total_degrees_of_freedom=total)
+
+
+def _self_stress_holds(model: Model, x: np.ndarray, t: float, T: np.ndarray) -> bool:
+    """Whether a self-stress of the redundant rows changes K on the tangent space (``statics``'
+    ``undecided_by_self_stress``, statics_methods.prestress): the growing modes of the minimum-norm
+    multipliers may then be held by another valid split (a hanging net with both diagonals)."""
+    if model.n_position_rows < 2 or model.n_position_rows < model.n_constraints:
+        return False
+    kkt = KKT(model, t)
+    J = np.asarray(model.jacobian(x, t)[1], float).reshape(model.n_position_rows, model.n_coordinates)
+    return stress_matters(model, lambda y, lam: np.asarray(kkt.stiffness(y, lam), float), x, J, False, T)
 
 
 def _sparse_modes(system, model: Model, sparse, x_flat: np.ndarray, v_flat: np.ndarray, t: float) -> Modes:
