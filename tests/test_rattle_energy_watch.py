@@ -130,3 +130,18 @@ def test_a_chain_at_rest_with_no_forces_says_nothing():
         traj = C.simulate(s, 0.01, method="rattle", dt=1e-4, t_eval=[0.0, 0.01])
     assert "energy_not_conserved" not in traj.info
     np.testing.assert_allclose(traj.x[-1], traj.x[0], atol=1e-14)
+
+
+def test_the_watch_can_be_turned_off_and_then_the_same_steps_say_nothing():
+    """``energy_watch=False`` (a pair potential's φ not summed every step): the close encounter
+    runs the same steps to the same state, bit for bit, without the watch's stats or warning;
+    a value that is not true or false is refused."""
+    with pytest.warns(UnresolvedStepWarning):
+        watched = C.simulate(pair(0.02), 0.1, method="rattle", dt=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UnresolvedStepWarning)
+        plain = C.simulate(pair(0.02), 0.1, method="rattle", dt=1e-3, energy_watch=False)
+    assert "energy_change" not in plain.stats and "energy_not_conserved" not in plain.info
+    np.testing.assert_array_equal(plain.x, watched.x)
+    with pytest.raises(C.InputError, match="energy_watch must be true or false"):
+        C.simulate(pair(0.02), 0.1, method="rattle", dt=1e-3, energy_watch="no")
