@@ -114,8 +114,9 @@ class Symbols:
 
     def number_column(self, values: list):
         """``vertcat(*[number(v) for v in values])``: when all are Numbers, one gather from p."""
-        if values and all(type(v) is Number for v in values) and self._offset is not None:
-            return self.p[[self._offset + v.index for v in values]]
+        entries = self.number_entries(values) if values else None
+        if entries is not None:
+            return self.p[entries.tolist()]
         return ca.vertcat(*[self.number(v) for v in values])
 
     def number_entries(self, values: list) -> np.ndarray | None:

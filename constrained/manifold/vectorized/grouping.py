@@ -353,7 +353,7 @@ def batched(exprs: list, batches, x, t, p, symbols: dict, c, found: dict) -> np.
         if kind is None or np.count_nonzero(ordered) < MIN_GROUP:
             continue
         members = np.flatnonzero(ordered)
-        sample = members[np.unique(np.linspace(0, len(members) - 1, 8).round().astype(np.int64))]
+        sample = _spread(members)
         if not _same(kind, exprs, positions[sample], index[:, sample], reads[:, sample], x, t, p).all():
             continue
         # instances whose coordinates come in another order (a spring from b to a): the kernel
@@ -372,7 +372,7 @@ def batched(exprs: list, batches, x, t, p, symbols: dict, c, found: dict) -> np.
             _, pattern = np.unique(order, axis=1, return_inverse=True)
             for u in range(int(pattern.max()) + 1):
                 these = others[pattern.ravel() == u]
-                sample = these[np.unique(np.linspace(0, len(these) - 1, 8).round().astype(np.int64))]
+                sample = _spread(these)
                 if _same(kind, exprs, positions[sample], index[:, sample], reads[:, sample], x, t, p).all():
                     members = np.concatenate([members, these])
             members = np.sort(members)
@@ -381,6 +381,15 @@ def batched(exprs: list, batches, x, t, p, symbols: dict, c, found: dict) -> np.
             (positions[members], index[:, members], (len(members), numbers_of)))
         claimed[positions[members]] = True
     return claimed
+
+
+#: Instances of a batch checked against its rows (spread evenly, the first and last among them).
+BATCH_SAMPLE = 8
+
+
+def _spread(ids: np.ndarray) -> np.ndarray:
+    """BATCH_SAMPLE of ``ids`` (all when fewer), spread evenly from the first to the last."""
+    return ids[np.unique(np.linspace(0, len(ids) - 1, BATCH_SAMPLE).round().astype(np.int64))]
 
 
 def _discovered(exprs: list, x, t, p, symbols: dict, c, found: dict, places) -> list[int]:

@@ -149,15 +149,14 @@ class MemberCollapse:
     def sentence(self, k: int, reason: str, x: np.ndarray, v: np.ndarray, t: float) -> str:
         """Member k's own run's sentence at its last good state (x, v, t), and where that is
         (as ``simulate`` ends its message)."""
-        where = f"the last good state is at t = {t:.6g} s"
         if self.diagnosed >= DIAGNOSED_MAX:
-            return f"{reason}; {where}"
+            return _at_last_good(reason, t)
         self.diagnosed += 1
         try:
             cause = diagnostics.likely_cause(variant_model(self.model, self.P[k]), x, v, t)
         except Exception:  # a diagnosis must never hide the stop itself
-            return f"{reason}; {where}"
-        return f"{collapse_stop(reason, cause)}; {where}"
+            return _at_last_good(reason, t)
+        return _at_last_good(collapse_stop(reason, cause), t)
 
 
 class MemberSingular:
@@ -229,8 +228,7 @@ class MemberSingular:
         except Exception:  # a diagnosis only: a watch that cannot judge lets the members run
             self.due[members] = np.inf
             return []
-        where = "the last good state is at t = {:.6g} s"
-        return [(int(k), f"{singular_stop(S[t_slot, k], found(i))}; {where.format(S[t_slot, k])}")
+        return [(int(k), _at_last_good(singular_stop(S[t_slot, k], found(i)), S[t_slot, k]))
                 for i, k in enumerate(members) if sigma[i] < self.threshold]
 
     def _sigmas(self, due: np.ndarray, S: np.ndarray, t_slot: int, n3: int):
@@ -251,6 +249,11 @@ class MemberSingular:
         if k not in self.watches:
             self.watches[k] = SingularWatch(variant_model(self.model, self.P[k]), self.rows, self.tol)
         return self.watches[k]
+
+
+def _at_last_good(sentence: str, t: float) -> str:
+    """A stopped member's sentence ended as its own run's message ends (``simulate``)."""
+    return f"{sentence}; the last good state is at t = {t:.6g} s"
 
 
 def mapped_jacobian(model, n: int) -> FastCall:
