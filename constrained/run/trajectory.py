@@ -257,8 +257,8 @@ class Trajectory:
         meta = {
             "particle_names": self.particle_names,
             "constraint_labels": self.constraint_labels,
-            "stats": _jsonable(self.stats),
-            "info": _jsonable(self.info),
+            "stats": self.stats,
+            "info": self.info,
         }
         if self.events:
             event_arrays, meta["events"] = records_to_arrays(self.events, self.n_particles)
@@ -404,7 +404,7 @@ def _jsonable(value):
         if kinds <= _PLAIN:  # (names, labels: tens of thousands at once)
             return list(value)
         if kinds <= {list, tuple} and _PLAIN.issuperset(map(type, itertools.chain.from_iterable(value))):
-            return [list(v) for v in value]  # (pairs of indices: a sketch's rods)
+            return value  # (pairs of indices: a sketch's rods; json writes a tuple as a list)
         return [_jsonable(v) for v in value]
     if isinstance(value, np.generic):
         return value.item()
