@@ -261,3 +261,32 @@ def test_modes_of_the_hanging_net_with_both_diagonals_say_undecided_as_statics()
     inverted = modes(pendulum)
     assert inverted.stable is False and inverted.stability.startswith("UNSTABLE")
     assert [m.growth_rate for m in inverted.modes] == pytest.approx([np.sqrt(G)], rel=1e-9)
+
+
+def test_the_sparse_modes_route_gives_the_dense_routes_verdict_on_self_stressed_nets():
+    """``count`` on a model of more than 100 rows takes the sparse route, which has no basis of the
+    tangent space: it called the hanging 8 × 8 net with both diagonals (227 rows) "UNSTABLE (at
+    least 4 growing modes)" where the dense route and statics say undecided. Random tangent
+    directions now stand in for the basis in the self-stress check. The same net standing upright
+    above its pinned edge without diagonals, one rod stated twice (a self-stress that changes
+    nothing), is still UNSTABLE by both routes, with the same lowest ω²."""
+    n, a = 8, 0.1
+    row = np.array([int(name.split("_")[1]) for name in net(n).names])
+    hanging = net(n, m=0.01, a=a, diagonals=True)
+    x = hanging.positions.copy()
+    x[:, 1], x[:, 2] = 0.0, -row * a
+    sparse, dense = modes(hanging, x, count=4), modes(hanging, x)
+    assert sparse.total_degrees_of_freedom is not None  # (the sparse route: a partial set)
+    assert sparse.stable is None and dense.stable is None
+    assert "undecided" in sparse.stability and "self-stress" in sparse.stability
+    upright = net(n, m=0.01, a=a)
+    upright.add(C.Distance("b0_1", "b0_2", length=a))
+    x[:, 2] = row * a
+    sparse, dense = modes(upright, x, count=4), modes(upright, x)
+    assert sparse.stable is False and dense.stable is False
+    assert sparse.stability.startswith("UNSTABLE (at least")
+    def omega2(md):
+        return np.sort([m.frequency ** 2 - m.growth_rate ** 2 for m in md.modes])
+
+    np.testing.assert_allclose(omega2(sparse), omega2(dense)[:4], rtol=1e-8)
+    assert omega2(sparse)[0] < -1000.0

@@ -40,9 +40,10 @@ from .linearization import (
 )
 from .statics import _flat, equilibrium, zero_frequency_squared
 from .statics_methods.kkt import KKT
-from .statics_methods.large import is_large
+from .statics_methods.large import forces_at_rest, is_large
+from .statics_methods.large import stiffness as sparse_stiffness
 from .statics_methods.large_modes import lowest_modes
-from .statics_methods.prestress import stress_matters
+from .statics_methods.prestress import stress_matters, tangent_sample
 
 __all__ = ["Mode", "Modes", "ModesCrossCheck", "RotatingFrame", "modes"]
 
@@ -415,9 +416,7 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
     zero_s2 = zero_frequency_squared(knorm2, n, unbalanced, size)
     mode_list, stable, stability = _modes_from_roots(s, Z, symmetric, T, zero_s2, model.n_particles)
     if stable is False and symmetric and frame is None and _self_stress_holds(model, x_flat, float(t), T):
-        held = "; another split of the redundant rows' self-stress may hold them, as statics says"
-        stable = None
-        stability = stability.replace("UNSTABLE (", "undecided (at the minimum-norm multipliers ") + held
+        stable, stability = None, _undecided(stability)
     chain = [] if symmetric or not n else zero_root_chain(M, C, K)
     if len(chain) > 2 and stable is not False:  # a Jordan chain at s = 0 longer than a free direction's
         stable, stability = False, (f"UNSTABLE (the root s = 0 is defective, a Jordan chain of length "
@@ -438,13 +437,25 @@ def modes(system, x=None, v=None, t: float = 0.0, *, frame: RotatingFrame | None
                  total_degrees_of_freedom=total)
 
 
-def _self_stress_holds(model: Model, x: np.ndarray, t: float, T: np.ndarray) -> bool:
+def _undecided(stability: str) -> str:
+    """The verdict of growing modes that a self-stress may hold (``_self_stress_holds``)."""
+    return (stability.replace("UNSTABLE (", "undecided (at the minimum-norm multipliers ")
+            + "; another split of the redundant rows' self-stress may hold them, as statics says")
+
+
+def _self_stress_holds(model: Model, x: np.ndarray, t: float, T: np.ndarray | None) -> bool:
     """Whether a self-stress of the redundant rows changes K on the tangent space (``statics``'
     ``undecided_by_self_stress``, statics_methods.prestress): the growing modes of the minimum-norm
-    multipliers may then be held by another valid split (a hanging net with both diagonals)."""
+    multipliers may then be held by another valid split (a hanging net with both diagonals).
+    ``T``: a basis of the tangent space, or None for the sparse route (random tangent directions,
+    ``prestress.tangent_sample``)."""
     if model.n_position_rows < 2 or model.n_position_rows < model.n_constraints:
         return False
     kkt = KKT(model, t)
+    if T is None:
+        J = forces_at_rest(model, x, t)[1]
+        return stress_matters(model, lambda y, lam: sparse_stiffness(kkt.stiffness, y, lam), x, J, True,
+                              tangent_sample(model, J))
     J = np.asarray(model.jacobian(x, t)[1], float).reshape(model.n_position_rows, model.n_coordinates)
     return stress_matters(model, lambda y, lam: np.asarray(kkt.stiffness(y, lam), float), x, J, False, T)
 
@@ -460,6 +471,8 @@ def _sparse_modes(system, model: Model, sparse, x_flat: np.ndarray, v_flat: np.n
     mode_list, stable, stability = _modes_from_roots(s, np.eye(k), True, Phi, zero_s2, model.n_particles)
     if stable is False:
         stability = stability.replace("UNSTABLE (", "UNSTABLE (at least ")
+        if _self_stress_holds(model, x_flat, t, None):
+            stable, stability = None, _undecided(stability)
     return Modes(x=x_flat.reshape(-1, 3), v=v_flat.reshape(-1, 3), t=t, frame=None, multipliers=lam,
                  basis=Phi, M=np.eye(k), G=np.zeros((k, k)), D=np.zeros((k, k)), K=np.diag(w2), eigenvalues=s,
                  modes=mode_list, stable=stable, stability=stability, particle_names=list(system.names),

@@ -67,6 +67,23 @@ def _self_stresses(model, J, large: bool, rng) -> np.ndarray | None:
     return out
 
 
+def tangent_sample(model, J, count: int = COMBINATIONS + 1) -> np.ndarray:
+    """(3N, count) orthonormal random directions of the tangent space null(J), J sparse: where no
+    basis N of it is built (``modes``' sparse route) they stand in for one in ``stress_matters``.
+    A stress matrix that is not zero on the tangent space has a quadratic form that is a nonzero
+    polynomial in a random tangent direction's coefficients, so ZᵀΩZ ≠ 0 with probability one.
+    The projection z − Jₖᵀ(JₖJₖᵀ)⁻¹Jₖz uses the independent rows Jₖ (the manifold's rank decision)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.linalg import splu
+
+    J = csr_matrix(J)
+    Z = np.random.default_rng(20261129).standard_normal((J.shape[1], count))
+    Jk = J[np.setdiff1d(np.arange(J.shape[0]), _large.dependent_rows(model, J))]
+    if Jk.shape[0]:
+        Z = Z - Jk.T @ splu((Jk @ Jk.T).tocsc()).solve(np.asarray(Jk @ Z))
+    return np.linalg.qr(Z)[0]
+
+
 def stress_matters(model, stiffness, x: np.ndarray, J, large: bool, N: np.ndarray) -> bool:
     """Whether some self-stress of the redundant rows of J changes the Hessian of V − λᵀf on the
     tangent space (basis N): its stress matrix Nᵀ(Σ ω_k ∇²f_k)N is not zero. False without
