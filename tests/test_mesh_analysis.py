@@ -151,9 +151,18 @@ def hanging_chain_spectrum(beads, m, a):
     return np.linalg.eigvalsh(K / m)
 
 
-def test_a_net_pinned_along_one_edge_released_flat_hangs_straight_down():
-    n, m, a = 6, 0.01, 0.1
+@pytest.mark.parametrize("n", [6, 12])  # 73 rows: a dense tangent basis; 282: the sparse descent
+def test_a_net_pinned_along_one_edge_released_flat_hangs_straight_down(n):
+    """From flat (every rod at right angles to gravity, the multipliers zero) the descent lets the
+    beads fall; the net hangs in vertical columns with the tensions of hanging chains. The 12 × 12
+    net takes the large model's descent (projected conjugate gradients, no dense basis: the 30 × 30
+    net took 144–220 s on the dense one, about 8 s now)."""
+    from constrained.analysis.statics_methods.large import is_large
+    from constrained.model.structure import assemble
+
+    m, a = 0.01, 0.1
     s = net(n, m=m, a=a)
+    assert is_large(assemble(s)) == (n > 6)
     eq = equilibrium(s)  # flat: every rod at right angles to gravity
     assert eq.converged and eq.stable is True and eq.method == "descent"
     row = np.array([int(name.split("_")[1]) for name in s.names])
@@ -290,3 +299,27 @@ def test_the_sparse_modes_route_gives_the_dense_routes_verdict_on_self_stressed_
 
     np.testing.assert_allclose(omega2(sparse), omega2(dense)[:4], rtol=1e-8)
     assert omega2(sparse)[0] < -1000.0
+
+
+def test_the_sparse_descent_reaches_the_dense_ones_equilibrium_on_an_uneven_net(monkeypatch):
+    """A 10 × 10 net pinned along one edge, one bead 100 times heavier than the rest and every
+    other bead of one row half as heavy (uneven masses weigh the descent's metric), started flat:
+    the sparse descent and the dense one (forced by calling every model small) end at the same
+    hanging net, and the pins carry its weight."""
+    from constrained.analysis.statics_methods import descent
+
+    n, m, a = 10, 0.01, 0.1
+    s = net(n, m=m, a=a)
+    masses = np.full(n * n, m)
+    masses[3 * n + 6] = 100 * m
+    masses[5 * n:6 * n:2] = 0.5 * m
+    for p, mass in zip(s.particles, masses, strict=True):
+        p.mass = float(mass)
+    sparse = equilibrium(s)
+    monkeypatch.setattr(descent, "is_large", lambda model: False)
+    dense = equilibrium(s)
+    assert sparse.converged and dense.converged and sparse.method == dense.method == "descent"
+    np.testing.assert_allclose(sparse.x, dense.x, atol=1e-9)
+    assert sparse.stable is True
+    support = np.sum([f for _, f in sparse.anchor_reactions], axis=0)
+    np.testing.assert_allclose(support, [0, 0, masses.sum() * G], rtol=1e-9, atol=1e-12)

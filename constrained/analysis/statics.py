@@ -185,7 +185,7 @@ def _flat(system, x, what: str = "x") -> np.ndarray:
 def _forces_at_rest(model: Model, x: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     """F(x, v = 0, t) (3N,) and J (C, 3N)."""
     F, J, _ = model.dynamics(x, np.zeros_like(x), t)
-    return np.asarray(F, float).ravel(), np.asarray(J, float).reshape(model.n_constraints, x.size)
+    return np.asarray(F, float).ravel(), _large.dense(J).reshape(model.n_constraints, x.size)
 
 
 def virtual_work(system, x, t: float = 0.0, *, model: Model | None = None) -> float:
@@ -383,7 +383,7 @@ def _equilibrium(system, x_guess, t, *, method, max_iter, stability_rtol, model)
     balance = (lambda J, F: _large.multipliers(model, J, F)) if large else (
         lambda J, F: _min_norm_multipliers(model, J, F))
     stiffness = (lambda x, lam: _large.stiffness(kkt.stiffness, x, lam)) if large else (
-        lambda x, lam: np.asarray(kkt.stiffness(x, lam), float))
+        lambda x, lam: _large.dense(kkt.stiffness(x, lam)))
     x0 = system.positions.ravel() if x_guess is None else _flat(system, x_guess, "x_guess")
     size = system.size()
     manifold = Manifold.at(model, x0, t)

@@ -40,7 +40,9 @@ from ...manifold import residual
 from ...manifold.manifold import Manifold
 from ...manifold.rank_policy import RANK
 from ...model.structure import Model
+from .descent_sparse import sparse_rows, sparse_step
 from .kkt import KKT
+from .large import dense, is_large
 
 #: The descent's budget: iterations, CPU seconds (all threads), and how far (in system sizes) a
 #: particle may move from the guess before V is judged to have no minimum near it.
@@ -119,6 +121,23 @@ def _tangent_frame(Jd: np.ndarray, grad: np.ndarray, n: int) -> tuple[np.ndarray
     return Q[:, rank:], lam / norms
 
 
+def _dense_step(model: Model, kkt: KKT, x, F, Jp, d, radius: float, force_floor: float):
+    """(dx, whether it is the interior Newton step, the predicted decrease of V) of one
+    trust-region step on a dense basis of the tangent space (the module's text), or None when no
+    tangential force exceeds ``force_floor`` (N)."""
+    n3 = len(x)
+    Z, lam = _tangent_frame(Jp / d[None, :], -F / d, n3)
+    g = -Z.T @ (F / d)
+    if np.max(np.abs(Z @ g) * d, initial=0.0) <= force_floor:
+        return None  # (the tangential force, back in newtons)
+    multipliers = np.zeros(model.n_constraints)
+    multipliers[:Jp.shape[0]] = lam
+    K = dense(kkt.stiffness(x, multipliers))
+    H = Z.T @ ((0.5 * (K + K.T) / np.outer(d, d)) @ Z)
+    p, newton = trust_region_step(g, 0.5 * (H + H.T), radius)
+    return (Z @ p) / d, newton, -(float(g @ p) + 0.5 * float(p @ H @ p))
+
+
 def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.ndarray, t: float,
                             size: float, force_scale: float) -> Descent:
     """Descend V from x0 (on the constraints) to a constrained minimum; see the module's text."""
@@ -130,29 +149,24 @@ def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.n
     if not residual.position_residual(model, x0, t) <= 1e-10 * size:
         return Descent(x0, 0, "off the constraints")  # (IPOPT may start off them; this method may not)
     radius, max_radius = 0.1 * size, size
+    large = is_large(model)  # (no dense basis of the tangent space: descent_sparse)
     for it in range(DESCENT_ITERATIONS):
         if interrupt.requested():
             raise KeyboardInterrupt
         if time.process_time() - started > DESCENT_CPU_S:
             return Descent(x, it, "budget")
         F, J, _ = model.dynamics(x, np.zeros(n3), t)
-        F, Jp = np.asarray(F, float).ravel(), np.asarray(J, float).reshape(-1, n3)[:rows]
-        if not (np.isfinite(V) and np.all(np.isfinite(F)) and np.all(np.isfinite(Jp))):
+        F = np.asarray(F, float).ravel()
+        J = sparse_rows(J, rows) if large else dense(J).reshape(-1, n3)[:rows]
+        if not (np.isfinite(V) and np.all(np.isfinite(F)) and np.all(np.isfinite(J.data if large else J))):
             return Descent(x, it, "non-finite")
-        Z, lam = _tangent_frame(Jp / d[None, :], -F / d, n3)
-        g = -Z.T @ (F / d)
-        if np.max(np.abs(Z @ g) * d, initial=0.0) <= FORCE_RTOL * force_scale:
-            return Descent(x, it, "minimum")  # (the tangential force, back in newtons)
-        multipliers = np.zeros(model.n_constraints)
-        multipliers[:rows] = lam
-        K = np.asarray(kkt.stiffness(x, multipliers), float)
-        KZ = (0.5 * (K + K.T) / np.outer(d, d)) @ Z
-        H = Z.T @ KZ
-        p, newton = trust_region_step(g, 0.5 * (H + H.T), radius)
-        dx = (Z @ p) / d
+        step = sparse_step if large else _dense_step
+        found = step(model, kkt, x, F, J, d, radius, FORCE_RTOL * force_scale)
+        if found is None:
+            return Descent(x, it, "minimum")  # (the tangential force below FORCE_RTOL × the force scale)
+        dx, newton, predicted = found
         if newton and np.max(np.abs(dx)) <= STEP_RTOL * size:
             return Descent(x, it, "minimum")
-        predicted = -(float(g @ p) + 0.5 * float(p @ H @ p))
         if predicted <= 1e-15 * (abs(V) + force_scale * size):
             return Descent(x, it, "minimum")  # below V's round-off: Newton finishes
         with np.errstate(all="ignore"):
@@ -165,7 +179,7 @@ def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.n
             if np.max(np.abs(x - x0)) > FAR_SIZES * size:
                 return Descent(x, it + 1, "far")
         if rho < 0.25:
-            radius = 0.25 * float(np.linalg.norm(p))
+            radius = 0.25 * float(np.linalg.norm(d * dx))  # (‖p‖ in u = D x)
             if radius <= 1e-14 * size:
                 return Descent(x, it + 1, "stalled")
         elif rho > 0.75 and not newton:
