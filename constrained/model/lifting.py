@@ -132,6 +132,30 @@ def _shallow(obj):
     return new
 
 
+def _with_fields(item, changed: dict):
+    """A shallow copy of ``item`` with the attributes ``changed`` set (``setattr`` one by one):
+    for a plain class, whose setting is storing in ``__dict__``, the copy's dict made at once."""
+    cls = type(item)
+    if cls not in _SET_SPECIALLY:  # (the names that setattr does not store in __dict__; None: any)
+        plain = _plain_copier(cls) and cls.__setattr__ is object.__setattr__
+        _SET_SPECIALLY[cls] = None if not plain else {
+            k for c in cls.__mro__ for k, v in vars(c).items() if hasattr(type(v), "__set__")}
+    special = _SET_SPECIALLY[cls]
+    if special is not None and special.isdisjoint(changed):
+        new = object.__new__(cls)
+        attributes = new.__dict__
+        attributes.update(item.__dict__)
+        attributes.update(changed)
+        return new
+    new = _shallow(item)
+    for name, value in changed.items():
+        setattr(new, name, value)
+    return new
+
+
+_SET_SPECIALLY: dict = {}
+
+
 def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
     """``(lifted, values)``: a shallow copy of ``system`` whose particles' numeric masses and
     items' numeric fields hold Numbers instead of their nonzero numbers, and those numbers
@@ -153,9 +177,7 @@ def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
         for item in sequence:
             changed = lifted_fields(item, values) if fields is None else next(fields)
             if changed:
-                item = _shallow(item)
-                for name, value in changed.items():
-                    setattr(item, name, value)
+                item = _with_fields(item, changed)
             out.append(item)
         return out
 

@@ -146,7 +146,7 @@ class Structure:
 
         #: Whether the masses are symbols of p (plain numbers and formulas are): step graphs
         #: then take them from p, not from a Model's numbers.
-        self.masses_symbolic = any(isinstance(m, ca.SX) for m in s.masses)
+        self.masses_symbolic = s.mass_entries is not None or any(isinstance(m, ca.SX) for m in s.masses)
         #: When every mass is an entry of p (a plain number, or a parameter's name): the entry
         #: of each coordinate's mass (3N indices), so that step graphs gather them (index
         #: data) instead of calling the "masses" Function (3N operations of generated code).
