@@ -176,3 +176,44 @@ def test_structure_data_run_by_run_is_item_by_item(make):
     reference, reference_values, reference_walk = _structure_data_item_by_item(system)
     assert data == reference and values == reference_values
     assert walked == reference_walk
+
+
+def test_pieces_sliced_one_by_one_are_the_split_pieces():
+    """Symbols' positions and numbers: the first few sliced out, the rest from one split; the
+    same SX elements as a split of the whole column, in order."""
+    import casadi as ca
+
+    from constrained.model.symbols import _Pieces
+
+    column = ca.SX.sym("x", 3 * 50)
+    pieces, whole = _Pieces(column, 3), ca.vertsplit(column, 3)
+    asked = [pieces[k] for k in (7, *range(50))]  # (past SPLIT_FROM: from the split)
+    assert pieces.pieces is not None
+    for k, piece in zip((7, *range(50)), asked, strict=True):
+        assert piece.shape == (3, 1) and all(ca.is_equal(piece[i], whole[k][i]) for i in range(3))
+
+
+def test_lifted_copies_set_fields_as_setattr_does():
+    """``lift``'s copy of an item stores the lifted fields in its dict for a plain class, and
+    goes through setattr where the class sets an attribute otherwise (a property's setter)."""
+    import constrained as C
+    from constrained.model import lifting
+
+    class Watched(C.Distance):
+        numbers = ("point", "length")
+
+        @property
+        def length(self):
+            return self._length
+
+        @length.setter
+        def length(self, value):
+            self._length, self.set_through = value, True
+
+    s = C.System([C.Particle("a", 1.0, [1, 0, 0]), C.Particle("b", 2.0, [0, 1, 0])])
+    s.add(C.Distance("a", "b", length=1.5), Watched("a", "b", length=0.5))
+    lifted, values = lifting.lift(s)
+    plain, watched = lifted.constraints
+    assert plain is not s.constraints[0] and type(plain) is C.Distance and plain.length == lifting.Number(2)
+    assert list(vars(plain)) == list(vars(s.constraints[0])) and s.constraints[0].length == 1.5
+    assert watched.set_through and watched.length == lifting.Number(3) and values.tolist() == [1, 2, 1.5, 0.5]

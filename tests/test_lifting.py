@@ -266,3 +266,104 @@ def test_models_of_one_structure_label_rows_with_their_own_numbers():
     first.constraint_labels.append("changed")
     assert Model(rope(1.5), structure=first.structure).constraint_labels == \
         ["distance a–(0, 0, 0) = 1.5 m"]
+
+
+def _chain_of_items(n: int = 1000) -> C.System:
+    """About 2,000 items in runs: rods (the first and one in the middle to a point, one of a
+    formula length), springs (some of rest 0, one of a formula k), a plane, gravity."""
+    s = C.System(name="chain", parameters={"k": 3.0, "L": 0.02})
+    for i in range(n):
+        s.add_particle(f"p{i}", 0.01 * (1 + i % 3), [0.01 * (i + 1), 0.0, 0.0])
+    rods = [C.Distance(f"p{i - 1}", f"p{i}", length=0.01) for i in range(1, n)]
+    rods[n // 2] = C.Distance(f"p{n // 2 + 1}", point=[0.0, 0.5, 0.0], length=0.3)
+    rods[n // 3] = C.Distance(f"p{n // 3}", f"p{n // 3 + 1}", length="L")
+    springs = [C.Spring(f"p{i}", f"p{i + 2}", k=2.0, rest=0.0 if i % 7 else 0.02) for i in range(n - 2)]
+    springs[n // 4] = C.Spring(f"p{n // 4}", f"p{n // 4 + 2}", k="2*k", rest=0.02)
+    return s.add(C.Distance("p0", point=[0, 0, 0], length=0.01), *rods, C.Plane(list(s.names), [0, 0, 1]),
+                 *springs, C.Gravity([0, -9.81, 0]))
+
+
+def _changed(change) -> C.System:
+    system = _chain_of_items()
+    change(system)
+    return system
+
+
+class _Rod(C.Distance):
+    """A rod of another class (the same attributes)."""
+
+
+def _retyped(system, k: int) -> None:
+    rod = system.constraints[k]
+    system.constraints[k] = _Rod.__new__(_Rod)
+    system.constraints[k].__dict__.update(vars(rod))
+
+
+#: Changes of what a Structure is built from (a particle, a class, a formula, a zero).
+_OTHER_STRUCTURES = {
+    "a rod's particle": lambda s: setattr(s.constraints[20], "b", "p30"),
+    "a rod to a point's particle": lambda s: setattr(s.constraints[0], "a", "p1"),
+    "a rod's class": lambda s: _retyped(s, 700),
+    "a length's formula": lambda s: setattr(s.constraints[334], "length", "2*L"),
+    "a spring's formula": lambda s: setattr(s.effects[250], "k", "3*k"),
+    "a number made a formula": lambda s: setattr(s.effects[10], "k", "k"),
+    "a zero rest made nonzero": lambda s: setattr(s.effects[1], "rest", 0.5),
+    "a nonzero rest made zero": lambda s: setattr(s.effects[7], "rest", 0.0),
+    "a zero moved to the spring before": lambda s: (setattr(s.effects[0], "rest", 0.0),
+                                                    setattr(s.effects[1], "rest", 0.02)),
+    "a length made zero": lambda s: setattr(s.constraints[40], "length", 0.0),
+    "a point's zero made nonzero": lambda s: s.constraints[501].point.__setitem__(0, 0.25),
+    "a rod's name": lambda s: setattr(s.constraints[60], "name", "rod 60"),
+    "a rod made one-sided": lambda s: setattr(s.constraints[61], "unilateral", True),
+    "an int zero for a float zero": lambda s: setattr(s.effects[3], "rest", 0),
+    "a mass made a formula": lambda s: s.particles[5].formulas.__setitem__("mass", "k"),
+    "a parameter's name": lambda s: s.parameters.__setitem__("extra", 1.0),
+}
+
+#: Changes of plain nonzero numbers alone (the same Structure, other values of p).
+_SAME_STRUCTURE = {
+    "a length": lambda s: setattr(s.constraints[20], "length", 0.013),
+    "a point's nonzero entry": lambda s: s.constraints[501].point.__setitem__(1, 0.7),
+    "a spring's k": lambda s: setattr(s.effects[100], "k", 5.0),
+    "an int for a float": lambda s: setattr(s.effects[101], "k", 2),
+    "a mass": lambda s: setattr(s.particles[3], "mass", 0.5),
+    "a parameter's value": lambda s: s.parameters.__setitem__("k", 4.0),
+}
+
+
+def _old_fingerprint(system) -> str:
+    """The fingerprint as the JSON of ``structure_data`` hashed (the reference)."""
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps(lifting.structure_data(system)[0]).encode()).hexdigest()
+
+
+@pytest.mark.parametrize("change", list(_OTHER_STRUCTURES), ids=list(_OTHER_STRUCTURES))
+def test_a_change_of_structure_changes_the_fingerprint(change):
+    """The column-by-column fingerprint of a 2,000-item chain tells apart every change of what a
+    Structure is built from, as the item-by-item data does."""
+    from constrained.model.structure import structure_fingerprint
+
+    base, other = _chain_of_items(), _changed(_OTHER_STRUCTURES[change])
+    assert len(base.constraints) + len(base.effects) >= 2000
+    assert structure_fingerprint(other) != structure_fingerprint(base)
+    assert _old_fingerprint(other) != _old_fingerprint(base)
+
+
+@pytest.mark.parametrize("change", list(_SAME_STRUCTURE), ids=list(_SAME_STRUCTURE))
+def test_new_plain_numbers_keep_the_fingerprint_and_walk_as_item_by_item(change):
+    """A new nonzero plain number keeps the fingerprint; the walk (numbers, lifted masses and
+    fields) is the item-by-item walk's, whose order p follows."""
+    from constrained.model.structure import structure_fingerprint
+
+    base, other = _chain_of_items(), _changed(_SAME_STRUCTURE[change])
+    assert structure_fingerprint(other) == structure_fingerprint(base)
+    for system in (base, other):
+        walked: list = []
+        _, values = lifting.structure_data(system, walked)
+        _, fast_values, fast_walk = lifting.fingerprint_walk(system)
+        assert fast_values == values and np.array_equal(lifting.numbers(system), values)
+        assert fast_walk[0] == walked[0] and fast_walk[1] == walked[1] and list(fast_walk[2]) == walked[2]
+        assert [type(v) for fields in fast_walk[1] for v in fields.values()] == [
+            type(v) for fields in walked[1] for v in fields.values()]

@@ -25,6 +25,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import copyreg
+import hashlib
+import json
 import math
 import re
 from collections.abc import Mapping
@@ -130,6 +132,30 @@ def _shallow(obj):
     return new
 
 
+def _with_fields(item, changed: dict):
+    """A shallow copy of ``item`` with the attributes ``changed`` set (``setattr`` one by one):
+    for a plain class, whose setting is storing in ``__dict__``, the copy's dict made at once."""
+    cls = type(item)
+    if cls not in _SET_SPECIALLY:  # (the names that setattr does not store in __dict__; None: any)
+        plain = _plain_copier(cls) and cls.__setattr__ is object.__setattr__
+        _SET_SPECIALLY[cls] = None if not plain else {
+            k for c in cls.__mro__ for k, v in vars(c).items() if hasattr(type(v), "__set__")}
+    special = _SET_SPECIALLY[cls]
+    if special is not None and special.isdisjoint(changed):
+        new = object.__new__(cls)
+        attributes = new.__dict__
+        attributes.update(item.__dict__)
+        attributes.update(changed)
+        return new
+    new = _shallow(item)
+    for name, value in changed.items():
+        setattr(new, name, value)
+    return new
+
+
+_SET_SPECIALLY: dict = {}
+
+
 def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
     """``(lifted, values)``: a shallow copy of ``system`` whose particles' numeric masses and
     items' numeric fields hold Numbers instead of their nonzero numbers, and those numbers
@@ -151,9 +177,7 @@ def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
         for item in sequence:
             changed = lifted_fields(item, values) if fields is None else next(fields)
             if changed:
-                item = _shallow(item)
-                for name, value in changed.items():
-                    setattr(item, name, value)
+                item = _with_fields(item, changed)
             out.append(item)
         return out
 
@@ -217,6 +241,104 @@ def structure_data(system, walked: list | None = None) -> tuple[list, list[float
     if walked is not None:
         walked[:] = [lifted_masses, item_fields, values]
     return data, values
+
+
+def fingerprint_walk(system) -> tuple[str, list[float], tuple]:
+    """``(digest, values, walked)``: the sha256 hex digest of what ``structure_data`` describes
+    (equal digests for equal data), the plain numbers ``numbers(system)`` gives and the walk
+    for ``lift``, without a JSON object per item: a run of items of one class and one set of
+    attributes whose numeric fields all hold scalars (a chain's rods, a cloth's springs) is
+    described column by column (which of its numeric entries are Numbers as a mask, the rest
+    and every other attribute as one JSON list each). NotPlain (or TypeError, ValueError) as
+    ``structure_data``."""
+    digest = hashlib.sha256()
+
+    def add(tag: str, text: str | bytes) -> None:  # (tagged and length-framed: no two readings)
+        data = text.encode() if isinstance(text, str) else text
+        digest.update(f"{tag}:{len(data)}:".encode())
+        digest.update(data)
+
+    values: list[float] = []
+    particles = system.particles
+    masses = [p.mass for p in particles]
+    if set(map(type, masses)) == {float} and not any("mass" in p.formulas for p in particles) \
+            and np.all(np.isfinite(masses)) and np.all(np.asarray(masses) != 0):
+        values += masses
+        lifted_masses = [Number(k) for k in range(len(particles))]
+    else:
+        lifted_masses = [lifted_mass(p, values) for p in particles]
+    if all(type(m) is Number for m in lifted_masses):  # (their indices: 0, 1, …, in order)
+        add("named masses", json.dumps([p.name for p in particles]))
+    else:
+        described = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas else plain_data(m)]
+                     for p, m in zip(particles, lifted_masses, strict=True)]
+        add("masses", json.dumps(described))
+    items = (*system.constraints, *system.effects)
+    item_fields: list[dict] = []
+    k = 0
+    while k < len(items):
+        cls, keys = type(items[k]), tuple(vars(items[k]))
+        j = k + 1
+        while j < len(items) and type(items[j]) is cls and tuple(vars(items[j])) == keys:
+            j += 1
+        names = fields(items[k])
+        other = tuple(key for key in keys if key not in names)
+        add("run", json.dumps([cls.__module__, cls.__qualname__, list(names), list(other)]))
+        _described_run(items[k:j], names, other, values, item_fields, add)
+        k = j
+    add("parameters", json.dumps([list(system.parameters), plain_data(system.definitions)]))
+    walked = (lifted_masses, item_fields, values)
+    return digest.hexdigest(), values, walked
+
+
+#: Types of the values of a numeric field that a run's columns describe (the rest: item by item).
+_SCALARS = frozenset((float, int, str, type(None)))
+
+
+def _described_run(run: tuple, names: tuple, other: tuple, values: list, item_fields: list, add) -> None:
+    """Describe a run of items of one class and attributes (``add``), append its lifted fields to
+    ``item_fields`` and its plain numbers to ``values`` (in walk order: item by item, each
+    item's numeric fields in declared order). Items whose numeric fields hold scalars alone
+    are described column by column, the others (a list, a mapping …) item by item."""
+    n = len(run)
+    columns = [[getattr(item, name) for item in run] for name in names]
+    scalar = np.ones(n, bool)
+    for column in columns:
+        if not _SCALARS.issuperset(map(type, column)):
+            scalar &= np.fromiter((type(v) in _SCALARS for v in column), bool, n)
+    bounds = [0, *(np.flatnonzero(np.diff(scalar)) + 1).tolist(), n]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        if not scalar[a]:  # (a rod to a point in a chain of rods between particles)
+            lifted = [{name: _entries(getattr(item, name), values) for name in names} for item in run[a:b]]
+            item_fields += lifted
+            add("items", json.dumps([[_plain_value(v) for v in fields.values()] for fields in lifted]))
+            continue
+        lifted_at = np.zeros((b - a, len(names)), bool)  # which entries are Numbers (_entries' rule)
+        numbers = np.zeros((b - a, len(names)))
+        segment = [column[a:b] for column in columns]
+        for f, column in enumerate(segment):
+            if set(map(type, column)) == {float}:
+                numbers[:, f] = column
+            else:
+                numbers[:, f] = [v if type(v) is float or type(v) is int else 0.0 for v in column]
+            lifted_at[:, f] = (numbers[:, f] != 0) & np.isfinite(numbers[:, f])
+        index = np.cumsum(lifted_at.ravel()).reshape(lifted_at.shape) - 1 + len(values)
+        values += numbers[lifted_at].tolist()
+        lifted_columns = []
+        for f, column in enumerate(segment):
+            at = np.flatnonzero(lifted_at[:, f])
+            add("numbers at", lifted_at[:, f].tobytes())
+            add("numbers left", json.dumps([column[i] for i in np.flatnonzero(~lifted_at[:, f]).tolist()]))
+            lifted = list(column)
+            for i, number in zip(at.tolist(), index[at, f].tolist(), strict=True):
+                lifted[i] = Number(number)
+            lifted_columns.append(lifted)
+        rows = zip(*lifted_columns, strict=True) if names else ((),) * (b - a)
+        item_fields += [dict(zip(names, entries, strict=True)) for entries in rows]
+    for key in other:
+        column = [vars(item)[key] for item in run]
+        atoms = _ATOMS.issuperset(map(type, column))
+        add("column", json.dumps(column if atoms else [plain_data(v) for v in column]))
 
 
 def _plain_value(value):

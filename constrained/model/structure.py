@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import collections
 import functools
-import hashlib
-import json
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -148,7 +146,7 @@ class Structure:
 
         #: Whether the masses are symbols of p (plain numbers and formulas are): step graphs
         #: then take them from p, not from a Model's numbers.
-        self.masses_symbolic = any(isinstance(m, ca.SX) for m in s.masses)
+        self.masses_symbolic = s.mass_entries is not None or any(isinstance(m, ca.SX) for m in s.masses)
         #: When every mass is an entry of p (a plain number, or a parameter's name): the entry
         #: of each coordinate's mass (3N indices), so that step graphs gather them (index
         #: data) instead of calling the "masses" Function (3N operations of generated code).
@@ -489,13 +487,11 @@ def structure_fingerprint(system) -> str | None:
 def _fingerprint(system) -> tuple[str | None, np.ndarray, tuple | None]:
     """``(structure_fingerprint(system), lifting.numbers(system), the walk for lifting.lift)``
     in one walk."""
-    walked: list = []
     try:
-        data, values = lifting.structure_data(system, walked)
-        text = json.dumps(data)
+        key, values, walked = lifting.fingerprint_walk(system)
     except (lifting.NotPlain, TypeError, ValueError):
         return None, lifting.numbers(system), None
-    return hashlib.sha256(text.encode()).hexdigest(), np.array(values, float), tuple(walked)
+    return key, np.array(values, float), walked
 
 
 def kept_structure(system) -> tuple[Structure, np.ndarray | None]:

@@ -45,6 +45,26 @@ class Batch:
         return Batch(items[keep], self.offsets[keep], self.particles[keep], self.numbers[keep])
 
 
+class _Pieces:
+    """The pieces (``size`` entries each) of an SX column, asked for one by one: the first few
+    sliced out, then all at once by one split (a slice costs ≈ 7 µs in CasADi's Python layer, a
+    split of 40,000 ≈ 30 ms, and a big chain asks for thousands, a cloth's pins for two). The
+    same elements either way."""
+
+    SPLIT_FROM = 32
+
+    def __init__(self, column, size: int = 1):
+        self.column, self.size, self.asked, self.pieces = column, size, 0, None
+
+    def __getitem__(self, k: int):
+        if self.pieces is None:
+            self.asked += 1
+            if self.asked <= self.SPLIT_FROM:
+                return self.column[self.size * k:self.size * (k + 1)]
+            self.pieces = ca.vertsplit(self.column, self.size)
+        return self.pieces[k]
+
+
 class Symbols:
     """CasADi SX symbols ``x``, ``v``, ``t`` for a System, plus the scene's parameters.
 
@@ -73,7 +93,7 @@ class Symbols:
         if symbolic_parameters:
             self.p, self.parameters = parameters.symbolic(system.parameters, system.definitions)
             hidden = ca.SX.sym("number", numbers)
-            self._numbers = ca.vertsplit(hidden) if numbers else []
+            self._numbers = _Pieces(hidden)
             offset = self._offset = self.p.numel()
             self.p = ca.vertcat(self.p, hidden)
             lifted = [p.mass for p in system.particles]
@@ -81,7 +101,7 @@ class Symbols:
                 #: Each particle's entry of p when every mass is a plain number (a Number): then
                 #: ``mass_column`` is one gather from p instead of a vertcat of N symbols.
                 self.mass_entries = [offset + m.index for m in lifted]
-                self.masses = [self._numbers[m.index] for m in lifted]
+                self._lifted_masses = lifted  # (``masses``: their symbols, when first asked for)
             else:
                 self.masses = [
                     expressions.parse(p.formulas["mass"], self.parameters, where=f"{p.where or p.name}.mass")
@@ -90,20 +110,23 @@ class Symbols:
                 ]
         else:
             self.p = ca.SX(0, 1)
-            self._numbers = []
+            self._numbers = _Pieces(ca.SX(0, 1))
             self.parameters = system.parameter_values
             self.masses = system.masses
         self._position_names = self._state_names = None
 
-    # One split each (on first use) instead of one slice per request: x[3i:3i+3] costs ≈ 7 µs
-    # in CasADi's Python layer, and a big chain asks for thousands of them.
     @functools.cached_property
-    def _xp(self) -> list:
-        return ca.vertsplit(self.x, 3) if self.x.numel() else []
+    def masses(self) -> list:
+        """Each particle's mass: the symbols of p of plain numbers (when every mass is one)."""
+        return [self._numbers[m.index] for m in self._lifted_masses]
 
     @functools.cached_property
-    def _vp(self) -> list:
-        return ca.vertsplit(self.v, 3) if self.v.numel() else []
+    def _xp(self) -> _Pieces:
+        return _Pieces(self.x, 3)
+
+    @functools.cached_property
+    def _vp(self) -> _Pieces:
+        return _Pieces(self.v, 3)
 
     def columns(self, names, where: str):
         """The positions of the particles ``names`` as the columns of a (3, len(names)) SX: one
