@@ -166,3 +166,20 @@ def test_the_relaxed_supernodes_follow_the_rule(seed):
     for relax in (supernodal.RELAX, ((2, 1.0), (None, 0.3))):
         assert supernodal._merge(first, count, parent, relax).tolist() == _merged_reference(
             first, count, parent, relax)
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (3, 0), (1, 1), (5, 7), (40, 12), (200, 200)])
+def test_the_triplet_from_rows_and_offsets_is_casadis(shape):
+    """``columns.triplet`` (rows and column offsets) gives ``get_triplet``'s entries, in its order,
+    with empty columns and empty patterns among them."""
+    from constrained.manifold.vectorized.columns import triplet
+
+    rng = np.random.default_rng(sum(shape))
+    n, m = shape
+    k = int(rng.integers(0, n * m + 1)) if n * m else 0
+    sparsity = ca.Sparsity.triplet(n, m, rng.integers(0, max(n, 1), k).tolist(),
+                                   rng.integers(0, max(m, 1), k).tolist())
+    rows, cols = triplet(sparsity)
+    expected = sparsity.get_triplet()
+    assert rows.dtype == cols.dtype == np.int64
+    assert rows.tolist() == list(expected[0]) and cols.tolist() == list(expected[1])

@@ -32,6 +32,7 @@ import casadi as ca
 import numpy as np
 
 from ...codegen.external import IndexTable
+from .columns import triplet
 
 #: CHOLMOD's relaxed amalgamation: (columns at most, fraction of explicit zeros at most)
 RELAX = ((4, 1.0), (16, 0.8), (48, 0.1), (None, 0.05))
@@ -89,7 +90,7 @@ def symbolic(lt: ca.Sparsity, p, relax=RELAX) -> dict:
     J ← K (K's rows R_K[a:b] in J's columns) by J (pointers Up), each with the places of
     R_K[a:] in R_J (Rel from Uo)."""
     n = lt.size1()
-    ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
+    ti, tk = triplet(lt)  # L[k, i] != 0, i < k
     count = np.bincount(ti, minlength=n)
     lowest = np.full(n, n, np.int64)
     np.minimum.at(lowest, ti, tk)
@@ -143,7 +144,7 @@ def entries_in(sparsity: ca.Sparsity, order) -> tuple[np.ndarray, np.ndarray]:
     n = sparsity.size1()
     place = np.empty(n, np.int64)
     place[np.asarray(order, np.int64)] = np.arange(n)
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
+    r, c = triplet(sparsity)
     return place[r], place[c]
 
 
