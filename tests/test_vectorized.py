@@ -371,3 +371,21 @@ def test_a_chain_spinning_in_free_space_with_no_effects_runs_as_a_rigid_rotation
     np.testing.assert_allclose(traj.x[-1], expected, atol=1e-9)
     tension = omega**2 * np.cumsum((masses * r)[::-1])[::-1]
     np.testing.assert_allclose(np.abs(traj.multipliers[-1]), tension, rtol=1e-7)
+
+
+def test_the_sparse_jacobian_kept_at_one_state_is_given_there_alone():
+    """``manifold.sparse_jacobian`` keeps its last value: asked again at the same x and t it gives
+    it, at any other x or t (a moving anchor: J depends on t) the Jacobian there — each equal
+    to the Structure's J, never a stale one."""
+    from constrained.manifold.manifold import sparse_jacobian
+
+    model = assemble(rope(120, varied=True, moving=True))
+    assert vg.applies(model)
+    x0 = np.asarray(model.system.positions, float).ravel()
+    x1 = x0 + 1e-3 * np.sin(np.arange(x0.size))
+    jacobian = sparse_jacobian(model)
+    for x, t in ((x0, 0.0), (x0, 0.0), (x1, 0.0), (x0, 0.0), (x0, 0.7), (x1, 0.7), (x1, 0.7)):
+        J = jacobian(x, t)
+        expected = np.asarray(ca.DM(model.velocity_terms(x, t)[0]).full())
+        assert np.max(np.abs(np.asarray(J.full()) - expected)) < 1e-12
+    assert jacobian(x1, 0.7) is jacobian(x1.copy(), 0.7)  # (the kept one: no second evaluation)
