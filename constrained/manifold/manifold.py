@@ -177,16 +177,24 @@ def sparse_jacobian(model: Model):
     return call
 
 
+def forces_and_energy(model: Model):
+    """``(x, v, t) -> (F, E)``: the applied forces (3N,) and the energy, through a FunctionBuffer
+    (a few µs a call); the Function takes the parameters as an input and is built once per
+    structure (``structural_call`` "forces_and_energy": the start check of a large scene and
+    the run's check of a finite start share it)."""
+    def build(view, x, v, t, p):
+        return ca.Function("forces_and_energy", [x, v, t, p],
+                           [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
+
+    return structural_call(model, "forces_and_energy", build, "x", "v", "t")
+
+
 def potential_forces_finite(model: Model):
     """``(x, v, t) -> bool`` for a large model (the vectorized build) whose effects are
     potentials alone: whether F = −∂V/∂x and the energy T + V are finite there. Every term's
     value and gradient then are (a sum of numbers is finite only when each is: an infinity
     stays one, or meets its opposite in a NaN), so the per-effect check need not be built."""
-    def build(view, X, V, T, P):
-        F = view._at(X, V, T, (), forces_too=True)["F"]
-        return ca.Function("start_forces", [X, V, T, P], [ca.densify(F), view.energy(X, V, T)])
-
-    values = structural_call(model, "start_forces", build, "x", "v", "t")
+    values = forces_and_energy(model)
 
     def finite(x, v, t) -> bool:
         with np.errstate(all="ignore"):
