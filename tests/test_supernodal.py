@@ -112,3 +112,74 @@ def test_a_grid_has_updates_from_panels_of_every_width_the_kernel_treats_apart(r
     s = _structure(_matrix("grid", 900, np.random.default_rng(900)), relax)
     widths = set(np.diff(s["F"])[s["Uk"]].tolist())
     assert {1, 2, 3} <= {w % 4 for w in widths} and max(widths) >= 4
+
+
+def _forest(rng, n: int) -> np.ndarray:
+    """An elimination forest of n columns: parent(j) > j, or −1 (a root)."""
+    parent = np.array([int(rng.integers(j + 1, min(n, j + 6) + 1)) if rng.random() > 0.05 else -1
+                       for j in range(n)], np.int64)
+    parent[parent >= n] = -1
+    return parent
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_postorder_is_the_recursive_one(seed):
+    """The iterative walk gives the recursive definition's order: every subtree, children in
+    ascending order, then its root; the roots ascending."""
+    rng = np.random.default_rng(seed)
+    parent = _forest(rng, int(rng.integers(1, 300)))
+    children = {j: sorted(np.flatnonzero(parent == j).tolist()) for j in range(len(parent))}
+
+    def walk(j):
+        return [k for c in children[j] for k in walk(c)] + [j]
+
+    expected = [k for root in np.flatnonzero(parent < 0).tolist() for k in walk(root)]
+    assert supernodal._postorder(parent).tolist() == expected
+
+
+def _merged_reference(first, count, parent, relax):
+    """``supernodal._merge`` as the rule reads (CHOLMOD's), on NumPy numbers."""
+    groups = []
+    for s in range(len(first) - 1):
+        f, e = first[s], first[s + 1]
+        group = [f, e - f, int(count[f:e].sum()) + e - f]
+        while groups and parent[group[0] - 1] == group[0]:
+            g, c, z = groups[-1]
+            columns = c + group[1]
+            zeros = 1 - (z + group[2]) / (columns * (columns + 1) // 2 + columns * count[e - 1])
+            if not any((top is None or columns <= top) and zeros <= most for top, most in relax):
+                break
+            groups.pop()
+            group = [g, columns, z + group[2]]
+        groups.append(group)
+    return [g[0] for g in groups] + [len(parent)]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_relaxed_supernodes_follow_the_rule(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 300))
+    parent = np.where(rng.random(n) < 0.8, np.arange(1, n + 1), _forest(rng, n))
+    parent[parent >= n] = -1
+    count = rng.integers(0, 40, n)
+    first = sorted({0, *rng.integers(1, n, n // 3).tolist()}) + [n]
+    for relax in (supernodal.RELAX, ((2, 1.0), (None, 0.3))):
+        assert supernodal._merge(first, count, parent, relax).tolist() == _merged_reference(
+            first, count, parent, relax)
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (3, 0), (1, 1), (5, 7), (40, 12), (200, 200)])
+def test_the_triplet_from_rows_and_offsets_is_casadis(shape):
+    """``columns.triplet`` (rows and column offsets) gives ``get_triplet``'s entries, in its order,
+    with empty columns and empty patterns among them."""
+    from constrained.manifold.vectorized.columns import triplet
+
+    rng = np.random.default_rng(sum(shape))
+    n, m = shape
+    k = int(rng.integers(0, n * m + 1)) if n * m else 0
+    sparsity = ca.Sparsity.triplet(n, m, rng.integers(0, max(n, 1), k).tolist(),
+                                   rng.integers(0, max(m, 1), k).tolist())
+    rows, cols = triplet(sparsity)
+    expected = sparsity.get_triplet()
+    assert rows.dtype == cols.dtype == np.int64
+    assert rows.tolist() == list(expected[0]) and cols.tolist() == list(expected[1])

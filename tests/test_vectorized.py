@@ -371,3 +371,44 @@ def test_a_chain_spinning_in_free_space_with_no_effects_runs_as_a_rigid_rotation
     np.testing.assert_allclose(traj.x[-1], expected, atol=1e-9)
     tension = omega**2 * np.cumsum((masses * r)[::-1])[::-1]
     np.testing.assert_allclose(np.abs(traj.multipliers[-1]), tension, rtol=1e-7)
+
+
+def test_the_sparse_jacobian_kept_at_one_state_is_given_there_alone():
+    """``manifold.sparse_jacobian`` keeps its last value: asked again at the same x and t it gives
+    it, at any other x or t (a moving anchor: J depends on t) the Jacobian there — each equal
+    to the Structure's J, never a stale one."""
+    from constrained.manifold.manifold import sparse_jacobian
+
+    model = assemble(rope(120, varied=True, moving=True))
+    assert vg.applies(model)
+    x0 = np.asarray(model.system.positions, float).ravel()
+    x1 = x0 + 1e-3 * np.sin(np.arange(x0.size))
+    jacobian = sparse_jacobian(model)
+    for x, t in ((x0, 0.0), (x0, 0.0), (x1, 0.0), (x0, 0.0), (x0, 0.7), (x1, 0.7), (x1, 0.7)):
+        J = jacobian(x, t)
+        expected = np.asarray(ca.DM(model.velocity_terms(x, t)[0]).full())
+        assert np.max(np.abs(np.asarray(J.full()) - expected)) < 1e-12
+    assert jacobian(x1, 0.7) is jacobian(x1.copy(), 0.7)  # (the kept one: no second evaluation)
+
+
+def test_the_start_checks_of_forces_share_one_function_with_the_structures_numbers():
+    """scene.build's check of a large model's potentials (``potential_forces_finite``) and the
+    run's check of a finite start (run.simulate) evaluate one Function, built once per structure:
+    F and the energy there are the Structure's, and a non-finite force is seen."""
+    from constrained.manifold import manifold
+    from constrained.model.cache import structure_cache
+    from constrained.run import simulate
+
+    model = assemble(rope(120, varied=True))
+    x0, v0 = (np.asarray(a, float).ravel() for a in (model.system.positions, model.system.velocities))
+    v0 = v0 + 0.1 * np.cos(np.arange(v0.size))
+    assert manifold.potential_forces_finite(model)(x0, v0, 0.0)
+    cache, prefix = structure_cache(model)
+    built = cache[(*prefix, "structural", "forces_and_energy")]
+    F, E = simulate._forces_and_energy(model)(x0, v0, 0.0)
+    assert cache[(*prefix, "structural", "forces_and_energy")] is built
+    _close(F, np.asarray(model.dynamics(x0, v0, 0.0)[0], float).ravel(), 1e-12)
+    _close(E, float(model.energy(x0, v0, 0.0)), 1e-12)
+    x_bad = x0.copy()
+    x_bad[4] = np.nan
+    assert not manifold.potential_forces_finite(model)(x_bad, v0, 0.0)

@@ -148,7 +148,8 @@ def structural_call(model: Model, key, build, *inputs: str):
 def sparse_jacobian(model: Model):
     """``(x, t) -> G`` (a sparse CasADi DM, C × 3N: J, then the velocity rows' A) with the
     model's parameter values: the Model's ``velocity_terms``, or for a large model (no velocity
-    rows) one call of the vectorized build."""
+    rows) one call of the vectorized build, whose last value is given again for the same x, t
+    and p (the DM is shared: read it, do not change it)."""
     if not vectorized.applies(model):
         return lambda x, t: model.velocity_terms(x, t)[0]
 
@@ -157,7 +158,35 @@ def sparse_jacobian(model: Model):
 
     nonzeros = structural_call(model, "jacobian_nonzeros", build, "x", "t")
     sparsity = vectorized.vectorized_build(model.structure).jacobian_sparsity
-    return lambda x, t: ca.DM(sparsity, nonzeros(np.asarray(x, float).ravel(), t)[0])
+    cache, prefix = structure_cache(model)
+    p = model.parameter_vector
+
+    def call(x, t):
+        # the last value is kept beside the structure and given again for the same x, t and p:
+        # a start asks at x0 three times (scene.build's regular_start, the start's undefined
+        # gradient and its redundancy), each a DM of J's nonzeros (7 ms on a 100 x 100 cloth)
+        x = np.asarray(x, float).ravel()
+        key = (x.tobytes(), np.float64(t).tobytes(), p.tobytes())
+        kept = cache.get((*prefix, "jacobian at"))
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        J = ca.DM(sparsity, nonzeros(x, t)[0])
+        cache[(*prefix, "jacobian at")] = (key, J)
+        return J
+
+    return call
+
+
+def forces_and_energy(model: Model):
+    """``(x, v, t) -> (F, E)``: the applied forces (3N,) and the energy, through a FunctionBuffer
+    (a few µs a call); the Function takes the parameters as an input and is built once per
+    structure (``structural_call`` "forces_and_energy": the start check of a large scene and
+    the run's check of a finite start share it)."""
+    def build(view, x, v, t, p):
+        return ca.Function("forces_and_energy", [x, v, t, p],
+                           [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
+
+    return structural_call(model, "forces_and_energy", build, "x", "v", "t")
 
 
 def potential_forces_finite(model: Model):
@@ -165,11 +194,7 @@ def potential_forces_finite(model: Model):
     potentials alone: whether F = −∂V/∂x and the energy T + V are finite there. Every term's
     value and gradient then are (a sum of numbers is finite only when each is: an infinity
     stays one, or meets its opposite in a NaN), so the per-effect check need not be built."""
-    def build(view, X, V, T, P):
-        F = view._at(X, V, T, (), forces_too=True)["F"]
-        return ca.Function("start_forces", [X, V, T, P], [ca.densify(F), view.energy(X, V, T)])
-
-    values = structural_call(model, "start_forces", build, "x", "v", "t")
+    values = forces_and_energy(model)
 
     def finite(x, v, t) -> bool:
         with np.errstate(all="ignore"):

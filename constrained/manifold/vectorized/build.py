@@ -20,6 +20,7 @@ floating-point sums (tests/test_vectorized.py).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
@@ -270,8 +271,6 @@ class VectorizedBuild:
         self.by_place = Summation([len(p) for p in self.places], self.places, self.n_rows)
         self.by_force = Summation([g.index.shape[1] for g in mb.terms for _ in g.index],
                                   [col for g in mb.terms for col in g.index], self.n3)
-        everything = np.arange(self.n_rows)
-        self.gram = _Gram(self.rows, self.cols, everything, self.n_rows, np.zeros(self.n3, bool))
         #: Rows with one coordinate each, eliminated in ``Jacobian.solve`` (None: there are none).
         self.single = _Elimination(self.rows, self.cols, self.n_rows, self.n3) if self.n_rows else None
         if self.single is not None and not len(self.single.rows):
@@ -282,6 +281,13 @@ class VectorizedBuild:
         self._products = None
         _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
         self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
+
+    @cached_property
+    def gram(self) -> _Gram:
+        """The index data of A = J M⁻¹ Jᵀ over every row, built when first asked for: where rows
+        are eliminated (``single``) the solves use the reduced one, ``_Elimination.gram``
+        (building this one too took 0.1 s of a 10,000-particle rope's start)."""
+        return _Gram(self.rows, self.cols, np.arange(self.n_rows), self.n_rows, np.zeros(self.n3, bool))
 
     def _jacobian_pattern(self, lengths: list[int]) -> None:
         """J's sparsity (C, 3N) and where each stream's entries go in its nonzeros."""

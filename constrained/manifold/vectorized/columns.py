@@ -148,6 +148,14 @@ def sorted_unique(a) -> np.ndarray:
     return a[np.concatenate(([True], a[1:] != a[:-1]))] if a.size else a
 
 
+def triplet(sparsity: ca.Sparsity) -> tuple[np.ndarray, np.ndarray]:
+    """The rows and columns of a pattern's nonzeros (CasADi's order), int64: ``get_triplet``
+    from the rows and the column offsets (one list from CasADi, not two: 0.03 s of the
+    400,000 entries of a cloth's L)."""
+    row = np.asarray(sparsity.row(), np.int64)
+    return row, np.repeat(np.arange(sparsity.size2(), dtype=np.int64), np.diff(sparsity.colind()))
+
+
 def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(a, axis=0, return_inverse=True)`` for an integer array a (n, w) of entries
     ≥ −1, the rows in the same (lexicographic) order: each row read as one integer in base

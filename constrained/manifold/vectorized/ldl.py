@@ -40,6 +40,7 @@ import casadi as ca
 import numpy as np
 
 from ...codegen.external import IndexTable
+from .columns import triplet
 from .supernodal import composed, entries_in, permuted_columns, supernodal_bodies
 
 
@@ -48,7 +49,7 @@ def path_order(sparsity: ca.Sparsity) -> np.ndarray | None:
     row coupled to at most two others, no loop), each path walked from one end, one after
     another (a chain's rods in any order, several chains)."""
     n = sparsity.size1()
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
+    r, c = triplet(sparsity)
     off = r != c
     r, c = r[off], c[off]
     if np.all(np.abs(r - c) == 1):
@@ -95,7 +96,7 @@ def _short_columns(sparsity: ca.Sparsity, lt: ca.Sparsity, p, table: IndexTable,
     factorization)."""
     n = sparsity.size1()
     p = np.asarray(p, np.int64)
-    ti, tk = (np.asarray(v, np.int64) for v in lt.get_triplet())  # L[k, i] != 0, i < k
+    ti, tk = triplet(lt)  # L[k, i] != 0, i < k
     by_column = np.lexsort((tk, ti))
     rows, columns = tk[by_column], ti[by_column]
     lp = np.concatenate([[0], np.cumsum(np.bincount(columns, minlength=n))])
@@ -241,7 +242,7 @@ ENVELOPE_CHECKED = 2
 def _envelope(sparsity: ca.Sparsity) -> int:
     """The entries of L's envelope in the rows' own order, Σ_i (i − the first column of row i),
     an upper bound on the fill of the factorization in that order."""
-    r, c = (np.asarray(v, np.int64) for v in sparsity.get_triplet())
+    r, c = triplet(sparsity)
     n = sparsity.size1()
     first = np.arange(n)
     np.minimum.at(first, r, c)
