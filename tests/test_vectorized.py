@@ -405,7 +405,7 @@ def test_the_start_checks_of_forces_share_one_function_with_the_structures_numbe
     assert manifold.potential_forces_finite(model)(x0, v0, 0.0)
     cache, prefix = structure_cache(model)
     built = cache[(*prefix, "structural", "forces_and_energy")]
-    F, E = simulate._forces_and_energy(model)(x0, v0, 0.0)
+    F, E = simulate.forces_and_energy(model)(x0, v0, 0.0)  # (the name the run calls)
     assert cache[(*prefix, "structural", "forces_and_energy")] is built
     _close(F, np.asarray(model.dynamics(x0, v0, 0.0)[0], float).ravel(), 1e-12)
     _close(E, float(model.energy(x0, v0, 0.0)), 1e-12)

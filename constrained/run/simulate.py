@@ -10,14 +10,13 @@ import time
 import warnings
 from collections.abc import Iterable
 
-import casadi as ca
 import numpy as np
 
 from .. import interrupt
 from ..errors import InitialStateWarning, InputError, RunInterrupted, SimulationError, UnresolvedStepWarning
 from ..manifold import diagnostics
 from ..manifold.constraint_report import SingularConfigurationWarning
-from ..manifold.manifold import structural_call
+from ..manifold.manifold import forces_and_energy
 from ..model import velocity
 from ..model.effects import damping_formulas
 from ..model.structure import Model, assemble
@@ -332,16 +331,6 @@ def _stiff_spring_cause(model: Model, traj: Trajectory, x0, t0: float, t_end: fl
         return ""
 
 
-def _forces_and_energy(model: Model):
-    """``(x, v, t) -> (F, E)`` through a FunctionBuffer (a few µs a call); the Function takes
-    the parameters as an input and is built once per structure."""
-    def build(view, x, v, t, p):
-        return ca.Function("forces_and_energy", [x, v, t, p],
-                           [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
-
-    return structural_call(model, "forces_and_energy", build, "x", "v", "t")
-
-
 def refuse_negative_damping(model: Model, system, t0: float, t_end: float) -> None:
     """Refuse a Rayleigh coefficient (a formula of t and the parameters) that is negative or not
     finite at any instant of [t0, t_end], however briefly (``Damping.refusal``: bounded, not
@@ -357,7 +346,7 @@ def refuse_negative_damping(model: Model, system, t0: float, t_end: float) -> No
 
 def _refuse_nonfinite_start(model: Model, x0, v0, t0: float) -> None:
     """Stop before stepping when the forces (or the energy) are not finite at the start."""
-    F, E = _forces_and_energy(model)(x0, v0, t0)
+    F, E = forces_and_energy(model)(x0, v0, t0)
     E = float(E[0])
     if np.all(np.isfinite(F)) and np.isfinite(E):
         return
@@ -385,7 +374,7 @@ def _first_nonfinite(model: Model, traj: Trajectory, wanted):
             if first is None or k < first[1]:
                 first = ({"x": "positions", "v": "velocities"}.get(name, name.replace("_", " ")), k)
     if first is None and "energy" not in wanted:
-        E = _forces_and_energy(model)(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1])[1]
+        E = forces_and_energy(model)(traj.x[-1].ravel(), traj.v[-1].ravel(), traj.t[-1])[1]
         if not np.all(np.isfinite(E)):  # then find the first sample where it is not
             E = model.evaluate(model.energy, traj.x.reshape(n, -1), traj.v.reshape(n, -1), traj.t)[0]
             first = ("energy", int(np.argmin(np.isfinite(np.asarray(E).ravel()))))
