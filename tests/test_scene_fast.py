@@ -257,3 +257,13 @@ def test_the_walks_over_a_scene_see_every_number_and_level():
                 assert deep and "nested too deeply" in str(exc)
             else:
                 assert not deep, depth
+
+
+@pytest.mark.parametrize("section", ["particles", "constraints", "effects"])
+def test_an_entry_that_is_not_a_table_is_named(section):
+    """array_of_tables takes a list of dicts at once; any other entry is still named."""
+    raw = _raw()
+    raw[section].insert(2, [1.0])
+    message = _build(raw)
+    assert f"{section}[2]" in message and f"must be a table (one [[{section}]] entry), got a list [1.0]" \
+        in message, message
