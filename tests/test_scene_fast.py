@@ -4,12 +4,16 @@ one by one build, and leave every value they do not accept to those checks (the 
 from __future__ import annotations
 
 import copy
+import datetime
+import random
 
 import numpy as np
 import pytest
 
+from constrained.model import expressions
 from constrained.scene import build as scene_build
-from constrained.scene.load import SceneError, build_scene
+from constrained.scene import validate
+from constrained.scene.load import MAX_NESTING, SceneError, build_scene, refuse_deep_nesting
 
 
 def _raw(n: int = 5) -> dict:
@@ -28,7 +32,7 @@ def _raw(n: int = 5) -> dict:
 
 def _slow(monkeypatch):
     monkeypatch.setattr(scene_build, "plain_particles", lambda items: None)
-    monkeypatch.setattr(scene_build, "plain_pair", lambda *args: None)
+    monkeypatch.setattr(scene_build, "plain_pairs", lambda items, *args: [None] * len(items))
 
 
 def _build(raw):
@@ -164,3 +168,102 @@ def test_a_scene_read_without_its_equations_draws_the_same_page(tmp_path, capsys
     bad.write_text(bad.read_text().replace('a = "B"', 'a = "Z"', 1))
     with pytest.raises(SceneError, match="names unknown particle 'Z'"):
         load_scene(bad, equations=False)
+
+
+def _random_raw(rng: random.Random) -> dict:
+    """A small scene of rods, springs and other items, some tables plain, some with a value the
+    checks refuse or take by the slow path (a name, a point, an int, a formula, NaN, a bool...)."""
+    n = rng.randint(1, 5)
+    raw = _raw(n) if n > 1 else {"particles": [{"name": "p0", "mass": 2.0, "position": [0.0, 1, 2]}],
+                                 "constraints": [], "effects": [], "simulate": {"t_end": 1.0}}
+    names = [f"p{i}" for i in range(n)]
+    odd = [0, 3, -1, 1e101, float("nan"), True, "2*l", None, [1.0], 7, 2.5e-3]
+    for section, typ, number in (("constraints", "distance", "length"), ("effects", "spring", "k")):
+        for _ in range(rng.randint(0, 6)):
+            a, b = rng.sample(names, 2) if n > 1 else ("p0", "p0")
+            item = {"type": typ, "a": a, "b": b, number: rng.choice([rng.uniform(0.1, 2), 1, 2])}
+            if typ == "spring" and rng.random() < .5:
+                item["rest"] = rng.choice([0.5, 1, 0])
+            if rng.random() < .08:
+                key = rng.choice([number, "a", "b", "rest", "name", "point", "unilateral", "type"])
+                item[key] = rng.choice([*odd, rng.choice(names), "spring", "distance", [0.0, 0.0, 1.0]])
+            raw[section].insert(rng.randint(0, len(raw[section])), item)
+    raw["parameters"] = {"l": 1.5}
+    return raw
+
+
+def test_random_item_mixes_build_what_the_checks_build(monkeypatch):
+    """plain_pairs, over sections of rods and springs among other items, some not plain: the
+    same objects or the same first refusal as the checks one by one."""
+    rng = random.Random(17)
+    raws = [_random_raw(rng) for _ in range(150)]
+    fast = [_build(raw) for raw in raws]
+    _slow(monkeypatch)
+    slow = [_build(raw) for raw in raws]
+    assert sum(isinstance(f, str) for f in fast) > 20 and sum(not isinstance(f, str) for f in fast) > 20
+    for f, s in zip(fast, slow, strict=True):
+        assert (f if isinstance(f, str) else _described(f)) == (s if isinstance(s, str) else _described(s))
+
+
+class _Table(dict):
+    pass
+
+
+def _random_nest(rng: random.Random, depth: int):
+    r = rng.random()
+    if depth > 0 and r < .35:
+        return {f"k{i}": _random_nest(rng, depth - 1) for i in range(rng.randint(0, 3))}
+    if depth > 0 and r < .55:
+        return [_random_nest(rng, depth - 1) for _ in range(rng.randint(0, 3))]
+    if depth > 0 and r < .58:
+        return _Table(x=_random_nest(rng, depth - 1))
+    return rng.choice([1.0, -3, "s", True, 1e100, -1e100, 1e101, 10**101, -(10**200), float("inf"),
+                       float("nan"), np.float64(2.0), np.float64(1e300), None, (1e200,),
+                       datetime.date(2000, 1, 1)])
+
+
+def _moderate(value) -> bool:
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return abs(value) <= expressions.MAX_MAGNITUDE
+    if isinstance(value, dict):
+        return all(map(_moderate, value.values()))
+    return all(map(_moderate, value)) if isinstance(value, list) else True
+
+
+def _depth(value) -> int:
+    inner = value.values() if isinstance(value, dict) else value if isinstance(value, list) else None
+    return 0 if inner is None else 1 + max(map(_depth, inner), default=0)
+
+
+def test_the_walks_over_a_scene_see_every_number_and_level():
+    """validate._all_moderate (finite_everywhere's quick walk) and load.refuse_deep_nesting, one
+    level at a time split by type, against recursive walks: numbers of every kind (bool is none,
+    NumPy floats are), dict subclasses, nesting at MAX_NESTING and one beyond."""
+    rng = random.Random(5)
+    values = [_random_nest(rng, rng.randint(0, 6)) for _ in range(3000)]
+    assert 0.2 < np.mean([_moderate(v) for v in values]) < 0.8
+    for value in values:
+        assert validate._all_moderate(value) == _moderate(value), value
+    for depth in (1, 2, MAX_NESTING - 1, MAX_NESTING, MAX_NESTING + 1, 200):
+        for leaf in ([], {}, 1.0, "x"):
+            raw = leaf
+            for k in range(depth - 1):
+                raw = {"a": raw, "b": 0.5} if k % 3 == 0 else [0.5, raw] if k % 3 == 1 else _Table(b=raw)
+            raw = {"a": raw}
+            deep = _depth(raw) > MAX_NESTING
+            try:
+                refuse_deep_nesting(raw, "f.toml")
+            except SceneError as exc:
+                assert deep and "nested too deeply" in str(exc)
+            else:
+                assert not deep, depth
+
+
+@pytest.mark.parametrize("section", ["particles", "constraints", "effects"])
+def test_an_entry_that_is_not_a_table_is_named(section):
+    """array_of_tables takes a list of dicts at once; any other entry is still named."""
+    raw = _raw()
+    raw[section].insert(2, [1.0])
+    message = _build(raw)
+    assert f"{section}[2]" in message and f"must be a table (one [[{section}]] entry), got a list [1.0]" \
+        in message, message

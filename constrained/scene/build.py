@@ -28,7 +28,7 @@ from .keys import (
     ONE_SIDED_KEYS,
     TOP_LEVEL_TABLES,
 )
-from .plain import plain_pair, plain_particles
+from .plain import plain_pairs, plain_particles
 from .sections import RunSections
 from .validate import _describe, _join, _name_or_value, _suggest
 
@@ -242,13 +242,11 @@ class SceneBuilder(RunSections):
     def items(self, section: str) -> list:
         """The objects of the ``[[constraints]]`` or ``[[effects]]`` tables, in order (a rod or a
         spring of plain numbers by the fast path, constrained.scene.plain; any other by ``item``)."""
-        names = self.name_set()
+        items = self.array_of_tables(section)
         types = {**CONSTRAINT_TYPES, **VELOCITY_TYPES} if section == "constraints" else EFFECT_TYPES
-        out = []
-        for i, item in enumerate(self.array_of_tables(section)):
-            obj = plain_pair(item, i, section, names, types)
-            out.append(obj if obj is not None else self.item(i, item, section))
-        return out
+        plain = plain_pairs(items, section, self.name_set(), types)
+        return [obj if obj is not None else self.item(i, item, section)
+                for i, (item, obj) in enumerate(zip(items, plain, strict=True))]
 
     def item(self, i: int, item: dict, section: str):
         """One [[constraints]] or [[effects]] entry -> the library object."""

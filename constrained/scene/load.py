@@ -13,7 +13,6 @@ import collections
 import copy
 import dataclasses
 import hashlib
-import itertools
 import math
 import threading
 from collections.abc import Iterable, Mapping
@@ -44,6 +43,7 @@ from .keys import (
     TOP_LEVEL_TABLES,
 )
 from .overrides import _apply_overrides, _override_origin, apply_overrides, data_copy, parse_override
+from .validate import nesting_levels
 
 __all__ = [
     "Scene",
@@ -287,14 +287,11 @@ MAX_NESTING = 64
 def refuse_deep_nesting(raw: dict, file: str) -> None:
     """SceneError when tables and arrays nest deeper than MAX_NESTING (counted without recursion:
     TOML's dotted table names, [a.a.a...], nest without limit)."""
-    level, depth = [raw], 1  # the tables and arrays at this depth, one level at a time
-    while level:
-        if depth > MAX_NESTING:
+    for depth, (level, _types) in enumerate(nesting_levels(raw), 1):
+        if depth > MAX_NESTING and any(isinstance(v, dict | list) for v in level):
             raise SceneError(f"{NESTED_TOO_DEEPLY} (more than {MAX_NESTING} levels)", file=file)
-        children = itertools.chain(
-            itertools.chain.from_iterable(v.values() for v in level if isinstance(v, dict)),
-            itertools.chain.from_iterable(v for v in level if isinstance(v, list)))
-        level, depth = [child for child in children if isinstance(child, dict | list)], depth + 1
+
+
 #: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
 #: again (a sweep, a fresh call) skips the validation and formula checks (about 1 ms). Each
 #: caller gets its own copies of the mutable parts.

@@ -8,6 +8,8 @@ accept, and build the same objects."""
 from __future__ import annotations
 
 import itertools
+import operator
+from itertools import repeat
 
 import numpy as np
 
@@ -78,6 +80,61 @@ def plain_particles(items: list) -> list[Particle] | None:
 #: Items between two particles whose other keys are plain numbers: (section, type) -> the
 #: numeric keys (required, optional), as constrained.scene.keys lists them.
 _PAIR_ITEMS = {("constraints", "distance"): (("length",), ()), ("effects", "spring"): (("k",), ("rest",))}
+
+
+def plain_pairs(items: list, section: str, names: frozenset, types: dict) -> list:
+    """``plain_pair`` of every table of ``items`` (its objects, None where ``item`` is to check the
+    table), each kind of item checked all at once: a kind whose tables are all plain (a large
+    scene's rods, springs) is built without a check per table; one that is not, table by table."""
+    out: list = [None] * len(items)
+    if set(map(type, items)) != {dict}:
+        return [plain_pair(item, i, section, names, types) for i, item in enumerate(items)]
+    kinds = list(map(dict.get, items, repeat("type")))
+    for (where, typ), (required, optional) in _PAIR_ITEMS.items():
+        if where != section or typ not in types:
+            continue
+        index = [i for i, kind in enumerate(kinds) if type(kind) is str and kind == typ]
+        pairs = [items[i] for i in index]
+        built = _all_plain(pairs, typ, required, optional, names, types[typ], section, index)
+        if built is None:  # some are not plain: which, table by table
+            built = [plain_pair(item, i, section, names, types) for i, item in zip(index, pairs, strict=True)]
+        for i, obj in zip(index, built, strict=True):
+            out[i] = obj
+    return out
+
+
+def _all_plain(pairs: list, typ: str, required: tuple, optional: tuple, names: frozenset, cls, section: str,
+               index: list) -> list | None:
+    """The objects of the tables ``pairs`` of type ``typ`` (at ``index`` in ``section``) when
+    every one is plain (what ``plain_pair`` accepts), else None: the checks as passes in C over
+    the whole list."""
+    if not pairs:
+        return []
+    keys = frozenset(("type", "a", "b", *required, *optional))
+    if not all(map(keys.issuperset, pairs)) or not all(all(map(dict.__contains__, pairs, repeat(k)))
+                                                       for k in required):
+        return None
+    a, b = (list(map(dict.get, pairs, repeat(end))) for end in ("a", "b"))
+    if set(map(type, a)) != {str} or set(map(type, b)) != {str} or any(map(operator.eq, a, b)) \
+            or not names.issuperset(a) or not names.issuperset(b):
+        return None
+    numbers = {}
+    for k in (*required, *optional):
+        values = [v for v in map(dict.get, pairs, repeat(k), repeat(_ABSENT)) if v is not _ABSENT] \
+            if k in optional else list(map(dict.get, pairs, repeat(k)))
+        if not _NUMBERS.issuperset(map(type, values)) or not all(map(_LIMIT.__ge__, map(abs, values))):
+            return None  # (NaN fails the comparison)
+        numbers[k] = values
+    where = [f"{section}[{i}]" for i in index]
+    if typ == "distance" and cls is Distance:  # (a rod: its one check here)
+        if min(numbers["length"]) <= 0:
+            return None
+        return list(map(Distance.between, a, b, map(float, numbers["length"]), where))
+    try:
+        return [cls(end_a, end_b, **{k: float(item[k]) for k in item if k not in ("type", "a", "b")},
+                    name=None, where=w) for end_a, end_b, item, w in zip(a, b, pairs, where, strict=True)]
+    except InputError:
+        return None
 
 
 def plain_pair(item, i: int, section: str, names: frozenset, types: dict):

@@ -5,10 +5,13 @@ is one."""
 
 from __future__ import annotations
 
+import datetime
 import difflib
 import itertools
 import math
-from collections.abc import Iterable, Mapping
+import operator
+from collections.abc import Iterable, Iterator, Mapping
+from itertools import repeat
 from pathlib import Path
 
 from ..errors import SceneError, listed
@@ -206,6 +209,8 @@ class Validator:
             self.fail(name, f"must be an array of tables, written [[{name}]] (double brackets)")
         if not isinstance(value, list):
             self.fail(name, f"must be an array of tables [[{name}]], got {_describe(value)}")
+        if set(map(type, value)) <= {dict}:  # (a large scene's tables: no check one by one)
+            return value
         for i, item in enumerate(value):
             self.table(item, _join(name, i), f"a table (one [[{name}]] entry)")
         return value
@@ -215,12 +220,39 @@ def _all_moderate(value) -> bool:
     """Whether every number in the nested dicts and lists ``value`` is finite and at most
     ``expressions.MAX_MAGNITUDE`` in size."""
     limit = expressions.MAX_MAGNITUDE
-    level = [value]  # the values at one depth: each level's numbers compared at once
-    while level:
-        numbers = [v for v in level if isinstance(v, float | int) and not isinstance(v, bool)]
+    for level, types in nesting_levels(value):  # each level's numbers compared at once
+        if types is None:
+            numbers = [v for v in level if isinstance(v, float | int) and not isinstance(v, bool)]
+        else:
+            numbers = itertools.compress(level, map(_NUMBER_TYPES.__contains__, types))
         if not all(map(limit.__ge__, map(abs, numbers))):  # (NaN fails too)
             return False
-        level = list(itertools.chain(
-            itertools.chain.from_iterable(v.values() for v in level if isinstance(v, dict)),
-            itertools.chain.from_iterable(v for v in level if isinstance(v, list))))
     return True
+
+
+#: The types of TOML's values, and of its numbers (bool is not one).
+_TOML_TYPES = frozenset((dict, list, str, int, float, bool, datetime.date, datetime.time, datetime.datetime))
+_NUMBER_TYPES = frozenset((int, float))
+_chain_all = itertools.chain.from_iterable
+
+
+def nesting_levels(value) -> Iterator[tuple[list, list | None]]:
+    """The values in the nested dicts and lists ``value`` (itself first), one depth at a time
+    (no recursion: TOML's dotted table names nest without limit), each depth with the exact
+    types of its values when they are all TOML's (then split by type in C: a 10,000-particle
+    scene's 130,000 values in 15 ms), else None."""
+    level = [value]
+    while level:
+        types = list(map(type, level))
+        kinds = set(types)
+        toml = _TOML_TYPES.issuperset(kinds)
+        yield level, types if toml else None
+        if toml:
+            if dict not in kinds and list not in kinds:
+                return
+            dicts = map(dict.values, itertools.compress(level, map(operator.is_, types, repeat(dict))))
+            lists = itertools.compress(level, map(operator.is_, types, repeat(list)))
+        else:
+            dicts = (v.values() for v in level if isinstance(v, dict))
+            lists = (v for v in level if isinstance(v, list))
+        level = list(itertools.chain(_chain_all(dicts), _chain_all(lists)))
