@@ -44,7 +44,28 @@ def loads(text: str) -> dict:
             return _fast.loads(text)
         except Exception:  # noqa: BLE001 - any refusal (or a value Python refuses): tomli's word
             pass
-    return _toml.loads(text)
+    try:
+        return _toml.loads(text)
+    except TOMLDecodeError:
+        raise
+    except ValueError as exc:  # (Python refuses to read an integer of more than 4,300 digits)
+        raise NumberTooLong(text, exc) from None
+
+
+class NumberTooLong(TOMLDecodeError):
+    """An integer literal longer than Python reads (``sys.get_int_max_str_digits()``), named by
+    its line and column (tomli let Python's bare ValueError through: a traceback on the CLI)."""
+
+    def __init__(self, text: str, exc: ValueError):
+        found = _LONG_DIGITS.search(text)
+        line = text.count("\n", 0, found.start()) + 1 if found else 0
+        column = found.start() - text.rfind("\n", 0, found.start()) if found else 0
+        where = f" (at line {line}, column {column})" if found else ""
+        ValueError.__init__(self, f"a number too long to read{where}: {str(exc).split(';')[0]}")
+
+
+#: A run of digits longer than Python reads as an integer by default.
+_LONG_DIGITS = re.compile(r"[0-9_]{4301,}")
 
 
 def rtoml_reads_as_tomli(text: str) -> bool:

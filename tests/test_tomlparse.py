@@ -211,3 +211,20 @@ def test_a_scene_rtoml_would_read_is_refused_with_tomlis_words(tmp_path, capsys,
     assert main(["check", str(scene)]) == 2
     err = capsys.readouterr().err
     assert words in err and "Traceback" not in err, err
+
+
+def test_an_integer_too_long_to_read_is_refused_where_it_stands(tmp_path, capsys):
+    """Python reads integers of at most 4,300 digits; tomli let its bare ValueError through, and
+    `check` printed a traceback (found by the reading helper, session 17). In a scene file the
+    refusal names the line and column; in a --set override, in a value or an index, the key."""
+    long = "9" * 5000
+    scene = tmp_path / "scene.toml"
+    scene.write_text(f"[scene]\nname = 'x'\nbig = {long}\n", encoding="utf-8")
+    assert main(["check", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "a number too long to read (at line 3, column 7)" in err and "Traceback" not in err, err
+    bundled = str(Path(__file__).resolve().parents[1] / "scenarios" / "atwood_machine.toml")
+    for override in (f"simulate.t_end={long}", f"particles[{long}].mass=1"):
+        assert main(["check", bundled, "--set", override]) == 2
+        err = capsys.readouterr().err
+        assert "a number too long to read" in err and "Traceback" not in err and long not in err, err

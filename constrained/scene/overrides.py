@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import re
+import sys
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -48,9 +49,15 @@ def parse_override(text: str, *, file=None) -> tuple[list[str | int], Any]:
             key=key or None,
         )
     tokens: list[str | int] = []
-    for name, index in _TOKEN_RE.findall(key):
-        tokens.append(name if name else int(index))
-    return tokens, _parse_value(value.strip())
+    try:
+        for name, index in _TOKEN_RE.findall(key):
+            tokens.append(name if name else int(index))
+        return tokens, _parse_value(value.strip())
+    except SceneError:
+        raise
+    except ValueError:  # (int() refuses more than sys.get_int_max_str_digits() digits)
+        raise SceneError(f"--set {key[:60]}=…: a number too long to read (an integer of more than "
+                         f"{sys.get_int_max_str_digits()} digits)", file=file, key=key[:60]) from None
 
 
 # --- overrides -------------------------------------------------------------------------------
