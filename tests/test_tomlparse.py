@@ -44,6 +44,9 @@ def _outcome(loads, text: str):
 
 def _assert_read_as_tomli(text: str) -> None:
     expected, got = _outcome(tomli.loads, text), _outcome(tomlparse.loads, text)
+    if expected[0] == "ValueError":  # (Python's bare refusal of a long integer, given its place here)
+        assert got[0] == "NumberTooLong" and "too long to read" in got[1], (text[:200], got)
+        return
     assert expected[0] == got[0], (text[:200], expected, got)
     if expected[0] == "value":
         assert _same(expected[1], got[1]), (text[:200], expected[1], got[1])
