@@ -43,6 +43,7 @@ from ...model.structure import Model
 from .descent_sparse import sparse_rows, sparse_step
 from .kkt import KKT
 from .large import dense, is_large
+from .trust_region import trust_region_step
 
 #: The descent's budget: iterations, CPU seconds (all threads), and how far (in system sizes) a
 #: particle may move from the guess before V is judged to have no minimum near it.
@@ -76,35 +77,6 @@ class Descent:
         }[self.reason]
 
 
-def trust_region_step(g: np.ndarray, H: np.ndarray, radius: float) -> tuple[np.ndarray, bool]:
-    """argmin gᵀp + ½ pᵀHp over ‖p‖ ≤ radius (H symmetric) and whether it is the interior Newton
-    step −H⁻¹g (H ≻ 0). On the boundary p(μ) = −(H + μI)⁻¹g, ‖p(μ)‖ = radius, μ > −λ_min found
-    by bisection on the eigenvalues; in the "hard case" (g ⟂ the lowest eigenvector) the
-    eigenvector completes p to the boundary."""
-    curv, Q = np.linalg.eigh(H)
-    gq = Q.T @ g
-    if curv[0] > 0:
-        p = -Q @ (gq / curv)
-        if np.linalg.norm(p) <= radius:
-            return p, True
-    scale = max(float(np.max(np.abs(curv))), float(np.linalg.norm(g)) / radius, 1e-300)
-    low = max(0.0, -float(curv[0])) + 1e-12 * scale
-
-    def length(mu: float) -> float:
-        return float(np.linalg.norm(gq / (curv + mu)))
-
-    if length(low) <= radius:  # hard case: add the direction of least curvature
-        p = -Q @ (gq / (curv + low))
-        return p + np.sqrt(max(radius**2 - float(p @ p), 0.0)) * Q[:, 0], False
-    high = low + float(np.linalg.norm(g)) / radius + scale
-    for _ in range(200):  # ‖p(μ)‖ decreases with μ: bisect (geometrically while the range is wide)
-        mid = np.sqrt(low * high) if high > 4 * low else 0.5 * (low + high)
-        low, high = (mid, high) if length(mid) > radius else (low, mid)
-        if high - low <= 1e-12 * high:
-            break
-    return -Q @ (gq / (curv + high)), False
-
-
 def _tangent_frame(Jd: np.ndarray, grad: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Orthonormal basis Z of null(Jd) and the least-squares λ of Jdᵀλ = grad, both from one
     pivoted QR of the row-normalized Jdᵀ (rows dependent within RANK.dependent_rtol are dropped)."""
@@ -121,14 +93,14 @@ def _tangent_frame(Jd: np.ndarray, grad: np.ndarray, n: int) -> tuple[np.ndarray
     return Q[:, rank:], lam / norms
 
 
-def _dense_step(model: Model, kkt: KKT, x, F, Jp, d, radius: float, force_floor: float):
+def _dense_step(model: Model, kkt: KKT, x, F, Jp, d, radius: float, force_scale: float, force_rtol: float):
     """(dx, whether it is the interior Newton step, the predicted decrease of V) of one
     trust-region step on a dense basis of the tangent space (the module's text), or None when no
-    tangential force exceeds ``force_floor`` (N)."""
+    tangential force exceeds ``force_rtol`` × ``force_scale`` (N)."""
     n3 = len(x)
     Z, lam = _tangent_frame(Jp / d[None, :], -F / d, n3)
     g = -Z.T @ (F / d)
-    if np.max(np.abs(Z @ g) * d, initial=0.0) <= force_floor:
+    if np.max(np.abs(Z @ g) * d, initial=0.0) <= force_rtol * force_scale:
         return None  # (the tangential force, back in newtons)
     multipliers = np.zeros(model.n_constraints)
     multipliers[:Jp.shape[0]] = lam
@@ -161,7 +133,7 @@ def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.n
         if not (np.isfinite(V) and np.all(np.isfinite(F)) and np.all(np.isfinite(J.data if large else J))):
             return Descent(x, it, "non-finite")
         step = sparse_step if large else _dense_step
-        found = step(model, kkt, x, F, J, d, radius, FORCE_RTOL * force_scale)
+        found = step(model, kkt, x, F, J, d, radius, force_scale, FORCE_RTOL)
         if found is None:
             return Descent(x, it, "minimum")  # (the tangential force below FORCE_RTOL × the force scale)
         dx, newton, predicted = found
