@@ -267,3 +267,36 @@ def test_an_entry_that_is_not_a_table_is_named(section):
     message = _build(raw)
     assert f"{section}[2]" in message and f"must be a table (one [[{section}]] entry), got a list [1.0]" \
         in message, message
+
+
+def test_rods_and_springs_to_a_point_among_plain_ones_build_what_the_checks_build(monkeypatch):
+    """A rod or spring to a fixed point (no 'b': built by the checks) among plain ones (built
+    all at once, plain_pairs): the same objects in the same order, or the same first refusal,
+    as the checks one by one; the plain ones still come from the fast path."""
+    from constrained.scene import plain
+
+    rng = random.Random(29)
+    raws = []
+    for _ in range(80):
+        raw = _random_raw(rng)
+        names = [p["name"] for p in raw["particles"]]
+        for section, typ, number in (("constraints", "distance", "length"), ("effects", "spring", "k")):
+            for _ in range(rng.randint(1, 2)):
+                item = {"type": typ, "a": rng.choice(names), "point": [0.0, 0.1, 0.0],
+                        number: rng.choice([0.5, 2])}
+                if rng.random() < .05:  # (now and then one the checks refuse)
+                    item[rng.choice(["point", number])] = rng.choice([[1, 2], -1.0])
+                raw[section].insert(rng.randint(0, len(raw[section])), item)
+        raws.append(raw)
+    all_at_once = []
+    original = plain._all_plain
+    monkeypatch.setattr(plain, "_all_plain", lambda pairs, *args: all_at_once.append(
+        result := original(pairs, *args)) or result)
+    fast = [_build(raw) for raw in raws]
+    assert sum(r is not None and len(r) > 0 for r in all_at_once) > 20
+    monkeypatch.undo()
+    _slow(monkeypatch)
+    slow = [_build(raw) for raw in raws]
+    assert sum(isinstance(f, str) for f in fast) > 10 and sum(not isinstance(f, str) for f in fast) > 10
+    for f, s in zip(fast, slow, strict=True):
+        assert (f if isinstance(f, str) else _described(f)) == (s if isinstance(s, str) else _described(s))

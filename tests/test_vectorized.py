@@ -303,8 +303,19 @@ def test_rods_built_together_are_the_expressions_each_rod_builds():
 
     system, numbers = lifting.lift(rope(80, varied=True))
     s = Symbols(system, symbolic_parameters=True, numbers=len(numbers))
-    together, batches = constraint_rows(system.constraints, s)
+    pieces, batches = constraint_rows(system.constraints, s)
     assert batches  # (the rods of plain lengths: one formula)
+    assert any(count > 1 for _, count, _ in pieces)  # (a column of rods kept whole)
+    together = []
+    for k, count, rows in pieces:  # (first constraint, count, its rows or (column, labels))
+        if isinstance(rows, tuple):  # count constraints of one row each, or one of many (a plane)
+            column, labels = rows
+            assert column.numel() == len(labels) and (count == 1 or count == len(labels))
+            pairs = [(column[i], labels[i]) for i in range(len(labels))]
+            together += [pairs] if count == 1 else [[pair] for pair in pairs]
+        else:
+            assert count == 1 and k == len(together)
+            together.append(rows)
     alone = [c.rows(s) for c in system.constraints]
     assert [len(r) for r in together] == [len(r) for r in alone]
     for a, b in zip(together, alone, strict=True):

@@ -35,6 +35,7 @@ import numpy as np
 
 from ..model.cache import ParametricView, built_once, structure_cache
 from ..model.structure import Model, Structure, forces
+from ..model.symbols import Stacked
 from .graph import acceleration_graph
 from .vectorized.grouping import MAX_KINDS, MIN_GROUP, Group, grouped, lifted, summands  # noqa: F401
 
@@ -93,9 +94,8 @@ class MappedBuild:
         row_batches = [(b.items + b.offsets, b.particles, b.numbers) for b in e.row_batches]
         self.rows, rest_rows = grouped(e.rows, e.x, e.t, e.p, symbols, row_batches)
         self.rest_place = np.array(rest_rows, dtype=np.int64)
-        split = _split(e.slots["potential"], e.term_batches)
-        terms = [s for parts in split for s in parts]
-        term_batches = _summand_batches(e.term_batches, split)
+        terms, counts = _split(e.slots["potential"], e.term_batches)
+        term_batches = _summand_batches(e.term_batches, counts)
         self.terms, rest_terms = grouped(terms, e.x, e.t, e.p, symbols, term_batches)
         self.rest_slots = {**e.slots, "potential": [terms[k] for k in rest_terms]}
         self._functions: dict[str, ca.Function] = {}
@@ -238,22 +238,46 @@ class MappedBuild:
         return ca.DM(sparsity, 1.0)
 
 
-def _split(terms: list, batches) -> list[list]:
-    """``summands`` of each term; the terms of a Batch with one summand each (a run of springs)
-    are taken whole when its first one is (they are one formula: the same top operation)."""
+def _split(terms, batches) -> tuple[Stacked, np.ndarray]:
+    """The summands (``summands``) of every term in order, as one Stacked, and how many each
+    term has. A term whose summands a Batch holds (``values``: gravity's) takes them from it
+    instead of unfolding its sum; the terms of a Batch with one summand each (a run of springs)
+    are taken whole when its first one is (they are one formula: the same top operation), a
+    column of them (``Stacked``) as it is."""
+    held = {int(b.items[0]): b.values for b in batches
+            if b.values is not None and len(b.items) and np.all(b.items == b.items[0])
+            and np.array_equal(b.offsets, np.arange(len(b.items))) and b.values.numel() == len(b.items)}
     whole = np.zeros(len(terms), bool)
     for b in batches:
         if len(b.items) and not b.offsets.any() and len(np.unique(b.items)) == len(b.items):
             first = terms[b.items[0]]
             whole[b.items] = len(parts := summands(first)) == 1 and parts[0] is first
-    return [[term] if whole[j] else summands(term) for j, term in enumerate(terms)]
+    out, counts = Stacked(), np.ones(len(terms), np.int64)
+    for start, segment in (terms.segments() if isinstance(terms, Stacked) else [(0, list(terms))]):
+        if not isinstance(segment, list):  # a column of terms built by one formula
+            if whole[start:start + segment.numel()].all():
+                out.add_column(segment)
+                continue
+            segment = ca.vertsplit(segment)
+        for k, term in enumerate(segment, start):
+            if k in held:
+                out.add_column(held[k])
+                counts[k] = held[k].numel()
+            elif whole[k]:
+                out.add(term)
+            else:
+                parts = summands(term)
+                counts[k] = len(parts)
+                for part in parts:
+                    out.add(part)
+    return out, counts
 
 
-def _summand_batches(batches, split: list) -> list[tuple]:
+def _summand_batches(batches, counts: np.ndarray) -> list[tuple]:
     """The term Batches (``items``: a potential's place in its slot, ``offsets``: its summand)
-    as (positions among the summands ``split`` flattened, particles, entries of p); a batch
-    whose summands are not where it says (a term that did not unfold as built) is dropped."""
-    counts = np.array([len(parts) for parts in split], dtype=np.int64)
+    as (positions among the summands flattened, particles, entries of p), ``counts`` the number
+    of summands of each term; a batch whose summands are not where it says (a term that did not
+    unfold as built) is dropped."""
     start = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else counts
     out = []
     for b in batches:

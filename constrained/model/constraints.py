@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from .lifting import Number
-from .symbols import Batch
+from .symbols import Batch, Stacked
 
 
 def _fmt(value) -> str:
@@ -93,16 +93,19 @@ class Constraint(Labelled):
         raise NotImplementedError
 
     @classmethod
-    def batch_rows(cls, items: list, s) -> tuple[list, Batch | None] | None:
-        """``[item.rows(s) for item in items]`` (items of this class) built together in a few
-        CasADi calls — the same expressions — with None for an item that has no such form (its
-        ``rows`` is called instead), and the Batch of the rows built by one formula (its
-        ``items`` index ``items``); None when the class has none."""
+    def batch_rows(cls, items: list, s) -> tuple[list[int], ca.SX, list[str], Batch | None] | None:
+        """The rows of ``items`` (items of this class) that have one row each of one formula,
+        built together in a few CasADi calls: ``(plain, column, labels, batch)`` — their
+        positions in ``items``, their rows as one SX column (each the expression its ``rows``
+        builds), their labels, and the Batch of them (its ``items`` index ``items``; None when
+        their numbers are not all lifted); the others are built by ``rows``. None when the
+        class has no such form."""
         return None
 
-    def row_batch(self, s) -> Batch | None:
-        """The Batch of this item's rows when ``rows(s)`` builds them all by one formula (its
-        ``items`` 0), else None."""
+    def block_rows(self, s) -> tuple[ca.SX, list[str], Batch] | None:
+        """``(column, labels, batch)``: this item's rows as one SX column when ``rows(s)`` builds
+        them all by one formula of lifted numbers (the same expressions and labels), with their
+        Batch (its ``items`` 0); else None."""
         return None
 
     def _one_sided(self, unilateral, restitution) -> None:
@@ -205,19 +208,17 @@ class Distance(Constraint):
         return [(ca.norm_2(xa - xb) - length, self.label)]
 
     @classmethod
-    def batch_rows(cls, items: list, s) -> tuple[list, Batch | None]:
+    def batch_rows(cls, items: list, s) -> tuple[list[int], ca.SX, list[str], Batch | None]:
         """|x_a − x_b| − length of rods between two particles with lengths that are plain
-        numbers (entries of p, constrained.lifting), as whole rows of CasADi matrices: one call
-        per operation instead of several per rod (a 10,000-link chain)."""
+        numbers (entries of p, constrained.lifting), as one column: one CasADi call per
+        operation instead of several per rod (a 10,000-link chain)."""
         plain, norms = pair_distances(items, s, ("length",))
-        out: list = [None] * len(items)
         if not plain:
-            return out, None
+            return plain, ca.SX(0, 1), [], None
         rods = [items[k] for k in plain]
-        lengths = s.number_column([c.length for c in rods])
-        for k, row, c in zip(plain, ca.vertsplit(norms.T - lengths, 1), rods, strict=True):
-            out[k] = [(row, c.label)]
-        return out, pair_batch(items, plain, s, [[c.length for c in rods]])
+        lengths = [c.length for c in rods]
+        labels = [c.name or f"distance {c.a}–{c.b} = {c.length:g} m" for c in rods]  # (``label``)
+        return plain, norms.T - s.number_column(lengths), labels, pair_batch(items, plain, s, [lengths])
 
 
 def pair_batch(items: list, plain: list[int], s, numbers: list[list]) -> Batch | None:
@@ -293,17 +294,23 @@ class Plane(Constraint):
     def label(self) -> str:
         return self.name or f"plane n={_fmt(self.normal)}, offset {_fmt(self.offset)}"
 
-    def rows(self, s):
+    def _column(self, s) -> ca.SX:
+        """The rows as one column."""
         where = self._where()
         n = s.point(self.normal, f"{where}.normal")
         offset = s.time_function(self.offset, f"{where}.offset")
         # all rows in a few CasADi calls (one per particle would dominate the build of a chain)
         P = s.columns(self.particles, where)
-        rows = ca.vertsplit(((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T, 1)
-        label = self.label
-        return [(row, f"{label} [{p}]") for row, p in zip(rows, self.particles, strict=True)]
+        return ((ca.mtimes(n.T, P) - offset) / ca.norm_2(n)).T
 
-    def row_batch(self, s) -> Batch | None:
+    def _labels(self) -> list[str]:
+        label = self.label
+        return [f"{label} [{p}]" for p in self.particles]
+
+    def rows(self, s):
+        return list(zip(ca.vertsplit(self._column(s), 1), self._labels(), strict=True))
+
+    def block_rows(self, s) -> tuple[ca.SX, list[str], Batch] | None:
         """The rows n·x_i − offset over the listed particles: one formula, shared numbers."""
         shared = [v for v in (*self.normal, self.offset) if not (isinstance(v, int | float) and v == 0)]
         entries = s.number_entries(shared) if not isinstance(self.normal, str) else None
@@ -311,8 +318,9 @@ class Plane(Constraint):
             return None
         n = len(self.particles)
         particles = np.array([s.index(p, self._where()) for p in self.particles], dtype=np.int64)
-        return Batch(np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
-                     np.repeat(entries[None, :], n, axis=0))
+        return self._column(s), self._labels(), Batch(
+            np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
+            np.repeat(entries[None, :], n, axis=0))
 
 
 class Surface(Constraint):
@@ -386,28 +394,80 @@ class Custom(Constraint):
 BATCH_FROM = 64
 
 
-def constraint_rows(constraints: list, s) -> tuple[list, list[Batch]]:
-    """Each constraint's ``rows(s)``, in order; runs of BATCH_FROM or more constraints of one
-    class through the class's ``batch_rows`` where it has one (the same expressions). And the
-    Batches of rows built by one formula (``items``: indices into ``constraints``): a run's,
-    and a constraint's own rows of BATCH_FROM or more."""
-    out, batches, k = [], [], 0
+def constraint_rows(constraints: list, s) -> tuple[list[tuple], list[Batch]]:
+    """Each constraint's rows, in order, as pieces ``(first, count, rows)``: ``rows`` a list of
+    ``(expression, label)`` of the one constraint ``first`` (``count`` 1), or ``(column,
+    labels)`` of ``count`` constraints from ``first`` on (their rows as one SX column: one row
+    each, or one constraint's rows built by one formula, ``block_rows``). Runs of BATCH_FROM or
+    more constraints of one class go through the class's ``batch_rows`` where it has one (the
+    same expressions as ``rows``). And the Batches of rows built by one formula (``items``:
+    indices into ``constraints``): a run's, and a constraint's own of BATCH_FROM rows or more."""
+    pieces, batches, k = [], [], 0
     while k < len(constraints):
         cls, j = type(constraints[k]), k + 1
         while j < len(constraints) and type(constraints[j]) is cls:
             j += 1
-        run = constraints[k:j]
-        built = cls.batch_rows(run, s) if len(run) >= BATCH_FROM else None
-        rows, batch = built if built is not None else ([None] * len(run), None)
+        built = cls.batch_rows(constraints[k:j], s) if j - k >= BATCH_FROM else None
+        plain, column, labels, batch = built if built is not None else ([], None, [], None)
         if batch is not None:
             batches.append(batch.shifted(np.arange(k, j)))
-        for i, (c, item_rows) in enumerate(zip(run, rows, strict=True), k):
-            out.append(item_rows if item_rows is not None else c.rows(s))
-            own = c.row_batch(s) if item_rows is None and len(out[-1]) >= BATCH_FROM else None
-            if own is not None:
-                batches.append(own.shifted([i]))
+        at = np.zeros(j - k, bool)
+        at[plain] = True
+        # stretches of consecutive items built together, and the items between them alone
+        edges = np.flatnonzero(np.diff(np.concatenate([[False], at, [False]]).astype(np.int8)))
+        done, row = k, 0
+        for start, stop in [*zip(edges[::2] + k, edges[1::2] + k, strict=True), (j, j)]:
+            for i in range(done, start):
+                pieces.append(_alone(constraints[i], i, s, batches))
+            if stop > start:
+                count = stop - start
+                part = column if count == column.numel() else column[row:row + count]
+                pieces.append((start, count, (part, labels[row:row + count])))
+            done, row = stop, row + stop - start
         k = j
-    return out, batches
+    return pieces, batches
+
+
+def stacked_rows(constraints: list, s) -> tuple:
+    """``(rows, velocity_rows, labels, owners, first_row, batches)``: the rows of f (a Stacked:
+    pieces of ``constraint_rows`` built together kept as columns), the velocity rows
+    (model/velocity.py), every row's label (position rows, then velocity rows) and constraint
+    (an array), each constraint's first row of f (−1: a velocity constraint), and the Batches
+    (``constraint_rows``)."""
+    rows, velocity_rows = Stacked(), []
+    labels, owners, velocity_labels, velocity_owners = [], [], [], []
+    first_row = np.zeros(len(constraints), np.int64)
+    pieces, batches = constraint_rows(constraints, s)
+    for k, count, built in pieces:
+        if isinstance(built, tuple):  # (column, labels) of count constraints, one row each, or of one
+            first_row[k:k + count] = len(rows) + (np.arange(count) if count > 1 else 0)
+            owners.append(np.arange(k, k + count) if count > 1 else np.full(len(built[1]), k))
+            rows.add_column(built[0])
+            labels += built[1]
+        elif getattr(constraints[k], "level", "position") == "velocity":
+            first_row[k] = -1
+            velocity_rows += [expr for expr, _ in built]
+            velocity_labels += [label for _, label in built]
+            velocity_owners += [k] * len(built)
+        else:
+            first_row[k] = len(rows)
+            for expr, _ in built:
+                rows.add(expr)
+            labels += [label for _, label in built]
+            owners.append(np.full(len(built), k))
+    owner = np.concatenate([*owners, np.array(velocity_owners, np.int64)]).astype(int)
+    return rows, velocity_rows, labels + velocity_labels, owner, first_row, batches
+
+
+def _alone(c: Constraint, i: int, s, batches: list) -> tuple:
+    """The piece of the constraint ``c`` (index ``i``) built by itself: its ``block_rows`` when
+    it has BATCH_FROM rows or more of one formula (their Batch added to ``batches``), else its
+    ``rows``."""
+    block = c.block_rows(s) if len(getattr(c, "particles", ())) >= BATCH_FROM else None
+    if block is not None:
+        batches.append(block[2].shifted([i]))
+        return i, 1, block[:2]
+    return i, 1, c.rows(s)
 
 
 CONSTRAINT_TYPES = {

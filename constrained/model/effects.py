@@ -22,7 +22,7 @@ from ..codegen.interval import where_negative
 from ..errors import InputError
 from . import expressions
 from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_distances
-from .symbols import Batch
+from .symbols import Batch, Stacked
 
 
 class Effect(Labelled):
@@ -37,14 +37,15 @@ class Effect(Labelled):
         raise NotImplementedError
 
     @classmethod
-    def batch_terms(cls, items: list, s) -> tuple[list, Batch | None] | None:
-        """``[item.term(s) for item in items]`` built together (None for an item without such a
-        form), and the Batch of those built by one formula; None when the class has none."""
+    def batch_terms(cls, items: list, s) -> tuple[list[int], ca.SX, Batch | None] | None:
+        """``(plain, column, batch)``: the positions in ``items`` of those with a term of one
+        formula, those terms (each what ``term`` builds) as one SX column built together, and
+        their Batch (None: numbers not all lifted); None when the class has no such form."""
         return None
 
-    def term_batch(self, s) -> Batch | None:
-        """The Batch of the summands of ``term(s)`` when it builds them all by one formula."""
-        return None
+    def term_and_batch(self, s) -> tuple:
+        """``(term(s), the Batch of its summands when it builds them all by one formula)``."""
+        return self.term(s), None
 
 
 def _other_end(s, b, point, where):
@@ -69,27 +70,32 @@ class Gravity(Effect):
         return self.name or f"gravity g={_fmt(self.g)} m/s²"
 
     def term(self, s):
+        return self.term_and_batch(s, batch=False)[0]
+
+    def term_and_batch(self, s, batch: bool = True) -> tuple:
+        """V = −Σ m_i g·x_i, and (``batch``, plain masses and g) the Batch of its summands
+        −m_i g·x_i, one per particle, holding them (``values``: the mapped build takes them
+        instead of unfolding the sum)."""
         where = self._where()
         g = s.point(self.g, f"{where}.g")
         names = self.particles if self.particles is not None else list(s._index)
         if not names:
-            return 0.0
-        # V = −Σ m_i g·x_i in a few CasADi calls (one per particle would dominate large builds)
-        P = s.columns(names, where)
-        m = s.mass_column([s.index(p, where) for p in names]).T  # numbers, or SX of p
-        return -ca.dot(ca.mtimes(g.T, P), m)
-
-    def term_batch(self, s) -> Batch | None:
-        """The summands −m_i g·x_i, one per particle, of plain masses and g."""
-        names = self.particles if self.particles is not None else list(s._index)
-        g = s.number_entries([v for v in self.g if not (isinstance(v, int | float) and v == 0)])
-        if g is None or s.mass_entries is None or not names:
-            return None
-        particles = np.array([s.index(p, self._where()) for p in names], dtype=np.int64)
+            return 0.0, None
+        # in a few CasADi calls (one per particle would dominate large builds): −dot(gᵀP, m)
+        particles = [s.index(p, where) for p in names]
+        products = ca.mtimes(g.T, s.columns(names, where)).T * s.mass_column(particles)
+        term = -ca.sum1(products)
+        entries = s.number_entries([v for v in self.g if not (isinstance(v, int | float) and v == 0)])
+        if not batch or entries is None or not len(entries) or s.mass_entries is None:
+            return term, None
+        # (g not all zero, masses symbols of p: each product g·x_i m_i a product of symbols, so
+        # the sum unfolds into exactly the summands −(g·x_i m_i))
+        particles = np.array(particles, dtype=np.int64)
         masses = np.asarray(s.mass_entries, np.int64)[particles]
         n = len(names)
-        return Batch(np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
-                     np.concatenate([np.repeat(g[None, :], n, axis=0), masses[:, None]], axis=1))
+        return term, Batch(np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
+                           np.concatenate([np.repeat(entries[None, :], n, axis=0), masses[:, None]], axis=1),
+                           -products)
 
 
 class Spring(Effect):
@@ -117,21 +123,17 @@ class Spring(Effect):
         return 0.5 * k * (ca.sqrt(ca.dot(d, d)) - rest) ** 2
 
     @classmethod
-    def batch_terms(cls, items: list, s) -> list:
-        """``[item.term(s) for item in items]`` for springs between two particles whose k and
-        rest are plain numbers (entries of p, constrained.lifting), as whole rows of CasADi
-        matrices: one call per operation instead of several per spring (a cloth's shear
-        springs); None for an item that has no such form (its ``term`` is called instead)."""
+    def batch_terms(cls, items: list, s) -> tuple[list[int], ca.SX, Batch | None]:
+        """The terms of springs between two particles whose k and rest are plain numbers
+        (entries of p, constrained.lifting) as one column: one CasADi call per operation
+        instead of several per spring (a cloth's shear springs)."""
         plain, norms = pair_distances(items, s, ("k", "rest"))
-        out: list = [None] * len(items)
         if not plain:
-            return out, None
+            return plain, ca.SX(0, 1), None
         springs = [items[j] for j in plain]
-        k = s.number_column([e.k for e in springs]).T
-        rest = s.number_column([e.rest for e in springs]).T
-        for j, term in zip(plain, ca.horzsplit(0.5 * k * (norms - rest) ** 2, 1), strict=True):
-            out[j] = term
-        return out, pair_batch(items, plain, s, [[e.k for e in springs], [e.rest for e in springs]])
+        ks, rests = [e.k for e in springs], [e.rest for e in springs]
+        k, rest = s.number_column(ks).T, s.number_column(rests).T
+        return plain, (0.5 * k * (norms - rest) ** 2).T, pair_batch(items, plain, s, [ks, rests])
 
 
 class Potential(Effect):
@@ -415,34 +417,35 @@ class Electromagnetic(Effect):
         return U
 
 
-def effect_terms(effects: list, s, skip=()) -> tuple[list, list[Batch]]:
-    """Each effect's ``term(s)`` in order (``ca.SX(0)`` for the indices in ``skip``); runs of
-    BATCH_FROM or more effects of one class through the class's ``batch_terms`` where it has
-    one (the same expressions, as ``constraints.constraint_rows``). And the Batches of terms
-    built by one formula (``items``: indices into ``effects``)."""
-    out, batches, k = [], [], 0
+def effect_terms(effects: list, s, skip=()) -> tuple[Stacked, list[Batch]]:
+    """Each effect's ``term(s)`` in order (``ca.SX(0)`` for the indices in ``skip``), a Stacked:
+    runs of BATCH_FROM or more of one class through its ``batch_terms``, kept as SX columns (the
+    same expressions). And the Batches of terms built by one formula (``items``: indices into
+    ``effects``)."""
+    out, batches, k = Stacked(), [], 0
     while k < len(effects):
         cls, j = type(effects[k]), k + 1
         while j < len(effects) and type(effects[j]) is cls:
             j += 1
         kept = [i for i in range(k, j) if i not in skip]
-        run = [effects[i] for i in kept]
-        built = cls.batch_terms(run, s) if len(run) >= BATCH_FROM else None
-        terms, batch = built if built is not None else ([None] * len(run), None)
+        built = cls.batch_terms([effects[i] for i in kept], s) if len(kept) >= BATCH_FROM else None
+        plain, column, batch = built if built is not None else ([], None, None)
         if batch is not None:
             batches.append(batch.shifted(kept))
-        terms = iter(terms)
-        for i in range(k, j):
-            if i in skip:
-                out.append(ca.SX(0))
+        together = np.zeros(j - k, bool)  # (each of the run's effects: built in the column)
+        together[np.asarray(kept, np.int64)[plain] - k] = True
+        i, row = k, 0
+        while i < j:
+            if together[i - k]:  # a stretch built together
+                stop = i + int(np.argmin(np.append(together[i - k:], False)))
+                out.add_column(column if stop - i == column.numel() else column[row:row + stop - i])
+                i, row = stop, row + stop - i
                 continue
-            term = next(terms)
-            if term is None:
-                term = effects[i].term(s)
-                own = effects[i].term_batch(s) if effects[i].slot == "potential" else None
-                if own is not None and len(own.items) >= BATCH_FROM:
-                    batches.append(own.shifted([i]))
-            out.append(term)
+            term, own = (ca.SX(0), None) if i in skip else effects[i].term_and_batch(s)
+            if own is not None and len(own.items) >= BATCH_FROM:
+                batches.append(own.shifted([i]))
+            out.add(term, None if own is None else own.values[0])  # (its summands' formula's dependence)
+            i += 1
         k = j
     return out, batches
 
@@ -450,6 +453,8 @@ def effect_terms(effects: list, s, skip=()) -> tuple[list, list[Batch]]:
 def _total(terms: list):
     """``sum(terms, ca.SX(0))`` of scalar terms as one CasADi sum: the same expression (t₁ + t₂ + …
     in order), not one Python addition per term (2.6 s for a cloth's 40,000 springs)."""
+    if isinstance(terms, Stacked) and len(terms) >= 2 and terms.scalars():  # (its columns kept whole)
+        return ca.sum1(terms.column())
     terms = [term if isinstance(term, ca.SX) else ca.SX(term) for term in terms]
     if len(terms) < 2 or any(term.shape != (1, 1) for term in terms):
         return sum(terms, ca.SX(0))
@@ -470,7 +475,8 @@ def forces(slots: dict, x, v, t, *, deferred: bool = False) -> tuple:
     if deferred and not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force")):
         V = _total(slots["potential"]) if slots["potential"] else ca.SX(0)
         active = {"potential"} if slots["potential"] else set()
-        if slots["potential"] and ca.depends_on(V, t):
+        # (none of a Stacked's terms of t: nor is V; else V is asked, a sum may cancel)
+        if slots["potential"] and Stacked.may(slots["potential"], t) and ca.depends_on(V, t):
             active.add("time_dependent_forces")
         zero = (ca.SX.zeros(x.numel()), ca.SX(0), ca.SX.zeros(x.numel()))
         return functools.cache(lambda: zero[0] - ca.gradient(V, x) if slots["potential"] else zero[0]), \

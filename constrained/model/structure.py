@@ -21,7 +21,7 @@ import numpy as np
 from ..bulk import collector_paused
 from ..errors import InputError
 from . import lifting, velocity
-from .constraints import constraint_rows
+from .constraints import stacked_rows
 from .effects import effect_terms, forces
 from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
 from .pairs.potentials import PairPotentials
@@ -71,26 +71,17 @@ class Structure:
         self.particle_names = tuple(q.name for q in system.particles)
         active = set()
 
-        rows, labels, owners = ([], []), ([], []), ([], [])  # position rows, then velocity rows
-        built, batches = constraint_rows(system.constraints, s)  # (runs of rods built together)
-        first_row = np.zeros(len(system.constraints), np.int64)  # each constraint's first row of f
-        for k, constraint in enumerate(system.constraints):
-            level = int(getattr(constraint, "level", "position") == "velocity")
-            first_row[k] = len(rows[0]) if not level else -1
-            for expr, label in built[k]:
-                rows[level].append(expr)
-                labels[level].append(label)
-                owners[level].append(k)
-        rows, velocity_rows = rows
+        # rows of f (runs of rods, a plane's rows: SX columns kept whole), the velocity rows
+        rows, velocity_rows, labels, owners, first_row, batches = stacked_rows(system.constraints, s)
         #: The rows' labels (position rows, then velocity rows), a plain number written as a
         #: token (``lifting.fill`` puts a Model's values in).
-        self.constraint_labels: list[str] = labels[0] + labels[1]
-        self.constraint_owner = np.array(owners[0] + owners[1], dtype=int)
+        self.constraint_labels: list[str] = labels
+        self.constraint_owner = owners
         #: Rows of f (position level); the velocity rows (model/velocity.py) follow them.
         self.n_position_rows = len(rows)
         self.n_constraints = len(rows) + len(velocity_rows)
-        f = ca.vertcat(*rows) if rows else ca.SX(0, 1)
-        self.rheonomic = bool(rows) and ca.depends_on(f, t)
+        f = rows.column()
+        self.rheonomic = bool(rows) and rows.may_depend_on(t)  # (≡ ca.depends_on(f, t): f is a stack)
         if rows:
             active.add("constraints")
         if self.rheonomic:
@@ -123,17 +114,20 @@ class Structure:
         self.pairs, self.pair_owner = self.pair_potentials.terms, self.pair_potentials.owners
         self.n_physical, self.n_p = self.pair_potentials.n_physical, self.pair_potentials.n_p
         terms, term_batches = effect_terms(system.effects, s, skip=self.pair_owner)  # (a pair kernel's: 0)
-        in_slot = np.full(len(system.effects), -1, np.int64)  # each potential's place in its slot
-        for k, effect in enumerate(system.effects):
-            if k not in self.pair_owner and effect.slot == "potential":
-                in_slot[k] = len(slots["potential"])
-            slots[effect.slot] += [] if k in self.pair_owner else [terms[k]]
+        slot = np.array([e.slot for e in system.effects], dtype=object)
+        own = np.ones(len(slot), bool)  # (not a pair kernel's)
+        own[list(self.pair_owner)] = False
+        potential = own & (slot == "potential")
+        in_slot = np.where(potential, np.cumsum(potential) - 1, -1)  # each potential's place in its slot
+        slots["potential"] = terms.select(potential)  # (a Stacked: the springs' columns kept whole)
+        for k in np.flatnonzero(own & ~potential):
+            slots[slot[k]].append(terms[k])
         F, V, U, dU_dv, forcing = forces(slots, x, v, t, deferred=True)  # F(): built when first asked
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
         # (with potentials alone, F = −∂V/∂x: free of v when V is, which is the smaller graph to ask)
         potentials_only = not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force"))
-        may = not potentials_only or ca.depends_on(V, v)
+        may = not potentials_only or (slots["potential"].may_depend_on(v) and ca.depends_on(V, v))
         self.forces_depend_on_velocity = bool(may and ca.depends_on(F(), v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}

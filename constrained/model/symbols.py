@@ -7,6 +7,7 @@ Symbols object and returns expressions in ``x`` (3N positions), ``v`` (3N veloci
 
 from __future__ import annotations
 
+import bisect
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,17 +33,24 @@ class Batch:
     offsets: np.ndarray
     particles: np.ndarray
     numbers: np.ndarray
+    #: The instances themselves as one SX column (in the batch's order) when the item that built
+    #: them keeps them (gravity's summands: the mapped build then need not unfold its sum).
+    values: ca.SX | None = None
 
     def shifted(self, items: np.ndarray) -> Batch:
         """This batch with its items renamed ``items[item]`` (an item's place in a longer list)."""
-        return Batch(np.asarray(items, np.int64)[self.items], self.offsets, self.particles, self.numbers)
+        return Batch(np.asarray(items, np.int64)[self.items], self.offsets, self.particles, self.numbers,
+                     self.values)
 
     def placed(self, first: np.ndarray) -> Batch:
         """This batch with its items replaced by ``first[item]`` (a constraint's first row of f,
         a potential's place among the slot's terms), kept only where that is ≥ 0."""
         items = first[self.items]
         keep = items >= 0
-        return Batch(items[keep], self.offsets[keep], self.particles[keep], self.numbers[keep])
+        values = self.values
+        if values is not None and not keep.all():
+            values = values[np.flatnonzero(keep).tolist()] if keep.any() else None
+        return Batch(items[keep], self.offsets[keep], self.particles[keep], self.numbers[keep], values)
 
 
 class _Pieces:
@@ -63,6 +71,95 @@ class _Pieces:
                 return self.column[self.size * k:self.size * (k + 1)]
             self.pieces = ca.vertsplit(self.column, self.size)
         return self.pieces[k]
+
+
+class Stacked(Sequence):
+    """Expressions in order (rows of f, effects' terms), held as segments: single expressions,
+    or SX columns kept whole — n scalar expressions built by one vectorized formula (a run of
+    rods, a plane's rows, a run of springs) — read one by one only where asked for (``_Pieces``).
+    ``column()`` is the same elements in the same order as a vertcat of them one by one.
+
+    ``probe``: with each single expression an SX whose dependence on a symbol is the
+    expression's (the first summand of a sum built by one formula, gravity's), else itself;
+    a column's is its first element (the formula is the same for all)."""
+
+    def __init__(self):
+        self._segments: list = []  # [single expressions, their probes], or a _Pieces of a column
+        self._starts: list[int] = [0]
+
+    def add(self, expression, probe=None) -> None:
+        """Append one expression (``probe``: as in the class docstring)."""
+        if not self._segments or not isinstance(self._segments[-1], list):
+            self._segments.append([[], []])
+            self._starts.append(self._starts[-1])
+        self._segments[-1][0].append(expression)
+        self._segments[-1][1].append(expression if probe is None else probe)
+        self._starts[-1] += 1
+
+    def add_column(self, column: ca.SX) -> None:
+        """Append the n scalar elements of the SX column ``column`` (built by one formula)."""
+        n = column.numel()
+        if n:
+            self._segments.append(_Pieces(column))
+            self._starts.append(self._starts[-1] + n)
+
+    def __len__(self) -> int:
+        return self._starts[-1]
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        k = int(k)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        j = bisect.bisect_right(self._starts, k) - 1
+        segment = self._segments[j]
+        return segment[0][k - self._starts[j]] if isinstance(segment, list) else segment[k - self._starts[j]]
+
+    def segments(self) -> list[tuple[int, object]]:
+        """``(first index, segment)``: a list of single expressions, or an SX column."""
+        return [(start, segment[0] if isinstance(segment, list) else segment.column)
+                for start, segment in zip(self._starts, self._segments, strict=False)]
+
+    def select(self, keep: np.ndarray) -> Stacked:
+        """The expressions where ``keep`` (one bool each), columns kept whole (or sliced)."""
+        out = Stacked()
+        for start, segment in zip(self._starts, self._segments, strict=False):
+            if isinstance(segment, list):
+                for k, (e, probe) in enumerate(zip(*segment, strict=True)):
+                    if keep[start + k]:
+                        out.add(e, probe)
+                continue
+            n = segment.column.numel()
+            kept = keep[start:start + n]
+            out.add_column(segment.column if kept.all() else segment.column[np.flatnonzero(kept).tolist()])
+        return out
+
+    def column(self) -> ca.SX:
+        """Every expression as one SX column (a single one that is not SX: as ``ca.SX``)."""
+        parts = [e if isinstance(e, ca.SX) else ca.SX(e) for segment in self._segments
+                 for e in (segment[0] if isinstance(segment, list) else [segment.column])]
+        return ca.vertcat(*parts) if parts else ca.SX(0, 1)
+
+    def scalars(self) -> bool:
+        """Whether every single expression is a scalar (the columns' are)."""
+        return all(not isinstance(e, ca.SX) or e.shape == (1, 1) for segment in self._segments
+                   if isinstance(segment, list) for e in segment[0])
+
+    @staticmethod
+    def may(expressions, symbol: ca.SX) -> bool:
+        """``may_depend_on`` of a Stacked; True for a list (it is not known)."""
+        return not isinstance(expressions, Stacked) or expressions.may_depend_on(symbol)
+
+    def may_depend_on(self, symbol: ca.SX) -> bool:
+        """Whether some expression may depend on ``symbol`` (its probe does): False proves
+        that none does, and so that a sum or stack of them does not."""
+        probes = [ca.vec(e) for segment in self._segments
+                  for e in (segment[1] if isinstance(segment, list) else [segment.column[0]])
+                  if isinstance(e, ca.SX)]
+        return bool(probes) and ca.depends_on(ca.vertcat(*probes), symbol)
 
 
 class Symbols:

@@ -94,11 +94,13 @@ def plain_pairs(items: list, section: str, names: frozenset, types: dict) -> lis
         if where != section or typ not in types:
             continue
         index = [i for i, kind in enumerate(kinds) if type(kind) is str and kind == typ]
-        pairs = [items[i] for i in index]
-        built = _all_plain(pairs, typ, required, optional, names, types[typ], section, index)
+        # the tables with a 'b' all at once; one to a point (a rope's first rod) is not plain
+        ends = [i for i in index if "b" in items[i]]
+        pairs = [items[i] for i in ends]
+        built = _all_plain(pairs, typ, required, optional, names, types[typ], section, ends)
         if built is None:  # some are not plain: which, table by table
-            built = [plain_pair(item, i, section, names, types) for i, item in zip(index, pairs, strict=True)]
-        for i, obj in zip(index, built, strict=True):
+            built = [plain_pair(item, i, section, names, types) for i, item in zip(ends, pairs, strict=True)]
+        for i, obj in zip(ends, built, strict=True):
             out[i] = obj
     return out
 

@@ -398,7 +398,7 @@ def _discovered(exprs: list, x, t, p, symbols: dict, c, found: dict, places) -> 
     if not exprs:
         return []
     place = (lambda ks: ks) if places is None else (lambda ks: places[ks])
-    stacked = ca.vertcat(*exprs)
+    stacked = exprs.column() if hasattr(exprs, "column") else ca.vertcat(*exprs)  # (model.symbols.Stacked)
     if stacked.numel() != len(exprs) or not stacked.is_column():  # (one check, not one per row)
         raise ValueError("the rows and terms of the mapped build are scalars")
     rows = _rows_function(stacked, x, t, p)  # (its sparsity: a third of the time of the SX's)
