@@ -270,3 +270,47 @@ def test_an_element_is_the_value_whether_it_steps_evenly_or_not(tmp_path, monkey
     f = external.c_functions([("element_test", body, ["x"], [ca.Sparsity.dense(1, 1)], ["out"],
                                [ca.Sparsity.dense(n, 1)])], table.c, key=table.data())[0]
     np.testing.assert_array_equal(np.asarray(f(0)).ravel(), np.concatenate(arrays))
+
+
+@needs_compiler
+@pytest.mark.parametrize("name", ["rope", "cloth", "rope with extras"])
+def test_the_products_library_is_found_in_the_cache_by_the_index_data_alone(name, tmp_path, monkeypatch):
+    """A second build of an equal structure loads J's products and the LDLᵀ by the build's
+    index data (no source written: neither A's index data nor the symbolic factorization is
+    built, and the compiler does not run), and they give the first library's numbers, bit for
+    bit; other index data (one stream's coordinates in another order) is another library's."""
+    from constrained.manifold.vectorized import products
+
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    system = tv.SYSTEMS[name]()
+    first = vb.vectorized_build(assemble(system, reuse=False).structure)
+    assert first.products() is not None
+    model = assemble(system, reuse=False)
+    second = vb.vectorized_build(model.structure)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("the source was written for a cached library")
+    monkeypatch.setattr(compiled, "_compile", refused)
+    monkeypatch.setattr(products, "ldl_bodies", refused)
+    assert second.products() is not None
+    assert "gram" not in (second.single.__dict__ if second.single is not None else {})  # (not built)
+    rng = np.random.default_rng(5)
+    streams = [rng.standard_normal(len(r)) for r in first.rows]
+    minv, y = rng.uniform(1, 3, first.n3), rng.standard_normal(first.n3)
+    lam, B = rng.standard_normal(first.n_rows), rng.standard_normal((first.n_rows, 2))
+    for kind, args in (("times", (*streams, y)), ("transpose_times", (*streams, lam))):
+        assert np.array_equal(np.asarray(first.products().f[kind](*args)),
+                              np.asarray(second.products().f[kind](*args)))
+    S = [ca.DM(s) for s in streams]
+    for k in (1, 2):
+        a = np.asarray(ca.evalf(first.products().solve(S, ca.DM(minv), ca.DM(B[:, :k]))))
+        b = np.asarray(ca.evalf(second.products().solve(S, ca.DM(minv), ca.DM(B[:, :k]))))
+        assert np.array_equal(a, b)
+    from types import SimpleNamespace
+
+    def swapped(b, s):  # one stream's coordinates in another order
+        cols = [c[::-1] if k == s else c for k, c in enumerate(b.cols)]
+        return SimpleNamespace(n_rows=b.n_rows, n3=b.n3, rows=b.rows, cols=cols)
+    assert products._decided_by(SimpleNamespace(n_rows=second.n_rows, n3=second.n3, rows=second.rows,
+                                                cols=second.cols)) == products._decided_by(second)
+    assert products._decided_by(swapped(second, 0)) != products._decided_by(second)

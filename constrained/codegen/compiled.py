@@ -131,11 +131,40 @@ def compile_source(source, like: list[ca.Function], *, key: bytes | None = None,
     unchanged on failure)."""
 
     def key_of(cc: str) -> str:
-        digest = hashlib.sha256(key if key is not None else source.encode())
-        digest.update(json.dumps(build_environment(cc, flags), sort_keys=True).encode())
-        return digest.hexdigest()[:20]
+        return _source_key(key if key is not None else source.encode(), cc, flags)
 
     return _cached(like, key_of, source if callable(source) else lambda: source, flags)
+
+
+def _source_key(key: bytes, cc: str, flags) -> str:
+    digest = hashlib.sha256(key)
+    digest.update(json.dumps(build_environment(cc, flags), sort_keys=True).encode())
+    return digest.hexdigest()[:20]
+
+
+def cached_source(names: list[str], key: bytes, *, flags=FLAGS) -> list[ca.Function] | None:
+    """The Functions ``names`` of the library that ``compile_source(source, like, key=key)``
+    built (``like[0]`` named ``names[0]``) when the cache holds it whole and signed, else None
+    (nothing is compiled): a lookup needing neither the source nor the Functions' shapes, for a
+    ``key`` that decides the source entirely (what the shapes are follows from it)."""
+    global last_error
+    cc = compiler()
+    if cc is None or not enabled():
+        return None
+    folder = cache_dir()
+    signing = None if private_folder(folder) else _signing_key(folder)
+    if signing is None:
+        return None
+    target = folder / f"{names[0]}_{_source_key(key, cc, flags)}.so"
+    if not target.exists() or _verify(target, build_environment(cc, flags), key=signing) is not None:
+        return None
+    try:
+        loaded = [ca.external(name, str(target)) for name in names]
+    except RuntimeError:
+        return None
+    last_error = None
+    eviction.mark_used(target)
+    return loaded
 
 
 def _generated(functions: list[ca.Function]) -> str:

@@ -160,19 +160,26 @@ CASADI_SYMBOL_EXPORT int {name}_work(casadi_int *sz_arg, casadi_int* sz_res, cas
 """
 
 
-def c_functions(specs: list[tuple], shared=None, key: bytes | None = None) -> list[ca.Function] | None:
+def c_functions(specs: list[tuple], shared=None, key: bytes | None = None,
+                decided_by: bytes | None = None) -> list[ca.Function] | None:
     """Several C loops, each ``(name, body, names_in, sparsity_in, names_out, sparsity_out[,
     work[, iwork]])``, as CasADi Functions (see the module) from one library (one compiler run), with
     ``shared`` C (static data; a callable giving it, with ``key`` the bytes that decide it,
     builds it only when the library is not in the cache) before them; or None where
     compiled code cannot be had: no C compiler, ``CONSTRAINED_COMPILE=0``, a cache folder
-    that is not private, or a failed compilation (``compiled.last_error`` says why)."""
+    that is not private, or a failed compilation (``compiled.last_error`` says why).
+    ``decided_by``: bytes that decide the whole source (``shared`` and the specs), the cache's
+    key then, so that ``compiled.cached_source`` finds the library without the source."""
     if not specs or not compiled.enabled():
         return None
     like = [ca.Function(name, [ca.MX.sym(v, s) for v, s in zip(ni, si, strict=True)], [ca.MX(s) for s in so],
                         ni, no) for name, _, ni, si, no, so, *_ in specs]
     code = "".join(entry(*s) for s in specs)
-    if key is None:
+    if decided_by is not None:
+        text = shared if callable(shared) else lambda: shared or ""
+        loaded = compiled.compile_source(lambda: PRELUDE + text() + code, like, key=decided_by,
+                                         flags=LOOP_FLAGS)
+    elif key is None:
         loaded = compiled.compile_source(PRELUDE + (shared or "") + code, like, flags=LOOP_FLAGS)
     else:
         loaded = compiled.compile_source(lambda: PRELUDE + shared() + code, like, key=key + code.encode(),

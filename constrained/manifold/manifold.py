@@ -45,6 +45,7 @@ from .algebra import LinearAlgebra, algebra_for
 from .dense import independent_rows_after
 from .graph import acceleration_graph, position_step_graph, velocity_correction_graph
 from .rank_policy import RANK, RankPolicy
+from .vectorized import at_point
 from .vectorized import graphs as vectorized
 
 
@@ -106,10 +107,14 @@ def dense_jacobian(model: Model):
 
 
 def constraint_values(model: Model):
-    """``(x, t) -> [f]`` (dense, a FunctionBuffer call), the Function built once per structure."""
+    """``(x, t) -> [f]`` (dense, a FunctionBuffer call), the Function built once per structure
+    (for a large model after its first calls, which are answered on numbers: ``numeric_first``)."""
     def build(view, X, T, P):
         return ca.Function("constraint_dense", [X, T, P], [ca.densify(view.constraint(X, T))])
 
+    if vectorized.applies(model):
+        return at_point.numeric_first(model, "constraint", ("f",),
+                                      lambda: structural_call(model, "constraint", build, "x", "t"))
     return structural_call(model, "constraint", build, "x", "t")
 
 
@@ -156,7 +161,8 @@ def sparse_jacobian(model: Model):
     def build(view, X, T, P):
         return ca.Function("jacobian_nonzeros", [X, T, P], [ca.densify(view.jacobian(X, T)[1].nz[:])])
 
-    nonzeros = structural_call(model, "jacobian_nonzeros", build, "x", "t")
+    nonzeros = at_point.numeric_first(model, "jacobian_nonzeros", ("f", "J"),
+                                      lambda: structural_call(model, "jacobian_nonzeros", build, "x", "t"))
     sparsity = vectorized.vectorized_build(model.structure).jacobian_sparsity
     cache, prefix = structure_cache(model)
     p = model.parameter_vector

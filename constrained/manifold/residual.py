@@ -25,6 +25,7 @@ import numpy as np
 from ..codegen.fast_call import FastCall
 from ..model.cache import ParametricView, structure_cache
 from .graph import row_scales_expr
+from .vectorized import at_point
 from .vectorized import graphs as vectorized
 
 _CACHE_KEY = "residual_in_metres"
@@ -98,7 +99,19 @@ def row_scales(model, x, t: float = 0.0) -> np.ndarray:
     """s_i (see the module) at (x, t), shape (C,): the rows of f, then the velocity rows."""
     if model.n_constraints == 0:
         return np.zeros(0)
+    if vectorized.applies(model):  # a start's call: on numbers, the Function when a run asks often
+        cache, prefix = structure_cache(model)
+        return at_point.numeric_first(model, "row scales", ("scale",),
+                                      lambda: _scales_call(model, cache, prefix))(x, t)[0]
     return functions(model)["scales"](np.asarray(x, float).ravel(), t, model.parameter_vector)[0]
+
+
+def _scales_call(model, cache: dict, prefix: tuple):
+    """(x, t) -> [s] through the structure's "scales" Function (``functions``), noted as built
+    for ``at_point.numeric_first`` (its key "row scales")."""
+    scales = functions(model)["scales"]
+    cache[(*prefix, "structural", "row scales")] = scales
+    return lambda x, t: scales(np.asarray(x, float).ravel(), t, model.parameter_vector)
 
 
 def smallest_scale(model, x, t: float = 0.0) -> float:
