@@ -192,6 +192,9 @@ def forces_and_energy(model: Model):
         return ca.Function("forces_and_energy", [x, v, t, p],
                            [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
 
+    if vectorized.applies(model):  # (its first calls on numbers, without the Function)
+        return at_point.forces_first(model, lambda: structural_call(model, "forces_and_energy", build,
+                                                                    "x", "v", "t"))
     return structural_call(model, "forces_and_energy", build, "x", "v", "t")
 
 
