@@ -6,8 +6,10 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
+from test_batched_groups import _cloth
 from test_vectorized import SYSTEMS, _state, rope
 
+import constrained as C
 from constrained.manifold import manifold, residual
 from constrained.manifold.vectorized import at_point
 from constrained.manifold.vectorized import build as vb
@@ -90,3 +92,88 @@ def test_a_large_models_first_calls_are_on_numbers_then_its_function():
     for (x, t), got in zip(states, values, strict=True):
         for g, function in zip(got, functions, strict=True):
             assert np.array_equal(g, function(x, t))
+
+
+def _spring_systems() -> dict:
+    """Potentials the kernels hold (springs as groups), with formulas of t and p among plain
+    numbers, uneven and parametric masses, and a rope with no effect at all."""
+    cloth = _cloth(7, formulas=True)
+    springy = rope(110, varied=True, moving=True)
+    springy.parameters = {**(springy.parameters or {}), "k2": 3.5}
+    for i in range(0, 106, 3):  # rest lengths: a formula of t every other spring, k a parameter
+        springy.add(C.Spring(f"p{i}", f"p{i + 3}", k="k2" if i % 2 else 2.0,
+                             rest="0.02 + 0.001*t*t" if i % 6 == 0 else 0.02 + 0.001 * i))
+    bare = C.System(name="no effects")
+    for i in range(120):
+        bare.add_particle(f"b{i}", 0.01 * (1 + (i % 4)), [0.01 * i, 0.0, 0.0], [0.0, 0.1 * i, 0.0])
+    for i in range(1, 120):
+        bare.add(C.Distance(f"b{i - 1}", f"b{i}", length=0.01))
+    return {"cloth with springs": lambda: cloth, "rope with springs": lambda: springy,
+            "no effects": lambda: bare}
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["C loops", "columns"])
+@pytest.mark.parametrize("name", sorted(SYSTEMS) + ["cloth with springs", "rope with springs", "no effects"])
+def test_forces_and_energy_at_a_state_are_the_functions_numbers_bit_for_bit(name, compiled, monkeypatch):
+    """``forces_and_energy_at`` (the start checks of finite forces and energy, on numbers) gives
+    F and the energy of ``manifold.forces_and_energy``'s Function bit for bit, at moving states,
+    with particles on top of each other and at infinity (NaN and inf where the Function has them)."""
+    if not compiled:
+        monkeypatch.setenv("CONSTRAINED_COMPILE", "0")
+    system = {**SYSTEMS, **_spring_systems()}[name]()
+    model = Model(system, structure=Structure(system))  # (large or not: the vectorized build)
+    b = vb.vectorized_build(model.structure)
+    X, V, T = ca.MX.sym("x", model.n_coordinates), ca.MX.sym("v", model.n_coordinates), ca.MX.sym("t")
+    P = ca.MX.sym("p", len(model.parameter_vector))
+    view = vg.VectorizedView(model, P)
+    function = ca.Function("fe", [X, V, T, P], [ca.densify(view.dynamics(X, V, T)[0]), view.energy(X, V, T)])
+    rng = np.random.default_rng(3)
+    for x, t in _states(model, system):
+        v = 0.2 * rng.standard_normal(model.n_coordinates)
+        with np.errstate(all="ignore"):
+            got = at_point.forces_and_energy_at(b, x, v, t, model.parameter_vector, model.masses)
+        F, E = (np.asarray(o, float).ravel() for o in function(x, v, t, model.parameter_vector))
+        assert got is not None
+        assert np.array_equal(got[0], F, equal_nan=True), x[:6]
+        assert np.array_equal([got[1]], E, equal_nan=True), (got[1], E)
+
+
+def test_the_start_checks_of_forces_are_on_numbers_then_one_function():
+    """``manifold.forces_and_energy`` of a large model: its first NUMERIC_CALLS calls on numbers
+    (no Function built), then the Function, built once; every call gives the Function's numbers,
+    and ``potential_forces_finite`` sees a force that is not finite."""
+    system = _spring_systems()["rope with springs"]()
+    model = Model(system, structure=Structure(system))
+    cache, prefix = structure_cache(model)
+    values = manifold.forces_and_energy(model)
+    rng = np.random.default_rng(8)
+    states = [(*_state(model, system, seed)[:2], 0.1 * seed) for seed in range(at_point.NUMERIC_CALLS + 2)]
+    got = [values(x, v, t) for x, v, t in states]
+    assert cache[(*prefix, "numeric calls", "forces_and_energy")] == at_point.NUMERIC_CALLS
+    function = cache[(*prefix, "structural", "forces_and_energy")]
+    for (x, v, t), (F, E) in zip(states, got, strict=True):
+        want = function(x, v, t, model.parameter_vector)
+        assert np.array_equal(F, want[0]) and np.array_equal(E, want[1])
+    fresh = Model(system, structure=Structure(system))
+    x0, v0 = (np.asarray(a, float).ravel() for a in (system.positions, system.velocities))
+    assert manifold.potential_forces_finite(fresh)(x0, v0 + rng.standard_normal(v0.size), 0.0)
+    x0[7] = np.inf
+    assert not manifold.potential_forces_finite(fresh)(x0, v0, 0.0)
+    assert (*structure_cache(fresh)[1], "structural", "forces_and_energy") not in structure_cache(fresh)[0]
+
+
+def test_a_potential_outside_the_exact_operations_is_left_to_the_function():
+    """A spring whose stiffness is a formula with sin(t): its energy is not replayed on numbers
+    (libraries round sin differently), so the Function is built and gives the values."""
+    system = rope(110)
+    system.add(*(C.Spring(f"p{i}", f"p{i + 4}", k="2 + sin(t)", rest=0.03) for i in range(0, 100, 2)))
+    model = Model(system, structure=Structure(system))
+    x, v, t = _state(model, system)
+    b = vb.vectorized_build(model.structure)
+    assert at_point.forces_and_energy_at(b, x, v, t, model.parameter_vector, model.masses) is None
+    F, E = manifold.forces_and_energy(model)(x, v, t)
+    cache, prefix = structure_cache(model)
+    assert (*prefix, "structural", "forces_and_energy") in cache
+    F_model = np.asarray(model.dynamics(x, v, t)[0], float).ravel()
+    np.testing.assert_allclose(F, F_model, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(E, float(model.energy(x, v, t)), rtol=1e-12)

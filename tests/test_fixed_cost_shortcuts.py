@@ -217,3 +217,51 @@ def test_lifted_copies_set_fields_as_setattr_does():
     assert plain is not s.constraints[0] and type(plain) is C.Distance and plain.length == lifting.Number(2)
     assert list(vars(plain)) == list(vars(s.constraints[0])) and s.constraints[0].length == 1.5
     assert watched.set_through and watched.length == lifting.Number(3) and values.tolist() == [1, 2, 1.5, 0.5]
+
+
+def _large_start_cases():
+    from test_vectorized import rope
+
+    import constrained as C
+
+    off = rope(120, varied=True)
+    off.particles[7].position = np.asarray(off.particles[7].position, float) + [2e-6, -1e-6, 0.0]
+    springs = rope(110, moving=True)
+    springs.add(*(C.Spring(f"p{i}", f"p{i + 5}", k=3.0, rest=0.04) for i in range(0, 100, 4)))
+    return {"on its rows": (rope(120), False), "a particle off its rods": (off, True),
+            "moving anchor and springs": (springs, None)}
+
+
+@pytest.mark.parametrize("case", ["on its rows", "a particle off its rods", "moving anchor and springs"])
+def test_a_large_start_builds_the_newton_step_only_off_its_rows_with_the_eager_numbers(case, monkeypatch):
+    """A large model's manifold builds each fast path when first called: a start already on
+    f = 0 is found so by f alone (no Newton step Function), one off it takes the Newton steps;
+    the start (x, v, the correction report, the counters) is bit for bit that of the fast paths
+    built all at once, and so is a run from it."""
+    import constrained as C
+    from constrained.manifold import manifold
+    from constrained.manifold.vectorized import graphs as vg
+    from constrained.model.structure import Model, Structure
+    from constrained.run.start import consistent_start
+
+    system, newton = _large_start_cases()[case]
+    results = []
+    for eager in (False, True):
+        if eager:
+            def all_at_once(model, rows, compiled):
+                return manifold._FastPaths("virtual machine", vg.fast_path_functions(model))
+            monkeypatch.setattr(manifold, "_fast_paths", all_at_once)
+        model = Model(system, structure=Structure(system))
+        assert vg.applies(model)
+        x0, v0 = (np.asarray(a, float).ravel() for a in (system.positions, system.velocities))
+        start = consistent_start(model, x0, v0, 0.0)
+        if not eager and newton is not None:
+            assert start.manifold._fast.built("newton_step") == newton
+        run = C.simulate(system, 2e-4, model=model, rtol=1e-7, atol=1e-9)
+        results.append((start, run))
+    (lazy, run_lazy), (full, run_full) = results
+    assert np.array_equal(lazy.x, full.x) and np.array_equal(lazy.v, full.v)
+    assert lazy.correction == full.correction
+    assert lazy.manifold.counters.as_dict() == full.manifold.counters.as_dict()
+    for name in ("t", "x", "v"):
+        assert np.array_equal(getattr(run_lazy, name), getattr(run_full, name))

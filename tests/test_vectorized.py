@@ -402,10 +402,11 @@ def test_the_sparse_jacobian_kept_at_one_state_is_given_there_alone():
     assert jacobian(x1, 0.7) is jacobian(x1.copy(), 0.7)  # (the kept one: no second evaluation)
 
 
-def test_the_start_checks_of_forces_share_one_function_with_the_structures_numbers():
+def test_the_start_checks_of_forces_share_one_evaluation_with_the_structures_numbers():
     """scene.build's check of a large model's potentials (``potential_forces_finite``) and the
-    run's check of a finite start (run.simulate) evaluate one Function, built once per structure:
-    F and the energy there are the Structure's, and a non-finite force is seen."""
+    run's check of a finite start (run.simulate) share ``manifold.forces_and_energy`` (on numbers
+    for a structure's first calls, tests/test_at_point.py, then one Function built once per
+    structure): F and the energy there are the Structure's, and a non-finite force is seen."""
     from constrained.manifold import manifold
     from constrained.model.cache import structure_cache
     from constrained.run import simulate
@@ -415,9 +416,9 @@ def test_the_start_checks_of_forces_share_one_function_with_the_structures_numbe
     v0 = v0 + 0.1 * np.cos(np.arange(v0.size))
     assert manifold.potential_forces_finite(model)(x0, v0, 0.0)
     cache, prefix = structure_cache(model)
-    built = cache[(*prefix, "structural", "forces_and_energy")]
+    assert cache[(*prefix, "numeric calls", "forces_and_energy")] == 1
     F, E = simulate.forces_and_energy(model)(x0, v0, 0.0)  # (the name the run calls)
-    assert cache[(*prefix, "structural", "forces_and_energy")] is built
+    assert cache[(*prefix, "numeric calls", "forces_and_energy")] == 2
     _close(F, np.asarray(model.dynamics(x0, v0, 0.0)[0], float).ravel(), 1e-12)
     _close(E, float(model.energy(x0, v0, 0.0)), 1e-12)
     x_bad = x0.copy()

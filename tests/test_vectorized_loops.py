@@ -165,6 +165,38 @@ def test_a_combination_is_y_plus_the_weighted_columns(with_y):
 
 
 @needs_compiler
+def test_combinations_from_the_cache_are_loaded_one_by_one_and_equal_the_compiled_ones(tmp_path, monkeypatch):
+    """A cached library's entry points are loaded when first asked for (not all 32), without
+    the compiler, and give the numbers of the freshly compiled library, bit for bit, for
+    every k and both forms; a library the cache does not hold is compiled whole."""
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(combination, "_libraries", {})
+    rng = np.random.default_rng(11)
+    n = 257
+    y, K = rng.standard_normal(n), rng.standard_normal((combination.MAX_TERMS, n))
+    c = rng.standard_normal(combination.MAX_TERMS) * 10.0 ** rng.integers(-8, 8, combination.MAX_TERMS)
+    cases = [(k, with_y) for k in range(1, combination.MAX_TERMS + 1) for with_y in (True, False)]
+
+    def values():
+        return {(k, w): np.asarray(combination.combination(n, k, with_y=w)(*([y][:w]), *K[:k], c[:k]))
+                for k, w in cases}
+    fresh = combination.combination(n, 3)  # compiled: every entry loaded
+    assert all(f is not None for f in combination._libraries[n].loaded)
+    compiled_values = values()
+
+    def no_compiler(command):
+        raise AssertionError("the compiler ran for a cached library")
+    monkeypatch.setattr(compiled, "_compile", no_compiler)
+    monkeypatch.setattr(combination, "_libraries", {})
+    again = combination.combination(n, 3)
+    assert [f is not None for f in combination._libraries[n].loaded].count(True) == 1
+    np.testing.assert_array_equal(np.asarray(again(y, *K[:3], c[:3])), np.asarray(fresh(y, *K[:3], c[:3])))
+    cached_values = values()
+    for case in cases:
+        np.testing.assert_array_equal(cached_values[case], compiled_values[case], err_msg=str(case))
+
+
+@needs_compiler
 def test_a_c_function_is_compiled_once_and_loaded_from_the_cache(tmp_path, monkeypatch):
     """The second build of the same source loads the library (the compiler is not run), a
     null output is skipped, and a null input reads as zeros."""

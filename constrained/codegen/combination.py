@@ -17,7 +17,7 @@ from __future__ import annotations
 import casadi as ca
 
 from . import compiled
-from .external import c_functions
+from .external import LOOP_FLAGS, PRELUDE, c_functions, entry
 
 #: The most stages one combination sums (DOP853: 12, its error estimates 13).
 MAX_TERMS = 16
@@ -37,24 +37,49 @@ def _body(k: int, n: int, with_y: bool) -> str:
 
 
 #: The libraries built in this process, by column length.
-_libraries: dict[int, tuple] = {}
+_libraries: dict[int, _Library | None] = {}
 
 
-def _library(n: int) -> tuple | None:
-    if n not in _libraries:
+class _Library:
+    """The 2 × MAX_TERMS entry points for one column length n: each loaded from the cached
+    library when first asked for (a DOP853 step uses about a dozen: each ``casadi.external``
+    and the Function it is checked against cost ~1 ms), all of them compiled and loaded at
+    once (``c_functions``) when the cache does not hold the library whole and signed."""
+
+    def __init__(self, n: int):
         column = ca.Sparsity.dense(n, 1)
-        specs = []
+        self.specs = []
         for with_y in (True, False):
             for k in range(1, MAX_TERMS + 1):
                 names = [*(["y"] if with_y else []), *(f"K{j}" for j in range(k)), "c"]
                 sparsity = [column] * (k + with_y) + [ca.Sparsity.dense(k, 1)]
-                specs.append((f"{'combination' if with_y else 'sum'}_{n}_{k}", _body(k, n, with_y), names,
-                              sparsity, ["out"], [column]))
-        loaded = c_functions(specs)
-        if loaded is None:
-            return None
-        _libraries[n] = tuple(loaded)
-    return _libraries[n]
+                self.specs.append((f"{'combination' if with_y else 'sum'}_{n}_{k}", _body(k, n, with_y),
+                                   names, sparsity, ["out"], [column]))
+        # (the key ``c_functions`` gives the library: its source)
+        source = PRELUDE + "".join(entry(*spec) for spec in self.specs)
+        self.path = compiled.cached_library(self.specs[0][0], source.encode(), flags=LOOP_FLAGS)
+        self.loaded: list[ca.Function | None] = [None] * len(self.specs)
+
+    def __getitem__(self, i: int) -> ca.Function | None:
+        if self.loaded[i] is None and self.path is not None:
+            name, _, _, sparsity_in, _, sparsity_out = self.specs[i]
+            try:
+                f = ca.external(name, str(self.path))
+            except RuntimeError:
+                f = None
+            matches = f is not None and (f.n_in(), f.n_out()) == (len(sparsity_in), 1) and all(
+                f.sparsity_in(j) == s for j, s in enumerate(sparsity_in))
+            matches = matches and f.sparsity_out(0) == sparsity_out[0]
+            if matches:
+                self.loaded[i] = f
+            else:  # (not what its source says: ``c_functions`` rebuilds it, with a notice)
+                self.path = None
+        if self.loaded[i] is None:
+            every = c_functions(self.specs)
+            if every is None:
+                return None
+            self.loaded = every
+        return self.loaded[i]
 
 
 def combination(n: int, k: int, with_y: bool = True) -> ca.Function | None:
@@ -62,5 +87,10 @@ def combination(n: int, k: int, with_y: bool = True) -> ca.Function | None:
     False: no y, Σ c_j K_j); or None (no compiled code, or k outside 1 … MAX_TERMS)."""
     if not 1 <= k <= MAX_TERMS or not compiled.enabled():
         return None
-    library = _library(n)
-    return None if library is None else library[(0 if with_y else MAX_TERMS) + k - 1]
+    if n not in _libraries:
+        _libraries[n] = _Library(n)
+    library = _libraries[n]
+    f = None if library is None else library[(0 if with_y else MAX_TERMS) + k - 1]
+    if f is None and not compiled.cut_short():  # no compiled code: not asked for again
+        _libraries[n] = None
+    return f

@@ -148,6 +148,22 @@ def cached_source(names: list[str], key: bytes, *, flags=FLAGS) -> list[ca.Funct
     (nothing is compiled): a lookup needing neither the source nor the Functions' shapes, for a
     ``key`` that decides the source entirely (what the shapes are follows from it)."""
     global last_error
+    target = cached_library(names[0], key, flags=flags)
+    if target is None:
+        return None
+    try:
+        loaded = [ca.external(name, str(target)) for name in names]
+    except RuntimeError:
+        return None
+    last_error = None
+    return loaded
+
+
+def cached_library(name: str, key: bytes, *, flags=FLAGS) -> Path | None:
+    """The library ``compile_source(source, like, key=key)`` built (``like[0]`` named ``name``;
+    without ``key`` there, ``key`` is the source's bytes) when the cache holds it whole and
+    signed (then marked used), else None: nothing is compiled or loaded, so that a caller may
+    load only the entry points it needs (``casadi.external`` of each, ~0.5 ms)."""
     cc = compiler()
     if cc is None or not enabled():
         return None
@@ -155,16 +171,11 @@ def cached_source(names: list[str], key: bytes, *, flags=FLAGS) -> list[ca.Funct
     signing = None if private_folder(folder) else _signing_key(folder)
     if signing is None:
         return None
-    target = folder / f"{names[0]}_{_source_key(key, cc, flags)}.so"
+    target = folder / f"{name}_{_source_key(key, cc, flags)}.so"
     if not target.exists() or _verify(target, build_environment(cc, flags), key=signing) is not None:
         return None
-    try:
-        loaded = [ca.external(name, str(target)) for name in names]
-    except RuntimeError:
-        return None
-    last_error = None
     eviction.mark_used(target)
-    return loaded
+    return target
 
 
 def _generated(functions: list[ca.Function]) -> str:

@@ -192,6 +192,9 @@ def forces_and_energy(model: Model):
         return ca.Function("forces_and_energy", [x, v, t, p],
                            [ca.densify(view.dynamics(x, v, t)[0]), view.energy(x, v, t)])
 
+    if vectorized.applies(model):  # (its first calls on numbers, without the Function)
+        return at_point.forces_first(model, lambda: structural_call(model, "forces_and_energy", build,
+                                                                    "x", "v", "t"))
     return structural_call(model, "forces_and_energy", build, "x", "v", "t")
 
 
@@ -274,12 +277,41 @@ def _redundant_rows(model: Model, x: np.ndarray, t: float, policy: RankPolicy) -
 _lock = threading.Lock()
 
 
-@dataclass(frozen=True)
 class _FastPaths:
-    acceleration: FastCall
-    newton_step: FastCall
-    velocity_correction: FastCall
-    evaluation: str
+    """The acceleration, Newton step and velocity correction (``vectorized.FAST_PATHS``) as
+    FastCalls: all given at once, or each built by ``build(name)`` when first asked for (a
+    large model's: a start at rest on its constraints needs neither projection's Function)."""
+
+    def __init__(self, evaluation: str, functions: list | None = None, build=None):
+        self.evaluation = evaluation
+        self._calls = {} if functions is None else dict(zip(vectorized.FAST_PATHS, map(FastCall, functions),
+                                                            strict=True))
+        self._build = build
+        self._lock = threading.Lock()
+
+    def built(self, name: str) -> bool:
+        return name in self._calls
+
+    def _call(self, name: str) -> FastCall:
+        call = self._calls.get(name)
+        if call is None:
+            with self._lock:
+                call = self._calls.get(name)
+                if call is None:
+                    call = self._calls[name] = FastCall(self._build(name))
+        return call
+
+    @property
+    def acceleration(self) -> FastCall:
+        return self._call("acceleration")
+
+    @property
+    def newton_step(self) -> FastCall:
+        return self._call("newton_step")
+
+    @property
+    def velocity_correction(self) -> FastCall:
+        return self._call("velocity_correction")
 
 
 def _graph_fast_paths(model: Model, rows) -> list[ca.Function]:
@@ -314,7 +346,11 @@ def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
         return cached
     # large: the vectorized build (whole columns of instances, J's products by index data)
     vector = vectorized.applies(model, rows) and not compiled
-    funcs = vectorized.fast_path_functions(model) if vector else _graph_fast_paths(model, rows)
+    if vector:  # each built when first called
+        paths = _FastPaths("virtual machine", build=lambda name: vectorized.fast_path_function(model, name))
+        with _lock:
+            return cache.setdefault(key, paths)
+    funcs = _graph_fast_paths(model, rows)
     evaluation = "virtual machine"
     if compiled:
         from ..codegen import compiled as compiled_evaluation
@@ -322,7 +358,7 @@ def _fast_paths(model: Model, rows, compiled: bool) -> _FastPaths:
         machine = compiled_evaluation.compile_functions(funcs)
         if all(f.class_name() == "External" for f in machine):
             funcs, evaluation = machine, "compiled"
-    paths = _FastPaths(*(FastCall(f) for f in funcs), evaluation)
+    paths = _FastPaths(evaluation, funcs)
     if compiled and compiled_evaluation.cut_short():  # a compile cut by Ctrl-C: not kept
         return paths
     with _lock:
@@ -448,6 +484,12 @@ class Manifold:
                 self.counters.nfev += 1
                 err = float(np.max(np.abs(constraint_values(m)(x, t)[0])))
                 if err <= tol:
+                    return ProjectionResult(x, ProjectionStatus.CONVERGED, it, err)
+            elif not self._fast.built("newton_step"):  # f alone (a start's: on numbers) for a
+                # start on f = 0, without building the Newton step's Function (the same f)
+                err = float(np.max(np.abs(constraint_values(m)(x, t)[0])))
+                if err <= tol:
+                    self.counters.njev += 1
                     return ProjectionResult(x, ProjectionStatus.CONVERGED, it, err)
             self.counters.njev += 1
             f, dx = _fast_or_nan(self._fast.newton_step, (m.n_position_rows, m.n_coordinates), x, t, self._p)

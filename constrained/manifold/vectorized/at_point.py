@@ -102,6 +102,56 @@ def _row_columns(b: VectorizedBuild, g, outputs: tuple, x, v, t, p) -> list[list
     return [scalars[start[variant.index(k)]:start[variant.index(k) + 1]] for k in outputs]
 
 
+def _kernel_inputs(g, x, v, t, p) -> list:
+    """A group's kernel inputs on numbers, as ``VectorizedBuild._columns`` gathers them."""
+    values = np.concatenate([p, np.asarray(g.constants, float).reshape(-1)]) if g.constants.size else p
+    return [lambda j: x[g.index[j]], lambda j: v[g.index[j]], lambda j: values[g.sources[j]], [t],
+            lambda j: p[j]]
+
+
+def _gradient_columns(b: VectorizedBuild, g, x, v, t, p) -> list[np.ndarray]:
+    """``VectorizedBuild._gradient_columns`` on numbers: g's C loop where it has one, else its
+    kernel's instructions (NotExact outside EXACT)."""
+    kernel = b._gradient_kernel(g)
+    loop = b._loops().get((id(g), "gradient")) if b._moves(g, kernel) else None
+    if loop is None:
+        return on_numbers(kernel, _kernel_inputs(g, x, v, t, p), g.index.shape[1])[0]
+    return list(_call(b, loop.function, x, v, t, p))
+
+
+def sequential_sum(values: np.ndarray) -> float:
+    """Σ values added left to right from 0 (CasADi's dot product and ``sum1`` loops; NumPy's
+    ``sum`` adds pairwise, in another order)."""
+    return float(np.cumsum(values)[-1]) + 0.0 if values.size else 0.0
+
+
+def forces_and_energy_at(b: VectorizedBuild, x, v, t: float, p, masses) -> tuple | None:
+    """The applied forces F (3N,) and the energy T + V + U − v·∂U/∂v at one numeric state,
+    the numbers of ``manifold.forces_and_energy``'s Function (``VectorizedBuild.evaluate``'s F,
+    ``energy``) bit for bit, without building it; None where a kernel without its C loop has
+    operations outside EXACT or a sum is a matrix product."""
+    x, v, p = (np.asarray(a, float).ravel() for a in (x, v, p))
+    masses = np.asarray(masses, float).ravel()
+    try:
+        gradients = [col for g in b.mapped.terms for col in _gradient_columns(b, g, x, v, t, p)]
+        values = [on_numbers(b._value_kernel(g), _kernel_inputs(g, x, v, t, p), g.index.shape[1])[0][0]
+                  for g in b.mapped.terms]
+    except NotExact:
+        return None
+    F_rest, E_rest = (_dense(value).ravel() for value in _call(b, b._rest_function(("F", "E")), x, v, t, p))
+    if gradients:
+        potential = summed(b.by_force, gradients)
+        if potential is None:
+            return None
+        F = F_rest - potential if b.rest_forces else -potential
+    else:
+        F = F_rest
+    E = 0.5 * sequential_sum((masses * v) * v) + E_rest[0]
+    for column in values:
+        E = E + sequential_sum(np.asarray(column, float))
+    return F, E
+
+
 def _call(b: VectorizedBuild, function: ca.Function, *args) -> list:
     """``function(*args)``'s outputs, through a FastCall (kept beside the build) where they are
     dense: no DM of 3N numbers in, nor of n per output out."""
@@ -169,5 +219,31 @@ def numeric_first(model, key: str, outputs: tuple, general):
                 return [values[outputs[-1]]]
         function = function or general()
         return function(x, t)
+
+    return call
+
+
+def forces_first(model, general):
+    """``(x, v, t) -> [F, [E]]`` for a large model (the vectorized build): ``forces_and_energy_at``
+    for the structure's first NUMERIC_CALLS calls (a start's check of finite forces, the run's,
+    its last sample's energy: a Function of 20-130 ms of graph building for each one call), then
+    the call ``general()`` gives (the Function's, built once per structure)."""
+    cache, prefix = structure_cache(model)
+    counted = (*prefix, "numeric calls", "forces_and_energy")
+    built = (*prefix, "structural", "forces_and_energy")
+    b = vectorized_build(model.structure)
+    p, masses = model.parameter_vector, model.masses
+    function = None
+
+    def call(x, v, t):
+        nonlocal function
+        if function is None and built not in cache and cache.get(counted, 0) < NUMERIC_CALLS:
+            with np.errstate(all="ignore"):
+                values = forces_and_energy_at(b, x, v, t, p, masses)
+            if values is not None:
+                cache[counted] = cache.get(counted, 0) + 1
+                return [values[0], np.array([values[1]])]
+        function = function or general()
+        return function(x, v, t)
 
     return call

@@ -183,19 +183,31 @@ def _symbols(model: Model):
     return ca.MX.sym("x", n3), ca.MX.sym("v", n3), ca.MX.sym("t"), P
 
 
-def fast_path_functions(model: Model) -> list[ca.Function]:
-    """The manifold's fast paths on the vectorized build (dense outputs, p last):
-    ``acceleration(x, v, t, p) -> (a, λ)``, ``newton_step(x, t, p) -> (f, dx)``,
-    ``velocity_correction(x, v, t, p) -> dv``."""
+#: The manifold's fast paths, in the order ``fast_path_functions`` gives them.
+FAST_PATHS = ("acceleration", "newton_step", "velocity_correction")
+
+
+def fast_path_function(model: Model, name: str) -> ca.Function:
+    """One of the manifold's fast paths on the vectorized build (dense outputs, p last), by
+    ``name`` in FAST_PATHS: ``acceleration(x, v, t, p) -> (a, λ)``, ``newton_step(x, t, p) ->
+    (f, dx)``, ``velocity_correction(x, v, t, p) -> dv``."""
     X, V, T, P = _symbols(model)
     view = ParametricView(model, P)
-    a, lam = acceleration_graph(view, X, V, T)
-    f, dx = position_step_graph(view, X, T)
-    dv = velocity_correction_graph(view, X, V, T)
     d = ca.densify
-    return [ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)]),
-            ca.Function("newton_step", [X, T, P], [d(f), d(dx)]),
-            ca.Function("velocity_correction", [X, V, T, P], [d(dv)])]
+    if name == "acceleration":
+        a, lam = acceleration_graph(view, X, V, T)
+        return ca.Function("acceleration", [X, V, T, P], [d(a), d(lam)])
+    if name == "newton_step":
+        f, dx = position_step_graph(view, X, T)
+        return ca.Function("newton_step", [X, T, P], [d(f), d(dx)])
+    if name == "velocity_correction":
+        return ca.Function("velocity_correction", [X, V, T, P], [d(velocity_correction_graph(view, X, V, T))])
+    raise ValueError(f"no fast path {name!r} (choose from {', '.join(FAST_PATHS)})")
+
+
+def fast_path_functions(model: Model) -> list[ca.Function]:
+    """The manifold's fast paths on the vectorized build, in the order of FAST_PATHS."""
+    return [fast_path_function(model, name) for name in FAST_PATHS]
 
 
 #: The quantities ``quantities_function`` can give, in order.
