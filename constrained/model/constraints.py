@@ -63,6 +63,14 @@ class Labelled:
     def _where(self) -> str:
         return self.where or f"{self.kind} {self.label!r}"
 
+    @classmethod
+    def bare(cls, **attributes):
+        """An instance holding ``attributes`` (in that order), ``__init__`` not called: the object
+        ``__init__`` makes of values already checked (a large scene's items)."""
+        item = cls.__new__(cls)
+        item.__dict__.update(attributes)
+        return item
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.label})"
 
@@ -190,10 +198,8 @@ class Distance(Constraint):
         """``Distance(a, b, length=length, where=where)`` of values already checked (two different
         particles' names, a finite positive float length), without checking them again: a
         large scene's rods (constrained.scene.plain)."""
-        rod = cls.__new__(cls)
-        rod.__dict__.update(a=a, b=b, point=None, length=length, name=None, where=where, unilateral=False,
-                            restitution=0.0)
-        return rod
+        return cls.bare(a=a, b=b, point=None, length=length, name=None, where=where, unilateral=False,
+                        restitution=0.0)
 
     @property
     def label(self) -> str:

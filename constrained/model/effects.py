@@ -108,6 +108,12 @@ class Spring(Effect):
         self.a, self.b, self.point, self.k, self.rest = a, b, point, k, rest
         self.name, self.where = name, where
 
+    @classmethod
+    def between(cls, a: str, b: str, k: float, rest: float, where: str | None = None) -> Spring:
+        """``Spring(a, b, k=k, rest=rest, where=where)`` of checked values (two particles' names,
+        finite floats), its attributes set at once: a large scene's springs (scene.plain)."""
+        return cls.bare(a=a, b=b, point=None, k=k, rest=rest, name=None, where=where)
+
     @property
     def label(self) -> str:
         other = self.b if self.b is not None else _fmt(self.point)
@@ -516,13 +522,5 @@ def forces(slots: dict, x, v, t, *, deferred: bool = False) -> tuple:
     return F, V, U, dU_dv, active
 
 
-EFFECT_TYPES = {
-    "gravity": Gravity,
-    "spring": Spring,
-    "potential": Potential,
-    "central": Central,
-    "pairwise": Pairwise,
-    "damping": Damping,
-    "force": Force,
-    "electromagnetic": Electromagnetic,
-}
+EFFECT_TYPES = {"gravity": Gravity, "spring": Spring, "potential": Potential, "central": Central,
+                "pairwise": Pairwise, "damping": Damping, "force": Force, "electromagnetic": Electromagnetic}
