@@ -249,3 +249,36 @@ def test_lifting_and_the_fingerprint_run_by_run_are_item_by_item():
     again, _ = lifting.lift(system, fast_walk)
     for a, b in zip([*again.particles, *again.constraints, *again.effects], ours, strict=True):
         assert type(a) is type(b) and list(vars(a).items()) == list(vars(b).items())
+
+
+@pytest.mark.parametrize("line, value", [
+    ("particles", "inf"), ("particles", "nan"), ("particles", "1e101"), ("particles", "-2e200"),
+    ("constraints", "1e300"), ("simulate", "1e101"), ("expect", "1e300"), (None, None)])
+def test_a_scene_file_walked_once_is_refused_as_the_builders_walk_refuses_it(tmp_path, line, value):
+    """``load_scene``'s one walk over the file's values (nesting and numbers at once): a number
+    that is not finite or too large is refused with the message the builder's own walk gives
+    (``build_scene`` of the same data), naming its key; one in [expect] (which that walk does
+    not see) is accepted as before."""
+    from constrained import tomlparse
+    from constrained.scene.load import load_scene
+
+    text = {"particles": '[[particles]]\nname = "a"\nmass = 1.0\nposition = [1.0, 0.0, {v}]\n',
+            "constraints": '[[constraints]]\ntype = "distance"\na = "a"\npoint = [0.0, 0.0, 0.0]\n'
+                           'length = 1.0\nname = "rod"\nrestitution = {v}\n',
+            "simulate": "[simulate]\nt_end = 0.01\natol = {v}\n",
+            "expect": "[expect]\nenergy_drift = {v}\n"}
+    source = "".join(part.format(v=value if key == line else "0.5" if key == "particles" else
+                                 "0.0" if key == "constraints" else "1e-9" if key == "simulate" else "1.0")
+                     for key, part in text.items())
+    path = tmp_path / "scene.toml"
+    path.write_text(source)
+    try:
+        loaded = load_scene(path).system.n_particles
+    except SceneError as exc:
+        loaded = str(exc)
+    try:
+        built = build_scene(tomlparse.loads(source), path=path).system.n_particles
+    except SceneError as exc:
+        built = str(exc)
+    assert loaded == built
+    assert isinstance(loaded, str) == (line not in (None, "expect"))
