@@ -9,7 +9,9 @@ row gets its own multiplier. Residuals are kept in metres where the geometry all
 
 from __future__ import annotations
 
+import itertools
 import math
+import operator
 from collections.abc import Mapping, Sequence
 
 import casadi as ca
@@ -62,6 +64,14 @@ class Labelled:
 
     def _where(self) -> str:
         return self.where or f"{self.kind} {self.label!r}"
+
+    @classmethod
+    def bare(cls, **attributes):
+        """An instance holding ``attributes`` (in that order), ``__init__`` not called: the object
+        ``__init__`` makes of values already checked (a large scene's items)."""
+        item = cls.__new__(cls)
+        item.__dict__.update(attributes)
+        return item
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.label})"
@@ -190,10 +200,8 @@ class Distance(Constraint):
         """``Distance(a, b, length=length, where=where)`` of values already checked (two different
         particles' names, a finite positive float length), without checking them again: a
         large scene's rods (constrained.scene.plain)."""
-        rod = cls.__new__(cls)
-        rod.__dict__.update(a=a, b=b, point=None, length=length, name=None, where=where, unilateral=False,
-                            restitution=0.0)
-        return rod
+        return cls.bare(a=a, b=b, point=None, length=length, name=None, where=where, unilateral=False,
+                        restitution=0.0)
 
     @property
     def label(self) -> str:
@@ -212,42 +220,73 @@ class Distance(Constraint):
         """|x_a − x_b| − length of rods between two particles with lengths that are plain
         numbers (entries of p, constrained.lifting), as one column: one CasADi call per
         operation instead of several per rod (a 10,000-link chain)."""
-        plain, norms = pair_distances(items, s, ("length",))
+        plain, norms, ends = pair_distances(items, s, ("length",))
         if not plain:
             return plain, ca.SX(0, 1), [], None
         rods = [items[k] for k in plain]
         lengths = [c.length for c in rods]
         labels = [c.name or f"distance {c.a}–{c.b} = {c.length:g} m" for c in rods]  # (``label``)
-        return plain, norms.T - s.number_column(lengths), labels, pair_batch(items, plain, s, [lengths])
+        return plain, norms.T - s.number_column(lengths), labels, pair_batch(items, plain, s, [lengths], ends)
 
 
-def pair_batch(items: list, plain: list[int], s, numbers: list[list]) -> Batch | None:
+def pair_batch(items: list, plain: list[int], s, numbers: list[list], ends: np.ndarray | None = None
+               ) -> Batch | None:
     """The Batch of the items ``plain`` of ``items`` (each between particles ``a`` and ``b``,
-    one row or term each) whose numbers (``numbers``: one list per field) are all lifted."""
+    one row or term each) whose numbers (``numbers``: one list per field) are all lifted.
+    ``ends``: their particles' indices (n, 2), as ``pair_distances`` gives them."""
     entries = [s.number_entries(field) for field in numbers]
     if any(e is None for e in entries):
         return None
-    index = s._index
-    particles = np.array([[index[items[k].a], index[items[k].b]] for k in plain], dtype=np.int64)
+    if ends is None:
+        index = s._index
+        ends = np.array([[index[items[k].a], index[items[k].b]] for k in plain], dtype=np.int64)
     n = len(plain)
-    return Batch(np.asarray(plain, np.int64), np.zeros(n, np.int64), particles,
+    return Batch(np.asarray(plain, np.int64), np.zeros(n, np.int64), ends,
                  np.stack(entries, axis=1) if entries else np.zeros((n, 0), np.int64))
 
 
-def pair_distances(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], ca.SX | None]:
+def pair_distances(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], ca.SX | None, np.ndarray]:
     """For batches of items between two particles (attributes ``a``, ``b``): the positions in
     ``items`` of those joining two particles of ``s`` whose ``fields`` are all plain numbers
-    (lifted: entries of p), and their distances |x_a − x_b| as one row (1, n), formed as
-    norm_2 forms them (sq of each entry, summed, sqrt), column by column."""
+    (lifted: entries of p), their distances |x_a − x_b| as one row (1, n), formed as norm_2
+    forms them (sq of each entry, summed, sqrt), column by column, and their particles'
+    indices (n, 2)."""
     index = s._index
-    plain = [k for k, c in enumerate(items) if isinstance(c.a, str) and isinstance(c.b, str)
-             and c.a in index and c.b in index and all(type(getattr(c, f)) is Number for f in fields)]
+    ends = _between(items, index, fields)
+    if ends is not None:
+        plain = np.flatnonzero(ends[:, 0] >= 0).tolist()
+        ends = ends[plain]
+    else:  # (an unhashable end: item by item)
+        plain = [k for k, c in enumerate(items) if isinstance(c.a, str) and isinstance(c.b, str)
+                 and c.a in index and c.b in index and all(type(getattr(c, f)) is Number for f in fields)]
+        ends = np.array([[index[items[k].a], index[items[k].b]] for k in plain], np.int64).reshape(-1, 2)
     if not plain:
-        return plain, None
+        return plain, None, ends
     X = ca.reshape(s.x, 3, s.x.numel() // 3)
-    d = X[:, [index[items[k].a] for k in plain]] - X[:, [index[items[k].b] for k in plain]]
+    d = X[:, ends[:, 0].tolist()] - X[:, ends[:, 1].tolist()]
     squares = d * d
-    return plain, ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :])
+    return plain, ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :]), ends
+
+
+def _between(items: list, index: dict, fields: tuple[str, ...]) -> np.ndarray | None:
+    """(n, 2): the particles' indices of each of ``items`` that joins two particles of ``index``
+    (its ``a`` and ``b`` strings) and holds Numbers in all its ``fields`` (the rows of the
+    others −1), in passes over the whole list; None when an end cannot be looked up."""
+    n = len(items)
+    ends = [list(map(operator.attrgetter(end), items)) for end in ("a", "b")]
+    ok = np.ones(n, bool)
+    for column in ends:
+        ok &= np.fromiter(map(isinstance, column, itertools.repeat(str)), bool, n)
+    for f in fields:
+        kinds = map(type, map(operator.attrgetter(f), items))
+        ok &= np.fromiter(map(operator.is_, kinds, itertools.repeat(Number)), bool, n)
+    try:
+        found = np.array([np.fromiter(map(index.get, column, itertools.repeat(-1)), np.int64, n)
+                          for column in ends]).T.reshape(n, 2)
+    except TypeError:
+        return None
+    found[~(ok & (found >= 0).all(axis=1))] = -1
+    return found
 
 
 class Pin(Constraint):
@@ -317,7 +356,7 @@ class Plane(Constraint):
         if entries is None:  # (a formula of t or of the parameters: no batch)
             return None
         n = len(self.particles)
-        particles = np.array([s.index(p, self._where()) for p in self.particles], dtype=np.int64)
+        particles = np.array(s.indices(self.particles, self._where()), dtype=np.int64)
         return self._column(s), self._labels(), Batch(
             np.zeros(n, np.int64), np.arange(n, dtype=np.int64), particles[:, None],
             np.repeat(entries[None, :], n, axis=0))

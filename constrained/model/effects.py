@@ -82,7 +82,7 @@ class Gravity(Effect):
         if not names:
             return 0.0, None
         # in a few CasADi calls (one per particle would dominate large builds): −dot(gᵀP, m)
-        particles = [s.index(p, where) for p in names]
+        particles = s.indices(names, where)
         products = ca.mtimes(g.T, s.columns(names, where)).T * s.mass_column(particles)
         term = -ca.sum1(products)
         entries = s.number_entries([v for v in self.g if not (isinstance(v, int | float) and v == 0)])
@@ -108,6 +108,12 @@ class Spring(Effect):
         self.a, self.b, self.point, self.k, self.rest = a, b, point, k, rest
         self.name, self.where = name, where
 
+    @classmethod
+    def between(cls, a: str, b: str, k: float, rest: float, where: str | None = None) -> Spring:
+        """``Spring(a, b, k=k, rest=rest, where=where)`` of checked values (two particles' names,
+        finite floats), its attributes set at once: a large scene's springs (scene.plain)."""
+        return cls.bare(a=a, b=b, point=None, k=k, rest=rest, name=None, where=where)
+
     @property
     def label(self) -> str:
         other = self.b if self.b is not None else _fmt(self.point)
@@ -127,13 +133,13 @@ class Spring(Effect):
         """The terms of springs between two particles whose k and rest are plain numbers
         (entries of p, constrained.lifting) as one column: one CasADi call per operation
         instead of several per spring (a cloth's shear springs)."""
-        plain, norms = pair_distances(items, s, ("k", "rest"))
+        plain, norms, ends = pair_distances(items, s, ("k", "rest"))
         if not plain:
             return plain, ca.SX(0, 1), None
         springs = [items[j] for j in plain]
         ks, rests = [e.k for e in springs], [e.rest for e in springs]
         k, rest = s.number_column(ks).T, s.number_column(rests).T
-        return plain, (0.5 * k * (norms - rest) ** 2).T, pair_batch(items, plain, s, [ks, rests])
+        return plain, (0.5 * k * (norms - rest) ** 2).T, pair_batch(items, plain, s, [ks, rests], ends)
 
 
 class Potential(Effect):
@@ -516,13 +522,5 @@ def forces(slots: dict, x, v, t, *, deferred: bool = False) -> tuple:
     return F, V, U, dU_dv, active
 
 
-EFFECT_TYPES = {
-    "gravity": Gravity,
-    "spring": Spring,
-    "potential": Potential,
-    "central": Central,
-    "pairwise": Pairwise,
-    "damping": Damping,
-    "force": Force,
-    "electromagnetic": Electromagnetic,
-}
+EFFECT_TYPES = {"gravity": Gravity, "spring": Spring, "potential": Potential, "central": Central,
+                "pairwise": Pairwise, "damping": Damping, "force": Force, "electromagnetic": Electromagnetic}

@@ -22,12 +22,15 @@ declared, vector and mapping entries in order.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import copy
 import copyreg
 import hashlib
+import itertools
 import json
 import math
+import operator
 import re
 from collections.abc import Mapping
 
@@ -135,14 +138,9 @@ def _shallow(obj):
 def _with_fields(item, changed: dict):
     """A shallow copy of ``item`` with the attributes ``changed`` set (``setattr`` one by one):
     for a plain class, whose setting is storing in ``__dict__``, the copy's dict made at once."""
-    cls = type(item)
-    if cls not in _SET_SPECIALLY:  # (the names that setattr does not store in __dict__; None: any)
-        plain = _plain_copier(cls) and cls.__setattr__ is object.__setattr__
-        _SET_SPECIALLY[cls] = None if not plain else {
-            k for c in cls.__mro__ for k, v in vars(c).items() if hasattr(type(v), "__set__")}
-    special = _SET_SPECIALLY[cls]
+    special = _set_specially(type(item))
     if special is not None and special.isdisjoint(changed):
-        new = object.__new__(cls)
+        new = object.__new__(type(item))
         attributes = new.__dict__
         attributes.update(item.__dict__)
         attributes.update(changed)
@@ -153,7 +151,37 @@ def _with_fields(item, changed: dict):
     return new
 
 
+def _set_specially(cls) -> set | None:
+    """The attribute names that ``setattr`` on an instance of ``cls`` does not store in its
+    ``__dict__`` (data descriptors); None when ``cls`` is not plain (its own copy or setattr)."""
+    if cls not in _SET_SPECIALLY:
+        plain = _plain_copier(cls) and cls.__setattr__ is object.__setattr__
+        _SET_SPECIALLY[cls] = None if not plain else {
+            k for c in cls.__mro__ for k, v in vars(c).items() if hasattr(type(v), "__set__")}
+    return _SET_SPECIALLY[cls]
+
+
 _SET_SPECIALLY: dict = {}
+
+
+def _copies(run: list, names, changes: list) -> list:
+    """``[_with_fields(item, changed) for item, changed in zip(run, changes)]`` for items of one
+    class, each changed in the attributes ``names``: for a plain class, in passes over the
+    whole run (a large system's particles or rods)."""
+    cls = type(run[0])
+    special = _set_specially(cls)
+    if special is None or not special.isdisjoint(names):
+        return list(map(_with_fields, run, changes))
+    attributes = list(map(dict, map(vars, run)))
+    _consume(map(dict.update, attributes, changes))
+    copies = list(map(object.__new__, itertools.repeat(cls, len(run))))
+    _consume(map(setattr, copies, itertools.repeat("__dict__"), attributes))
+    return copies
+
+
+def _consume(calls) -> None:
+    """Run the calls of the iterator ``calls`` (a ``map`` of methods returning None)."""
+    collections.deque(calls, maxlen=0)
 
 
 def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
@@ -163,26 +191,31 @@ def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
     ``walked``: ``structure_data``'s walk of this system (its lifted masses, each item's lifted
     fields, the values), used instead of walking it again."""
     values: list[float] = []
-    masses, fields = (None, None) if walked is None else (iter(walked[0]), iter(walked[1]))
     lifted = copy.copy(system)
-    particles = []
-    for p in system.particles:
-        q = _shallow(p)
-        q.mass = lifted_mass(p, values) if masses is None else next(masses)
-        particles.append(q)
-    lifted.particles = particles
-
-    def items(sequence):
-        out = []
-        for item in sequence:
-            changed = lifted_fields(item, values) if fields is None else next(fields)
-            if changed:
-                item = _with_fields(item, changed)
-            out.append(item)
-        return out
-
-    lifted.constraints, lifted.effects = items(system.constraints), items(system.effects)
+    particles, constraints, effects = list(system.particles), list(system.constraints), list(system.effects)
+    masses = [lifted_mass(p, values) for p in particles] if walked is None else walked[0]
+    changes = [lifted_fields(item, values) for item in (*constraints, *effects)] if walked is None \
+        else walked[1]
+    lifted.particles = _lifted_copies(particles, [{"mass": m} for m in masses], lambda p: ("mass",))
+    lifted.constraints = _lifted_copies(constraints, changes[:len(constraints)], fields)
+    lifted.effects = _lifted_copies(effects, changes[len(constraints):], fields)
     return lifted, np.array(values if walked is None else walked[2], float)
+
+
+def _lifted_copies(sequence: list, changes: list, names_of) -> list:
+    """``sequence`` with each item whose class has numeric fields (``names_of(item)``) replaced by
+    its copy with the attributes ``changes[k]`` (each item's fields) set: runs of one class at
+    once (``_copies``)."""
+    if not sequence:
+        return []
+    kinds = list(map(type, sequence))
+    bounds = [0, *itertools.compress(range(1, len(kinds)), map(operator.is_not, kinds[1:], kinds[:-1])),
+              len(kinds)]
+    out = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        names = names_of(sequence[a])
+        out += _copies(sequence[a:b], names, changes[a:b]) if names else sequence[a:b]
+    return out
 
 
 def numbers(system) -> np.ndarray:
@@ -275,17 +308,13 @@ def fingerprint_walk(system) -> tuple[str, list[float], tuple]:
         add("masses", json.dumps(described))
     items = (*system.constraints, *system.effects)
     item_fields: list[dict] = []
-    k = 0
-    while k < len(items):
-        cls, keys = type(items[k]), tuple(vars(items[k]))
-        j = k + 1
-        while j < len(items) and type(items[j]) is cls and tuple(vars(items[j])) == keys:
-            j += 1
+    attributes = list(map(vars, items))
+    for k, j in _runs(items, attributes):
+        cls, keys = type(items[k]), tuple(attributes[k])
         names = fields(items[k])
         other = tuple(key for key in keys if key not in names)
         add("run", json.dumps([cls.__module__, cls.__qualname__, list(names), list(other)]))
-        _described_run(items[k:j], names, other, values, item_fields, add)
-        k = j
+        _described_run(items[k:j], attributes[k:j], names, other, values, item_fields, add)
     add("parameters", json.dumps([list(system.parameters), plain_data(system.definitions)]))
     walked = (lifted_masses, item_fields, values)
     return digest.hexdigest(), values, walked
@@ -295,13 +324,37 @@ def fingerprint_walk(system) -> tuple[str, list[float], tuple]:
 _SCALARS = frozenset((float, int, str, type(None)))
 
 
-def _described_run(run: tuple, names: tuple, other: tuple, values: list, item_fields: list, add) -> None:
-    """Describe a run of items of one class and attributes (``add``), append its lifted fields to
-    ``item_fields`` and its plain numbers to ``values`` (in walk order: item by item, each
-    item's numeric fields in declared order). Items whose numeric fields hold scalars alone
-    are described column by column, the others (a list, a mapping …) item by item."""
+def _runs(items: tuple, attributes: list) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]``: the runs of consecutive items of one class and one tuple of
+    attribute names (``attributes``: each item's ``vars``), in order."""
+    n = len(items)
+    if n < 2:
+        return [(0, n)] if n else []
+    kinds, keys = list(map(type, items)), list(map(tuple, attributes))
+    breaks = itertools.compress(range(1, n), map(operator.or_, map(operator.is_not, kinds[1:], kinds[:-1]),
+                                                 map(operator.ne, keys[1:], keys[:-1])))
+    bounds = [0, *breaks, n]
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
+def _stored(cls, name: str, attributes: dict) -> bool:
+    """Whether ``getattr`` of an instance of ``cls`` whose ``vars`` are ``attributes`` gives
+    ``attributes[name]`` (no data descriptor of the class, no ``__getattribute__`` of its own)."""
+    descriptor = type(getattr(cls, name, None))
+    return name in attributes and cls.__getattribute__ is object.__getattribute__ \
+        and not (hasattr(descriptor, "__set__") or hasattr(descriptor, "__delete__"))
+
+
+def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, values: list, item_fields: list,
+                   add) -> None:
+    """Describe a run of items of one class and attributes (``add``; ``attributes``: their
+    ``vars``), append its lifted fields to ``item_fields`` and its plain numbers to ``values``
+    (in walk order: item by item, each item's numeric fields in declared order). Items whose
+    numeric fields hold scalars alone are described column by column, the others (a list, a
+    mapping …) item by item."""
     n = len(run)
-    columns = [[getattr(item, name) for item in run] for name in names]
+    columns = [list(map(operator.itemgetter(name), attributes)) if _stored(type(run[0]), name, attributes[0])
+               else [getattr(item, name) for item in run] for name in names]
     scalar = np.ones(n, bool)
     for column in columns:
         if not _SCALARS.issuperset(map(type, column)):
@@ -326,17 +379,20 @@ def _described_run(run: tuple, names: tuple, other: tuple, values: list, item_fi
         values += numbers[lifted_at].tolist()
         lifted_columns = []
         for f, column in enumerate(segment):
-            at = np.flatnonzero(lifted_at[:, f])
-            add("numbers at", lifted_at[:, f].tobytes())
-            add("numbers left", json.dumps([column[i] for i in np.flatnonzero(~lifted_at[:, f]).tolist()]))
+            at = lifted_at[:, f]
+            add("numbers at", at.tobytes())
+            add("numbers left", json.dumps(list(itertools.compress(column, ~at))))
+            if at.all():
+                lifted_columns.append(list(map(Number, index[:, f].tolist())))
+                continue
             lifted = list(column)
-            for i, number in zip(at.tolist(), index[at, f].tolist(), strict=True):
+            for i, number in zip(np.flatnonzero(at).tolist(), index[at, f].tolist(), strict=True):
                 lifted[i] = Number(number)
             lifted_columns.append(lifted)
         rows = zip(*lifted_columns, strict=True) if names else ((),) * (b - a)
-        item_fields += [dict(zip(names, entries, strict=True)) for entries in rows]
+        item_fields += map(dict, map(zip, itertools.repeat(names), rows))
     for key in other:
-        column = [vars(item)[key] for item in run]
+        column = list(map(operator.itemgetter(key), attributes))
         atoms = _ATOMS.issuperset(map(type, column))
         add("column", json.dumps(column if atoms else [plain_data(v) for v in column]))
 

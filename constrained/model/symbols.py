@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import bisect
 import functools
+import itertools
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,6 +20,10 @@ import numpy as np
 from ..errors import ExpressionError, InputError, listed
 from . import expressions, parameters
 from .lifting import Number
+
+_NUMBER = frozenset((Number,))
+_STR = frozenset((str,))
+_INDEX = operator.attrgetter("index")
 
 
 @dataclass(frozen=True)
@@ -228,7 +234,7 @@ class Symbols:
     def columns(self, names, where: str):
         """The positions of the particles ``names`` as the columns of a (3, len(names)) SX: one
         gather from x (the same entries as a horzcat of ``position(name)``)."""
-        indices = [self.index(name, where) for name in names]
+        indices = self.indices(names, where)
         X = ca.reshape(self.x, 3, self.x.numel() // 3)
         return X if indices == list(range(X.size2())) else X[:, indices]
 
@@ -241,9 +247,9 @@ class Symbols:
 
     def number_entries(self, values: list) -> np.ndarray | None:
         """The entries of p of ``values`` when all are Numbers (lifted plain numbers), else None."""
-        if self._offset is None or not all(type(v) is Number for v in values):
+        if self._offset is None or not _NUMBER.issuperset(map(type, values)):
             return None
-        return np.array([self._offset + v.index for v in values], dtype=np.int64)
+        return np.fromiter(map(_INDEX, values), np.int64, len(values)) + self._offset
 
     def entries_of(self, values: list) -> np.ndarray | None:
         """For each of ``values`` that is a bare entry of ``p``, its index in p; None when one
@@ -295,6 +301,16 @@ class Symbols:
                 position[f"{axis}_{name}"] = state[f"{axis}_{name}"] = xs[3 * i + k]
                 state[f"v{axis}_{name}"] = vs[3 * i + k]
         self._position_names, self._state_names = position, state
+
+    def indices(self, names: Sequence, where: str) -> list[int]:
+        """``[index(name, where) for name in names]``: when all are names of particles, at once."""
+        try:
+            found = list(map(self._index.get, names, itertools.repeat(-1)))
+        except TypeError:  # (an unhashable value: ``index`` says what is wrong)
+            found = [-1]
+        if -1 in found or not _STR.issuperset(map(type, names)):
+            return [self.index(name, where) for name in names]
+        return found
 
     def index(self, name: str, where: str) -> int:
         if not isinstance(name, str) or name not in self._index:

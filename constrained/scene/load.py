@@ -43,7 +43,7 @@ from .keys import (
     TOP_LEVEL_TABLES,
 )
 from .overrides import _apply_overrides, _override_origin, apply_overrides, data_copy, parse_override
-from .validate import nesting_levels
+from .validate import moderate_level, nesting_levels
 
 __all__ = [
     "Scene",
@@ -254,15 +254,15 @@ def _load_scene(path: str | Path, overrides: Iterable[str] | None, equations: bo
     values = _parameter_values(overrides, plain, file) if equations else None
     if values is not None:  # only new parameter values for a scene read before
         return _with_parameter_values(plain, values, file)
-    raw, kept = _parsed(data, digest, file)
-    if overrides:
-        raw, set_paths = _apply_overrides(raw, overrides, file)
+    raw, kept, moderate = _parsed(data, digest, file)
+    if overrides:  # (their values: checked by the scene's own walk)
+        (raw, set_paths), moderate = _apply_overrides(raw, overrides, file), False
     else:  # the kept parse is copied; a big one is not kept, and is this call's own
         raw, set_paths = (data_copy(raw) if kept else raw), []
     if not equations:  # (a full scene kept serves too; this one is not kept)
-        return _built(raw, path, file, set_paths, equations=False)
+        return _built(raw, path, file, set_paths, equations=False, moderate=moderate)
     key = (*digest, tuple(overrides))
-    scene = _built(raw, path, file, set_paths)
+    scene = _built(raw, path, file, set_paths, moderate=moderate)
     if scene.system.n_particles > KEPT_PARTICLES:  # not kept: the caller's own, no copy
         return scene
     with _LOADED_LOCK:
@@ -284,12 +284,16 @@ NESTED_TOO_DEEPLY = "its arrays or tables are nested too deeply"
 MAX_NESTING = 64
 
 
-def refuse_deep_nesting(raw: dict, file: str) -> None:
+def refuse_deep_nesting(raw: dict, file: str) -> bool:
     """SceneError when tables and arrays nest deeper than MAX_NESTING (counted without recursion:
-    TOML's dotted table names, [a.a.a...], nest without limit)."""
-    for depth, (level, _types) in enumerate(nesting_levels(raw), 1):
+    TOML's dotted table names, [a.a.a...], nest without limit). Returns whether every number in
+    ``raw`` is finite and moderate (the scene's ``finite_everywhere``, answered by this walk)."""
+    moderate = True
+    for depth, (level, types) in enumerate(nesting_levels(raw), 1):
         if depth > MAX_NESTING and any(isinstance(v, dict | list) for v in level):
             raise SceneError(f"{NESTED_TOO_DEEPLY} (more than {MAX_NESTING} levels)", file=file)
+        moderate = moderate and moderate_level(level, types)
+    return moderate
 
 
 #: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
@@ -304,14 +308,14 @@ _LOADED_LOCK = threading.Lock()
 _SEEN: collections.OrderedDict = collections.OrderedDict()
 
 
-def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool]:
-    """The TOML of a scene file, parsed once per content, and whether it is kept (then callers
-    copy it). A scene of more than KEPT_PARTICLES particles is not kept: copying it costs a
-    good part of parsing it."""
+def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool, bool]:
+    """The TOML of a scene file, parsed once per content, whether it is kept (then callers
+    copy it) and whether its numbers are all finite and moderate. A scene of more than
+    KEPT_PARTICLES particles is not kept: copying it costs a good part of parsing it."""
     with _LOADED_LOCK:
-        raw = _PARSED.get(digest)
+        raw, moderate = _PARSED.get(digest, (None, False))
     if raw is not None:
-        return raw, True
+        return raw, True, moderate
     try:
         raw = tomlparse.loads(data.decode("utf-8"))
     except UnicodeDecodeError as exc:
@@ -320,15 +324,15 @@ def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool]:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
     except RecursionError:  # (Python's TOML reader recurses once per level)
         raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
-    refuse_deep_nesting(raw, file)
+    moderate = refuse_deep_nesting(raw, file)
     particles = raw.get("particles")
     if isinstance(particles, list) and len(particles) > KEPT_PARTICLES:
-        return raw, False
+        return raw, False, moderate
     with _LOADED_LOCK:
-        _PARSED[digest] = raw
+        _PARSED[digest] = raw, moderate
         while len(_PARSED) > SCENES_KEPT:
             _PARSED.popitem(last=False)
-    return raw, True
+    return raw, True, moderate
 
 
 #: Parsed scene files by (path, SHA-256 of the content): ``--set`` overrides apply to a copy.
@@ -391,10 +395,11 @@ def _copied(scene: Scene, system=None, raw_update: dict | None = None) -> Scene:
 
 
 
-def _built(raw: Mapping, path: Path, file: str, set_paths: list, *, equations: bool = True) -> Scene:
+def _built(raw: Mapping, path: Path, file: str, set_paths: list, *, equations: bool = True,
+           moderate: bool = False) -> Scene:
     """``build_scene``, a refusal of a value given by --set naming that override."""
     try:
-        return build_scene(raw, path=path, equations=equations)
+        return build_scene(raw, path=path, equations=equations, numbers_checked=moderate)
     except SceneError as exc:
         origin = _override_origin(exc.key, set_paths)
         if origin is None:
@@ -402,11 +407,13 @@ def _built(raw: Mapping, path: Path, file: str, set_paths: list, *, equations: b
         raise SceneError(f"{exc.reason} (value given by --set {origin})", file=file, key=exc.key) from None
 
 
-def build_scene(raw: Mapping, path: str | Path | None = None, *, equations: bool = True) -> Scene:
+def build_scene(raw: Mapping, path: str | Path | None = None, *, equations: bool = True,
+                numbers_checked: bool = False) -> Scene:
     """Validate a parsed scene dictionary (TOML layout) and build the Scene (``equations``: as
-    ``load_scene``'s)."""
+    ``load_scene``'s). ``numbers_checked``: every number in ``raw`` is known to be finite and
+    moderate (``refuse_deep_nesting``'s answer), so the builder need not walk them again."""
     builder = SceneBuilder(raw, None if path is None else Path(path))
-    builder.equations = equations
+    builder.equations, builder.numbers_checked = equations, numbers_checked
     return Scene(**builder.build())
 
 

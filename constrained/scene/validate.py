@@ -219,15 +219,17 @@ class Validator:
 def _all_moderate(value) -> bool:
     """Whether every number in the nested dicts and lists ``value`` is finite and at most
     ``expressions.MAX_MAGNITUDE`` in size."""
-    limit = expressions.MAX_MAGNITUDE
-    for level, types in nesting_levels(value):  # each level's numbers compared at once
-        if types is None:
-            numbers = [v for v in level if isinstance(v, float | int) and not isinstance(v, bool)]
-        else:
-            numbers = itertools.compress(level, map(_NUMBER_TYPES.__contains__, types))
-        if not all(map(limit.__ge__, map(abs, numbers))):  # (NaN fails too)
-            return False
-    return True
+    return all(itertools.starmap(moderate_level, nesting_levels(value)))
+
+
+def moderate_level(level: list, types: list | None) -> bool:
+    """Whether every number of one level of ``nesting_levels`` (its values and their types) is
+    finite and at most ``expressions.MAX_MAGNITUDE`` in size: compared at once."""
+    if types is None:
+        numbers = [v for v in level if isinstance(v, float | int) and not isinstance(v, bool)]
+    else:
+        numbers = itertools.compress(level, map(_NUMBER_TYPES.__contains__, types))
+    return all(map(expressions.MAX_MAGNITUDE.__ge__, map(abs, numbers)))  # (NaN fails too)
 
 
 #: The types of TOML's values, and of its numbers (bool is not one).
