@@ -137,3 +137,29 @@ def test_the_singular_watch_does_not_stop_a_long_straight_chain(monkeypatch):
     traj = C.simulate(s, 0.05, method="dopri", singular_tol=2e-3, t_eval=np.linspace(0.0, 0.05, 11))
     np.testing.assert_allclose(traj.x[-1], traj.x[0], atol=1e-12)
     assert traj.info.get("status", "completed") == "completed"
+
+
+def test_a_stop_under_gravity_alone_is_not_put_down_to_forces_that_blow_up():
+    """Old: a stop at a state where nothing is large (a 150-bead chain of 1 cm links released
+    horizontal: every bead accelerates at g) read "likely cause: forces that blow up: … particle
+    'p0' … has acceleration 9.81 m/s²". An acceleration of the order of gravity and of the
+    motion's v²/size is now said to be ordinary; a bob falling into a 1/r potential (a real
+    blow-up, far above both) is still named."""
+    n, g = 150, 9.81
+    s = C.System(name="rope")
+    for i in range(n):
+        s.add_particle(f"p{i}", 0.01, [(i + 1) * 0.01, 0.0, 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=0.01))
+    for i in range(n - 1):
+        s.add(C.Distance(f"p{i}", f"p{i + 1}", length=0.01))
+    s.add(C.Gravity([0, -g, 0]))
+    model = assemble(s)
+    x = np.asarray(s.positions, float).ravel()
+    message = diagnostics.likely_cause(model, x, 0 * x, 0.0)
+    assert "blow up" not in message and message.startswith("likely cause: none found")
+    assert "of the order of gravity" in message and "9.81 m/s²" in message
+    fall = C.System([C.Particle("p", 1.0, [1.0, 0.0, 0.0])], [],  # (released at 1 m: its size)
+                    [C.Potential("-1/sqrt(x_p**2 + y_p**2 + z_p**2)")])
+    x = np.array([1e-4, 0.0, 0.0])  # the last good state near r = 0: a = 1/r² = 1e8 m/s², v = √(2/r)
+    message = diagnostics.likely_cause(assemble(fall), x, np.array([-141.4, 0.0, 0.0]), 0.0)
+    assert "likely cause: forces that blow up" in message and "particle 'p'" in message

@@ -295,6 +295,12 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
             return ("likely cause: none found at the last good state: its constraints are regular and no "
                     "particle accelerates there (no force blows up); try another method or tolerance")
         name = model.particle_names[k]
+        ordinary = _ordinary_acceleration(model, v)
+        if acc[k] <= BLOW_UP * ordinary:  # (a chain under gravity: "forces that blow up … 9.81 m/s²")
+            return (f"likely cause: none found at the last good state: its constraints are regular and no "
+                    f"force is large there (the largest acceleration, particle '{name}''s {acc[k]:.3g} m/s², "
+                    f"is of the order of gravity and of the motion's v²/size, {ordinary:.3g} m/s²); try "
+                    "another method or tolerance")
         pos = ", ".join(f"{c:.4g}" for c in np.asarray(x).reshape(-1, 3)[k])
         pair = ""  # a pair potential pushing hardest: the two particles closing in on its singularity
         if strongest is not None and strongest[3] > 0 and hasattr(model.system.effects[strongest[0]],
@@ -305,6 +311,25 @@ def likely_cause(model, x, v, t: float, manifold: Manifold | None = None) -> str
                 f"({pos}) m has acceleration {acc[k]:.3g} m/s²{pair}")
     except Exception:  # a diagnosis must never hide the stop itself
         return "likely cause: a singular configuration, stiffness, or forces that blow up"
+
+
+#: A stop's largest acceleration counts as "forces that blow up" only above this many times
+#: ``_ordinary_acceleration``.
+BLOW_UP = 100.0
+
+
+def _ordinary_acceleration(model, v) -> float:
+    """What no blow-up exceeds: the largest uniform gravity (numbers) plus the largest v²/size of
+    the state (a particle turning on a circle of the system's size)."""
+    g = 0.0
+    for effect in model.system.effects:
+        if type(effect).__name__ == "Gravity":
+            try:
+                g = max(g, float(np.linalg.norm(np.asarray(effect.g, float))))
+            except (TypeError, ValueError):  # (a formula of t or of the parameters)
+                pass
+    speed2 = float(np.max(np.sum(np.asarray(v, float).reshape(-1, 3) ** 2, axis=1), initial=0.0))
+    return g + speed2 / max(model.system.size(), 1e-300)
 
 
 #: A particle that swings across its constraints this many times faster than the state moves
