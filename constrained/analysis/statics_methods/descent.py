@@ -94,9 +94,9 @@ def _tangent_frame(Jd: np.ndarray, grad: np.ndarray, n: int) -> tuple[np.ndarray
 
 
 def _dense_step(model: Model, kkt: KKT, x, F, Jp, d, radius: float, force_scale: float, force_rtol: float):
-    """(dx, whether it is the interior Newton step, the predicted decrease of V) of one
-    trust-region step on a dense basis of the tangent space (the module's text), or None when no
-    tangential force exceeds ``force_rtol`` × ``force_scale`` (N)."""
+    """(dx, whether it is the interior Newton step, the predicted decrease of V, the step's length
+    ‖p‖ in u = D x) of one trust-region step on a dense basis of the tangent space (the module's
+    text), or None when no tangential force exceeds ``force_rtol`` × ``force_scale`` (N)."""
     n3 = len(x)
     Z, lam = _tangent_frame(Jp / d[None, :], -F / d, n3)
     g = -Z.T @ (F / d)
@@ -107,7 +107,9 @@ def _dense_step(model: Model, kkt: KKT, x, F, Jp, d, radius: float, force_scale:
     K = dense(kkt.stiffness(x, multipliers))
     H = Z.T @ ((0.5 * (K + K.T) / np.outer(d, d)) @ Z)
     p, newton = trust_region_step(g, 0.5 * (H + H.T), radius)
-    return (Z @ p) / d, newton, -(float(g @ p) + 0.5 * float(p @ H @ p))
+    # (‖p‖ of the subspace's coordinates: ‖Z p‖ up to rounding, which the radius's next value
+    # would carry into every later iteration)
+    return (Z @ p) / d, newton, -(float(g @ p) + 0.5 * float(p @ H @ p)), float(np.linalg.norm(p))
 
 
 def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.ndarray, t: float,
@@ -136,7 +138,7 @@ def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.n
         found = step(model, kkt, x, F, J, d, radius, force_scale, FORCE_RTOL)
         if found is None:
             return Descent(x, it, "minimum")  # (the tangential force below FORCE_RTOL × the force scale)
-        dx, newton, predicted = found
+        dx, newton, predicted, length = found
         if newton and np.max(np.abs(dx)) <= STEP_RTOL * size:
             return Descent(x, it, "minimum")
         if predicted <= 1e-15 * (abs(V) + force_scale * size):
@@ -151,7 +153,7 @@ def minimize_on_constraints(model: Model, kkt: KKT, manifold: Manifold, x0: np.n
             if np.max(np.abs(x - x0)) > FAR_SIZES * size:
                 return Descent(x, it + 1, "far")
         if rho < 0.25:
-            radius = 0.25 * float(np.linalg.norm(d * dx))  # (‖p‖ in u = D x)
+            radius = 0.25 * length  # (‖p‖ in u = D x)
             if radius <= 1e-14 * size:
                 return Descent(x, it + 1, "stalled")
         elif rho > 0.75 and not newton:

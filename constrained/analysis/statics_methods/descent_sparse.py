@@ -76,8 +76,9 @@ def _lanczos_step(hessian, g: np.ndarray, radius: float, newton_rtol: float) -> 
 
 def sparse_step(model, kkt, x: np.ndarray, F: np.ndarray, J, d: np.ndarray, radius: float,
                 force_scale: float, force_rtol: float):
-    """(dx, whether it is the interior Newton step, the predicted decrease of V) of one step
-    (module text), or None when no tangential force exceeds ``force_rtol`` × ``force_scale`` (N)."""
+    """(dx, whether it is the interior Newton step, the predicted decrease of V, the step's length
+    ‖p‖ in u = D x) of one step (module text), or None when no tangential force exceeds
+    ``force_rtol`` × ``force_scale`` (N)."""
     from scipy.sparse import diags
     from scipy.sparse.linalg import splu
 
@@ -110,4 +111,4 @@ def sparse_step(model, kkt, x: np.ndarray, F: np.ndarray, J, d: np.ndarray, radi
     newton_rtol = min(max(CG_RTOL, force / force_scale), LANCZOS_RTOL)
     p, newton = _lanczos_step(hessian, g, radius, newton_rtol)
     predicted = -(float(g @ p) + 0.5 * float(p @ hessian(p)))
-    return p / d, newton, predicted
+    return p / d, newton, predicted, float(np.linalg.norm(p))

@@ -56,7 +56,13 @@ def dense(dm) -> np.ndarray:
     a sparse DM: 0.54 s for a 1,800 × 2,700 Jacobian, against 0.03 s)."""
     if not hasattr(dm, "sparsity") or dm.nnz() == dm.numel():  # (an array, or a dense DM)
         return np.asarray(dm, float)
-    return csc(dm).toarray()
+    # each nonzero assigned, not added to a zero (SciPy's toarray: 0.0 + −0.0 is +0.0), so the
+    # array is np.asarray's, bit for bit: a −0.0 of J (x_a − x_b of equal coordinates, negated)
+    # kept, whose sign the dense route's QR and eigh read (equilibria moved by 1e-14 without it)
+    colind, row = dm.sparsity().get_ccs()
+    out = np.zeros(dm.shape)
+    out[row, np.repeat(np.arange(dm.shape[1]), np.diff(colind))] = dm.nonzeros()
+    return out
 
 
 def stiffness(function, x: np.ndarray, lam: np.ndarray):
