@@ -110,7 +110,9 @@ def _start_check(structure: Structure) -> tuple[ca.Function, np.ndarray]:
 def _undefined_in(system: System, t0: float, structure: Structure, numbers, jacobian=None,
                   effects_finite: bool = False) -> list:
     numbers = lifting.numbers(system) if numbers is None else numbers
-    p = np.concatenate([[system.parameters[k] for k in structure.parameter_names], numbers])
+    # (p as the Model's: with a pair potential's neighbour list after the numbers)
+    p = np.concatenate([[system.parameters[k] for k in structure.parameter_names], numbers,
+                        structure.pair_potentials.data(system.positions)])
     x0 = np.asarray(system.positions, float).reshape(-1)
     v0 = np.asarray(system.velocities, float).reshape(-1)
     effects, owner_e = (None, np.zeros(0, int)) if effects_finite else _start_check(structure)
@@ -127,7 +129,7 @@ def _undefined_in(system: System, t0: float, structure: Structure, numbers, jaco
             rows = [_bad_rows(m) for m in matrices]
             bad |= {("constraints", int(k)) for k in owner_c[np.concatenate(rows)]}
         if owner_e.size:
-            ve, jex, jev = effects(x0, v0, t0, p)
+            ve, jex, jev = effects(x0, v0, t0, p[:structure.expressions.p.numel()])  # (no neighbour list)
             rows = np.concatenate([_bad_rows(ve), _bad_rows(jex), _bad_rows(jev)])
             bad |= {("effects", int(k)) for k in owner_e[rows]}
         values = structure.pair_potentials.values(x0, t0, p)
