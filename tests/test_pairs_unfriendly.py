@@ -314,7 +314,8 @@ def test_a_scene_of_rods_with_a_cut_off_pair_force_passes_its_start_check(tmp_pa
     n = 30
     lines = ["[scene]", 'name = "chain with a cut-off pair force"']
     for i in range(n):
-        lines += ["[[particles]]", f'name = "p{i}"', "mass = 0.01", f"position = [{0.1 * (i + 1):.3f}, 0.0, 0.0]"]
+        lines += ["[[particles]]", f'name = "p{i}"', "mass = 0.01",
+                  f"position = [{0.1 * (i + 1):.3f}, 0.0, 0.0]"]
     lines += ["[[constraints]]", 'type = "distance"', 'a = "p0"', "point = [0.0, 0.0, 0.0]", "length = 0.1"]
     for i in range(n - 1):
         lines += ["[[constraints]]", 'type = "distance"', f'a = "p{i}"', f'b = "p{i + 1}"', "length = 0.1"]
