@@ -197,30 +197,40 @@ def values_at(b: VectorizedBuild, x, v, t: float, p, outputs: tuple) -> dict | N
 NUMERIC_CALLS = 4
 
 
+def _numbers_first(model, key: str, general, on_numbers):
+    """A call that answers with ``on_numbers(*args)`` (None: it cannot) for the structure's first
+    NUMERIC_CALLS calls of ``key``, then with the Function ``general()`` builds (once per
+    structure, under ``(prefix, "structural", key)`` of ``structure_cache``)."""
+    cache, prefix = structure_cache(model)
+    counted, built = (*prefix, "numeric calls", key), (*prefix, "structural", key)
+    function = None
+
+    def call(*args):
+        nonlocal function
+        if function is None and built not in cache and cache.get(counted, 0) < NUMERIC_CALLS:
+            with np.errstate(all="ignore"):
+                values = on_numbers(*args)
+            if values is not None:
+                cache[counted] = cache.get(counted, 0) + 1
+                return values
+        function = function or general()
+        return function(*args)
+
+    return call
+
+
 def numeric_first(model, key: str, outputs: tuple, general):
     """``(x, t) -> [value]`` for a large model (the vectorized build): the value of the last of
     ``outputs`` ("J": J's nonzeros) computed on numbers (``values_at``: the Function's numbers,
     without building it) for the structure's first NUMERIC_CALLS calls of ``key``, then the
-    call ``general()`` gives (the Function's, built once per structure under
-    ``(prefix, "structural", key)`` of ``structure_cache``)."""
-    cache, prefix = structure_cache(model)
-    counted, built = (*prefix, "numeric calls", key), (*prefix, "structural", key)
-    b = vectorized_build(model.structure)
-    p = model.parameter_vector
-    function = None
+    call ``general()`` gives (``_numbers_first``)."""
+    b, p = vectorized_build(model.structure), model.parameter_vector
 
-    def call(x, t):
-        nonlocal function
-        if function is None and built not in cache and cache.get(counted, 0) < NUMERIC_CALLS:
-            with np.errstate(all="ignore"):
-                values = values_at(b, x, None, t, p, outputs)
-            if values is not None:
-                cache[counted] = cache.get(counted, 0) + 1
-                return [values[outputs[-1]]]
-        function = function or general()
-        return function(x, t)
+    def on_numbers(x, t):
+        values = values_at(b, x, None, t, p, outputs)
+        return None if values is None else [values[outputs[-1]]]
 
-    return call
+    return _numbers_first(model, key, general, on_numbers)
 
 
 def forces_first(model, general):
@@ -228,22 +238,10 @@ def forces_first(model, general):
     for the structure's first NUMERIC_CALLS calls (a start's check of finite forces, the run's,
     its last sample's energy: a Function of 20-130 ms of graph building for each one call), then
     the call ``general()`` gives (the Function's, built once per structure)."""
-    cache, prefix = structure_cache(model)
-    counted = (*prefix, "numeric calls", "forces_and_energy")
-    built = (*prefix, "structural", "forces_and_energy")
-    b = vectorized_build(model.structure)
-    p, masses = model.parameter_vector, model.masses
-    function = None
+    b, p, masses = vectorized_build(model.structure), model.parameter_vector, model.masses
 
-    def call(x, v, t):
-        nonlocal function
-        if function is None and built not in cache and cache.get(counted, 0) < NUMERIC_CALLS:
-            with np.errstate(all="ignore"):
-                values = forces_and_energy_at(b, x, v, t, p, masses)
-            if values is not None:
-                cache[counted] = cache.get(counted, 0) + 1
-                return [values[0], np.array([values[1]])]
-        function = function or general()
-        return function(x, v, t)
+    def on_numbers(x, v, t):
+        values = forces_and_energy_at(b, x, v, t, p, masses)
+        return None if values is None else [values[0], np.array([values[1]])]
 
-    return call
+    return _numbers_first(model, "forces_and_energy", general, on_numbers)
