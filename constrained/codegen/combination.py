@@ -17,7 +17,7 @@ from __future__ import annotations
 import casadi as ca
 
 from . import compiled
-from .external import LOOP_FLAGS, PRELUDE, c_functions, entry
+from .external import c_functions, cached_loops
 
 #: The most stages one combination sums (DOP853: 12, its error estimates 13).
 MAX_TERMS = 16
@@ -55,9 +55,7 @@ class _Library:
                 sparsity = [column] * (k + with_y) + [ca.Sparsity.dense(k, 1)]
                 self.specs.append((f"{'combination' if with_y else 'sum'}_{n}_{k}", _body(k, n, with_y),
                                    names, sparsity, ["out"], [column]))
-        # (the key ``c_functions`` gives the library: its source)
-        source = PRELUDE + "".join(entry(*spec) for spec in self.specs)
-        self.path = compiled.cached_library(self.specs[0][0], source.encode(), flags=LOOP_FLAGS)
+        self.path = cached_loops(self.specs)
         self.loaded: list[ca.Function | None] = [None] * len(self.specs)
 
     def __getitem__(self, i: int) -> ca.Function | None:

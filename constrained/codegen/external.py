@@ -180,11 +180,23 @@ def c_functions(specs: list[tuple], shared=None, key: bytes | None = None,
         loaded = compiled.compile_source(lambda: PRELUDE + text() + code, like, key=decided_by,
                                          flags=LOOP_FLAGS)
     elif key is None:
-        loaded = compiled.compile_source(PRELUDE + (shared or "") + code, like, flags=LOOP_FLAGS)
+        loaded = compiled.compile_source(_source(specs, shared or ""), like, flags=LOOP_FLAGS)
     else:
         loaded = compiled.compile_source(lambda: PRELUDE + shared() + code, like, key=key + code.encode(),
                                          flags=LOOP_FLAGS)
     return None if loaded[0] is like[0] else loaded
+
+
+def _source(specs: list[tuple], shared: str = "") -> str:
+    """The C source of the library of ``specs`` (``c_functions`` without a key: its cache key)."""
+    return PRELUDE + shared + "".join(entry(*s) for s in specs)
+
+
+def cached_loops(specs: list[tuple]):
+    """The path of the library ``c_functions(specs)`` builds (no shared code, no key) when the
+    compile cache holds it whole and signed, else None: nothing compiled or loaded, so that a
+    caller may load its entry points one by one (``casadi.external``)."""
+    return compiled.cached_library(specs[0][0], _source(specs).encode(), flags=LOOP_FLAGS)
 
 
 def c_function(name: str, body: str, names_in: list[str], sparsity_in: list[ca.Sparsity],
