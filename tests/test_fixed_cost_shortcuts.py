@@ -8,6 +8,7 @@ import zipfile
 
 import numpy as np
 import pytest
+import structure_reference
 
 from constrained.run.trajectory import Trajectory, write_npz
 
@@ -105,8 +106,8 @@ def test_sorted_unique_is_numpys_unique(dtype):
 
 
 def _structure_data_item_by_item(system):
-    """``lifting.structure_data``'s items walked one by one, each item's names found anew (the
-    long way its run-wise walk replaces)."""
+    """``structure_data``'s items (tests/structure_reference.py) walked one by one, each item's
+    names found anew (the long way its run-wise walk replaces)."""
     from constrained.model import lifting
 
     values, walked = [], []
@@ -157,7 +158,6 @@ def test_structure_data_run_by_run_is_item_by_item(make):
     """The fingerprint's data, values and walk are those of the item-by-item walk (so the
     fingerprint is the same text hashed)."""
     import constrained as C
-    from constrained.model import lifting
 
     if make == "shapes":
         system = _items_of_every_shape()
@@ -172,7 +172,7 @@ def test_structure_data_run_by_run_is_item_by_item(make):
 
         system = _mixed()
     walked: list = []
-    data, values = lifting.structure_data(system, walked)
+    data, values = structure_reference.structure_data(system, walked)
     reference, reference_values, reference_walk = _structure_data_item_by_item(system)
     assert data == reference and values == reference_values
     assert walked == reference_walk
