@@ -94,8 +94,9 @@ def sparse_step(model, kkt, x: np.ndarray, F: np.ndarray, J, d: np.ndarray, radi
 
     grad = -F / d  # D⁻¹∇V
     g = project(grad)
-    if np.max(np.abs(g) * d, initial=0.0) <= force_rtol * force_scale:
-        return None  # (the tangential force, back in newtons)
+    force = float(np.max(np.abs(g) * d, initial=0.0))  # (the tangential force, back in newtons)
+    if force <= force_rtol * force_scale:
+        return None
     multipliers = np.zeros(model.n_constraints)
     if normal is not None:
         multipliers[keep] = normal.solve(A @ grad)
@@ -107,7 +108,6 @@ def sparse_step(model, kkt, x: np.ndarray, F: np.ndarray, J, d: np.ndarray, radi
 
     # an inexact Newton step far from the minimum, an exact one near it (the forcing term falls
     # with the tangential force: superlinear convergence without hundreds of vectors early on)
-    force = float(np.max(np.abs(g) * d))
     newton_rtol = min(max(CG_RTOL, force / force_scale), LANCZOS_RTOL)
     p, newton = _lanczos_step(hessian, g, radius, newton_rtol)
     predicted = -(float(g @ p) + 0.5 * float(p @ hessian(p)))
