@@ -7,7 +7,7 @@ as sparse matrices in one call: O(nnz) for the whole system, whatever its size. 
 undefined when one of its entries of g, or of its rows' stored entries of the two Jacobians,
 is not finite.
 
-With the system's Structure (``structure``: constrained.model) the same vector is made of
+With the system's Model (``model``: constrained.model) the same vector is made of
 the Structure's rows and effect terms, as a Function of (x, v, t, p) built once per
 structure: reading a scene again with other numbers (a sweep, a fresh call) evaluates it and
 builds nothing.
@@ -19,9 +19,8 @@ import casadi as ca
 import numpy as np
 
 from ..errors import InputError
-from . import lifting
 from .cache import built_once
-from .structure import Structure
+from .structure import Model, Structure
 from .symbols import Symbols
 from .system import System
 
@@ -50,20 +49,20 @@ def _bad_rows(matrix: ca.DM) -> np.ndarray:
 
 
 def undefined_items(system: System, t0: float, built: tuple[Symbols, dict] | None = None, *,
-                    structure: Structure | None = None, numbers: np.ndarray | None = None,
-                    jacobian=None, effects_finite: bool = False) -> list[tuple[str, int, object]]:
+                    model: Model | None = None, jacobian=None,
+                    effects_finite: bool = False) -> list[tuple[str, int, object]]:
     """(section, index, item) of each constraint ("constraints") and effect ("effects") whose
     value or gradient is not finite at the system's initial state (positions, velocities) and
     time t0, in scene order. ``built``: the Symbols and {(section, index): rows or term}
     already made for this system (the scene's formula check), reused instead of built again;
-    ``structure`` (and the system's plain ``numbers``, constrained.lifting): the system's
-    Structure, whose expressions are used instead (nothing built per call); ``jacobian``:
+    ``model``: the system's Model, whose Structure's expressions are used instead (nothing built
+    per call), at its parameter vector; ``jacobian``:
     ``(x, t) -> (f, J)`` of the constraint rows to use instead of the Structure's (a large
     model's vectorized build); ``effects_finite``: the effects' values and gradients are known
     to be finite there (a large model's potentials, ``manifold.potential_forces_finite``), so
     they are not checked one by one."""
-    if structure is not None:
-        return _undefined_in(system, t0, structure, numbers, jacobian, effects_finite)
+    if model is not None:
+        return _undefined_in(system, t0, model.structure, model.parameter_vector, jacobian, effects_finite)
     s, done = built if built is not None else (Symbols(system), {})
     items, constraint_values, effect_values = [], [], []
     owner_c, owner_e = [], []  # row of the stacked vector -> index into items
@@ -107,12 +106,10 @@ def _start_check(structure: Structure) -> tuple[ca.Function, np.ndarray]:
     return built_once(structure, "start check", build)
 
 
-def _undefined_in(system: System, t0: float, structure: Structure, numbers, jacobian=None,
+def _undefined_in(system: System, t0: float, structure: Structure, p: np.ndarray, jacobian=None,
                   effects_finite: bool = False) -> list:
-    numbers = lifting.numbers(system) if numbers is None else numbers
-    # (p as the Model's: with a pair potential's neighbour list after the numbers)
-    p = np.concatenate([[system.parameters[k] for k in structure.parameter_names], numbers,
-                        structure.pair_potentials.data(system.positions)])
+    """``undefined_items`` by the Structure's Functions at the Model's parameter vector ``p``
+    (the parameters, the plain numbers, a pair potential's neighbour list)."""
     x0 = np.asarray(system.positions, float).reshape(-1)
     v0 = np.asarray(system.velocities, float).reshape(-1)
     effects, owner_e = (None, np.zeros(0, int)) if effects_finite else _start_check(structure)

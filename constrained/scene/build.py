@@ -414,7 +414,7 @@ class SceneBuilder(RunSections):
             # (a term and its gradient per effect in SX: 0.4 s for a cloth's 19,602 springs)
             if structure.active_terms <= {"constraints", "rheonomic", "potential", "time_dependent_forces"}:
                 effects_finite = potential_forces_finite(model)(system.positions, system.velocities, t0)
-        undefined = undefined_items(system, t0, structure=structure, numbers=numbers, jacobian=jacobian,
+        undefined = undefined_items(system, t0, model=model, jacobian=jacobian,
                                     effects_finite=effects_finite)
         for section, i, obj in undefined[:1]:
             what = "constraint" if section == "constraints" else "effect"
