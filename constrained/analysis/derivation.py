@@ -29,6 +29,7 @@ from .candidates import (  # noqa: F401 (check_generalized_forces, check_lagrang
     check_generalized_forces,
     check_lagrangian,
 )
+from .conservation.rigid_motions import charge_in_coordinates, combination_of, rigid_symmetries
 from .equations import (  # noqa: F401 (EquationCheck, check_equations: public here too)
     EQUATION_RTOL,
     EquationCheck,
@@ -269,6 +270,7 @@ def describe_conserved(scene_or_model, *, parameters: dict | None = None, latex:
                          + note(f"{c} is cyclic: ∂L/∂{c} = 0 and no force acts on {c}"))
         else:
             lost.append(f"p_{c} is not conserved: {cons.not_cyclic[c]}")
+    found += _rigid_motion_lines(rm, rs, cons, formula, p_name, note)
     h = "h = Σ q_dot ∂L/∂q_dot − L"
     if cons.hamiltonian_conserved:
         kind = (f"h = T + V, the energy: {cons.hamiltonian_why}" if cons.hamiltonian_is_energy
@@ -279,11 +281,39 @@ def describe_conserved(scene_or_model, *, parameters: dict | None = None, latex:
         lost.append(f"{h} is not conserved: {cons.hamiltonian_why}")
     comment = "% " if latex else ""
     if found:
-        head = (f"{comment}conserved quantities (the momenta p_j of cyclic coordinates, and {h} when "
-                "∂L/∂t = 0 and nothing does work):")
+        head = (f"{comment}conserved quantities (the momenta p_j of cyclic coordinates, Noether's charges "
+                f"of the rigid motions that are symmetries, and {h} when ∂L/∂t = 0 and nothing does work):")
     else:
         head = f"{comment}conserved quantities: none found"
     return "\n".join([head, *[f"  {line}" for line in found], *[f"  {comment}{line}" for line in lost]])
+
+
+def _rigid_motion_lines(rm, rs, cons, formula, p_name, note) -> list[str]:
+    """A line for each rigid motion that is a symmetry (``rigid_symmetries``): its Noether charge
+    in the coordinates, or the combination of cyclic momenta it equals; none when the charge
+    vanishes identically (a motion that moves nothing the map can move)."""
+    if rm.model is None:
+        return []
+    try:
+        symmetries = rigid_symmetries(rm.model)
+    except InputError:  # no states on the constraint manifold to sample: nothing to say
+        return []
+    cyclic = [j for j, c in enumerate(rm.coordinates) if c in cons.cyclic]
+    lines = []
+    for symmetry in symmetries:
+        coefficients = combination_of(rm, charge_in_coordinates(rm, symmetry), cyclic)
+        why = f"{symmetry.description} is a symmetry of L and of the constraints"
+        if coefficients is None:
+            lines.append(f"{symmetry.name} = {formula(charge_in_coordinates(rs, symmetry))}"
+                         + note(f"{why}: Noether's charge"))
+            continue
+        terms = [(c, rm.coordinates[j]) for c, j in zip(coefficients, cyclic, strict=True)
+                 if abs(c) > 1e-9 * max(1.0, float(np.max(np.abs(coefficients))))]
+        if terms:
+            combination = " + ".join(f"{p_name(name)}" if abs(c - 1) <= 1e-9 else f"{c:.6g}*{p_name(name)}"
+                                     for c, name in terms).replace("+ -", "- ")
+            lines.append(f"{symmetry.name} = {combination}" + note(f"{why}: the same conserved quantity"))
+    return lines
 
 
 # --- a hand-derived constant of the motion ---------------------------------------------------------

@@ -102,7 +102,7 @@ def _lagrangian_parts(model: Model):
     return parts
 
 
-def _canonical_momentum(model: Model) -> ca.SX:
+def canonical_momentum(model: Model) -> ca.SX:
     """∂L/∂v = M v − ∂U/∂v (3N)."""
     s = model.symbols
     U = sum((e for slot, _, e in _lagrangian_parts(model) if slot == "generalized_potential"), ca.SX(0))
@@ -134,7 +134,7 @@ def noether_charge(model, trajectory: Trajectory, *, translation=None, rotation=
     model = _model(model)
     s = model.symbols
     xi, _ = _generator(model, translation, rotation)
-    Q = ca.dot(_canonical_momentum(model), xi)
+    Q = ca.dot(canonical_momentum(model), xi)
     fun = ca.Function("noether_charge", [s.x, s.v, s.t], [Q], ["x", "v", "t"], ["Q"])
     return _along(fun, *_columns(trajectory)).ravel()
 
@@ -162,7 +162,7 @@ class SymmetryReport:
         return self.holds
 
 
-def _manifold_samples(model: Model, samples: int, seed: int):
+def manifold_samples(model: Model, samples: int, seed: int):
     """Random (x, v, t) on f = 0, J v + f_t = 0 near the system's start (the start first)."""
     system = model.system
     rng = np.random.default_rng(seed)
@@ -192,25 +192,16 @@ def _manifold_samples(model: Model, samples: int, seed: int):
     return out
 
 
-def is_symmetry(model, *, translation=None, rotation=None, samples: int = 20, seed: int = 0,
-                rtol: float = SYMMETRY_RTOL) -> SymmetryReport:
-    """Check a declared symmetry at ``samples`` random states on the constraint manifold.
-
-    For each term of L (``T``, each potential V, each generalized potential U):
-    ``δ = ∂term/∂x·ξ + ∂term/∂v·ξ̇``, ``ξ̇ = (∂ξ/∂x) v``; for each constraint row ``J_k ξ``;
-    for each dissipation R and applied force F the power along ξ, ``−∂R/∂v·ξ`` and ``F·ξ``;
-    for each velocity row ``A_k ξ`` (its force's power along ξ, d'Alembert: the charge of a
-    symmetry the velocity constraints forbid is not conserved).
-    A term breaks the symmetry when ``|δ| > rtol × (|∂term/∂x||ξ| + |∂term/∂v||ξ̇|)`` somewhere.
-    (Invariance up to a total time derivative, a quasi-symmetry, is reported as broken.)
-    """
-    model = _model(model)
+def variation_checks(model: Model, xi: ca.SX) -> list[tuple[str, ca.SX, ca.SX]]:
+    """(name, change, scale) of each term under ``x → x + s·ξ(x)`` (see ``is_symmetry``): the
+    first-order change of T, each potential and generalized potential, the power of each
+    dissipation and applied force along ξ, and ``∇c_k·ξ`` of each constraint row (a velocity
+    row's by v); ``scale`` is the size of the change's terms, for a relative test."""
     s = model.symbols
-    x, v, t = s.x, s.v, s.t
-    xi, what = _generator(model, translation, rotation)
+    x, v = s.x, s.v
     xi_dot = ca.jtimes(xi, x, v)
     nxi, nxid = ca.norm_2(xi), ca.norm_2(xi_dot)
-    checks: list[tuple[str, ca.SX, ca.SX]] = []  # (name, change, scale)
+    checks: list[tuple[str, ca.SX, ca.SX]] = []
 
     def scalar_term(name: str, e: ca.SX) -> None:
         gx, gv = ca.gradient(e, x), ca.gradient(e, v)
@@ -232,9 +223,29 @@ def is_symmetry(model, *, translation=None, rotation=None, samples: int = 20, se
         for row, label in constraint.rows(s):
             g = ca.gradient(row, by)
             checks.append((f"constraint {k} ({label})", ca.dot(g, xi), ca.norm_2(g) * nxi))
+    return checks
+
+
+def is_symmetry(model, *, translation=None, rotation=None, samples: int = 20, seed: int = 0,
+                rtol: float = SYMMETRY_RTOL) -> SymmetryReport:
+    """Check a declared symmetry at ``samples`` random states on the constraint manifold.
+
+    For each term of L (``T``, each potential V, each generalized potential U):
+    ``δ = ∂term/∂x·ξ + ∂term/∂v·ξ̇``, ``ξ̇ = (∂ξ/∂x) v``; for each constraint row ``J_k ξ``;
+    for each dissipation R and applied force F the power along ξ, ``−∂R/∂v·ξ`` and ``F·ξ``;
+    for each velocity row ``A_k ξ`` (its force's power along ξ, d'Alembert: the charge of a
+    symmetry the velocity constraints forbid is not conserved).
+    A term breaks the symmetry when ``|δ| > rtol × (|∂term/∂x||ξ| + |∂term/∂v||ξ̇|)`` somewhere.
+    (Invariance up to a total time derivative, a quasi-symmetry, is reported as broken.)
+    """
+    model = _model(model)
+    s = model.symbols
+    x, v, t = s.x, s.v, s.t
+    xi, what = _generator(model, translation, rotation)
+    checks = variation_checks(model, xi)
     fun = ca.Function("variations", [x, v, t],
                       [ca.vertcat(*[c for _, c, _ in checks]), ca.vertcat(*[sc for _, _, sc in checks])])
-    states = _manifold_samples(model, samples, seed)
+    states = manifold_samples(model, samples, seed)
     worst = np.zeros(len(checks))
     for xs, vs, ts in states:
         change, scale = (np.asarray(a).ravel() for a in fun(xs, vs, ts))
@@ -282,7 +293,7 @@ def _moving_frame(model: Model, samples: int, seed: int) -> tuple[dict | None, s
     scale = ft.__abs__() + ca.sum2(J.__abs__()) * (ca.norm_inf(x) + 1.0)
     fun = ca.Function("moving", [x, s.v, t], [ca.vertcat(*coeff), ft, scale])
     A, rhs, sc = [], [], []
-    for xv, vv, tv in _manifold_samples(model, samples, seed):
+    for xv, vv, tv in manifold_samples(model, samples, seed):
         a, b, c = (np.asarray(o) for o in fun(xv, vv, tv))
         A.append(a / c), rhs.append(-b.ravel() / c.ravel()), sc.append(c)
     A, rhs = np.vstack(A), np.concatenate(rhs)
@@ -322,7 +333,7 @@ def jacobi_integral(model, *, samples: int = 20, seed: int = 0) -> tuple[ca.Func
         return None, f"the constraints move as {what}, but that motion changes {', '.join(others)}"
     s = model.symbols
     xi, _ = _generator(model, spec.get("translation"), spec.get("rotation"))
-    Q = frame["scale"] * ca.dot(_canonical_momentum(model), xi)
+    Q = frame["scale"] * ca.dot(canonical_momentum(model), xi)
     return ca.Function("moving_frame_charge", [s.x, s.v, s.t], [Q], ["x", "v", "t"], ["Q"]), what
 
 

@@ -1,0 +1,172 @@
+"""The rigid motions that are symmetries, found (analysis/conservation/rigid_motions.py) and
+listed by `derive`: each found charge is checked against its closed form and for conservation
+along a run the tool did not tune (chaotic, tilted gravity, offset pivots, a screw, a gauge)."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+from conftest import SCENARIOS
+
+import constrained as C
+from constrained.analysis.conservation.rigid_motions import null_space_rows, rigid_symmetries
+from constrained.analysis.derivation import describe_conserved
+from constrained.analysis.symmetry import charge_drift, is_symmetry, noether_charge
+
+TIGHT = {"rtol": 1e-11, "atol": 1e-12}
+
+
+def _charges_along(model, traj, symmetries) -> list[np.ndarray]:
+    return [noether_charge(model, traj, translation=s.translation,
+                           rotation=(s.rotation, [0.0, 0.0, 0.0]) if np.any(s.rotation) else None)
+            for s in symmetries]
+
+
+def _double_spherical_pendulum(pivot, gravity) -> C.System:
+    """Two bobs of 0.3 and 1.7 kg on rods of 0.7 and 1.3 m from ``pivot``: chaotic in 3-D."""
+    pivot = np.asarray(pivot, float)
+    s = C.System(name="double spherical pendulum")
+    s.add_particle("a", 0.3, pivot + [0.7, 0.0, 0.0], [0.0, 1.1, 0.4])
+    s.add_particle("b", 1.7, pivot + [0.7, 0.0, -1.3], [0.9, -0.2, 0.4])
+    s.add(C.Distance("a", point=list(pivot), length=0.7), C.Distance("a", "b", length=1.3),
+          C.Gravity(list(gravity)))
+    return s
+
+
+def test_tilted_gravity_and_an_offset_pivot_leave_one_rotation_about_the_line_of_gravity():
+    pivot, gravity = [1.0, 2.0, 3.0], [2.0, -1.0, -9.0]
+    system = _double_spherical_pendulum(pivot, gravity)
+    model = C.assemble(system)
+    (found,) = rigid_symmetries(model)
+    g = np.asarray(gravity) / np.linalg.norm(gravity)
+    assert abs(abs(found.rotation @ g) - 1) < 1e-12  # the axis is the line of gravity …
+    closest = found.translation  # ε = −ω × c: the axis passes through the pivot
+    assert np.allclose(np.cross(found.rotation, np.asarray(pivot)) + closest, 0, atol=1e-10)
+    assert found.name.startswith("L·(") and found.name.endswith("about (1, 2, 3)")  # named at the pivot
+    assert is_symmetry(model, rotation=(found.rotation, pivot)).holds
+    traj = C.simulate(system, 3.0, model=model, t_eval=np.linspace(0, 3, 61), **TIGHT)
+    (charge,) = _charges_along(model, traj, [found])
+    # closed form: n·Σ m (x − c) × v
+    x, v, m = traj.x, traj.v, np.array([0.3, 1.7])
+    L = np.einsum("i,tij->tj", m, np.cross(x - np.asarray(pivot), v))
+    assert np.allclose(charge, L @ found.rotation, rtol=0, atol=1e-12)
+    assert charge_drift(charge) < 1e-8
+    assert charge_drift(L @ [1.0, 0.0, 0.0]) > 1e-3  # a rotation that is not one is not conserved
+
+
+def test_two_bodies_in_their_own_coordinates_momentum_and_angular_momentum(tmp_path):
+    scene = tmp_path / "two.toml"
+    scene.write_text("""
+[parameters]
+k = 3.0
+m1 = 1.0
+m2 = 2.0
+[[particles]]
+name = "a"
+mass = "m1"
+position = [1.0, 0.0, 0.0]
+velocity = [0.0, 0.5, 0.0]
+[[particles]]
+name = "b"
+mass = "m2"
+position = [-1.0, 0.2, 0.0]
+velocity = [0.1, -0.25, 0.0]
+[[constraints]]
+type = "plane"
+particles = ["a", "b"]
+normal = [0.0, 0.0, 1.0]
+offset = 0.0
+[[effects]]
+type = "spring"
+a = "a"
+b = "b"
+k = "k"
+rest = 1.5
+[reduced]
+coordinates = ["x1", "y1", "x2", "y2"]
+initial = { x1 = 1.0, y1 = 0.0, x2 = -1.0, y2 = 0.2 }
+rates = { x1 = 0.0, y1 = 0.5, x2 = 0.1, y2 = -0.25 }
+map = { a = ["x1", "y1", "0"], b = ["x2", "y2", "0"] }
+""")
+    loaded = C.load_scene(scene)
+    assert [s.name for s in rigid_symmetries(C.assemble(loaded.system))] == ["P_x", "P_y", "L_z"]
+    text = describe_conserved(loaded)
+    lines = {line.split(" = ")[0].strip(): line for line in text.splitlines() if " = " in line}
+    assert "P_x = m1*x1_dot + m2*x2_dot" in lines["P_x"]
+    assert "P_y = m1*y1_dot + m2*y2_dot" in lines["P_y"]
+    assert "m1*x1*y1_dot - m1*x1_dot*y1 + m2*x2*y2_dot - m2*x2_dot*y2" in lines["L_z"]
+    assert "Noether's charge" in lines["L_z"] and "p_x1 is not conserved" in text
+
+
+def test_a_cyclic_coordinate_names_the_rotation_it_comes_from():
+    text = describe_conserved(C.load_scene(SCENARIOS / "kepler.toml"))
+    assert "L_z = p_phi  (rotation about the z axis through (0, 0, 0)" in text
+    assert "the same conserved quantity" in text
+
+
+def test_bead_on_a_helix_conserves_a_screw_charge_not_lz_nor_pz():
+    radius, pitch = 0.4, 0.15  # x = R cos(z/c), y = R sin(z/c): one turn rises 2π c
+    s = C.System(name="bead on a helix")
+    s.add_particle("bead", 0.05, [radius, 0.0, 0.0], [0.0, 0.8, 0.8 * pitch / radius])
+    s.add(C.Curve("bead", [f"x - {radius}*cos(z/{pitch})", f"y - {radius}*sin(z/{pitch})"]))
+    s.add(C.Spring("bead", point=[0.0, 0.0, 0.0], k=0.3, rest=0.0))  # radial pull: rotations only
+    model = C.assemble(s)
+    found = rigid_symmetries(model)
+    assert len(found) == 0  # the spring to the origin breaks the translation part of the screw
+    s2 = C.System(name="free bead on a helix")
+    s2.add_particle("bead", 0.05, [radius, 0.0, 0.0], [0.0, 0.8, 0.8 * pitch / radius])
+    s2.add(C.Curve("bead", [f"x - {radius}*cos(z/{pitch})", f"y - {radius}*sin(z/{pitch})"]))
+    model2 = C.assemble(s2)
+    (screw,) = rigid_symmetries(model2)
+    assert np.allclose(screw.rotation, [0, 0, 1]) and np.allclose(screw.translation, [0, 0, pitch])
+    assert screw.name == f"L_z + {pitch:.6g}·P_z" and "screw" in screw.description
+    traj = C.simulate(s2, 2.0, model=model2, t_eval=np.linspace(0, 2, 41), **TIGHT)
+    x, v = traj.x[:, 0], traj.v[:, 0]
+    charge = 0.05 * ((x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0]) + pitch * v[:, 2])
+    assert charge_drift(charge) < 1e-8 and abs(charge[0]) > 1e-3
+
+
+def test_electromagnetic_gauge_decides_which_translations_are_symmetries():
+    scene = C.load_scene(SCENARIOS / "charged_particle_em.toml")  # φ = −E0 x, A = (0, B x, 0)
+    model = C.assemble(scene.system)
+    found = rigid_symmetries(model)
+    assert [s.name for s in found] == ["P_y", "P_z"]  # x: the field E; rotations: the gauge
+    s = model.symbols
+    charge_y = ca.Function("Q", [s.x, s.v], [found[0].charge])
+    x, v = np.array([0.7, -0.2, 0.1]), np.array([0.3, 0.4, -0.5])
+    assert float(charge_y(x, v)) == pytest.approx(0.5 * 0.4 + 2.0 * 1.5 * 0.7, rel=1e-14)  # m v_y + q B x
+    run = scene.run(["simulate.t_end=3"])
+    q_y = run.trajectory.v[:, 0, 1] * 0.5 + 2.0 * 1.5 * run.trajectory.x[:, 0, 0]
+    m_vy = 0.5 * run.trajectory.v[:, 0, 1]  # not conserved: the particle drifts along y
+    assert np.max(np.abs(q_y - q_y[0])) < 1e-9 * np.max(np.abs(m_vy)) and np.ptp(m_vy) > 0.1
+
+
+@pytest.mark.parametrize("scenario", ["four_bar_linkage", "chaplygin_sleigh", "hanging_chain"])
+def test_scenes_without_a_rigid_symmetry_find_none(scenario):
+    assert rigid_symmetries(C.assemble(C.load_scene(SCENARIOS / f"{scenario}.toml").system)) == []
+
+
+def test_a_free_body_has_all_six_and_each_is_conserved():
+    scene = C.load_scene(SCENARIOS / "spinning_cube_dzhanibekov.toml")
+    model = C.assemble(scene.system)
+    found = rigid_symmetries(model)
+    assert [s.name for s in found] == ["P_x", "P_y", "P_z", "L_x", "L_y", "L_z"]
+    traj = C.simulate(scene.system, 1.0, model=model, t_eval=np.linspace(0, 1, 21), **TIGHT)
+    for s, charge in zip(found, _charges_along(model, traj, found), strict=True):
+        assert np.max(np.abs(charge - charge[0])) < 1e-9 * max(1.0, np.max(np.abs(charge))), s.name
+
+
+def test_a_sphere_given_as_a_surface_names_its_centre_for_all_three_rotations():
+    s = C.System(name="bead on a sphere about (1, 2, 3)")
+    s.add_particle("p", 0.2, [2.0, 2.0, 3.0], [0.0, 0.3, 0.1])
+    s.add(C.Surface("p", "(x - 1)**2 + (y - 2)**2 + (z - 3)**2 - 1"))
+    found = rigid_symmetries(s)
+    assert [f.name for f in found] == ["L_x about (1, 2, 3)", "L_y about (1, 2, 3)", "L_z about (1, 2, 3)"]
+
+
+def test_null_space_rows_reads_tilted_and_aligned_spaces():
+    assert null_space_rows(np.zeros((0, 3)), 1e-9).tolist() == np.eye(3).tolist()
+    plane = null_space_rows(np.array([[1.0, 1.0, 0.0]]), 1e-9)  # s_x + s_y = 0
+    assert np.allclose(plane, [[1, -1, 0], [0, 0, 1]])
+    assert null_space_rows(np.eye(3), 1e-9).shape == (0, 3)
