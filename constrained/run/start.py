@@ -15,6 +15,7 @@ from .. import interrupt
 from ..errors import InconsistentStateError
 from ..manifold import residual
 from ..manifold.manifold import RANK, Manifold, RankPolicy, constraint_values, redundant_rows, sparse_jacobian
+from ..model.regularity import unresolved_reason, unresolved_rods
 from ..model.structure import Model
 
 
@@ -46,6 +47,8 @@ def consistent_start(model: Model, x0, v0, t0: float = 0.0, *, max_correction: f
         bad = labels[int(np.argmax(~np.isfinite(f0)))]
         raise InconsistentStateError(f"constraint '{bad}' is not finite at the initial state")
     _refuse_undefined_gradient(model, x0, t0)
+    for _, rod, length, smallest in unresolved_rods(model.system)[:1]:
+        raise InconsistentStateError(f"constraint '{rod.label}': {unresolved_reason(rod, length, smallest)}")
     manifold = Manifold(model, rows=redundant_rows(model, x0, t0, policy), policy=policy, compiled=compiled)
     size = size or max(float(np.max(np.abs(x0), initial=0.0)), 1.0)
     # residuals and tolerances in metres: each row divided by its scale (constrained.residual)
