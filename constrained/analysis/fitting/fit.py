@@ -94,6 +94,12 @@ class FitResult:
                      f"(reduced {self.reduced_chi2:.4g}); "
                      f"{'converged' if self.success else 'NOT converged'}: {self.message} "
                      f"({self.nfev} runs, {self.njev} Jacobians)")
+        if not self.sigma_given and self.dof <= 0:
+            values = self.dof + len(self.names)
+            lines.append(f"  standard errors unknown: {values} measured value{'s' * (values != 1)} for "
+                         f"{len(self.names)} fitted parameter{'s' * (len(self.names) != 1)} leave no degree "
+                         "of freedom to estimate σ from the residuals; give --sigma (or sigma_NAME "
+                         "columns), or more measurements")
         for name, rms in zip(self.outputs, self.rms, strict=True):
             lines.append(f"  rms residual of {name}: {rms:.4g}")
         off = np.abs(self.correlation - np.eye(len(self.names)))
