@@ -62,3 +62,14 @@ def test_as_many_values_as_parameters_says_why_the_errors_are_unknown(tmp_path):
     with_sigma = C.fit(scene, data, ["l", "b"], sigma=1e-3)
     assert np.all(np.isfinite(with_sigma.standard_errors))
     assert "standard errors unknown" not in with_sigma.table()
+
+
+def test_a_mass_with_only_gravity_is_not_determined_and_no_self_correlation_is_reported(tmp_path, capsys):
+    """An undamped pendulum's motion does not depend on its mass: m is reported as not determined,
+    and the only other parameter, l, has no correlation to report (it printed "l–l +1.000")."""
+    code = main(["fit", SCENE, str(CAMERA), "--params", "m,l", "--set", "parameters.m=0.2",
+                 "--set", 'particles[0].mass="m"', "--set", "parameters.b=0", "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "NOT determined by these data: 1·m + 0·l" in out
+    assert "largest correlation" not in out

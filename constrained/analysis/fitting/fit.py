@@ -104,12 +104,15 @@ class FitResult:
             lines.append(f"  rms residual of {name}: {rms:.4g}")
         off = np.abs(self.correlation - np.eye(len(self.names)))
         off[~np.isfinite(off)] = -1.0  # (an undetermined parameter has no correlation)
+        undetermined = ~np.isfinite(self.standard_errors)  # (its correlations are 0 by division by ∞)
+        off[undetermined, :] = off[:, undetermined] = -1.0
+        np.fill_diagonal(off, -1.0)  # (nor is a parameter's with itself a correlation to report)
         if len(self.names) > 1 and np.max(off) >= 0:
             k = np.unravel_index(np.argmax(off), off.shape)
             lines.append(f"  largest correlation: {self.names[k[0]]}–{self.names[k[1]]} "
                          f"{self.correlation[k]:+.3f}")
         for combo in self.unidentified:
-            text = " + ".join(f"{w:.3g}·{n}" for n, w in combo.items())
+            text = " + ".join(f"{w + 0.0:.3g}·{n}" for n, w in combo.items())  # (+ 0.0: no "-0")
             lines.append(f"  NOT determined by these data: {text} (held at its start; its standard error "
                          "is infinite: fix one of these parameters, or write the model with the combination "
                          "the data see)")
