@@ -36,6 +36,8 @@ def schur_solve(J: np.ndarray, inverse_masses: np.ndarray, b: np.ndarray, *,
     b = np.asarray(b, float)
     if J.shape[0] == 0:
         return np.zeros(b.shape)
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(b))):  # (a rod's 0/0 direction): no
+        return np.full(b.shape, np.nan)  # solve; NaN for the caller's non-finite checks, not LAPACK's error
     s = row_scale(J, inverse_masses)
     sb = s * b if b.ndim == 1 else s[:, None] * b
     if full_rank:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from .cache import built_once
+from .constraints import Distance
 from .structure import Model, Structure
 from .symbols import Symbols
 from .system import System
@@ -135,3 +136,43 @@ def _undefined_in(system: System, t0: float, structure: Structure, p: np.ndarray
                 bad.add(("effects", owner))
     items = {"constraints": system.constraints, "effects": system.effects}
     return [(section, k, items[section][k]) for section, k in sorted(bad)]
+
+
+#: A rod shorter than this fraction of the system's size (its largest start coordinate) is not
+#: resolved: the start is accepted within 1e-8 of the size, positions are resolved to 2.2e-16 of
+#: it, and the rod's direction — its constraint force — is then noise of its own size, or 0/0
+#: where the two ends round to one point (a rod of length 0 is refused outright).
+UNRESOLVED_FRACTION = 1e-12
+#: Below this no rod can be computed at all: |x_a − x_b| is the root of a sum of squares, and the
+#: squares of a smaller difference are subnormal (below 2.2e-308) or zero.
+SMALLEST_LENGTH = 1e-150
+
+
+def unresolved_rods(system: System) -> list[tuple[int, Distance, float, float]]:
+    """(index, rod, length, smallest resolved length) of each ``distance`` constraint with a
+    plain length too short for the coordinates of the system at its start (a subnormal 1e-320,
+    or 1e-20 m among coordinates of metres): such a rod either holds its two ends on one point,
+    where its direction is undefined (0/0, a run of NaN), or on a direction that is round-off.
+    O(N) in the constraints."""
+    positions = np.asarray(system.positions, float).reshape(-1)
+    size = float(np.max(np.abs(positions), initial=0.0))
+    found = []
+    for i, c in enumerate(system.constraints):
+        if type(c) is not Distance or isinstance(c.length, bool) or not isinstance(c.length, int | float):
+            continue
+        anchor = np.asarray(c.point, float) if c.b is None and not any(
+            isinstance(k, str) for k in c.point) else np.zeros(1)
+        smallest = max(UNRESOLVED_FRACTION * max(size, float(np.max(np.abs(anchor)))), SMALLEST_LENGTH)
+        if 0 < c.length < smallest:
+            found.append((i, c, float(c.length), smallest))
+    return found
+
+
+def unresolved_reason(rod: Distance, length: float, smallest: float) -> str:
+    """Why a rod of ``unresolved_rods`` cannot be simulated, and what to do."""
+    ends = f"'{rod.a}' and '{rod.b}'" if rod.b is not None else f"'{rod.a}' and its point"
+    return (f"a rod of length {length:.3g} m is shorter than the positions of this scene resolve "
+            f"({smallest:.3g} m: {UNRESOLVED_FRACTION:g} of the largest start coordinate, and never "
+            f"below {SMALLEST_LENGTH:g} m, where |x_a - x_b| is computed from squares that underflow): "
+            f"it would hold {ends} on one point, where its direction and its force are undefined "
+            "(0/0); merge the two into one particle, or give the rod a length the positions resolve")

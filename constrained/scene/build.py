@@ -17,7 +17,7 @@ from ..model import expressions
 from ..model.constraints import CONSTRAINT_TYPES
 from ..model.effects import EFFECT_TYPES
 from ..model.parameters import RESERVED_NAMES, check_name
-from ..model.regularity import undefined_items
+from ..model.regularity import undefined_items, unresolved_reason, unresolved_rods
 from ..model.structure import Model, kept_structure
 from ..model.symbols import Symbols
 from ..model.system import Particle, System
@@ -404,6 +404,8 @@ class SceneBuilder(RunSections):
         at r = 0, is refused here with the item's key instead of failing inside a solver
         (constrained.regularity: one sparse evaluation for the whole system, of a Function
         built once per structure). ``structure``: ``(Structure, numbers)`` of the system."""
+        for i, rod, length, smallest in unresolved_rods(system)[:1]:
+            self.fail(f"{_join('constraints', i)}.length", unresolved_reason(rod, length, smallest))
         structure, numbers = structure if structure is not None else self.structure(system)
         jacobian, effects_finite = None, False
         model = Model(system, structure=structure, numbers=numbers)

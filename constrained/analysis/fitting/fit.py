@@ -94,16 +94,25 @@ class FitResult:
                      f"(reduced {self.reduced_chi2:.4g}); "
                      f"{'converged' if self.success else 'NOT converged'}: {self.message} "
                      f"({self.nfev} runs, {self.njev} Jacobians)")
+        if not self.sigma_given and self.dof <= 0:
+            values = self.dof + len(self.names)
+            lines.append(f"  standard errors unknown: {values} measured value{'s' * (values != 1)} for "
+                         f"{len(self.names)} fitted parameter{'s' * (len(self.names) != 1)} leave no degree "
+                         "of freedom to estimate σ from the residuals; give --sigma (or sigma_NAME "
+                         "columns), or more measurements")
         for name, rms in zip(self.outputs, self.rms, strict=True):
             lines.append(f"  rms residual of {name}: {rms:.4g}")
         off = np.abs(self.correlation - np.eye(len(self.names)))
         off[~np.isfinite(off)] = -1.0  # (an undetermined parameter has no correlation)
+        undetermined = ~np.isfinite(self.standard_errors)  # (its correlations are 0 by division by ∞)
+        off[undetermined, :] = off[:, undetermined] = -1.0
+        np.fill_diagonal(off, -1.0)  # (nor is a parameter's with itself a correlation to report)
         if len(self.names) > 1 and np.max(off) >= 0:
             k = np.unravel_index(np.argmax(off), off.shape)
             lines.append(f"  largest correlation: {self.names[k[0]]}–{self.names[k[1]]} "
                          f"{self.correlation[k]:+.3f}")
         for combo in self.unidentified:
-            text = " + ".join(f"{w:.3g}·{n}" for n, w in combo.items())
+            text = " + ".join(f"{w + 0.0:.3g}·{n}" for n, w in combo.items())  # (+ 0.0: no "-0")
             lines.append(f"  NOT determined by these data: {text} (held at its start; its standard error "
                          "is infinite: fix one of these parameters, or write the model with the combination "
                          "the data see)")

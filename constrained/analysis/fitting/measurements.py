@@ -57,6 +57,13 @@ class Measurements:
                              "drop repeated times", where=where)
         if np.any(np.isinf(values)):
             raise InputError("a value is infinite", where=where)
+        with np.errstate(invalid="ignore"):
+            huge = np.abs(values) > LARGEST_VALUE
+        if np.any(huge):
+            i, j = np.argwhere(huge)[0]
+            raise InputError(f"{self._row(int(i))}: the value of '{self.names[j]}', {values[i, j]:.3g}, "
+                             "is too large to fit (the squares of such residuals overflow); give the data in "
+                             "units that keep the numbers moderate", where=where)
         if not np.any(np.isfinite(values)):
             raise InputError("every value is missing", where=where)
         sigma = None
@@ -82,6 +89,10 @@ class Measurements:
         return int(np.sum(np.isfinite(self.values)))
 
 
+#: Measured values beyond this are refused: a residual of 1e154 squared is the largest double.
+LARGEST_VALUE = 1e150
+
+
 def _cell(text: str, path, line: int, column: str) -> float:
     text = text.strip()
     if text.lower() in MISSING:
@@ -93,6 +104,10 @@ def _cell(text: str, path, line: int, column: str) -> float:
                          where=str(path)) from None
     if math.isinf(value):
         raise InputError(f"line {line}, column '{column}': the value is infinite", where=str(path))
+    if abs(value) > LARGEST_VALUE:
+        raise InputError(f"line {line}, column '{column}': {value:.3g} is too large to fit: the squares "
+                         "of such residuals overflow the sum of squares (the fit wandered to NaN); give "
+                         "the data in units that keep the numbers moderate", where=str(path))
     return value
 
 
