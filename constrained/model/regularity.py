@@ -153,19 +153,30 @@ def unresolved_rods(system: System) -> list[tuple[int, Distance, float, float]]:
     plain length too short for the coordinates of the system at its start (a subnormal 1e-320,
     or 1e-20 m among coordinates of metres): such a rod either holds its two ends on one point,
     where its direction is undefined (0/0, a run of NaN), or on a direction that is round-off.
-    O(N) in the constraints."""
+    O(N) in the constraints: one pass over the rods' lengths, and an item-by-item look only at
+    those below the bound of the positions alone and at rods to a point (whose point counts)."""
     positions = np.asarray(system.positions, float).reshape(-1)
     size = float(np.max(np.abs(positions), initial=0.0))
+    constraints = system.constraints
+    rods = [i for i, c in enumerate(constraints) if type(c) is Distance]
+    lengths = np.array([_plain_length(constraints[i].length) for i in rods], dtype=float).reshape(-1)
+    to_points = np.array([constraints[i].b is None for i in rods], dtype=bool).reshape(-1)
+    floor = max(UNRESOLVED_FRACTION * size, SMALLEST_LENGTH)  # (a rod to a point: its point's too)
     found = []
-    for i, c in enumerate(system.constraints):
-        if type(c) is not Distance or isinstance(c.length, bool) or not isinstance(c.length, int | float):
-            continue
+    for k in np.flatnonzero((lengths < floor) | to_points):  # (nan, a formula: never below)
+        i = rods[k]
+        c = constraints[i]
         anchor = np.asarray(c.point, float) if c.b is None and not any(
             isinstance(k, str) for k in c.point) else np.zeros(1)
         smallest = max(UNRESOLVED_FRACTION * max(size, float(np.max(np.abs(anchor)))), SMALLEST_LENGTH)
-        if 0 < c.length < smallest:
-            found.append((i, c, float(c.length), smallest))
+        if 0 < lengths[k] < smallest:
+            found.append((i, c, float(lengths[k]), smallest))
     return found
+
+
+def _plain_length(length) -> float:
+    """A rod's length as a number, NaN for a formula (or a bool)."""
+    return float(length) if isinstance(length, int | float) and not isinstance(length, bool) else np.nan
 
 
 def unresolved_reason(rod: Distance, length: float, smallest: float) -> str:
