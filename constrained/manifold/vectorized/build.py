@@ -31,6 +31,7 @@ from ..mapped import _row_terms, mapped_build
 from .columns import Summation, binary, on_columns, shared, sorted_unique, take
 from .fused import fused_groups
 from .products import compiled_products
+from .rest import Positions, RestFunction, rest_function
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
@@ -268,6 +269,7 @@ class VectorizedBuild:
         self.rest = {k: terms[k] for k in ("f", "f_t", "gamma", "scale")}
         self.rest["J"], self.rest["F"] = rest_J, F_rest
         self._rest_functions: dict = {}
+        self._positions = Positions(e)
         rows = [np.repeat(g.place[None], g.index.shape[0], axis=0) for g in mb.rows]
         self.rows = [row for g_rows in rows for row in g_rows] + [mb.rest_place[np.asarray(r, np.int64)]]
         self.cols = [col for g in mb.rows for col in g.index] + [np.asarray(c, np.int64)]
@@ -285,6 +287,7 @@ class VectorizedBuild:
             self.single = None
         self._jacobian_pattern(lengths)
         self._kernels: dict = {}
+        self._no_p = ca.SX.sym("p", 0)  # (a kernel's p when it reads none: ``_group_function``)
         self._fused: dict | None = None
         self._products = None
         _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
@@ -318,23 +321,33 @@ class VectorizedBuild:
             c = ca.jtimes(g.local, xl, vl) + terms["f_t"]
             terms["gamma"] = ca.jtimes(c, xl, vl) + (ca.jacobian(c, e.t) if ca.depends_on(c, e.t) else 0)
             out = [ca.densify(ca.vec(terms[k])) for k in outputs]
-            self._kernels[key] = ca.Function("kernel", [xl, vl, g.c, e.t, e.p], out, {"cse": True})
+            self._kernels[key] = self._group_function("kernel", g, vl, out)
         return self._kernels[key]
+
+    def _group_function(self, name: str, g, vl, outputs: list) -> ca.Function:
+        """A group's SX kernel of (x_l, v_l, c, t, p) with ``outputs``, p the Structure's where they
+        read an entry of it, else an empty one: the same instructions, where a Function of p's
+        10⁴-10⁵ symbols (a cloth's rest lengths) costs 2 ms to build, a dozen times a start."""
+        e = self.e
+        own = {s.element_hash() for part in (g.xl, vl, g.c, e.t) for s in part.nonzeros()}
+        read = ca.symvar(ca.veccat(*outputs)) if outputs else []
+        p = e.p if any(s.element_hash() not in own for s in read) else self._no_p
+        return ca.Function(name, [g.xl, vl, g.c, e.t, p], outputs, {"cse": True})
 
     def _gradient_kernel(self, g) -> ca.Function:
         key = (id(g), "gradient")
         if key not in self._kernels:
-            e, xl = self.e, g.xl
+            xl = g.xl
             gradient = ca.densify(ca.gradient(g.local, xl))
             vl = ca.SX.sym("vl", xl.numel())
-            self._kernels[key] = ca.Function("gradient", [xl, vl, g.c, e.t, e.p], [gradient], {"cse": True})
+            self._kernels[key] = self._group_function("gradient", g, vl, [gradient])
         return self._kernels[key]
 
-    def _rest_function(self, outputs: tuple) -> ca.Function:
+    def _rest_function(self, outputs: tuple) -> RestFunction:
+        """The rest's ``outputs`` (names in ``rest``) on the entries of x, v, p they read."""
         if outputs not in self._rest_functions:
-            e = self.e
-            self._rest_functions[outputs] = ca.Function(
-                "rest", [e.x, e.v, e.t, e.p], [self.rest[k] for k in outputs], {"cse": True})
+            self._rest_functions[outputs] = rest_function(self.e, [self.rest[k] for k in outputs],
+                                                          self._positions)
         return self._rest_functions[outputs]
 
     def products(self):
@@ -431,7 +444,7 @@ class VectorizedBuild:
         rest_outputs = (*outputs, "F") if forces_too and (self.rest_forces or not mb.terms) else outputs
         rest = []
         if rest_outputs:
-            rest = self._rest_function(rest_outputs)(X, V if V is not None else ca.MX.zeros(self.n3), T, P)
+            rest = self._rest_function(rest_outputs)(X, V, T, P)
             rest = rest if isinstance(rest, list | tuple) else [rest]
         result = {}
         if forces_too and "F" not in rest_outputs:
@@ -455,9 +468,9 @@ class VectorizedBuild:
     def _value_kernel(self, g) -> ca.Function:
         key = (id(g), "value")
         if key not in self._kernels:
-            e, xl = self.e, g.xl
+            xl = g.xl
             vl = ca.SX.sym("vl", xl.numel())
-            self._kernels[key] = ca.Function("value", [xl, vl, g.c, e.t, e.p], [g.local], {"cse": True})
+            self._kernels[key] = self._group_function("value", g, vl, [g.local])
         return self._kernels[key]
 
     def energy(self, X, V, T, P, masses):
