@@ -269,7 +269,7 @@ class VectorizedBuild:
         self.rest = {k: terms[k] for k in ("f", "f_t", "gamma", "scale")}
         self.rest["J"], self.rest["F"] = rest_J, F_rest
         self._rest_functions: dict = {}
-        self._positions = Positions(e)
+        self._positions = Positions(e.x, e.v, e.t, e.p)
         rows = [np.repeat(g.place[None], g.index.shape[0], axis=0) for g in mb.rows]
         self.rows = [row for g_rows in rows for row in g_rows] + [mb.rest_place[np.asarray(r, np.int64)]]
         self.cols = [col for g in mb.rows for col in g.index] + [np.asarray(c, np.int64)]

@@ -34,27 +34,27 @@ class RestFunction:
 
 class Positions:
     """Where symbols are in a Structure's x and v (by their names, x_i and v_i, checked) and
-    in p (located once by a Function of p, then remembered)."""
+    in p (located once by a Function of p, then remembered); v None: no velocities."""
 
-    def __init__(self, e):
-        self.e = e
+    def __init__(self, x, v, t, p):
+        self.x, self.v, self.t, self.p = x, v, t, p
         self._in_p: dict[int, int] = {}  # element hash -> position in p
 
-    def _named(self, s, vector, prefix: str) -> int | None:
+    @staticmethod
+    def _named(s, vector, prefix: str) -> int | None:
         head, _, tail = s.name().rpartition("_")
-        if head != prefix or not tail.isdigit() or int(tail) >= vector.numel():
+        if vector is None or head != prefix or not tail.isdigit() or int(tail) >= vector.numel():
             return None
         return int(tail) if ca.is_equal(vector[int(tail)], s) else None
 
     def of(self, symbols: list) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The positions (ascending) in x, v and p of ``symbols`` (t left out); None where one of
         them is in none of these."""
-        e = self.e
         x_at, v_at, unknown = [], [], []
         for s in symbols:
-            if ca.is_equal(s, e.t):
+            if ca.is_equal(s, self.t):
                 continue
-            i, j = self._named(s, e.x, "x"), self._named(s, e.v, "v")
+            i, j = self._named(s, self.x, "x"), self._named(s, self.v, "v")
             if i is not None:
                 x_at.append(i)
             elif j is not None:
@@ -68,11 +68,11 @@ class Positions:
 
     def _locate(self, symbols: list) -> bool:
         try:
-            locate = ca.Function("locate", [self.e.p], [ca.vertcat(*symbols)])
+            locate = ca.Function("locate", [self.p], [ca.vertcat(*symbols)])
         except RuntimeError:  # (a symbol that is not in p)
             return False
-        at = np.asarray(locate(np.arange(self.e.p.numel(), dtype=float)), float).ravel().astype(np.int64)
-        if not all(ca.is_equal(self.e.p[int(i)], s) for i, s in zip(at, symbols, strict=True)):
+        at = np.asarray(locate(np.arange(self.p.numel(), dtype=float)), float).ravel().astype(np.int64)
+        if not all(ca.is_equal(self.p[int(i)], s) for i, s in zip(at, symbols, strict=True)):
             return False
         self._in_p.update((s.element_hash(), int(i)) for i, s in zip(at, symbols, strict=True))
         return True
