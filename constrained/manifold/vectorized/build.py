@@ -274,8 +274,6 @@ class VectorizedBuild:
         self.rows = [row for g_rows in rows for row in g_rows] + [mb.rest_place[np.asarray(r, np.int64)]]
         self.cols = [col for g in mb.rows for col in g.index] + [np.asarray(c, np.int64)]
         lengths = [len(k) for k in self.rows]
-        self.by_rows = Summation(lengths, self.rows, self.n_rows)
-        self.by_cols = Summation(lengths, self.cols, self.n3)
         # values per row (f, γ, f_t, scales): each group's instances, then the rest, to scene order
         self.places = [g.place for g in mb.rows] + [mb.rest_place]
         self.by_place = Summation([len(p) for p in self.places], self.places, self.n_rows)
@@ -294,6 +292,17 @@ class VectorizedBuild:
         self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
 
     @cached_property
+    def by_rows(self) -> Summation:
+        """J y's sums by rows, built when first asked for: where J's products are C loops
+        (``products``) nothing asks (0.01 s of a 100 x 100 cloth's build)."""
+        return Summation([len(k) for k in self.rows], self.rows, self.n_rows)
+
+    @cached_property
+    def by_cols(self) -> Summation:
+        """Jᵀ λ's sums by coordinates, built when first asked for (as ``by_rows``)."""
+        return Summation([len(k) for k in self.rows], self.cols, self.n3)
+
+    @cached_property
     def gram(self) -> _Gram:
         """The index data of A = J M⁻¹ Jᵀ over every row, built when first asked for: where rows
         are eliminated (``single``) the solves use the reduced one, ``_Elimination.gram``
@@ -305,8 +314,9 @@ class VectorizedBuild:
         n = self.n_rows
         key = [c * n + r for r, c in zip(self.rows, self.cols, strict=True)]
         every = sorted_unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
-        self.jacobian_sparsity = ca.Sparsity.triplet(n, self.n3, (every % max(n, 1)).tolist(),
-                                                     (every // max(n, 1)).tolist())
+        # (compressed columns from the sorted keys: CasADi's triplet constructor sorts them again)
+        colind = np.concatenate([[0], np.cumsum(np.bincount(every // max(n, 1), minlength=self.n3))])
+        self.jacobian_sparsity = ca.Sparsity(n, self.n3, colind.tolist(), (every % max(n, 1)).tolist())
         self.by_nonzero = Summation(lengths, [np.searchsorted(every, k) for k in key], len(every))
 
     # --- evaluation at one state ------------------------------------------------------------

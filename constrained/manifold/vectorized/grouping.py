@@ -25,7 +25,7 @@ import casadi as ca
 import numpy as np
 
 from .columns import sorted_unique
-from .rest import MAX_PLACED, Positions
+from .rest import MAX_PLACED, Positions, Rows
 
 #: A repeated row or potential term becomes a mapped kernel from this many instances; fewer
 #: stay in the one SX graph of the rest.
@@ -239,39 +239,19 @@ def _points(n_x: int, n_p: int) -> list[tuple]:
     return points
 
 
-class _Rows:
-    """The rows (one column) as a Function of the entries ``x_at`` of x and ``p_at`` of p they
-    read and t, not of the whole vectors (a cloth's 30,000 + 69,000 symbols cost 4 ms to build
-    and as much per point to convert): which entries each row reads, its values at the probe
-    points."""
-
-    def __init__(self, function: ca.Function, x_at: np.ndarray, p_at: np.ndarray):
-        self.function, self.x_at, self.p_at = function, x_at, p_at
-
-    def reads(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(colind, row) of the rows' reads (transposed Jacobian pattern) of x (k = 0) or p (k = 2),
-        positions in the whole vector (a third of the time of the SX's)."""
-        pattern = self.function.jac_sparsity(0, k).T
-        at = self.x_at if k == 0 else self.p_at
-        return np.array(pattern.colind(), np.int64), at[np.array(pattern.row(), np.int64)]
-
-    def at(self, x0, t0, p0):
-        return self.function(x0[self.x_at], t0, p0[self.p_at])
-
-
-def _rows_function(stacked, x, t, p) -> _Rows | None:
-    """The rows ``stacked`` (one column) as ``_Rows``; None when a row reads more than x, t and
+def _rows_function(stacked, x, t, p) -> Rows | None:
+    """The rows ``stacked`` (one column) as ``Rows``; None when a row reads more than x, t and
     p (velocities): then each bucket's rows are compared by ``_same``."""
     read = ca.symvar(stacked)
     at = Positions(x, None, t, p).of(read) if len(read) <= MAX_PLACED else None
     x_at, _, p_at = at if at is not None else (np.arange(x.numel()), None, np.arange(p.numel()))
     try:
-        return _Rows(ca.Function("rows", [x[x_at.tolist()], t, p[p_at.tolist()]], [stacked]), x_at, p_at)
+        return Rows(ca.Function("rows", [x[x_at.tolist()], t, p[p_at.tolist()]], [stacked]), x_at, p_at)
     except RuntimeError:
         return None
 
 
-def _row_values(rows: _Rows | None, x, t, p) -> list[np.ndarray] | None:
+def _row_values(rows: Rows | None, x, t, p) -> list[np.ndarray] | None:
     """Every row at each probe point, from the Function of them all (``_rows_function``; None:
     None)."""
     if rows is None:
