@@ -138,14 +138,18 @@ def forces_and_energy_at(b: VectorizedBuild, x, v, t: float, p, masses) -> tuple
                   for g in b.mapped.terms]
     except NotExact:
         return None
-    F_rest, E_rest = (_dense(value).ravel() for value in _call(b, b._rest_function(("F", "E")), x, v, t, p))
+    # (F of the rest is read only where it has forces, or no term has: else it is zeros)
+    outputs = ("F", "E") if b.rest_forces or not gradients else ("E",)
+    rest = b._rest_function(outputs)
+    *F_rest, E_rest = (_dense(value).ravel()
+                       for value in _call(b, rest.function, *rest.arguments(x, v, t, p)))
     if gradients:
         potential = summed(b.by_force, gradients)
         if potential is None:
             return None
-        F = F_rest - potential if b.rest_forces else -potential
+        F = F_rest[0] - potential if b.rest_forces else -potential
     else:
-        F = F_rest
+        F = F_rest[0]
     E = 0.5 * sequential_sum((masses * v) * v) + E_rest[0]
     for column in values:
         E = E + sequential_sum(np.asarray(column, float))
@@ -180,7 +184,11 @@ def values_at(b: VectorizedBuild, x, v, t: float, p, outputs: tuple) -> dict | N
             return None
         for k, values in zip(outputs, columns, strict=True):
             rows[k] += values
-    rest = _call(b, b._rest_function(outputs), x, v, t, p) if outputs else []
+    if outputs:
+        function = b._rest_function(outputs)
+        rest = _call(b, function.function, *function.arguments(x, v, t, p))
+    else:
+        rest = []
     result = {}
     for k, value in zip(outputs, rest, strict=True):
         value = _dense(value).ravel()

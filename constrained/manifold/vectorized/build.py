@@ -31,6 +31,7 @@ from ..mapped import _row_terms, mapped_build
 from .columns import Summation, binary, on_columns, shared, sorted_unique, take
 from .fused import fused_groups
 from .products import compiled_products
+from .rest import Positions, RestFunction, rest_function
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
@@ -268,12 +269,11 @@ class VectorizedBuild:
         self.rest = {k: terms[k] for k in ("f", "f_t", "gamma", "scale")}
         self.rest["J"], self.rest["F"] = rest_J, F_rest
         self._rest_functions: dict = {}
+        self._positions = Positions(e.x, e.v, e.t, e.p)
         rows = [np.repeat(g.place[None], g.index.shape[0], axis=0) for g in mb.rows]
         self.rows = [row for g_rows in rows for row in g_rows] + [mb.rest_place[np.asarray(r, np.int64)]]
         self.cols = [col for g in mb.rows for col in g.index] + [np.asarray(c, np.int64)]
         lengths = [len(k) for k in self.rows]
-        self.by_rows = Summation(lengths, self.rows, self.n_rows)
-        self.by_cols = Summation(lengths, self.cols, self.n3)
         # values per row (f, γ, f_t, scales): each group's instances, then the rest, to scene order
         self.places = [g.place for g in mb.rows] + [mb.rest_place]
         self.by_place = Summation([len(p) for p in self.places], self.places, self.n_rows)
@@ -285,10 +285,22 @@ class VectorizedBuild:
             self.single = None
         self._jacobian_pattern(lengths)
         self._kernels: dict = {}
+        self._no_p = ca.SX.sym("p", 0)  # (a kernel's p when it reads none: ``_group_function``)
         self._fused: dict | None = None
         self._products = None
         _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
         self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
+
+    @cached_property
+    def by_rows(self) -> Summation:
+        """J y's sums by rows, built when first asked for: where J's products are C loops
+        (``products``) nothing asks (0.01 s of a 100 x 100 cloth's build)."""
+        return Summation([len(k) for k in self.rows], self.rows, self.n_rows)
+
+    @cached_property
+    def by_cols(self) -> Summation:
+        """Jᵀ λ's sums by coordinates, built when first asked for (as ``by_rows``)."""
+        return Summation([len(k) for k in self.rows], self.cols, self.n3)
 
     @cached_property
     def gram(self) -> _Gram:
@@ -302,8 +314,9 @@ class VectorizedBuild:
         n = self.n_rows
         key = [c * n + r for r, c in zip(self.rows, self.cols, strict=True)]
         every = sorted_unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
-        self.jacobian_sparsity = ca.Sparsity.triplet(n, self.n3, (every % max(n, 1)).tolist(),
-                                                     (every // max(n, 1)).tolist())
+        # (compressed columns from the sorted keys: CasADi's triplet constructor sorts them again)
+        colind = np.concatenate([[0], np.cumsum(np.bincount(every // max(n, 1), minlength=self.n3))])
+        self.jacobian_sparsity = ca.Sparsity(n, self.n3, colind.tolist(), (every % max(n, 1)).tolist())
         self.by_nonzero = Summation(lengths, [np.searchsorted(every, k) for k in key], len(every))
 
     # --- evaluation at one state ------------------------------------------------------------
@@ -318,23 +331,33 @@ class VectorizedBuild:
             c = ca.jtimes(g.local, xl, vl) + terms["f_t"]
             terms["gamma"] = ca.jtimes(c, xl, vl) + (ca.jacobian(c, e.t) if ca.depends_on(c, e.t) else 0)
             out = [ca.densify(ca.vec(terms[k])) for k in outputs]
-            self._kernels[key] = ca.Function("kernel", [xl, vl, g.c, e.t, e.p], out, {"cse": True})
+            self._kernels[key] = self._group_function("kernel", g, vl, out)
         return self._kernels[key]
+
+    def _group_function(self, name: str, g, vl, outputs: list) -> ca.Function:
+        """A group's SX kernel of (x_l, v_l, c, t, p) with ``outputs``, p the Structure's where they
+        read an entry of it, else an empty one: the same instructions, where a Function of p's
+        10⁴-10⁵ symbols (a cloth's rest lengths) costs 2 ms to build, a dozen times a start."""
+        e = self.e
+        own = {s.element_hash() for part in (g.xl, vl, g.c, e.t) for s in part.nonzeros()}
+        read = ca.symvar(ca.veccat(*outputs)) if outputs else []
+        p = e.p if any(s.element_hash() not in own for s in read) else self._no_p
+        return ca.Function(name, [g.xl, vl, g.c, e.t, p], outputs, {"cse": True})
 
     def _gradient_kernel(self, g) -> ca.Function:
         key = (id(g), "gradient")
         if key not in self._kernels:
-            e, xl = self.e, g.xl
+            xl = g.xl
             gradient = ca.densify(ca.gradient(g.local, xl))
             vl = ca.SX.sym("vl", xl.numel())
-            self._kernels[key] = ca.Function("gradient", [xl, vl, g.c, e.t, e.p], [gradient], {"cse": True})
+            self._kernels[key] = self._group_function("gradient", g, vl, [gradient])
         return self._kernels[key]
 
-    def _rest_function(self, outputs: tuple) -> ca.Function:
+    def _rest_function(self, outputs: tuple) -> RestFunction:
+        """The rest's ``outputs`` (names in ``rest``) on the entries of x, v, p they read."""
         if outputs not in self._rest_functions:
-            e = self.e
-            self._rest_functions[outputs] = ca.Function(
-                "rest", [e.x, e.v, e.t, e.p], [self.rest[k] for k in outputs], {"cse": True})
+            self._rest_functions[outputs] = rest_function(self.e, [self.rest[k] for k in outputs],
+                                                          self._positions)
         return self._rest_functions[outputs]
 
     def products(self):
@@ -431,7 +454,7 @@ class VectorizedBuild:
         rest_outputs = (*outputs, "F") if forces_too and (self.rest_forces or not mb.terms) else outputs
         rest = []
         if rest_outputs:
-            rest = self._rest_function(rest_outputs)(X, V if V is not None else ca.MX.zeros(self.n3), T, P)
+            rest = self._rest_function(rest_outputs)(X, V, T, P)
             rest = rest if isinstance(rest, list | tuple) else [rest]
         result = {}
         if forces_too and "F" not in rest_outputs:
@@ -455,9 +478,9 @@ class VectorizedBuild:
     def _value_kernel(self, g) -> ca.Function:
         key = (id(g), "value")
         if key not in self._kernels:
-            e, xl = self.e, g.xl
+            xl = g.xl
             vl = ca.SX.sym("vl", xl.numel())
-            self._kernels[key] = ca.Function("value", [xl, vl, g.c, e.t, e.p], [g.local], {"cse": True})
+            self._kernels[key] = self._group_function("value", g, vl, [g.local])
         return self._kernels[key]
 
     def energy(self, X, V, T, P, masses):

@@ -18,12 +18,14 @@ out one by one.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from .columns import sorted_unique
+from .rest import MAX_PLACED, Positions, Rows
 
 #: A repeated row or potential term becomes a mapped kernel from this many instances; fewer
 #: stay in the one SX graph of the rest.
@@ -202,14 +204,18 @@ def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np
         applied = ca.Function("kernel", [kind.xl, t, p], [kind.expr]).map(n)(X, t, p)
     applied = ca.vec(applied)
     original = ca.vertcat(*[exprs[k] for k in ks])
+    # a Function of the entries of x and p the rows should read, not of the whole vectors (a
+    # cloth's 30,000 + 69,000 symbols: 4 ms to build, and as much to convert each point)
+    x_at = sorted_unique(index)
+    p_at = sorted_unique(np.concatenate([reads.ravel(), np.asarray(kind.used or (), np.int64)]))
     try:
-        both = ca.Function("probe", [x, t, p], [applied, original])
-    except RuntimeError:  # some row reads more than x, t and p: none is taken here
+        both = ca.Function("probe", [x[x_at.tolist()], t, p[p_at.tolist()]], [applied, original])
+    except RuntimeError:  # some row reads more than those, t and p (velocities): none is taken here
         return np.zeros_like(same)
     equal = np.ones(n, bool)
-    for point in _probe_points(x, t, p):
+    for x0, t0, p0 in _probe_points(x, t, p):
         with np.errstate(all="ignore"):
-            a, b = (np.asarray(o, float).ravel() for o in both(*point))
+            a, b = (np.asarray(o, float).ravel() for o in both(x0[x_at], t0, p0[p_at]))
         equal &= (a == b) & np.isfinite(a)  # (a value that is not finite proves nothing)
     out = np.zeros_like(same)
     out[np.flatnonzero(same)[equal]] = True
@@ -218,27 +224,40 @@ def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np
 
 def _probe_points(x, t, p) -> list[tuple]:
     """The two points (x, t, p) at which candidate kernels and rows are compared (PROBE_SEED)."""
+    return _points(x.numel(), p.numel())
+
+
+@functools.lru_cache(maxsize=4)
+def _points(n_x: int, n_p: int) -> list[tuple]:
+    """``_probe_points`` for these sizes, drawn once (read only)."""
     rng = np.random.default_rng(PROBE_SEED)
-    return [(rng.uniform(0.5, 1.5, x.numel()), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, p.numel()))
-            for _ in range(2)]
+    points = [(rng.uniform(0.5, 1.5, n_x), rng.uniform(0.1, 1.0), rng.uniform(0.5, 1.5, n_p))
+              for _ in range(2)]
+    for x0, _, p0 in points:
+        x0.setflags(write=False)
+        p0.setflags(write=False)
+    return points
 
 
-def _rows_function(stacked, x, t, p) -> ca.Function | None:
-    """``(x, t, p) -> the rows`` (``stacked``: them as one column); None when a row reads more
-    than x, t and p (velocities): then each bucket's rows are compared by ``_same``."""
+def _rows_function(stacked, x, t, p) -> Rows | None:
+    """The rows ``stacked`` (one column) as ``Rows``; None when a row reads more than x, t and
+    p (velocities): then each bucket's rows are compared by ``_same``."""
+    read = ca.symvar(stacked)
+    at = Positions(x, None, t, p).of(read) if len(read) <= MAX_PLACED else None
+    x_at, _, p_at = at if at is not None else (np.arange(x.numel()), None, np.arange(p.numel()))
     try:
-        return ca.Function("rows", [x, t, p], [stacked])
+        return Rows(ca.Function("rows", [x[x_at.tolist()], t, p[p_at.tolist()]], [stacked]), x_at, p_at)
     except RuntimeError:
         return None
 
 
-def _row_values(rows: ca.Function | None, x, t, p) -> list[np.ndarray] | None:
+def _row_values(rows: Rows | None, x, t, p) -> list[np.ndarray] | None:
     """Every row at each probe point, from the Function of them all (``_rows_function``; None:
     None)."""
     if rows is None:
         return None
     with np.errstate(all="ignore"):
-        return [np.asarray(rows(*point), float).ravel() for point in _probe_points(x, t, p)]
+        return [np.asarray(rows.at(*point), float).ravel() for point in _probe_points(x, t, p)]
 
 
 def _same_at_points(kind: _Kind, values: list[np.ndarray], ks: np.ndarray, index: np.ndarray,
@@ -401,14 +420,16 @@ def _discovered(exprs: list, x, t, p, symbols: dict, c, found: dict, places) -> 
     stacked = exprs.column() if hasattr(exprs, "column") else ca.vertcat(*exprs)  # (model.symbols.Stacked)
     if stacked.numel() != len(exprs) or not stacked.is_column():  # (one check, not one per row)
         raise ValueError("the rows and terms of the mapped build are scalars")
-    rows = _rows_function(stacked, x, t, p)  # (its sparsity: a third of the time of the SX's)
-    pattern = (ca.jacobian_sparsity(stacked, x) if rows is None else rows.jac_sparsity(0, 0)).T
-    colind, row = np.array(pattern.colind(), np.int64), np.array(pattern.row(), np.int64)
+    rows = _rows_function(stacked, x, t, p)
+
+    def transposed(pattern):
+        return np.array(pattern.T.colind(), np.int64), np.array(pattern.T.row(), np.int64)
+    colind, row = transposed(ca.jacobian_sparsity(stacked, x)) if rows is None else rows.reads(0)
     # the entries of p each row reads: a row's kernel takes those alone (pl), so that its work
     # does not grow with the length of p (one number per rod of a 10,000-link chain)
     if p.numel():
-        reads = (ca.jacobian_sparsity(stacked, p) if rows is None else rows.jac_sparsity(0, 2)).T
-        read_colind, read_row = np.array(reads.colind(), np.int64), np.array(reads.row(), np.int64)
+        read_colind, read_row = (transposed(ca.jacobian_sparsity(stacked, p)) if rows is None
+                                 else rows.reads(2))
     else:
         read_colind, read_row = np.zeros(len(exprs) + 1, np.int64), np.zeros(0, np.int64)
     values = _row_values(rows, x, t, p)  # (None: each bucket compared in SX)
