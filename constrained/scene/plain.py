@@ -132,10 +132,10 @@ def _all_plain(pairs: list, typ: str, required: tuple, optional: tuple, names: f
     if typ == "distance" and cls is Distance:  # (a rod: its one check here)
         if min(numbers["length"]) <= 0:
             return None
-        return list(map(Distance.between, a, b, map(float, numbers["length"]), where))
+        return Distance.between_all(a, b, list(map(float, numbers["length"])), where)
     if typ == "spring" and cls is Spring:  # (Spring's __init__ checks nothing more)
         rests = list(map(float, map(dict.get, pairs, repeat("rest"), repeat(0.0))))
-        return list(map(Spring.between, a, b, map(float, numbers["k"]), rests, where))
+        return Spring.between_all(a, b, list(map(float, numbers["k"])), rests, where)
     try:
         return [cls(end_a, end_b, **{k: float(item[k]) for k in item if k not in ("type", "a", "b")},
                     name=None, where=w) for end_a, end_b, item, w in zip(a, b, pairs, where, strict=True)]
