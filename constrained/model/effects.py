@@ -112,21 +112,7 @@ class Spring(Effect):
     def between(cls, a: str, b: str, k: float, rest: float, where: str | None = None) -> Spring:
         """``Spring(a, b, k=k, rest=rest, where=where)`` of checked values (two particles' names,
         finite floats), its attributes set at once: a large scene's springs (scene.plain)."""
-        return cls.between_all([a], [b], [k], [rest], [where])[0]
-
-    @classmethod
-    def between_all(cls, a: list, b: list, ks: list, rests: list, where: list) -> list[Spring]:
-        """``[Spring.between(...) for each a, b, k, rest, where]``, each spring's attributes set
-        as one dict (a cloth's 20,000 springs)."""
-        new = cls.__new__
-
-        def spring(a, b, k, rest, where):
-            item = new(cls)
-            item.__dict__ = {"a": a, "b": b, "point": None, "k": k, "rest": rest, "name": None,
-                             "where": where}
-            return item
-
-        return list(map(spring, a, b, ks, rests, where))
+        return cls.bare(a=a, b=b, point=None, k=k, rest=rest, name=None, where=where)
 
     @property
     def label(self) -> str:
