@@ -462,17 +462,11 @@ def fill_all(texts: list[str], values: np.ndarray) -> list[str]:
     joined = "\0".join(texts)
     if joined.count("\0") != len(texts) - 1:  # (a text with the separator in it)
         return [fill(text, values) for text in texts]
-    numbers = np.asarray(values, float).tolist()
-    formatted: dict[float, str] = {}
-
-    def value(match) -> str:
-        v = numbers[int(match.group(1))]
-        text = formatted.get(v)
-        if text is None:
-            text = formatted[v] = f"{v:g}"
-        return text
-
-    return _TOKEN.sub(value, joined).split("\0") if texts else []
+    parts = _TOKEN.split(joined)  # (text, a token's index, text, …, text)
+    picked = list(map(np.asarray(values, float).tolist().__getitem__, map(int, parts[1::2])))
+    formatted = {v: f"{v:g}" for v in dict.fromkeys(picked)}  # (equal values: the first one's text)
+    parts[1::2] = map(formatted.__getitem__, picked)
+    return "".join(parts).split("\0") if texts else []
 
 
 @contextlib.contextmanager
