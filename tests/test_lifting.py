@@ -368,3 +368,44 @@ def test_new_plain_numbers_keep_the_fingerprint_and_walk_as_item_by_item(change)
         assert fast_walk[0] == walked[0] and fast_walk[1] == walked[1] and list(fast_walk[2]) == walked[2]
         assert [type(v) for fields in fast_walk[1] for v in fields.values()] == [
             type(v) for fields in walked[1] for v in fields.values()]
+
+
+class _PointDefault(C.Distance):
+    """A rod whose ``point`` is the class's (never in the instance's dict)."""
+
+    point = None
+
+    def __init__(self, a, b, length):
+        self.a, self.b, self.length, self.name, self.where = a, b, length, None, None
+
+
+class _LengthProperty(C.Distance):
+    """A rod whose ``length`` is a data descriptor (its copy cannot be made from its dict)."""
+
+    length = property(lambda self: self.__dict__["_length"], lambda self, v: self.__dict__.update(_length=v))
+
+
+def test_lifting_by_columns_copies_what_lifting_item_by_item_copies():
+    """``lift`` with the fingerprint walk's columns (fields left as they are, runs cut where the
+    walk describes item by item, classes whose copy is not their dict) gives the copy that
+    ``lift`` without the walk gives: the same attributes, in the same order, of the same types."""
+    s = C.System(name="columns")
+    for i in range(7):
+        s.add_particle(f"p{i}", [1.0, 2, 0.5][i % 3], [0.1 * i, 0.02 * (i % 2), 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=0.1), *(C.Distance(f"p{i}", f"p{i + 1}", length=0.1 + i)
+                                                          for i in range(3)))
+    s.add(C.Distance("p3", point=[0.3, 0.0, 0.0], length=2), C.Distance("p3", "p4", length=1))
+    s.add(*(_PointDefault(f"p{i}", f"p{i + 1}", 0.5) for i in range(4, 6)),
+          _LengthProperty("p0", "p6", length=3.0))
+    s.add(*(C.Spring(f"p{i}", f"p{i + 2}", k=10.0 * i, rest=[0.0, 0.2][i % 2]) for i in range(5)),
+          C.Gravity([0, -9.81, 0]))
+    _, values, walked = lifting.fingerprint_walk(s)
+    reused, numbers = lifting.lift(s, walked)
+    anew, reference = lifting.lift(s)
+    assert np.array_equal(numbers, reference) and numbers.tolist() == values
+    for ours, theirs in zip((*reused.particles, *reused.constraints, *reused.effects),
+                            (*anew.particles, *anew.constraints, *anew.effects), strict=True):
+        assert type(ours) is type(theirs) and list(vars(ours).items()) == list(vars(theirs).items())
+        assert [type(v) for v in vars(ours).values()] == [type(v) for v in vars(theirs).values()]
+    assert "point" in vars(reused.constraints[6])
+    assert reused.constraints[8].length == anew.constraints[8].length

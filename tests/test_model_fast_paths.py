@@ -19,6 +19,7 @@ from constrained.model.constraints import Distance, pair_distances
 from constrained.model.effects import Spring
 from constrained.model.symbols import Symbols
 from constrained.scene import build as scene_build
+from constrained.scene import plain as scene_plain
 from constrained.scene.load import SceneError, build_scene
 
 
@@ -62,13 +63,12 @@ def _built(raw):
 
 @pytest.mark.parametrize("formula_k", [False, True])
 def test_a_mixed_scene_builds_the_items_and_structure_of_the_checks(monkeypatch, formula_k):
-    """Springs built at once (``Spring.between``) are the objects ``Spring(...)`` makes (the same
+    """Springs built at once (``scene.plain._springs``) are the objects ``Spring(...)`` makes (the same
     attributes in the same order); the Structure of the whole scene has the same labels and
     the same f and V, bit for bit, at a state nobody chose."""
     raw = _mixed_raw(formula_k=formula_k)
-    between, original = [], Spring.__dict__["between"].__func__
-    monkeypatch.setattr(Spring, "between",
-                        classmethod(lambda cls, *args: between.append(1) or original(cls, *args)))
+    between, original = [], scene_plain._springs
+    monkeypatch.setattr(scene_plain, "_springs", lambda a, *args: between.extend(a) or original(a, *args))
     fast = build_scene(copy.deepcopy(raw))
     assert sum(type(e) is Spring for e in fast.system.effects) >= 80
     assert len(between) == (0 if formula_k else 87)  # (one spring of a formula: all built by themselves)

@@ -22,6 +22,7 @@ declared, vector and mapping entries in order.
 
 from __future__ import annotations
 
+import bisect
 import collections
 import contextlib
 import copy
@@ -164,16 +165,24 @@ def _set_specially(cls) -> set | None:
 _SET_SPECIALLY: dict = {}
 
 
-def _copies(run: list, names, changes: list) -> list:
+def _copies(run: list, names, changes: list | None, columns: list | None = None) -> list | None:
     """``[_with_fields(item, changed) for item, changed in zip(run, changes)]`` for items of one
     class, each changed in the attributes ``names``: for a plain class, in passes over the
-    whole run (a large system's particles or rods)."""
+    whole run (a large system's particles or rods). ``columns`` instead: a list of new values
+    per name (None: unchanged), and None back for a class that is not plain."""
     cls = type(run[0])
     special = _set_specially(cls)
     if special is None or not special.isdisjoint(names):
+        if changes is None:
+            return None
         return list(map(_with_fields, run, changes))
     attributes = list(map(dict, map(vars, run)))
-    _consume(map(dict.update, attributes, changes))
+    if changes is not None:
+        _consume(map(dict.update, attributes, changes))
+    else:  # (a column None: the items' own values, left as they are)
+        for name, column in zip(names, columns, strict=True):
+            if column is not None:
+                _consume(map(dict.__setitem__, attributes, itertools.repeat(name), column))
     copies = list(map(object.__new__, itertools.repeat(cls, len(run))))
     _consume(map(setattr, copies, itertools.repeat("__dict__"), attributes))
     return copies
@@ -182,6 +191,69 @@ def _copies(run: list, names, changes: list) -> list:
 def _consume(calls) -> None:
     """Run the calls of the iterator ``calls`` (a ``map`` of methods returning None)."""
     collections.deque(calls, maxlen=0)
+
+
+class Changes:
+    """Each item's lifted fields (``{field: value}``), in walk order, held as segments: runs of
+    items described column by column (their fields' values as one list per field) and lists of
+    dicts. ``lift`` sets a run's columns in passes, without a dict per item."""
+
+    def __init__(self, dicts: list = ()):
+        self._starts: list[int] = [0]
+        self._segments: list[tuple] = []  # (names, columns, kept) or (None, dicts, ())
+        self.add_columns(None, list(dicts), len(dicts))  # (items described one by one: their dicts)
+
+    def add_columns(self, names: tuple | None, columns: list, n: int, kept: tuple = ()) -> Changes:
+        """Append ``n`` items whose field ``names[f]`` holds ``columns[f][k]`` (names None: their
+        dicts, ``columns``); ``kept``: the fields whose values are the items' own (left by ``lift``)."""
+        if n:
+            self._segments.append((names if names is None else tuple(names), columns, frozenset(kept)))
+            self._starts.append(self._starts[-1] + n)
+        return self
+
+    def __len__(self) -> int:
+        return self._starts[-1]
+
+    def __iter__(self):
+        return iter(self.dicts(0, len(self)))
+
+    def __eq__(self, other) -> bool:  # (a walk item by item, tests/structure_reference.py)
+        return list(self) == list(other) if isinstance(other, Changes | list | tuple) else NotImplemented
+
+    def dicts(self, a: int, b: int) -> list[dict]:
+        """The fields of items a to b (excluded), a dict each."""
+        out: list[dict] = []
+        k = bisect.bisect_right(self._starts, a) - 1
+        while a < b:
+            start, stop = self._starts[k], self._starts[k + 1]
+            names, held, _ = self._segments[k]
+            lo, hi = a - start, min(b, stop) - start
+            if names is None:
+                out += held[lo:hi]
+            else:
+                rows = zip(*(column[lo:hi] for column in held), strict=True) if names else ((),) * (hi - lo)
+                out += map(dict, map(zip, itertools.repeat(names), rows))
+            a, k = min(b, stop), k + 1
+        return out
+
+    def breaks(self, a: int, b: int) -> list[int]:
+        """The starts of segments strictly between a and b."""
+        return self._starts[bisect.bisect_right(self._starts, a):bisect.bisect_left(self._starts, b)]
+
+    def columns(self, a: int, b: int, names: tuple) -> list | None:
+        """The columns of items a to b (excluded) when they lie in one segment described column
+        by column with the fields ``names`` (None for a field whose values are the items' own),
+        else None."""
+        if a >= b:
+            return None
+        k = bisect.bisect_right(self._starts, a) - 1
+        start, stop = self._starts[k], self._starts[k + 1]
+        held_names, held, kept = self._segments[k]
+        if b > stop or held_names != tuple(names):
+            return None
+        whole = a == start and b == stop
+        return [None if name in kept else column if whole else column[a - start:b - start]
+                for name, column in zip(names, held, strict=True)]
 
 
 def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
@@ -193,28 +265,37 @@ def lift(system, walked: tuple | None = None) -> tuple[object, np.ndarray]:
     values: list[float] = []
     lifted = copy.copy(system)
     particles, constraints, effects = list(system.particles), list(system.constraints), list(system.effects)
-    masses = [lifted_mass(p, values) for p in particles] if walked is None else walked[0]
-    changes = [lifted_fields(item, values) for item in (*constraints, *effects)] if walked is None \
-        else walked[1]
-    lifted.particles = _lifted_copies(particles, [{"mass": m} for m in masses], lambda p: ("mass",))
-    lifted.constraints = _lifted_copies(constraints, changes[:len(constraints)], fields)
-    lifted.effects = _lifted_copies(effects, changes[len(constraints):], fields)
-    return lifted, np.array(values if walked is None else walked[2], float)
+    if walked is None:
+        walked = ([lifted_mass(p, values) for p in particles],
+                  [lifted_fields(item, values) for item in (*constraints, *effects)], values)
+    masses, changes = walked[0], walked[1] if isinstance(walked[1], Changes) else Changes(walked[1])
+    by_mass = Changes().add_columns(("mass",), [masses], len(masses))
+    lifted.particles = _lifted_copies(particles, by_mass, 0, lambda p: ("mass",))
+    lifted.constraints = _lifted_copies(constraints, changes, 0, fields)
+    lifted.effects = _lifted_copies(effects, changes, len(constraints), fields)
+    return lifted, np.array(walked[2], float)
 
 
-def _lifted_copies(sequence: list, changes: list, names_of) -> list:
+def _lifted_copies(sequence: list, changes: Changes, offset: int, names_of) -> list:
     """``sequence`` with each item whose class has numeric fields (``names_of(item)``) replaced by
-    its copy with the attributes ``changes[k]`` (each item's fields) set: runs of one class at
-    once (``_copies``)."""
+    its copy with the attributes of ``changes`` at ``offset + k`` (each item's fields) set: runs
+    of one class at once (``_copies``)."""
     if not sequence:
         return []
     kinds = list(map(type, sequence))
-    bounds = [0, *itertools.compress(range(1, len(kinds)), map(operator.is_not, kinds[1:], kinds[:-1])),
-              len(kinds)]
+    changed = itertools.compress(range(1, len(kinds)), map(operator.is_not, kinds[1:], kinds[:-1]))
+    segments = (k - offset for k in changes.breaks(offset, offset + len(kinds)))
+    bounds = sorted({0, *changed, *segments, len(kinds)})
     out = []
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):  # (runs of one class in one segment)
         names = names_of(sequence[a])
-        out += _copies(sequence[a:b], names, changes[a:b]) if names else sequence[a:b]
+        if not names:
+            out += sequence[a:b]
+            continue
+        columns = changes.columns(offset + a, offset + b, names)
+        copies = _copies(sequence[a:b], names, None, columns) if columns is not None else None
+        out += copies if copies is not None else _copies(sequence[a:b], names,
+                                                         changes.dicts(offset + a, offset + b))
     return out
 
 
@@ -262,7 +343,7 @@ def fingerprint_walk(system) -> tuple[str, list[float], tuple]:
                      for p, m in zip(particles, lifted_masses, strict=True)]
         add("masses", json.dumps(described))
     items = (*system.constraints, *system.effects)
-    item_fields: list[dict] = []
+    item_fields = Changes()
     attributes = list(map(vars, items))
     for k, j in _runs(items, attributes):
         cls, keys = type(items[k]), tuple(attributes[k])
@@ -300,16 +381,17 @@ def _stored(cls, name: str, attributes: dict) -> bool:
         and not (hasattr(descriptor, "__set__") or hasattr(descriptor, "__delete__"))
 
 
-def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, values: list, item_fields: list,
-                   add) -> None:
+def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, values: list,
+                   item_fields: Changes, add) -> None:
     """Describe a run of items of one class and attributes (``add``; ``attributes``: their
     ``vars``), append its lifted fields to ``item_fields`` and its plain numbers to ``values``
     (in walk order: item by item, each item's numeric fields in declared order). Items whose
     numeric fields hold scalars alone are described column by column, the others (a list, a
     mapping …) item by item."""
     n = len(run)
-    columns = [list(map(operator.itemgetter(name), attributes)) if _stored(type(run[0]), name, attributes[0])
-               else [getattr(item, name) for item in run] for name in names]
+    stored = [_stored(type(run[0]), name, attributes[0]) for name in names]
+    columns = [list(map(operator.itemgetter(name), attributes)) if held
+               else [getattr(item, name) for item in run] for name, held in zip(names, stored, strict=True)]
     scalar = np.ones(n, bool)
     for column in columns:
         if not _SCALARS.issuperset(map(type, column)):
@@ -318,7 +400,7 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         if not scalar[a]:  # (a rod to a point in a chain of rods between particles)
             lifted = [{name: _entries(getattr(item, name), values) for name in names} for item in run[a:b]]
-            item_fields += lifted
+            item_fields.add_columns(None, lifted, len(lifted))
             add("items", json.dumps([[_plain_value(v) for v in fields.values()] for fields in lifted]))
             continue
         lifted_at = np.zeros((b - a, len(names)), bool)  # which entries are Numbers (_entries' rule)
@@ -332,7 +414,7 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
             lifted_at[:, f] = (numbers[:, f] != 0) & np.isfinite(numbers[:, f])
         index = np.cumsum(lifted_at.ravel()).reshape(lifted_at.shape) - 1 + len(values)
         values += numbers[lifted_at].tolist()
-        lifted_columns = []
+        lifted_columns, kept = [], []
         for f, column in enumerate(segment):
             at = lifted_at[:, f]
             add("numbers at", at.tobytes())
@@ -340,12 +422,15 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
             if at.all():
                 lifted_columns.append(list(map(Number, index[:, f].tolist())))
                 continue
+            if not at.any() and stored[f]:  # (no Number: the values in the items' dicts)
+                lifted_columns.append(column)
+                kept.append(names[f])
+                continue
             lifted = list(column)
             for i, number in zip(np.flatnonzero(at).tolist(), index[at, f].tolist(), strict=True):
                 lifted[i] = Number(number)
             lifted_columns.append(lifted)
-        rows = zip(*lifted_columns, strict=True) if names else ((),) * (b - a)
-        item_fields += map(dict, map(zip, itertools.repeat(names), rows))
+        item_fields.add_columns(names, lifted_columns, b - a, tuple(kept))
     for key in other:
         column = list(map(operator.itemgetter(key), attributes))
         atoms = _ATOMS.issuperset(map(type, column))
@@ -377,17 +462,11 @@ def fill_all(texts: list[str], values: np.ndarray) -> list[str]:
     joined = "\0".join(texts)
     if joined.count("\0") != len(texts) - 1:  # (a text with the separator in it)
         return [fill(text, values) for text in texts]
-    numbers = np.asarray(values, float).tolist()
-    formatted: dict[float, str] = {}
-
-    def value(match) -> str:
-        v = numbers[int(match.group(1))]
-        text = formatted.get(v)
-        if text is None:
-            text = formatted[v] = f"{v:g}"
-        return text
-
-    return _TOKEN.sub(value, joined).split("\0") if texts else []
+    parts = _TOKEN.split(joined)  # (text, a token's index, text, …, text)
+    picked = list(map(np.asarray(values, float).tolist().__getitem__, map(int, parts[1::2])))
+    formatted = {v: f"{v:g}" for v in dict.fromkeys(picked)}  # (equal values: the first one's text)
+    parts[1::2] = map(formatted.__getitem__, picked)
+    return "".join(parts).split("\0") if texts else []
 
 
 @contextlib.contextmanager

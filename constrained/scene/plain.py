@@ -132,15 +132,41 @@ def _all_plain(pairs: list, typ: str, required: tuple, optional: tuple, names: f
     if typ == "distance" and cls is Distance:  # (a rod: its one check here)
         if min(numbers["length"]) <= 0:
             return None
-        return list(map(Distance.between, a, b, map(float, numbers["length"]), where))
+        return _rods(a, b, list(map(float, numbers["length"])), where)
     if typ == "spring" and cls is Spring:  # (Spring's __init__ checks nothing more)
         rests = list(map(float, map(dict.get, pairs, repeat("rest"), repeat(0.0))))
-        return list(map(Spring.between, a, b, map(float, numbers["k"]), rests, where))
+        return _springs(a, b, list(map(float, numbers["k"])), rests, where)
     try:
         return [cls(end_a, end_b, **{k: float(item[k]) for k in item if k not in ("type", "a", "b")},
                     name=None, where=w) for end_a, end_b, item, w in zip(a, b, pairs, where, strict=True)]
     except InputError:
         return None
+
+
+def _rods(a: list, b: list, lengths: list, where: list) -> list[Distance]:
+    """``Distance.between`` of each ``a, b, length, where`` (the same attributes in the same order),
+    each rod's dict made at once (a scene's 20,000 rods: 6 ms instead of 16)."""
+    new = Distance.__new__
+
+    def rod(a, b, length, where):
+        item = new(Distance)
+        item.__dict__ = {"a": a, "b": b, "point": None, "length": length, "name": None, "where": where,
+                         "unilateral": False, "restitution": 0.0}
+        return item
+
+    return list(map(rod, a, b, lengths, where))
+
+
+def _springs(a: list, b: list, ks: list, rests: list, where: list) -> list[Spring]:
+    """``Spring.between`` of each ``a, b, k, rest, where``, each spring's dict made at once."""
+    new = Spring.__new__
+
+    def spring(a, b, k, rest, where):
+        item = new(Spring)
+        item.__dict__ = {"a": a, "b": b, "point": None, "k": k, "rest": rest, "name": None, "where": where}
+        return item
+
+    return list(map(spring, a, b, ks, rests, where))
 
 
 def plain_pair(item, i: int, section: str, names: frozenset, types: dict):
