@@ -167,6 +167,21 @@ def test_motion_plane_detection():
     assert motion_plane(bumped) is None
 
 
+def test_a_run_of_two_samples_of_one_particle_is_drawn_in_the_plane_holding_them():
+    """Two positions on no coordinate plane (a free particle's 0.05 s, saved at its two ends):
+    the SVD of two points has two directions, the plane's normal is the third (an IndexError
+    that refused to write the run's outputs before)."""
+    x = np.array([[[0.0, 0.0, 0.0]], [[0.05, 0.1, -0.02]]])
+    origin, basis, labels = motion_plane(x)
+    assert labels == ("u", "v") and np.allclose(basis @ basis.T, np.eye(2))
+    assert np.max(np.abs((x.reshape(-1, 3) - origin) @ np.cross(*basis))) < 1e-15  # both on it
+    traj = Trajectory(t=np.array([0.0, 0.05]), x=x, v=np.repeat([[[1.0, 2.0, -0.4]]], 2, axis=0),
+                      particle_names=["ball"])
+    (ax,) = trajectory_figure(traj).axes
+    assert ax.get_xlabel() == "u [m]"
+    assert motion_plane(x[:1]) is not None  # one point: a coordinate plane through it
+
+
 def test_energy_figure_needs_energy():
     traj = pendulum()
     traj.energy = None

@@ -159,7 +159,8 @@ def motion_plane(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str, str]
         k = flat[-1]  # prefer z = const, then y = const, then x = const
         keep = [j for j in range(3) if j != k]
         return origin, np.eye(3)[keep], (AXES[keep[0]], AXES[keep[1]])
-    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    # (fewer than 3 points: zero rows complete the SVD's three directions without moving them)
+    _, _, vt = np.linalg.svd(np.vstack([c, np.zeros((max(0, 3 - len(c)), 3))]), full_matrices=False)
     normal = vt[2]
     if np.max(np.abs(c @ normal)) > tol:
         return None
