@@ -315,6 +315,16 @@ def test_view_basis():
     assert np.allclose(basis @ basis.T, np.eye(3)) and np.isclose(np.linalg.det(basis), 1.0)
 
 
+def test_view_basis_of_two_positions_on_no_coordinate_plane():
+    """A free particle's 0.05 s saved at its two ends (an IndexError refused the run's outputs)."""
+    two = np.array([[[0.0, 0.0, 0.0]], [[0.05, 0.1, -0.02]]])
+    for up in (None, [0, 0, 1]):
+        basis, _, planar = viewer.view_basis(two, up=up)
+        assert planar and np.allclose(basis @ basis.T, np.eye(3)) and np.isclose(np.linalg.det(basis), 1.0)
+        line = two[1, 0] - two[0, 0]
+        assert abs(basis[2] @ line) < 1e-12 * np.linalg.norm(line)  # seen across the motion's line
+
+
 def test_floor_grid_lies_under_the_motion_and_names_its_axes():
     # 3-D under gravity along −y: a level floor (y = the lowest point), lines along x and z
     s = np.linspace(0, 9, 80)

@@ -136,7 +136,8 @@ def view_basis(x: np.ndarray, up=None) -> tuple[np.ndarray, list[str], bool]:
             basis[2] *= -1
         return basis, ["xyz"[j] for j in (*keep, k)], True
     c = p - p.mean(axis=0)
-    _, sv, vt = np.linalg.svd(c[:: max(1, len(c) // 20000)], full_matrices=False)
+    c = np.vstack([c[:: max(1, len(c) // 20000)], np.zeros((max(0, 3 - len(c)), 3))])  # (3 directions)
+    _, sv, vt = np.linalg.svd(c, full_matrices=False)
     normal = np.eye(3)[flat[-1]] if flat else vt[2]
     planar = bool(flat) or bool(sv[2] <= 1e-9 * max(sv[0], 1e-300))
     ref = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
