@@ -186,6 +186,69 @@ def test_generated_documents_read_as_tomli_reads_them():
         _assert_read_as_tomli(_generated_document(rng))
 
 
+def _scene_like_document(rng: random.Random) -> str:
+    """A scene-like text: runs of [[particles]]/[[constraints]]/[[effects]] with keys, among
+    tables, sub-tables ([[effects.x]], [scene.sub]), static arrays of the same names, tables
+    declared twice, header-like lines inside strings and arrays; valid or not."""
+    arrays, tables = ["particles", "constraints", "effects"], ["scene", "simulate", "outputs"]
+    lines = []
+    for _ in range(rng.randint(2, 14)):
+        r = rng.random()
+        if r < .55:
+            lines += [f"[[{rng.choice(arrays)}]]", "name = " + rng.choice(["1", "2.5", '"a"'])]
+        elif r < .65:
+            lines.append(f"[{rng.choice(tables)}]" + rng.choice(["", "", ".sub"]))
+            lines.append(f"k{rng.randint(0, 2)} = {rng.randint(0, 9)}")
+        elif r < .72:
+            lines += [f"[[{rng.choice(arrays)}.more]]", "y = 1"]
+        elif r < .78:
+            lines += [f"[{rng.choice(arrays)}.sub]", "z = 2"]
+        elif r < .84:
+            lines.append(f'text = """\n[[{rng.choice(arrays)}]]\n"""')
+        elif r < .9:
+            lines.append(f"list = [\n[[{rng.randint(0, 3)}]],\n[[{rng.choice(arrays)}]]\n]")
+        else:
+            lines.append(f"{rng.choice(arrays)} = [{{x = 1}}]")
+    return "\n".join(lines) + "\n"
+
+
+PIECES_DIFFER = [  # where pieces cut before [[name]] lines must not be merged: read whole instead
+    'a = 1\n[[p]]\nx = 1\n[[p]]\nx = 2\n[s]\nt = 3\n[[p]]\nx = 4\n[s.u]\nv = 5\n',  # [s], then [s.u]
+    'p = [{x = 1}]\n[[q]]\ny = 1\n[[p]]\nx = 2\n',  # a static array, then [[p]]: an error
+    's = """\n[[p]]\nx = 1\n"""\n[[p]]\nx = 2\n[[p]]\nx = 3\n',  # [[p]] inside a string
+    'v = [\n1,\n2]\n[[p]]\nx = 1\n[t]\ny = 1\n[[p]]\nx = 2\n[t]\ny = 2\n',  # [t] twice: an error
+    '[[p]]\nx = 1\n[[p.q]]\ny = 1\n[[p]]\nx = 2\n[[p.q]]\ny = 2\n[[r]]\nz = 1\n',  # merged
+    '[[p]]\nx = 1\n[[p.q]]\ny = 1\n[[r]]\nz = 1\n[[p.q]]\ny = 3\n',  # [[p.q]] of the p before [[r]]
+    '[[p]]\nx = 1\n[[q]]\nx = 2\n[[p]]\nx = 3\n[p.s]\nz = 1\n[[q]]\n[[p]]\nx = 4\n',
+]
+
+
+@pytest.mark.skipif(tomlparse._fast is None, reason="rtoml is not installed")
+def test_a_large_scene_read_in_pieces_reads_as_tomli_reads_it(monkeypatch):
+    """Pieces cut before [[name]] lines (every few characters here: PIECE = 8) merge into tomli's
+    dict, or are not used: tables and arrays split over pieces, cuts inside strings and
+    arrays, tables declared twice; and on the generated documents."""
+    monkeypatch.setattr(tomlparse, "PIECE", 8)
+    for text in PIECES_DIFFER:
+        _assert_read_as_tomli(text)
+    assert tomlparse._in_pieces(PIECES_DIFFER[0]) is None  # [s] then [s.u]: not merged
+    assert tomlparse._in_pieces(PIECES_DIFFER[2]) is None  # cut inside the string: refused
+    merged = tomlparse._in_pieces(PIECES_DIFFER[4])  # arrays of tables over pieces: merged
+    assert merged is not None and _same(merged, tomli.loads(PIECES_DIFFER[4]))
+    assert tomlparse._in_pieces(PIECES_DIFFER[5]) is None  # p: a list, then a table in its piece
+    rng = random.Random(20261128)
+    for _ in range(1500):
+        _assert_read_as_tomli(_generated_document(rng))
+    merged = 0
+    for _ in range(1500):
+        text = _scene_like_document(rng)
+        _assert_read_as_tomli(text)
+        merged += tomlparse.rtoml_reads_as_tomli(text) and tomlparse._in_pieces(text) is not None
+    assert merged > 150  # (many are read in pieces, the rest whole: all as tomli reads them)
+    scene = (ROOT / "scenarios" / "hanging_chain.toml").read_text(encoding="utf-8")
+    assert _same(tomlparse._in_pieces(scene), tomli.loads(scene))
+
+
 def test_without_rtoml_tomli_reads_everything(monkeypatch):
     """rtoml not importable: tomlparse still loads, with tomli, and gives tomli's errors."""
     try:
