@@ -32,6 +32,7 @@ from .columns import Summation, binary, on_columns, shared, sorted_unique, take
 from .fused import fused_groups
 from .products import compiled_products
 from .rest import Positions, RestFunction, rest_function
+from .sums import summation_loop
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
@@ -288,6 +289,7 @@ class VectorizedBuild:
         self._no_p = ca.SX.sym("p", 0)  # (a kernel's p when it reads none: ``_group_function``)
         self._fused: dict | None = None
         self._products = None
+        self._force_sum = None
         _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
         self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
 
@@ -365,6 +367,17 @@ class VectorizedBuild:
         if self._products is None:
             self._products = (compiled_products(self) if self.n_rows else None) or False
         return self._products or None
+
+    def force_sum(self):
+        """F of the potential terms from their gradient columns (the streams of ``by_force``)
+        as one C loop (``sums``): −Σ, or Σ where the rest has forces (F = rest − Σ); built once;
+        None without compiled code, or where ``by_force`` is a matrix product."""
+        if self._force_sum is None:
+            terms = self.mapped.terms
+            self._force_sum = self.by_force.matrix is None and summation_loop(
+                [g.index.shape[1] for g in terms for _ in g.index], [col for g in terms for col in g.index],
+                self.n3, negated=not self.rest_forces) or False
+        return self._force_sum or None
 
     def _loops(self) -> dict:
         """The C loops of the groups (``fused``): (id(group), ROW_OUTPUTS, DYNAMICS or "gradient")
@@ -464,8 +477,13 @@ class VectorizedBuild:
                 result["J"] = Jacobian(self, rows["J"] + [value])
             elif k == "F":
                 gradients = [col for g in mb.terms for col in self._gradient_columns(g, X, V, T, P)]
+                loop = self.force_sum() if all(c.nnz() == c.numel() for c in gradients) else None
                 if not gradients:
                     result["F"] = value
+                elif loop is not None:  # the same sums in one C loop, negated there without a rest
+                    summed = shared(("forces", *map(hash, gradients)), lambda f=loop, g=gradients: f(*g),
+                                    *gradients)
+                    result["F"] = value - summed if self.rest_forces else summed
                 elif self.rest_forces:
                     result["F"] = value - self.by_force(gradients)
                 else:  # every force a potential term's: no dense zeros to subtract from
