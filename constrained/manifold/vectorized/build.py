@@ -396,14 +396,27 @@ class VectorizedBuild:
             self._fused = {k: f for k, f in zip(keys, loops, strict=True) if f is not None}
         return self._fused
 
-    def _fused_call(self, g, outputs, X, V, T, P) -> list | None:
+    def _fused_call(self, g, outputs, X, V, T, P, wanted: ca.Function) -> list | None:
         """Every scalar output of g's C loop for ``outputs`` (ROW_OUTPUTS, DYNAMICS or
-        "gradient") at (X, V, T, P), or None (no loop for g)."""
+        "gradient") at (X, V, T, P), or None (no loop for g); ``wanted``: the kernel of the
+        outputs the caller takes from them."""
         loop = self._loops().get((id(g), outputs))
         if loop is None:
             return None
+        if V is None and not self._reads(wanted, 1):
+            # (v = 0 as an input is a constant, whose call costs CasADi 10-20 ms on a 100 x 100
+            # cloth; the outputs taken do not read v, and those that do are left unused)
+            V = X
         key = ("loop", id(g), outputs, hash(X), None if V is None else hash(V), hash(T), hash(P))
         return shared(key, lambda: loop(X, V, T, P), X, V, T, P, g)
+
+    def _reads(self, kernel: ca.Function, i: int) -> bool:
+        """Whether ``kernel``'s outputs depend on its input i."""
+        key = (id(kernel), "reads", i)
+        if key not in self._kernels:
+            out = ca.vertcat(*[ca.vec(o) for o in kernel.call(kernel.sx_in())])
+            self._kernels[key] = bool(ca.depends_on(out, kernel.sx_in(i)))
+        return self._kernels[key]
 
     def _moves(self, g, kernel: ca.Function) -> bool:
         """Whether ``kernel``'s outputs change with the state (else columns: computed once per
@@ -432,7 +445,7 @@ class VectorizedBuild:
         """The ``outputs`` of g's rows, for each a list of MX columns (J: one per coordinate)."""
         kernel = self._kernel(g, outputs)
         variant = DYNAMICS if set(outputs) <= set(DYNAMICS) else ROW_OUTPUTS
-        scalars = self._fused_call(g, variant, X, V, T, P) if self._moves(g, kernel) else None
+        scalars = self._fused_call(g, variant, X, V, T, P, kernel) if self._moves(g, kernel) else None
         if scalars is None:
             return self._columns(g, kernel, X, V, T, P)
         full = self._kernel(g, variant)
@@ -442,7 +455,7 @@ class VectorizedBuild:
     def _gradient_columns(self, g, X, V, T, P) -> list:
         """The gradient of g's terms, one MX column per local coordinate."""
         kernel = self._gradient_kernel(g)
-        scalars = self._fused_call(g, "gradient", X, V, T, P) if self._moves(g, kernel) else None
+        scalars = self._fused_call(g, "gradient", X, V, T, P, kernel) if self._moves(g, kernel) else None
         return self._columns(g, kernel, X, V, T, P)[0] if scalars is None else list(scalars)
 
     def _columns(self, g, kernel, X, V, T, P) -> list:
