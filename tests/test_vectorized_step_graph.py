@@ -1,6 +1,8 @@
-"""The potential terms' forces summed in one C loop (``vectorized.sums``, issue 28): the bits of
-``columns.Summation`` (the same additions in the same order, signed zeros included), in the
-build's F and in a dopri step of a cloth with springs."""
+"""What dopri's step graph on the vectorized build is made of, built cheaper (issue 28) with the
+same numbers: the potential terms' forces summed in one C loop (``vectorized.sums``: the bits of
+``columns.Summation``, the same additions in the same order, signed zeros included), in the
+build's F and in a dopri run of a cloth with springs; the step's short circuit at the output
+time built as a Switch directly (``dopri.skipping``)."""
 
 from __future__ import annotations
 
@@ -111,3 +113,22 @@ def test_a_dopri_run_of_a_sprung_cloth_is_the_same_with_the_loop_and_without(mon
     assert a.stats["steps"] == b.stats["steps"] > 1
     _same_bits(a.x, b.x)
     _same_bits(a.v, b.v)
+
+
+@pytest.mark.parametrize("direct", [False, True])
+def test_the_direct_switch_is_the_short_circuit(direct):
+    """``skipping``: S where done, else the attempt's S, and the attempt not evaluated where
+    done (its NaN for a state it cannot take is never seen) — as ``ca.if_else``'s short circuit."""
+    S = ca.MX.sym("s", 4)
+    attempt = ca.Function("attempt", [S], [ca.vertcat(S[0] + S[1], ca.sqrt(S[1]) * 3, S[2] - 1, 1 / S[3])])
+    S2 = ca.MX.sym("s", 4)
+    step = dopri.skipping("step", S2, S2[2] >= S2[3], attempt, direct=direct)
+    short = dopri.skipping("step", S2, S2[2] >= S2[3], attempt, direct=False)
+    for state in ([1.0, 4.0, 0.5, 2.0], [1.0, -4.0, 3.0, 2.0], [2.0, 9.0, -1.0, 0.0], [0.0, -1.0, 0.0, 0.0]):
+        out = np.array(step(state)).ravel()
+        _same_bits(out, np.array(short(state)).ravel())
+        if state[2] >= state[3]:
+            _same_bits(out, state)
+        assert not np.isnan(out).any()  # (the attempt's sqrt(−1) and 1/0 never taken)
+    chain = step.mapaccum("chain", 3)
+    _same_bits(chain([1.0, 4.0, 0.5, 2.0]), short.mapaccum("chain", 3)([1.0, 4.0, 0.5, 2.0]))
