@@ -132,3 +132,23 @@ def test_a_batched_model_runs_as_the_discovered_one():
         b = discovered.function(name)(x, v, 0.3, p)
         for u, w in zip(a, b, strict=True):
             assert np.array_equal(np.asarray(ca.DM(u)), np.asarray(ca.DM(w)))
+
+
+def test_what_a_batchs_first_row_reads_is_its_whole_pattern():
+    """``_read_by`` looks among the batch's particles and entries of p; the positions must be
+    the whole vectors' Jacobian pattern, also where the row reads t, reads a coordinate or an
+    entry of p outside the batch's, a velocity, or the particles repeat."""
+    x, v, p, t = ca.SX.sym("x", 12), ca.SX.sym("v", 12), ca.SX.sym("p", 6), ca.SX.sym("t")
+    cases = [  # (row, particles, numbers)
+        (ca.sqrt((x[3] - x[9]) ** 2 + (x[4] - x[10]) ** 2) - p[2], [1, 3], [2]),
+        (x[5] * t - p[4] * p[1], [1], [4, 1]),
+        (x[5] - x[0] - p[0], [1], [0]),  # x[0]: particle 0, not the batch's
+        (x[5] - p[3], [1], [4]),  # p[3]: not the batch's
+        (x[5] * v[5] - p[0], [1], [0]),  # a velocity
+        ((x[6] - x[8]) ** 2 + p[5], [2, 2], [5, 5]),  # particles and numbers repeated
+        (ca.SX(0.5) * p[1], [0], [1]),  # no coordinate
+    ]
+    for row, particles, numbers in cases:
+        index0, reads0 = grouping._read_by(row, x, t, p, np.array(particles), np.array(numbers))
+        assert np.array_equal(index0, ca.jacobian_sparsity(row, x).get_col())
+        assert np.array_equal(reads0, ca.jacobian_sparsity(row, p).get_col())

@@ -37,6 +37,7 @@ from ..model.cache import ParametricView, built_once, structure_cache
 from ..model.structure import Model, Structure, forces
 from ..model.symbols import Stacked
 from .graph import acceleration_graph
+from .vectorized.columns import sorted_unique
 from .vectorized.grouping import MAX_KINDS, MIN_GROUP, Group, grouped, lifted, summands  # noqa: F401
 
 #: dopri's compiled step loop is built on the mapped Functions from this many coordinates
@@ -249,7 +250,7 @@ def _split(terms, batches) -> tuple[Stacked, np.ndarray]:
             and np.array_equal(b.offsets, np.arange(len(b.items))) and b.values.numel() == len(b.items)}
     whole = np.zeros(len(terms), bool)
     for b in batches:
-        if len(b.items) and not b.offsets.any() and len(np.unique(b.items)) == len(b.items):
+        if len(b.items) and not b.offsets.any() and len(sorted_unique(b.items)) == len(b.items):
             first = terms[b.items[0]]
             whole[b.items] = len(parts := summands(first)) == 1 and parts[0] is first
     out, counts = Stacked(), np.ones(len(terms), np.int64)

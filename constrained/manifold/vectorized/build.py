@@ -32,6 +32,7 @@ from .columns import Summation, binary, on_columns, shared, sorted_unique, take
 from .fused import fused_groups
 from .products import compiled_products
 from .rest import Positions, RestFunction, rest_function
+from .sums import summation_loop
 
 #: The outputs of a row kernel, in order ("J" is d entries, the others one each).
 ROW_OUTPUTS = ("f", "J", "f_t", "gamma", "scale")
@@ -288,6 +289,7 @@ class VectorizedBuild:
         self._no_p = ca.SX.sym("p", 0)  # (a kernel's p when it reads none: ``_group_function``)
         self._fused: dict | None = None
         self._products = None
+        self._force_sum = None
         _, V_rest, U, dU_dv, _ = forces(mb.rest_slots, e.x, e.v, e.t)
         self.rest["E"] = V_rest + U - ca.dot(e.v, dU_dv)
 
@@ -366,6 +368,17 @@ class VectorizedBuild:
             self._products = (compiled_products(self) if self.n_rows else None) or False
         return self._products or None
 
+    def force_sum(self):
+        """F of the potential terms from their gradient columns (the streams of ``by_force``)
+        as one C loop (``sums``): −Σ, or Σ where the rest has forces (F = rest − Σ); built once;
+        None without compiled code, or where ``by_force`` is a matrix product."""
+        if self._force_sum is None:
+            terms = self.mapped.terms
+            self._force_sum = self.by_force.matrix is None and summation_loop(
+                [g.index.shape[1] for g in terms for _ in g.index], [col for g in terms for col in g.index],
+                self.n3, negated=not self.rest_forces) or False
+        return self._force_sum or None
+
     def _loops(self) -> dict:
         """The C loops of the groups (``fused``): (id(group), ROW_OUTPUTS, DYNAMICS or "gradient")
         -> FusedGroup, for the groups the whitelist covers; empty without compiled code."""
@@ -383,14 +396,27 @@ class VectorizedBuild:
             self._fused = {k: f for k, f in zip(keys, loops, strict=True) if f is not None}
         return self._fused
 
-    def _fused_call(self, g, outputs, X, V, T, P) -> list | None:
+    def _fused_call(self, g, outputs, X, V, T, P, wanted: ca.Function) -> list | None:
         """Every scalar output of g's C loop for ``outputs`` (ROW_OUTPUTS, DYNAMICS or
-        "gradient") at (X, V, T, P), or None (no loop for g)."""
+        "gradient") at (X, V, T, P), or None (no loop for g); ``wanted``: the kernel of the
+        outputs the caller takes from them."""
         loop = self._loops().get((id(g), outputs))
         if loop is None:
             return None
+        if V is None and not self._reads(wanted, 1):
+            # (v = 0 as an input is a constant, whose call costs CasADi 10-20 ms on a 100 x 100
+            # cloth; the outputs taken do not read v, and those that do are left unused)
+            V = X
         key = ("loop", id(g), outputs, hash(X), None if V is None else hash(V), hash(T), hash(P))
         return shared(key, lambda: loop(X, V, T, P), X, V, T, P, g)
+
+    def _reads(self, kernel: ca.Function, i: int) -> bool:
+        """Whether ``kernel``'s outputs depend on its input i."""
+        key = (id(kernel), "reads", i)
+        if key not in self._kernels:
+            out = ca.vertcat(*[ca.vec(o) for o in kernel.call(kernel.sx_in())])
+            self._kernels[key] = bool(ca.depends_on(out, kernel.sx_in(i)))
+        return self._kernels[key]
 
     def _moves(self, g, kernel: ca.Function) -> bool:
         """Whether ``kernel``'s outputs change with the state (else columns: computed once per
@@ -405,8 +431,8 @@ class VectorizedBuild:
     def forces_vary(self) -> bool:
         """Whether F changes with x, v or t (else it depends on p alone), from the SX."""
         e = self.e
-        state = ca.vertcat(e.x, e.v, e.t)
-        if self.rest_forces and ca.depends_on(self.rest["F"], state):
+        # (the state's 60,000 symbols of a 100 x 100 cloth gathered only for a rest with forces: 8 ms)
+        if self.rest_forces and ca.depends_on(self.rest["F"], ca.vertcat(e.x, e.v, e.t)):
             return True
         for g in self.mapped.terms:
             kernel = self._gradient_kernel(g)
@@ -419,7 +445,7 @@ class VectorizedBuild:
         """The ``outputs`` of g's rows, for each a list of MX columns (J: one per coordinate)."""
         kernel = self._kernel(g, outputs)
         variant = DYNAMICS if set(outputs) <= set(DYNAMICS) else ROW_OUTPUTS
-        scalars = self._fused_call(g, variant, X, V, T, P) if self._moves(g, kernel) else None
+        scalars = self._fused_call(g, variant, X, V, T, P, kernel) if self._moves(g, kernel) else None
         if scalars is None:
             return self._columns(g, kernel, X, V, T, P)
         full = self._kernel(g, variant)
@@ -429,7 +455,7 @@ class VectorizedBuild:
     def _gradient_columns(self, g, X, V, T, P) -> list:
         """The gradient of g's terms, one MX column per local coordinate."""
         kernel = self._gradient_kernel(g)
-        scalars = self._fused_call(g, "gradient", X, V, T, P) if self._moves(g, kernel) else None
+        scalars = self._fused_call(g, "gradient", X, V, T, P, kernel) if self._moves(g, kernel) else None
         return self._columns(g, kernel, X, V, T, P)[0] if scalars is None else list(scalars)
 
     def _columns(self, g, kernel, X, V, T, P) -> list:
@@ -464,8 +490,13 @@ class VectorizedBuild:
                 result["J"] = Jacobian(self, rows["J"] + [value])
             elif k == "F":
                 gradients = [col for g in mb.terms for col in self._gradient_columns(g, X, V, T, P)]
+                loop = self.force_sum() if all(c.nnz() == c.numel() for c in gradients) else None
                 if not gradients:
                     result["F"] = value
+                elif loop is not None:  # the same sums in one C loop, negated there without a rest
+                    summed = shared(("forces", *map(hash, gradients)), lambda f=loop, g=gradients: f(*g),
+                                    *gradients)
+                    result["F"] = value - summed if self.rest_forces else summed
                 elif self.rest_forces:
                     result["F"] = value - self.by_force(gradients)
                 else:  # every force a potential term's: no dense zeros to subtract from

@@ -88,11 +88,13 @@ class Positions:
         return tuple(np.array(sorted(set(at)), np.int64) for at in (x_at, v_at, p_at))
 
     def _locate(self, symbols: list) -> bool:
-        try:
-            locate = ca.Function("locate", [self.p], [ca.vertcat(*symbols)])
-        except RuntimeError:  # (a symbol that is not in p)
-            return False
-        at = np.asarray(locate(np.arange(self.p.numel(), dtype=float)), float).ravel().astype(np.int64)
+        # each symbol's row of ∂symbols/∂p: its one entry where it is p's (a Function of p
+        # evaluated at 0, 1, 2, … took 10 ms for a cloth's 69,000 entries, this 4 ms)
+        rows, cols = ca.jacobian_sparsity(ca.vertcat(*symbols), self.p).get_triplet()
+        if len(rows) != len(symbols) or sorted(rows) != list(range(len(symbols))):
+            return False  # (a symbol that is not in p)
+        at = np.empty(len(symbols), np.int64)
+        at[np.asarray(rows, np.int64)] = cols
         if not all(ca.is_equal(self.p[int(i)], s) for i, s in zip(at, symbols, strict=True)):
             return False
         self._in_p.update((s.element_hash(), int(i)) for i, s in zip(at, symbols, strict=True))
