@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 import subprocess
 import sys
@@ -324,3 +325,20 @@ def test_run_summary_gives_no_relative_drift_against_an_energy_that_starts_at_ze
     out = capsys.readouterr().out
     line = next(text for text in out.splitlines() if text.startswith("energy drift"))
     assert code == 0 and "(relative" not in line and "no relative figure" in line, out
+
+
+def test_the_command_runs_blas_on_one_thread_unless_its_environment_says(tmp_path):
+    """constrained.cli sets OPENBLAS_NUM_THREADS=1 before any verb imports NumPy (its pool spins
+    between calls: constrained.threads); a value the caller set is kept."""
+    code = ("import json, constrained.cli.main, numpy, threadpoolctl; print(json.dumps("
+            "[i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas']))")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+
+    def threads(extra: dict) -> list:
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True,
+                             text=True, check=True, cwd=tmp_path)
+        return json.loads(out.stdout)
+
+    assert threads({}) == [1] or threads({}) == []  # (no BLAS found by threadpoolctl: nothing to limit)
+    if (os.cpu_count() or 1) >= 2 and threads({}):
+        assert threads({"OPENBLAS_NUM_THREADS": "2"}) == [2]
