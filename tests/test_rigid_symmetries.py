@@ -170,3 +170,28 @@ def test_null_space_rows_reads_tilted_and_aligned_spaces():
     plane = null_space_rows(np.array([[1.0, 1.0, 0.0]]), 1e-9)  # s_x + s_y = 0
     assert np.allclose(plane, [[1, -1, 0], [0, 0, 1]])
     assert null_space_rows(np.eye(3), 1e-9).shape == (0, 3)
+
+
+def test_a_motion_that_moves_nothing_is_not_listed():
+    """A bead held on the x axis: the rotation about x maps its constraints onto themselves
+    (J ξ = 0) but moves nothing, so its charge L_x is 0 at every state: not a conserved
+    quantity worth naming. The translation along x is one (no force along x)."""
+    s = C.System(name="bead on the x axis")
+    s.add_particle("bead", 0.3, [0.4, 0.0, 0.0], [0.2, 0.0, 0.0])
+    s.add(C.Plane(["bead"], normal=[0.0, 1.0, 0.0]), C.Plane(["bead"], normal=[0.0, 0.0, 1.0]))
+    assert [f.name for f in rigid_symmetries(s)] == ["P_x"]
+    pinned = C.System(name="pinned")
+    pinned.add_particle("p", 1.0, [2.0, 2.0, 3.0])
+    pinned.add(C.Pin("p", point=[2.0, 2.0, 3.0]))
+    assert rigid_symmetries(pinned) == []
+
+
+def test_check_lists_the_symmetries_a_scene_can_expect(capsys):
+    from constrained.cli.main import main
+
+    assert main(["check", str(SCENARIOS / "rigid_tetrahedron.toml")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("symmetries"))
+    assert line == ("symmetries (rigid motions), their Noether charges conserved: P_x (translation along x); "
+                    "P_y (translation along y); L_z (rotation about the z axis through (0, 0, 0))")
+    assert main(["check", str(SCENARIOS / "double_pendulum.toml")]) == 0
+    assert "symmetries (rigid motions): none" in capsys.readouterr().out

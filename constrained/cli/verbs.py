@@ -229,9 +229,34 @@ def _check(args) -> int:
         out.append("initial state: no constraints")
     terms = sorted(getattr(model, "active_terms", ()))
     out.append("model terms: " + (", ".join(terms) if terms else "none"))
+    out.append(_symmetries_line(model))
     if not args.quiet:
         print("\n".join(out))
     return 0
+
+
+#: Above this many coordinates ``check`` does not search the rigid motions that are symmetries
+#: (the search projects 12 sampled states onto the constraints).
+SYMMETRY_SEARCH_UP_TO = 300
+
+
+def _symmetries_line(model) -> str:
+    """The rigid motions that are symmetries of the scene (``rigid_symmetries``), whose Noether
+    charges are conserved: what a scene's ``[expect] conserved`` can name."""
+    head = "symmetries (rigid motions)"
+    if model.n_coordinates > SYMMETRY_SEARCH_UP_TO:
+        return (f"{head}: not searched ({model.n_coordinates} coordinates, more than "
+                f"{SYMMETRY_SEARCH_UP_TO}; constrained.rigid_symmetries(scene) searches them)")
+    from ..analysis.conservation.rigid_motions import rigid_symmetries
+
+    try:
+        found = rigid_symmetries(model)
+    except InputError as exc:
+        return f"{head}: not searched ({exc})"
+    if not found:
+        return f"{head}: none"
+    return (f"{head}, their Noether charges conserved: "
+            + "; ".join(f"{s.name} ({s.description})" for s in found))
 
 
 def _projection_preview(model, scene: Scene) -> str:

@@ -138,10 +138,18 @@ def _describe(rotation: np.ndarray, translation: np.ndarray, size: float,
     return name, text
 
 
+def _largest_move(rotation: np.ndarray, translation: np.ndarray, x: np.ndarray) -> float:
+    """max_i |ε + ω × x_i| at the positions ``x`` (3N)."""
+    positions = np.asarray(x, float).reshape(-1, 3)
+    return float(np.max(np.linalg.norm(translation + np.cross(rotation, positions), axis=1), initial=0.0))
+
+
 def rigid_symmetries(model, *, samples: int = 12, seed: int = 0,
                      rtol: float = SYMMETRY_RTOL) -> list[RigidSymmetry]:
     """The rigid motions that are symmetries of ``model`` (a Model, System or Scene; module
-    docstring), each with its Noether charge, translations first; [] when there is none.
+    docstring), each with its Noether charge, translations first; [] when there is none. A
+    motion that moves no particle at any sampled state (a rotation about the line every
+    particle is held on) is left out: its charge is 0.
     Checked at ``samples`` random states on the constraint manifold near the start
     (``symmetry.manifold_samples``)."""
     if not isinstance(model, Model):
@@ -163,7 +171,8 @@ def rigid_symmetries(model, *, samples: int = 12, seed: int = 0,
     matrix_of = ca.Function("rigid_variations", [x, v, t], [ca.jacobian(changes, generator)])
     scale_of = ca.Function("rigid_scales", [x, v, t, generator], [scales])
     blocks = []
-    for xs, vs, ts in manifold_samples(model, samples, seed):
+    states = manifold_samples(model, samples, seed)
+    for xs, vs, ts in states:
         D = np.asarray(matrix_of(xs, vs, ts)) @ unit
         scale = sum(np.asarray(scale_of(xs, vs, ts, unit[:, j])).ravel() for j in range(6))
         keep = scale > 0  # a term with no variation terms at all cannot change
@@ -183,7 +192,9 @@ def rigid_symmetries(model, *, samples: int = 12, seed: int = 0,
         else:
             translation = _clean(translation)
         scale = float(np.linalg.norm(rotation)) or float(np.linalg.norm(translation))
-        motions.append((rotation / scale, translation / scale))
+        rotation, translation = rotation / scale, translation / scale
+        if max(_largest_move(rotation, translation, xs) for xs, _, _ in states) > CLEAN * size:
+            motions.append((rotation, translation))  # (else it moves nothing: L_x of a bead on the x axis)
     anchors = _anchors(model, [(w, e) for w, e in motions if np.any(w)])
     for rotation, translation in motions:
         name, description = _describe(rotation, translation, size, anchors)
