@@ -282,6 +282,12 @@ def test_an_instance_built_alone_is_its_element_of_the_whole_column():
         for k, expr in enumerate(alone[20:]):
             assert repr(expr) == repr(part_column[k]) == repr(column[1 + 3 * k])
         assert all(f[k] is not None and repr(f[k]) == repr(column[k]) for k in range(f.numel()))
+    stacked = Structure(_chain(springs=True)).expressions.slots["potential"]  # (springs, gravity)
+    ks = [len(stacked) - 1, 3, 0, 5, 3, 40, -1]
+    together = stacked.elements(ks)  # (the sample of the mapped build: built by one call)
+    assert [repr(e) for e in together] == [repr(stacked[k]) for k in ks]
+    whole = stacked.column()
+    assert [repr(e) for e in together] == [repr(whole[k]) for k in ks]
     fresh = _formulas(Structure(_chain(springs=True)).expressions.rows)[0]
     asked = [fresh[k % fresh.numel()] for k in range(fresh.ALONE_UP_TO + 1)]
     assert fresh.built and len(asked) == fresh.ALONE_UP_TO + 1  # (asked for often: built whole)

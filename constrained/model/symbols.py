@@ -135,6 +135,19 @@ class Formula:
         return Formula(self._build, len(chosen), chosen if self._chosen is None else self._chosen[chosen],
                        self._root)
 
+    def elements(self, ks) -> list:
+        """``[self[k] for k in ks]``, those not built yet built together by one call of the
+        recipe (the same expressions: the operations are elementwise)."""
+        root = self._root
+        if root._column is not None or self._pieces is not None or root._asked >= self.ALONE_UP_TO:
+            return [self[k] for k in ks]
+        root._asked += 1
+        at = [int(k if self._chosen is None else self._chosen[k]) for k in ks]
+        todo = sorted({i for i in at if i not in root._alone})
+        if todo:
+            root._alone.update(zip(todo, ca.vertsplit(root._build(np.array(todo, np.int64))), strict=True))
+        return [root._alone[i] for i in at]
+
     def __getitem__(self, k: int) -> ca.SX:
         root = self._root
         if root._column is None and self._pieces is None:
@@ -209,6 +222,23 @@ class Stacked(Sequence):
         j = bisect.bisect_right(self._starts, k) - 1
         segment = self._segments[j]
         return segment[0][k - self._starts[j]] if isinstance(segment, list) else segment[k - self._starts[j]]
+
+    def elements(self, ks) -> list:
+        """``[self[k] for k in ks]``: a column's instances not built yet built together."""
+        ks = np.asarray(ks, np.int64)
+        ks = np.where(ks < 0, ks + len(self), ks)
+        segment = np.searchsorted(self._starts, ks, side="right") - 1
+        out: list = [None] * len(ks)
+        for j in sorted(set(segment.tolist())):  # (np.unique imports numpy.ma: 10 ms)
+            at = np.flatnonzero(segment == j)
+            if not isinstance(self._segments[j], Formula):
+                for i in at.tolist():
+                    out[i] = self[int(ks[i])]
+                continue
+            for i, e in zip(at.tolist(), self._segments[j].elements((ks[at] - self._starts[j]).tolist()),
+                            strict=True):
+                out[i] = e
+        return out
 
     def segments(self) -> list[tuple[int, object]]:
         """``(first index, segment)``: a list of single expressions, or a Formula."""
