@@ -44,16 +44,16 @@ def _function(e, F) -> str:
 
 @pytest.mark.parametrize("name", EFFECTS)
 def test_deferred_forces_are_the_eager_forces(name):
-    """``forces(..., deferred=True)``: F built when asked is the expression built at once, and the
-    active terms (time-dependent forces among them) are the same."""
+    """``forces(..., deferred=True)``: F and V built when asked are the expressions built at once,
+    and the active terms (time-dependent forces among them) are the same."""
     e = Structure(_rope(6, effects=EFFECTS[name])).expressions
     eager = forces(e.slots, e.x, e.v, e.t)
-    F, *deferred = forces(e.slots, e.x, e.v, e.t, deferred=True)
+    F, V, *deferred = forces(e.slots, e.x, e.v, e.t, deferred=True)
     assert _function(e, F()) == _function(e, eager[0])
-    assert F() is F()  # (built once)
-    for a, b in zip(deferred[:3], eager[1:4], strict=True):
+    assert F() is F() and V() is V()  # (built once)
+    for a, b in zip([V(), *deferred[:2]], eager[1:4], strict=True):
         assert _function(e, a) == _function(e, b)
-    assert deferred[3] == eager[4]
+    assert deferred[2] == eager[4]
     of_t = ("time-dependent potential", "potential of t alone", "applied force")
     assert ("time_dependent_forces" in eager[4]) == (name in of_t)
 

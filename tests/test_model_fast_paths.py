@@ -15,9 +15,9 @@ import structure_reference
 import constrained as C
 from constrained.errors import InputError
 from constrained.model import lifting
-from constrained.model.constraints import Distance, pair_distances
+from constrained.model.constraints import Distance, pair_ends
 from constrained.model.effects import Spring
-from constrained.model.symbols import Symbols
+from constrained.model.symbols import Symbols, pair_formula
 from constrained.scene import build as scene_build
 from constrained.scene import plain as scene_plain
 from constrained.scene.load import SceneError, build_scene
@@ -121,7 +121,8 @@ def test_one_particle_builds_as_the_checks_build(monkeypatch):
 
 
 def _pair_distances_one_by_one(items, s, fields):
-    """``pair_distances`` as it was: the items checked and looked up one by one."""
+    """``pair_ends`` and ``pair_formula``'s distances as they were: the items checked and looked
+    up one by one."""
     index = s._index
     plain = [k for k, c in enumerate(items) if isinstance(c.a, str) and isinstance(c.b, str)
              and c.a in index and c.b in index and all(type(getattr(c, f)) is lifting.Number for f in fields)]
@@ -137,7 +138,7 @@ class _Name(str):
     """A particle's name of a subclass of str (taken as ``isinstance`` takes it)."""
 
 
-def test_pair_distances_at_once_are_the_ones_found_one_by_one():
+def test_pair_ends_at_once_are_the_ones_found_one_by_one():
     """Rods to points, rods of formula lengths, an end of a str subclass, an end naming no
     particle: the same items taken, the same ends and the same SX row."""
     system = C.System(parameters={"L": 1.0})
@@ -151,14 +152,18 @@ def test_pair_distances_at_once_are_the_ones_found_one_by_one():
     system.add(*rods)
     lifted, numbers = lifting.lift(system)
     s = Symbols(lifted, symbolic_parameters=True, numbers=len(numbers))
-    plain, row, ends = pair_distances(lifted.constraints, s, ("length",))
+    plain, ends = pair_ends(lifted.constraints, s, ("length",))
+    distances = pair_formula(s, ends, [], lambda d: d.T)
+    row = distances.column().T
     reference, reference_row = _pair_distances_one_by_one(lifted.constraints, s, ("length",))
     assert plain == reference == [0, 1, 3, 4, 6, 7, 8, 10]
     rods = lifted.constraints
     assert ends.tolist() == [[s._index[rods[k].a], s._index[rods[k].b]] for k in plain]
     assert str(row) == str(reference_row)
-    none, nothing, no_ends = pair_distances(lifted.constraints[2:3], s, ("length",))
-    assert none == [] and nothing is None and no_ends.shape == (0, 2)
+    for k in range(len(plain)):  # (one pair alone: its element of the row)
+        assert ca.is_equal(distances[k], row[k], 10)
+    none, no_ends = pair_ends(lifted.constraints[2:3], s, ("length",))
+    assert none == [] and no_ends.shape == (0, 2)
 
 
 def test_indices_and_number_entries_at_once_are_the_ones_one_by_one():

@@ -138,14 +138,14 @@ def test_the_flags_follow_the_formulas_of_t_and_v():
     assert not Structure(SYSTEMS["springs both ways"]()).forces_depend_on_velocity
 
 
-def _same_groups(a: list, b: list, t) -> None:
+def _same_groups(a: list, b: list, t, t_b=None) -> None:
     assert len(a) == len(b)
     for g, h in zip(a, b, strict=True):
         for field in ("index", "sources", "constants", "place"):
             assert np.array_equal(getattr(g, field), getattr(h, field)), field
         assert g.parts == h.parts
         assert (ca.Function("k", [g.xl, g.c, t], [g.local]).serialize()
-                == ca.Function("k", [h.xl, h.c, t], [h.local]).serialize())
+                == ca.Function("k", [h.xl, h.c, t if t_b is None else t_b], [h.local]).serialize())
 
 
 @pytest.mark.parametrize("name", SYSTEMS)
@@ -219,3 +219,117 @@ def test_a_stacked_column_reads_as_the_list_of_its_expressions():
     assert not stacked.may_depend_on(t)
     stacked.add(x[0] * t)
     assert stacked.may_depend_on(t) and not stacked.select(np.r_[keep, False]).may_depend_on(t)
+
+
+# --- columns held as their recipe (``symbols.Formula``) -----------------------------------------
+
+def _formulas(stacked: Stacked) -> list:
+    return [segment for _, segment in stacked.segments() if not isinstance(segment, list)]
+
+
+def _eager(monkeypatch) -> None:
+    """Formulas as columns were before: every element asked for read from the whole column."""
+    from constrained.model import symbols
+    monkeypatch.setattr(symbols.Formula, "ALONE_UP_TO", 0)
+
+
+FUNCTIONS = ("constraint", "jacobian", "velocity_terms", "dynamics", "energy", "potential",
+             "forces_and_potential", "kinetic")
+
+
+@pytest.mark.parametrize("name", SYSTEMS)
+def test_the_functions_of_held_columns_are_those_of_whole_columns(name, monkeypatch):
+    """The Structure's Functions with its columns held as recipes — the mapped build having
+    first asked for single rows and terms built alone, before anything asked for a whole
+    column — are those of columns built whole at once (read element by element from them, as
+    before): the same serialization, and the same values at random states."""
+    lazy = Structure(SYSTEMS[name]())
+    lazy_mapped = MappedBuild(lazy)  # (single rows and terms built alone, before any whole column)
+    held = _formulas(lazy.expressions.rows) + _formulas(lazy.expressions.slots["potential"])
+    assert name == "one particle" or held
+    with monkeypatch.context() as m:
+        _eager(m)
+        whole = Structure(SYSTEMS[name]())
+        eager_mapped = MappedBuild(whole)
+    e, rng = lazy.expressions, np.random.default_rng(7)
+    for function in FUNCTIONS:
+        a, b = lazy.function(function), whole.function(function)
+        assert a.serialize() == b.serialize(), function
+        args = [rng.uniform(0.5, 1.5, a.size_in(i)) for i in range(a.n_in())]
+        for u, w in zip(a.call(args), b.call(args), strict=True):
+            assert np.array_equal(np.asarray(u), np.asarray(w), equal_nan=True), function
+    t_b = whole.expressions.t
+    _same_groups(lazy_mapped.rows, eager_mapped.rows, e.t, t_b)
+    _same_groups(lazy_mapped.terms, eager_mapped.terms, e.t, t_b)
+    assert np.array_equal(lazy_mapped.rest_place, eager_mapped.rest_place)
+
+
+def test_an_instance_built_alone_is_its_element_of_the_whole_column():
+    """Each rod's row, each spring's term (some written b→a) and those of a part (``part``,
+    ``select``): built alone, before the column, the same expression as its element of the
+    column built later; past ALONE_UP_TO asked, read from the whole column."""
+    structure = Structure(_chain(springs=True))
+    e = structure.expressions
+    formulas = _formulas(e.rows) + _formulas(e.slots["potential"])
+    assert formulas and not any(f.built for f in formulas if f._root._build is not None)
+    for f in formulas:
+        part = f.part(np.arange(1, f.numel(), 3))
+        alone = [f[k] for k in range(f.numel())[:20]] + [part[k] for k in range(part.numel())[:10]]
+        column, part_column = f.column(), part.column()
+        assert f.built and part.built
+        for k, expr in enumerate(alone[:20]):  # (is_equal takes a + b for b + a: repr does not)
+            assert ca.is_equal(expr, column[k], 100) and repr(expr) == repr(column[k])
+        for k, expr in enumerate(alone[20:]):
+            assert repr(expr) == repr(part_column[k]) == repr(column[1 + 3 * k])
+        assert all(f[k] is not None and repr(f[k]) == repr(column[k]) for k in range(f.numel()))
+    stacked = Structure(_chain(springs=True)).expressions.slots["potential"]  # (springs, gravity)
+    ks = [len(stacked) - 1, 3, 0, 5, 3, 40, -1]
+    together = stacked.elements(ks)  # (the sample of the mapped build: built by one call)
+    assert [repr(e) for e in together] == [repr(stacked[k]) for k in ks]
+    whole = stacked.column()
+    assert [repr(e) for e in together] == [repr(whole[k]) for k in ks]
+    fresh = _formulas(Structure(_chain(springs=True)).expressions.rows)[0]
+    asked = [fresh[k % fresh.numel()] for k in range(fresh.ALONE_UP_TO + 1)]
+    assert fresh.built and len(asked) == fresh.ALONE_UP_TO + 1  # (asked for often: built whole)
+
+
+def _cloth(n: int) -> C.System:
+    """An n × n cloth: rods along rows and columns, shear springs both ways, two pins, gravity."""
+    s = C.System(name="cloth")
+    for i in range(n):
+        for j in range(n):
+            s.add_particle(f"p{i}_{j}", 0.01 * (1 + 0.1 * ((i + 2 * j) % 5)), [0.01 * j, 0.0, 0.01 * i])
+    for i in range(n):
+        for j in range(n):
+            if j + 1 < n:
+                s.add(C.Distance(f"p{i}_{j}", f"p{i}_{j + 1}", length=0.01))
+            if i + 1 < n:
+                s.add(C.Distance(f"p{i}_{j}", f"p{i + 1}_{j}", length=0.01))
+    for i in range(n - 1):
+        for j in range(n - 1):
+            s.add(C.Spring(f"p{i}_{j}", f"p{i + 1}_{j + 1}", k=5.0, rest=0.0141),
+                  C.Spring(f"p{i + 1}_{j}", f"p{i}_{j + 1}", k=5.0, rest=0.0141))
+    s.add(C.Pin("p0_0", [0.0, 0.0, 0.0]), C.Pin(f"p0_{n - 1}", [0.01 * (n - 1), 0.0, 0.0]))
+    s.add(C.Gravity([0.0, 0.0, -9.81]))
+    return s
+
+
+def test_a_large_models_vectorized_build_leaves_the_columns_unbuilt(monkeypatch):
+    """On a cloth run on the vectorized build the rods' rows and the springs' terms are never
+    made into whole columns (only a sample of single instances), and the groups are those found
+    with the columns built whole."""
+    from constrained.manifold.vectorized.build import vectorized_build
+    system = _cloth(20)
+    structure = Structure(system)
+    vectorized_build(structure)
+    e = structure.expressions
+    formulas = [f for f in _formulas(e.rows) + _formulas(e.slots["potential"]) if f._root._build is not None]
+    assert len(formulas) >= 2 and not any(f.built for f in formulas)
+    assert sum(f.numel() for f in formulas) >= 2 * 19 * 20 + 2 * 19 * 19 - 2
+    with monkeypatch.context() as m:
+        _eager(m)
+        eager = MappedBuild(Structure(_cloth(20)))
+    lazy = MappedBuild(structure)
+    _same_groups(lazy.rows, eager.rows, e.t, eager.e.t)
+    _same_groups(lazy.terms, eager.terms, e.t, eager.e.t)
+    assert not any(f.built for f in formulas)

@@ -255,11 +255,11 @@ def _split(terms, batches) -> tuple[Stacked, np.ndarray]:
             whole[b.items] = len(parts := summands(first)) == 1 and parts[0] is first
     out, counts = Stacked(), np.ones(len(terms), np.int64)
     for start, segment in (terms.segments() if isinstance(terms, Stacked) else [(0, list(terms))]):
-        if not isinstance(segment, list):  # a column of terms built by one formula
+        if not isinstance(segment, list):  # a column of terms built by one formula (a Formula)
             if whole[start:start + segment.numel()].all():
-                out.add_column(segment)
+                out.add_column(segment)  # (as it is: made into SX nodes only where asked for)
                 continue
-            segment = ca.vertsplit(segment)
+            segment = ca.vertsplit(segment.column())
         for k, term in enumerate(segment, start):
             if k in held:
                 out.add_column(held[k])

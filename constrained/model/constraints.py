@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from .lifting import Number
-from .symbols import Batch, Stacked
+from .symbols import Batch, Formula, Stacked, pair_formula
 
 
 def _fmt(value) -> str:
@@ -103,13 +103,13 @@ class Constraint(Labelled):
         raise NotImplementedError
 
     @classmethod
-    def batch_rows(cls, items: list, s) -> tuple[list[int], ca.SX, list[str], Batch | None] | None:
+    def batch_rows(cls, items: list, s) -> tuple[list[int], Formula, list[str], Batch | None] | None:
         """The rows of ``items`` (items of this class) that have one row each of one formula,
         built together in a few CasADi calls: ``(plain, column, labels, batch)`` — their
-        positions in ``items``, their rows as one SX column (each the expression its ``rows``
-        builds), their labels, and the Batch of them (its ``items`` index ``items``; None when
-        their numbers are not all lifted); the others are built by ``rows``. None when the
-        class has no such form."""
+        positions in ``items``, their rows as one column (a Formula: each the expression its
+        ``rows`` builds, made into SX nodes when asked for), their labels, and the Batch of
+        them (its ``items`` index ``items``; None when their numbers are not all lifted); the
+        others are built by ``rows``. None when the class has no such form."""
         return None
 
     def block_rows(self, s) -> tuple[ca.SX, list[str], Batch] | None:
@@ -216,24 +216,26 @@ class Distance(Constraint):
         return [(ca.norm_2(xa - xb) - length, self.label)]
 
     @classmethod
-    def batch_rows(cls, items: list, s) -> tuple[list[int], ca.SX, list[str], Batch | None]:
+    def batch_rows(cls, items: list, s) -> tuple[list[int], Formula, list[str], Batch | None]:
         """|x_a − x_b| − length of rods between two particles with lengths that are plain
-        numbers (entries of p, constrained.lifting), as one column: one CasADi call per
-        operation instead of several per rod (a 10,000-link chain)."""
-        plain, norms, ends = pair_distances(items, s, ("length",))
+        numbers (entries of p, constrained.lifting), as one column (a Formula: built when
+        asked for): one CasADi call per operation instead of several per rod (a 10,000-link
+        chain)."""
+        plain, ends = pair_ends(items, s, ("length",))
         if not plain:
-            return plain, ca.SX(0, 1), [], None
+            return plain, Formula.of(ca.SX(0, 1)), [], None
         rods = [items[k] for k in plain]
         lengths = [c.length for c in rods]
         labels = [c.name or f"distance {c.a}–{c.b} = {c.length:g} m" for c in rods]  # (``label``)
-        return plain, norms.T - s.number_column(lengths), labels, pair_batch(items, plain, s, [lengths], ends)
+        return plain, pair_formula(s, ends, [lengths], lambda d, length: (d - length).T), labels, \
+            pair_batch(items, plain, s, [lengths], ends)
 
 
 def pair_batch(items: list, plain: list[int], s, numbers: list[list], ends: np.ndarray | None = None
                ) -> Batch | None:
     """The Batch of the items ``plain`` of ``items`` (each between particles ``a`` and ``b``,
     one row or term each) whose numbers (``numbers``: one list per field) are all lifted.
-    ``ends``: their particles' indices (n, 2), as ``pair_distances`` gives them."""
+    ``ends``: their particles' indices (n, 2), as ``pair_ends`` gives them."""
     entries = [s.number_entries(field) for field in numbers]
     if any(e is None for e in entries):
         return None
@@ -245,12 +247,10 @@ def pair_batch(items: list, plain: list[int], s, numbers: list[list], ends: np.n
                  np.stack(entries, axis=1) if entries else np.zeros((n, 0), np.int64))
 
 
-def pair_distances(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], ca.SX | None, np.ndarray]:
+def pair_ends(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], np.ndarray]:
     """For batches of items between two particles (attributes ``a``, ``b``): the positions in
     ``items`` of those joining two particles of ``s`` whose ``fields`` are all plain numbers
-    (lifted: entries of p), their distances |x_a − x_b| as one row (1, n), formed as norm_2
-    forms them (sq of each entry, summed, sqrt), column by column, and their particles'
-    indices (n, 2)."""
+    (lifted: entries of p), and their particles' indices (n, 2)."""
     index = s._index
     ends = _between(items, index, fields)
     if ends is not None:
@@ -260,12 +260,7 @@ def pair_distances(items: list, s, fields: tuple[str, ...]) -> tuple[list[int], 
         plain = [k for k, c in enumerate(items) if isinstance(c.a, str) and isinstance(c.b, str)
                  and c.a in index and c.b in index and all(type(getattr(c, f)) is Number for f in fields)]
         ends = np.array([[index[items[k].a], index[items[k].b]] for k in plain], np.int64).reshape(-1, 2)
-    if not plain:
-        return plain, None, ends
-    X = ca.reshape(s.x, 3, s.x.numel() // 3)
-    d = X[:, ends[:, 0].tolist()] - X[:, ends[:, 1].tolist()]
-    squares = d * d
-    return plain, ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :]), ends
+    return plain, ends
 
 
 def _between(items: list, index: dict, fields: tuple[str, ...]) -> np.ndarray | None:
@@ -460,8 +455,8 @@ def constraint_rows(constraints: list, s) -> tuple[list[tuple], list[Batch]]:
                 pieces.append(_alone(constraints[i], i, s, batches))
             if stop > start:
                 count = stop - start
-                part = column if count == column.numel() else column[row:row + count]
-                pieces.append((start, count, (part, labels[row:row + count])))
+                pieces.append((start, count, (column.part(np.arange(row, row + count)),
+                                              labels[row:row + count])))
             done, row = stop, row + stop - start
         k = j
     return pieces, batches

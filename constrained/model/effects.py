@@ -21,8 +21,8 @@ import numpy as np
 from ..codegen.interval import where_negative
 from ..errors import InputError
 from . import expressions
-from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_distances
-from .symbols import Batch, Stacked
+from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_ends
+from .symbols import Batch, Formula, Stacked, pair_formula
 
 
 class Effect(Labelled):
@@ -37,10 +37,11 @@ class Effect(Labelled):
         raise NotImplementedError
 
     @classmethod
-    def batch_terms(cls, items: list, s) -> tuple[list[int], ca.SX, Batch | None] | None:
+    def batch_terms(cls, items: list, s) -> tuple[list[int], Formula, Batch | None] | None:
         """``(plain, column, batch)``: the positions in ``items`` of those with a term of one
-        formula, those terms (each what ``term`` builds) as one SX column built together, and
-        their Batch (None: numbers not all lifted); None when the class has no such form."""
+        formula, those terms (each what ``term`` builds) as one column built together (a
+        Formula: made into SX nodes when asked for), and their Batch (None: numbers not all
+        lifted); None when the class has no such form."""
         return None
 
     def term_and_batch(self, s) -> tuple:
@@ -129,17 +130,17 @@ class Spring(Effect):
         return 0.5 * k * (ca.sqrt(ca.dot(d, d)) - rest) ** 2
 
     @classmethod
-    def batch_terms(cls, items: list, s) -> tuple[list[int], ca.SX, Batch | None]:
+    def batch_terms(cls, items: list, s) -> tuple[list[int], Formula, Batch | None]:
         """The terms of springs between two particles whose k and rest are plain numbers
         (entries of p, constrained.lifting) as one column: one CasADi call per operation
         instead of several per spring (a cloth's shear springs)."""
-        plain, norms, ends = pair_distances(items, s, ("k", "rest"))
+        plain, ends = pair_ends(items, s, ("k", "rest"))
         if not plain:
-            return plain, ca.SX(0, 1), None
+            return plain, Formula.of(ca.SX(0, 1)), None
         springs = [items[j] for j in plain]
         ks, rests = [e.k for e in springs], [e.rest for e in springs]
-        k, rest = s.number_column(ks).T, s.number_column(rests).T
-        return plain, (0.5 * k * (norms - rest) ** 2).T, pair_batch(items, plain, s, [ks, rests], ends)
+        return plain, pair_formula(s, ends, [ks, rests], lambda d, k, rest: (0.5 * k * (d - rest) ** 2).T), \
+            pair_batch(items, plain, s, [ks, rests], ends)
 
 
 class Potential(Effect):
@@ -444,7 +445,7 @@ def effect_terms(effects: list, s, skip=()) -> tuple[Stacked, list[Batch]]:
         while i < j:
             if together[i - k]:  # a stretch built together
                 stop = i + int(np.argmin(np.append(together[i - k:], False)))
-                out.add_column(column if stop - i == column.numel() else column[row:row + stop - i])
+                out.add_column(column.part(np.arange(row, row + stop - i)))
                 i, row = stop, row + stop - i
                 continue
             term, own = (ca.SX(0), None) if i in skip else effects[i].term_and_batch(s)
@@ -474,22 +475,24 @@ def forces(slots: dict, x, v, t, *, deferred: bool = False) -> tuple:
         generalized potentials (linear in v: d/dt ∂U/∂v = (∂²U/∂v∂x) v + ∂²U/∂v∂t), R = Σ
         dissipations.
 
-    ``deferred``: F as a function of no arguments that builds it when first called (the same
-    expression). With potentials alone, F = −∂V/∂x is then not differentiated here (a large
-    model's runs use the vectorized build's forces: 0.2 s for a cloth's 40,000 springs), and
-    whether it depends on t is V's answer (∂V/∂x reads t only where V does)."""
+    ``deferred``: F and V as functions of no arguments that build them when first called
+    (the same expressions). With potentials alone, F = −∂V/∂x is then not differentiated here
+    (a large model's runs use the vectorized build's forces: 0.2 s for a cloth's 40,000
+    springs), nor V summed (its columns of terms are made into SX nodes only then:
+    ``symbols.Formula``), and whether it depends on t is V's answer (∂V/∂x reads t only where
+    V does)."""
     if deferred and not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force")):
-        V = _total(slots["potential"]) if slots["potential"] else ca.SX(0)
+        V = functools.cache(lambda: _total(slots["potential"]) if slots["potential"] else ca.SX(0))
         active = {"potential"} if slots["potential"] else set()
         # (none of a Stacked's terms of t: nor is V; else V is asked, a sum may cancel)
-        if slots["potential"] and Stacked.may(slots["potential"], t) and ca.depends_on(V, t):
+        if slots["potential"] and Stacked.may(slots["potential"], t) and ca.depends_on(V(), t):
             active.add("time_dependent_forces")
         zero = (ca.SX.zeros(x.numel()), ca.SX(0), ca.SX.zeros(x.numel()))
-        return functools.cache(lambda: zero[0] - ca.gradient(V, x) if slots["potential"] else zero[0]), \
+        return functools.cache(lambda: zero[0] - ca.gradient(V(), x) if slots["potential"] else zero[0]), \
             V, zero[1], zero[2], active
     if deferred:
-        F, *rest = forces(slots, x, v, t)
-        return (lambda: F), *rest
+        F, V, *rest = forces(slots, x, v, t)
+        return (lambda: F), (lambda: V), *rest
     active = set()
     F = ca.SX.zeros(x.numel())
     V = U = ca.SX(0)

@@ -80,7 +80,7 @@ class Structure:
         #: Rows of f (position level); the velocity rows (model/velocity.py) follow them.
         self.n_position_rows = len(rows)
         self.n_constraints = len(rows) + len(velocity_rows)
-        f = rows.column()
+        f = functools.cache(rows.column)  # (its columns made into SX nodes when a Function asks)
         self.rheonomic = bool(rows) and rows.may_depend_on(t)  # (≡ ca.depends_on(f, t): f is a stack)
         if rows:
             active.add("constraints")
@@ -91,9 +91,9 @@ class Structure:
         def kinematics() -> tuple:
             """(J, G, c₀, γ), differentiated when a Function that needs them is first made (a
             large model's runs use the vectorized build's instead: constrained.manifold)."""
-            J = ca.jacobian(f, x)
+            J = ca.jacobian(f(), x)
             if self.rheonomic:
-                f_t = ca.jacobian(f, t)
+                f_t = ca.jacobian(f(), t)
                 c = ca.mtimes(J, v) + f_t
                 gamma = ca.jtimes(c, x, v) + ca.jacobian(c, t)
             else:
@@ -122,12 +122,12 @@ class Structure:
         slots["potential"] = terms.select(potential)  # (a Stacked: the springs' columns kept whole)
         for k in np.flatnonzero(own & ~potential):
             slots[slot[k]].append(terms[k])
-        F, V, U, dU_dv, forcing = forces(slots, x, v, t, deferred=True)  # F(): built when first asked
+        F, V, U, dU_dv, forcing = forces(slots, x, v, t, deferred=True)  # F(), V(): built when first asked
         active |= forcing
         #: Whether the applied forces depend on v (damping, magnetism, a force of v; pairs never).
         # (with potentials alone, F = −∂V/∂x: free of v when V is, which is the smaller graph to ask)
         potentials_only = not any(slots[k] for k in ("generalized_potential", "dissipation", "applied_force"))
-        may = not potentials_only or (slots["potential"].may_depend_on(v) and ca.depends_on(V, v))
+        may = not potentials_only or (slots["potential"].may_depend_on(v) and ca.depends_on(V(), v))
         self.forces_depend_on_velocity = bool(may and ca.depends_on(F(), v))
         if self.pairs:
             active |= {"potential", *(["time_dependent_forces"] * self.pair_potentials.time_dependent)}
@@ -160,7 +160,7 @@ class Structure:
             # each mass three times, in place
             m3 = ca.reshape(ca.repmat(m.T, 3, 1), n3, 1) if self.masses_symbolic else ca.DM(m)
             T = 0.5 * ca.dot(m3 * v, v)
-            potential_part = V + U - ca.dot(v, dU_dv)  # h − T: what a step adds to ½ vᵀMv for h
+            potential_part = V() + U - ca.dot(v, dU_dv)  # h − T: what a step adds to ½ vᵀMv for h
             return m3, T, potential_part, T + potential_part
         # The Functions are made when first asked for (making one sorts its whole graph).
         self._p = p
@@ -178,15 +178,15 @@ class Structure:
         def function(name, inputs, in_names, outputs, out_names):
             self._parts[name] = (inputs, in_names, outputs, out_names)
 
-        function("constraint", [x, t], ["x", "t"], [f], ["f"])
-        function("jacobian", [x, t], ["x", "t"], lambda: [f, kinematics()[0]], ["f", "J"])
+        function("constraint", [x, t], ["x", "t"], lambda: [f()], ["f"])
+        function("jacobian", [x, t], ["x", "t"], lambda: [f(), kinematics()[0]], ["f", "J"])
         function("velocity_terms", [x, t], ["x", "t"], lambda: list(kinematics()[1:3]), ["J", "f_t"])
         function("dynamics", [x, v, t], ["x", "v", "t"], lambda: [F(), kinematics()[1], kinematics()[3]],
                  ["F", "J", "gamma"])
         function("energy", [x, v, t], ["x", "v", "t"], lambda: [energy_parts()[3]], ["E"])
         function("forces_and_potential", [x, v, t], ["x", "v", "t"], lambda: [F(), energy_parts()[2]],
                  ["F", "W"])
-        function("potential", [x, t], ["x", "t"], [V], ["V"])
+        function("potential", [x, t], ["x", "t"], lambda: [V()], ["V"])
         function("kinetic", [v], ["v"], lambda: [energy_parts()[1]], ["T"])
         # (3N,): formulas of p, or numbers
         function("masses", [], [], lambda: [ca.SX(energy_parts()[0])], ["m"])

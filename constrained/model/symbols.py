@@ -79,18 +79,116 @@ class _Pieces:
         return self.pieces[k]
 
 
+class Formula:
+    """n scalar expressions built by one vectorized formula (a run of rods, of springs), held
+    as its recipe: ``build(chosen)`` makes the SX column of the formula's instances ``chosen``
+    (indices, in order; None: all of them) by the same CasADi operations over their inputs, so
+    that an instance built alone is the expression that element of the whole column is (the
+    same operations on the same symbols). The whole column is built once, when something asks
+    for all of its nodes (``column()``: a small model's Functions, the reduced route); the
+    first few single instances asked for before that (the mapped build's sample of rows, a
+    probe) are built alone (≈ 50 µs each, where a cloth's 20,000 springs take 80 ms), the
+    others read from the whole column. A part (``part``) shares its root's recipe and column:
+    its column is the root's elements, as a slice of the root's column is."""
+
+    ALONE_UP_TO = 256
+
+    def __init__(self, build, n: int, chosen: np.ndarray | None = None, root: Formula | None = None):
+        self._build, self.n, self._chosen = build, int(n), chosen
+        self._root = self if root is None else root
+        self._column, self._pieces = None, None
+        self._alone: dict[int, ca.SX] = {}  # (the root's: instance -> built alone)
+        self._asked = 0
+
+    @classmethod
+    def of(cls, column: ca.SX) -> Formula:
+        """An SX column already built, read as a Formula's."""
+        out = cls(None, column.numel())
+        out._column = column
+        return out
+
+    def numel(self) -> int:
+        return self.n
+
+    @property
+    def built(self) -> bool:
+        """Whether the root's whole column has been built."""
+        return self._root._column is not None
+
+    def column(self) -> ca.SX:
+        """Every instance as one SX column: the root's column built by ``build(None)``, a
+        part's its elements of it."""
+        if self._column is None:
+            if self._root is self:
+                self._column = self._build(None)
+            else:
+                self._column = self._root.column()[self._chosen.tolist()]
+        return self._column
+
+    def part(self, chosen) -> Formula:
+        """The instances ``chosen`` (indices into this column, in order) as a Formula."""
+        chosen = np.asarray(chosen, np.int64)
+        if len(chosen) == self.n and np.array_equal(chosen, np.arange(self.n)):
+            return self
+        if self._root._build is None:  # (an SX column: sliced, as it always was)
+            return Formula.of(self.column()[chosen.tolist()])
+        return Formula(self._build, len(chosen), chosen if self._chosen is None else self._chosen[chosen],
+                       self._root)
+
+    def elements(self, ks) -> list:
+        """``[self[k] for k in ks]``, those not built yet built together by one call of the
+        recipe (the same expressions: the operations are elementwise)."""
+        root = self._root
+        if root._column is not None or self._pieces is not None or root._asked >= self.ALONE_UP_TO:
+            return [self[k] for k in ks]
+        root._asked += 1
+        at = [int(k if self._chosen is None else self._chosen[k]) for k in ks]
+        todo = sorted({i for i in at if i not in root._alone})
+        if todo:
+            root._alone.update(zip(todo, ca.vertsplit(root._build(np.array(todo, np.int64))), strict=True))
+        return [root._alone[i] for i in at]
+
+    def __getitem__(self, k: int) -> ca.SX:
+        root = self._root
+        if root._column is None and self._pieces is None:
+            root._asked += 1
+            if root._asked <= self.ALONE_UP_TO:
+                i = int(k if self._chosen is None else self._chosen[k])
+                if i not in root._alone:
+                    root._alone[i] = root._build(np.array([i], np.int64))
+                return root._alone[i]
+        if self._pieces is None:
+            self._pieces = _Pieces(self.column())
+        return self._pieces[k]
+
+
+def pair_formula(s: Symbols, ends: np.ndarray, numbers: list[list], formula) -> Formula:
+    """``formula(distances, *rows)`` over the particle pairs ``ends`` (n, 2) as a Formula: the
+    pairs' distances |x_a − x_b| as one row (1, n), formed as norm_2 forms them (sq of each
+    entry, summed, sqrt), column by column, and each list of ``numbers`` (n values) as the row
+    ``s.number_column(values).T``; some instances alone: the same over their pairs and values."""
+    def build(chosen):
+        at, values = (ends, numbers) if chosen is None else (
+            ends[chosen], [[column[i] for i in chosen] for column in numbers])
+        d = s.particle_columns(at[:, 0]) - s.particle_columns(at[:, 1])
+        squares = d * d
+        distances = ca.sqrt(squares[0, :] + squares[1, :] + squares[2, :])
+        return formula(distances, *[s.number_column(column).T for column in values])
+    return Formula(build, len(ends))
+
+
 class Stacked(Sequence):
     """Expressions in order (rows of f, effects' terms), held as segments: single expressions,
-    or SX columns kept whole — n scalar expressions built by one vectorized formula (a run of
-    rods, a plane's rows, a run of springs) — read one by one only where asked for (``_Pieces``).
-    ``column()`` is the same elements in the same order as a vertcat of them one by one.
+    or columns kept whole — n scalar expressions built by one vectorized formula (a run of
+    rods, a plane's rows, a run of springs), ``Formula``s, made into SX nodes only where asked
+    for. ``column()`` is the same elements in the same order as a vertcat of them one by one.
 
     ``probe``: with each single expression an SX whose dependence on a symbol is the
     expression's (the first summand of a sum built by one formula, gravity's), else itself;
     a column's is its first element (the formula is the same for all)."""
 
     def __init__(self):
-        self._segments: list = []  # [single expressions, their probes], or a _Pieces of a column
+        self._segments: list = []  # [single expressions, their probes], or a Formula
         self._starts: list[int] = [0]
 
     def add(self, expression, probe=None) -> None:
@@ -102,11 +200,12 @@ class Stacked(Sequence):
         self._segments[-1][1].append(expression if probe is None else probe)
         self._starts[-1] += 1
 
-    def add_column(self, column: ca.SX) -> None:
-        """Append the n scalar elements of the SX column ``column`` (built by one formula)."""
+    def add_column(self, column: ca.SX | Formula) -> None:
+        """Append the n scalar elements of the SX column or Formula ``column`` (built by one
+        formula)."""
         n = column.numel()
         if n:
-            self._segments.append(_Pieces(column))
+            self._segments.append(column if isinstance(column, Formula) else Formula.of(column))
             self._starts.append(self._starts[-1] + n)
 
     def __len__(self) -> int:
@@ -124,13 +223,30 @@ class Stacked(Sequence):
         segment = self._segments[j]
         return segment[0][k - self._starts[j]] if isinstance(segment, list) else segment[k - self._starts[j]]
 
+    def elements(self, ks) -> list:
+        """``[self[k] for k in ks]``: a column's instances not built yet built together."""
+        ks = np.asarray(ks, np.int64)
+        ks = np.where(ks < 0, ks + len(self), ks)
+        segment = np.searchsorted(self._starts, ks, side="right") - 1
+        out: list = [None] * len(ks)
+        for j in sorted(set(segment.tolist())):  # (np.unique imports numpy.ma: 10 ms)
+            at = np.flatnonzero(segment == j)
+            if not isinstance(self._segments[j], Formula):
+                for i in at.tolist():
+                    out[i] = self[int(ks[i])]
+                continue
+            for i, e in zip(at.tolist(), self._segments[j].elements((ks[at] - self._starts[j]).tolist()),
+                            strict=True):
+                out[i] = e
+        return out
+
     def segments(self) -> list[tuple[int, object]]:
-        """``(first index, segment)``: a list of single expressions, or an SX column."""
-        return [(start, segment[0] if isinstance(segment, list) else segment.column)
+        """``(first index, segment)``: a list of single expressions, or a Formula."""
+        return [(start, segment[0] if isinstance(segment, list) else segment)
                 for start, segment in zip(self._starts, self._segments, strict=False)]
 
     def select(self, keep: np.ndarray) -> Stacked:
-        """The expressions where ``keep`` (one bool each), columns kept whole (or sliced)."""
+        """The expressions where ``keep`` (one bool each), columns kept whole (or their parts)."""
         out = Stacked()
         for start, segment in zip(self._starts, self._segments, strict=False):
             if isinstance(segment, list):
@@ -138,15 +254,14 @@ class Stacked(Sequence):
                     if keep[start + k]:
                         out.add(e, probe)
                 continue
-            n = segment.column.numel()
-            kept = keep[start:start + n]
-            out.add_column(segment.column if kept.all() else segment.column[np.flatnonzero(kept).tolist()])
+            kept = keep[start:start + segment.numel()]
+            out.add_column(segment if kept.all() else segment.part(np.flatnonzero(kept)))
         return out
 
     def column(self) -> ca.SX:
         """Every expression as one SX column (a single one that is not SX: as ``ca.SX``)."""
         parts = [e if isinstance(e, ca.SX) else ca.SX(e) for segment in self._segments
-                 for e in (segment[0] if isinstance(segment, list) else [segment.column])]
+                 for e in (segment[0] if isinstance(segment, list) else [segment.column()])]
         return ca.vertcat(*parts) if parts else ca.SX(0, 1)
 
     def scalars(self) -> bool:
@@ -163,7 +278,7 @@ class Stacked(Sequence):
         """Whether some expression may depend on ``symbol`` (its probe does): False proves
         that none does, and so that a sum or stack of them does not."""
         probes = [ca.vec(e) for segment in self._segments
-                  for e in (segment[1] if isinstance(segment, list) else [segment.column[0]])
+                  for e in (segment[1] if isinstance(segment, list) else [segment[0]])
                   if isinstance(e, ca.SX)]
         return bool(probes) and ca.depends_on(ca.vertcat(*probes), symbol)
 
@@ -237,6 +352,12 @@ class Symbols:
         indices = self.indices(names, where)
         X = ca.reshape(self.x, 3, self.x.numel() // 3)
         return X if indices == list(range(X.size2())) else X[:, indices]
+
+    def particle_columns(self, indices: np.ndarray) -> ca.SX:
+        """The positions of the particles ``indices`` as the columns of a (3, n) SX: the entries
+        of x (those of ``columns``), gathered without reshaping the whole of x."""
+        flat = 3 * np.asarray(indices, np.int64)[:, None] + np.arange(3)
+        return ca.reshape(self.x[flat.ravel().tolist()], 3, len(flat))
 
     def number_column(self, values: list):
         """``vertcat(*[number(v) for v in values])``: when all are Numbers, one gather from p."""

@@ -203,7 +203,7 @@ def _same(kind: _Kind, exprs: list, ks: np.ndarray, index: np.ndarray, reads: np
     else:
         applied = ca.Function("kernel", [kind.xl, t, p], [kind.expr]).map(n)(X, t, p)
     applied = ca.vec(applied)
-    original = ca.vertcat(*[exprs[k] for k in ks])
+    original = ca.vertcat(*(exprs.elements(ks) if hasattr(exprs, "elements") else [exprs[k] for k in ks]))
     # a Function of the entries of x and p the rows should read, not of the whole vectors (a
     # cloth's 30,000 + 69,000 symbols: 4 ms to build, and as much to convert each point)
     x_at = sorted_unique(index)
