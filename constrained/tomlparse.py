@@ -61,6 +61,11 @@ PIECE = 256 * 1024
 _ARRAY_HEADER = re.compile(r"^\[\[[ \t]*([A-Za-z0-9_-]+)[ \t]*\]\][ \t]*$", re.M)
 
 
+def _declares(piece: str, key: str) -> bool:
+    """Whether a ``[[key]]`` header stands in ``piece`` (a bare key: as ``_ARRAY_HEADER`` finds)."""
+    return re.search(rf"^\[\[[ \t]*{re.escape(key)}[ \t]*\]\][ \t]*$", piece, re.M) is not None
+
+
 def _in_pieces(text: str) -> dict | None:
     """rtoml's reading of ``text`` cut before ``[[name]]`` headers into pieces of about
     ``PIECE`` characters, merged: the same dict as reading it whole, without rtoml's transient
@@ -76,22 +81,25 @@ def _in_pieces(text: str) -> dict | None:
         return None
     cuts.append(len(text))
     out: dict = {}
-    arrays: set[str] = set()  # the names of [[name]] headers in the pieces read so far
+    origin: dict[str, str] = {}  # each key's first piece
+    declared: set[str] = set()  # keys seen declared by [[key]] headers in their first piece
     for a, b in zip(cuts[:-1], cuts[1:], strict=True):
         piece = text[a:b]
-        headers = set(_ARRAY_HEADER.findall(piece))
         try:
             read = _fast.loads(piece)
         except Exception:  # noqa: BLE001 - a cut inside a string or an array (or a real error)
             return None
         for key, value in read.items():
             if key not in out:
-                out[key] = value
-            elif key in arrays and key in headers and isinstance(out[key], list) and isinstance(value, list):
-                out[key] += value
-            else:
+                out[key], origin[key] = value, piece
+                continue
+            if key not in declared:
+                if not _declares(origin[key], key):
+                    return None
+                declared.add(key)
+            if not (isinstance(out[key], list) and isinstance(value, list) and _declares(piece, key)):
                 return None
-        arrays |= headers
+            out[key] += value
     return out
 
 
