@@ -177,3 +177,26 @@ def test_a_potential_outside_the_exact_operations_is_left_to_the_function():
     F_model = np.asarray(model.dynamics(x, v, t)[0], float).ravel()
     np.testing.assert_allclose(F, F_model, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(E, float(model.energy(x, v, t)), rtol=1e-12)
+
+
+def test_a_kept_jacobian_reads_as_the_plain_dm_of_its_numbers():
+    """``sparse_jacobian``'s J (at_point.JacobianAt) gives the nonzeros and compressed columns a
+    plain DM of the same numbers gives, read-only, and the same full-rank verdict (its pivots)."""
+    from constrained.manifold import sparse
+
+    for system in (rope(120, varied=True), _cloth(12, formulas=True)):
+        model = Model(system, structure=Structure(system))
+        assert vg.applies(model)
+        x, _, t = _state(model, system, 3)
+        J = manifold.sparse_jacobian(model)(x, t)
+        assert isinstance(J, at_point.JacobianAt)
+        plain = ca.DM(J.sparsity(), list(ca.DM.nonzeros(J)))
+        assert type(plain) is ca.DM
+        assert np.array_equal(J.nonzeros(), np.asarray(plain.nonzeros(), float))
+        assert not J.nonzeros().flags.writeable
+        for kept, want in zip(J.compressed_columns(), plain.sparsity().get_ccs(), strict=True):
+            assert np.array_equal(kept, np.asarray(want, np.int64))
+        assert np.array_equal(np.asarray(J.full()), np.asarray(plain.full()))
+        for masses in (model.inverse_masses, model.inverse_masses[::-1].copy()):
+            assert (sparse.clearly_full_row_rank(J, masses)
+                    == sparse.clearly_full_row_rank(plain, masses))

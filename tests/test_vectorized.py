@@ -424,3 +424,29 @@ def test_the_start_checks_of_forces_share_one_evaluation_with_the_structures_num
     x_bad = x0.copy()
     x_bad[4] = np.nan
     assert not manifold.potential_forces_finite(model)(x_bad, v0, 0.0)
+
+
+@pytest.mark.parametrize("name", sorted(SYSTEMS) + ["large rope"])
+def test_a_velocity_at_rest_is_projected_without_a_solve_to_what_the_solve_gives(name):
+    """``graph.no_velocity_correction``: v = +0.0 everywhere with no f_t stays v (the solve's
+    v − dv, bit for bit, and its counters); a moving constraint, −0.0 or any motion solve."""
+    from constrained.manifold.manifold import Manifold
+    from constrained.model.structure import Model
+
+    no_velocity_correction = graph.no_velocity_correction
+    system = rope(120, varied=True) if name == "large rope" else SYSTEMS[name]()  # (the vectorized build)
+    model = Model(system, structure=Structure(system))
+    x = np.asarray(system.positions, float).ravel()
+    rest = np.zeros(model.n_coordinates)
+    signed = rest.copy()
+    signed[4] = -0.0
+    assert no_velocity_correction(model, rest) == (not model.rheonomic)
+    assert not no_velocity_correction(model, signed)
+    assert not no_velocity_correction(model, _state(model, system)[1])
+    m = Manifold(model)
+    (dv,) = m._fast.velocity_correction(x, rest, 0.37, model.parameter_vector)
+    solved = rest - dv
+    got = m.project_velocities(x, rest, 0.37)
+    assert np.array_equal(got, solved)
+    assert not model.rheonomic or np.any(got)  # (a moving anchor: a velocity to reach)
+    assert (m.counters.njev, m.counters.nlu) == (1, 1)

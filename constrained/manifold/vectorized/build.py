@@ -318,7 +318,9 @@ class VectorizedBuild:
         every = sorted_unique(np.concatenate(key)) if key else np.zeros(0, np.int64)
         # (compressed columns from the sorted keys: CasADi's triplet constructor sorts them again)
         colind = np.concatenate([[0], np.cumsum(np.bincount(every // max(n, 1), minlength=self.n3))])
-        self.jacobian_sparsity = ca.Sparsity(n, self.n3, colind.tolist(), (every % max(n, 1)).tolist())
+        row = every % max(n, 1)
+        self.jacobian_sparsity = ca.Sparsity(n, self.n3, colind.tolist(), row.tolist())
+        self.jacobian_columns = (colind.astype(np.int64), row.astype(np.int64))  # (its get_ccs)
         self.by_nonzero = Summation(lengths, [np.searchsorted(every, k) for k in key], len(every))
 
     # --- evaluation at one state ------------------------------------------------------------
