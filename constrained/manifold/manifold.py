@@ -151,10 +151,9 @@ def structural_call(model: Model, key, build, *inputs: str):
 
 
 def sparse_jacobian(model: Model):
-    """``(x, t) -> G`` (a sparse CasADi DM, C × 3N: J, then the velocity rows' A) with the
-    model's parameter values: the Model's ``velocity_terms``, or for a large model (no velocity
-    rows) one call of the vectorized build, whose last value is given again for the same x, t
-    and p (the DM is shared: read it, do not change it)."""
+    """``(x, t) -> G`` (a sparse CasADi DM, C × 3N: J, then the velocity rows' A) with the model's
+    parameter values: the Model's ``velocity_terms``, or for a large model (no velocity rows) one
+    call of the vectorized build (``at_point.JacobianAt``), given again for the same x, t and p."""
     if not vectorized.applies(model):
         return lambda x, t: model.velocity_terms(x, t)[0]
 
@@ -168,9 +167,8 @@ def sparse_jacobian(model: Model):
     p = model.parameter_vector
 
     def call(x, t):
-        # the last value is kept beside the structure and given again for the same x, t and p: a start
-        # asks at x0 three times (scene.build's regular_start, the start's undefined gradient and its
-        # redundancy), each reading J's nonzeros (a DM, 7 ms on a 100 x 100 cloth, and 4 ms a read)
+        # kept beside the structure, given again for the same x, t and p: a start asks at x0 three
+        # times (scene.build's regular_start, the start's undefined gradient and its redundancy)
         x = np.asarray(x, float).ravel()
         key = (x.tobytes(), np.float64(t).tobytes(), p.tobytes())
         kept = cache.get((*prefix, "jacobian at"))
@@ -521,7 +519,7 @@ class Manifold:
             return np.array(v, dtype=float)
         self.counters.njev += 1
         self.counters.nlu += 1
-        if no_velocity_correction(m, v):
+        if no_velocity_correction(m, v):  # (at rest: v − dv is v)
             return np.array(v, dtype=float)
         (dv,) = _fast_or_nan(self._fast.velocity_correction, (m.n_coordinates,), x, v, t, self._p)
         if np.all(np.isfinite(dv)):
