@@ -6,6 +6,7 @@ give (``Structure(system, lift=False)``), to round-off."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ import structure_reference
 import constrained as C
 from constrained.codegen import compiled
 from constrained.errors import InputError
-from constrained.model import lifting
+from constrained.model import expressions, lifting
 from constrained.model.structure import Model, Structure, assemble
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
@@ -78,7 +79,7 @@ def test_a_new_plain_number_shares_the_structure_and_equals_the_constants(change
 def test_the_labels_read_the_numbers_as_written():
     labels = assemble(plain(length=0.75, anchor=0.5)).constraint_labels
     assert labels[0] == "distance a–(0.5, 0, 0) = 0.75 m"
-    assert lifting.fill("k=⟦1⟧ N/m", np.array([3.0, 40.5])) == "k=40.5 N/m"
+    assert expressions.fill("k=⟦1⟧ N/m", np.array([3.0, 40.5])) == "k=40.5 N/m"
 
 
 def test_zeros_stay_constants_so_sparsity_and_formulas_keep_their_shape():
@@ -209,7 +210,7 @@ def test_labels_are_filled_in_one_pass_as_one_by_one():
     values = np.array([0.01, 2.5, 1e-7, 0.01, -3.0])
     texts = ["rod ⟦0⟧ m", "⟦1⟧ and ⟦3⟧", "no number", "", "x⟦2⟧⟦4⟧", "a\0b ⟦1⟧"]
     for some in (texts[:5], texts, []):
-        assert lifting.fill_all(some, values) == [lifting.fill(t, values) for t in some]
+        assert expressions.fill_all(some, values) == [expressions.fill(t, values) for t in some]
 
 
 def test_plain_data_of_flat_tables_and_lists_as_one_by_one():
@@ -319,6 +320,9 @@ _OTHER_STRUCTURES = {
     "an int zero for a float zero": lambda s: setattr(s.effects[3], "rest", 0),
     "a mass made a formula": lambda s: s.particles[5].formulas.__setitem__("mass", "k"),
     "a parameter's name": lambda s: s.parameters.__setitem__("extra", 1.0),
+    "a particle's name": lambda s: setattr(s.particles[4], "name", "q4"),
+    "a restitution's zero made -0": lambda s: setattr(s.constraints[62], "restitution", -0.0),
+    "a rod's place": lambda s: setattr(s.constraints[63], "where", "constraints[64]"),
 }
 
 #: Changes of plain nonzero numbers alone (the same Structure, other values of p).
@@ -409,3 +413,20 @@ def test_lifting_by_columns_copies_what_lifting_item_by_item_copies():
         assert [type(v) for v in vars(ours).values()] == [type(v) for v in vars(theirs).values()]
     assert "point" in vars(reused.constraints[6])
     assert reused.constraints[8].length == anew.constraints[8].length
+
+
+def test_columns_described_at_once_tell_apart_what_their_json_tells_apart():
+    """A column of strings, of one bool or None repeated, of floats is described in one pass;
+    two columns get one description exactly when their JSON (``plain_data``) is the same: NUL
+    inside a name, -0.0 against 0.0, an int among floats, how many times a value repeats."""
+    import json
+
+    columns = [["a", "b"], ["a\0b"], ["a\0", "b"], ["a", "\0b"], ["a", "b", ""], [""], ["null"], [None],
+               [None, None], [True, True], [True, 1], [False, True], [0.0, 0.5], [-0.0, 0.5], [0, 0.5],
+               [0.5], [float("inf")], [float("nan")], [], [[1.0, 2.0]], [(1.0, 2.0)], [{"x": 1.0}]]
+    described = [lifting._column_text("column", list(c)) for c in columns]
+    reference = [json.dumps(lifting.plain_data(c)) if "nan" not in repr(c) else repr(c) for c in columns]
+    for i, j in itertools.combinations(range(len(columns)), 2):
+        assert (described[i] == described[j]) == (reference[i] == reference[j]), (columns[i], columns[j])
+    assert described[1][0] == "column" and described[0][0] == "column 2 strings"  # (NUL: the JSON)
+    assert lifting._column_text("c", [0.5, 0.25]) == lifting._column_text("c", [0.5, 0.25])

@@ -288,3 +288,91 @@ def test_a_scene_file_walked_once_is_refused_as_the_builders_walk_refuses_it(tmp
         built = str(exc)
     assert loaded == built
     assert isinstance(loaded, str) == (line not in (None, "expect"))
+
+
+def _sketch_one_by_one(system) -> dict:
+    """``sketch`` as it was written item by item (the reference of the passes)."""
+    index = {p.name: k for k, p in enumerate(system.particles)}
+    rods, anchors = [], []
+    for c in system.constraints:
+        kind = type(c).__name__
+        a, b, point = getattr(c, "a", None), getattr(c, "b", None), getattr(c, "point", None)
+        if kind not in ("Distance", "Pin") or a not in index:
+            continue
+        if b in index:
+            rods.append([index[a], index[b]])
+        elif point is not None and kind == "Distance":
+            try:
+                anchor = [float(v) for v in point]
+            except (TypeError, ValueError):
+                continue
+            length = c.length
+            if isinstance(length, str):
+                length = system.parameter_values.get(length)
+            anchors.append([index[a], anchor, float(length) if isinstance(length, int | float) else None])
+    return {"rods": rods, "anchors": anchors}
+
+
+def test_sketch_in_passes_is_the_sketch_item_by_item():
+    """The rods and anchors an animation draws, found in passes over the constraints, are those
+    found item by item: rods among pins, planes and rods to points (numbers, a parameter's
+    length, a moving point left out), in order."""
+    from constrained.model.system import sketch
+
+    s = C.System(parameters={"L": 0.7}, name="sketch")
+    for i in range(9):
+        s.add_particle(f"p{i}", 1.0 + i, [0.3 * i, 0.1 * (i % 3), 0.0])
+    s.add(C.Distance("p0", point=[0, 0, 0], length=0.1), *(C.Distance(f"p{i}", f"p{i + 1}", length=0.3)
+                                                          for i in range(4)),
+          C.Pin("p8", [2.4, 0.2, 0.0]), C.Distance("p5", point=[1.0, 0, 0], length="L"),
+          C.Distance("p6", point=["cos(t)", 0, 0], length=0.5), C.Plane(["p7", "p8"], [0, 0, 1]),
+          C.Distance("p8", "p2", length=0.9), C.Spring("p1", "p3", k=2.0))
+    found = sketch(s)
+    assert found == _sketch_one_by_one(s)
+    assert found["rods"][-1] == [8, 2] and [a[0] for a in found["anchors"]] == [0, 5]
+    bare = C.System([C.Particle("a", 1.0, [0, 0, 0])], [C.Pin("a", [0, 0, 0])])  # a pin alone: no rod
+    assert sketch(bare) == _sketch_one_by_one(bare) == {"rods": [], "anchors": []}
+
+
+def test_a_system_made_at_once_is_the_system_added_one_by_one():
+    """``System(particles, constraints, effects)`` takes plain particles and the items in passes:
+    the same lists, in order, as adding them one by one, and the same refusals (a duplicate
+    name, an object that is no item), formulas still evaluated."""
+    particles = [C.Particle(f"q{i}", 1.0 + i, [0.1 * i, 0, 0]) for i in range(5)]
+    items = [C.Distance("q0", "q1", length=0.1), C.Gravity([0, 0, -9.81]), C.Pin("q2", [0.2, 0, 0]),
+             C.Spring("q3", "q4", k=3.0), C.Plane(["q1"], [0, 0, 1])]
+    at_once = C.System(particles, items[::2], items[1::2])
+    one_by_one = C.System()
+    for p in particles:
+        one_by_one.add_particle(p)
+    one_by_one.add(*items[::2], *items[1::2])
+    assert at_once.particles == one_by_one.particles and at_once.particles is not particles
+    assert at_once.constraints == one_by_one.constraints == [items[0], items[2], items[4]]
+    assert at_once.effects == one_by_one.effects == [items[1], items[3]]
+    at_once.add_particle("q5", 2.0, [1, 0, 0])
+    with pytest.raises(InputError, match="duplicate particle name 'q5'"):
+        at_once.add_particle("q5", 2.0, [1, 0, 0])
+    with pytest.raises(InputError, match="duplicate particle name 'q1'"):
+        C.System([*particles, C.Particle("q1", 1.0, [0, 0, 0])])
+    with pytest.raises(InputError, match="expected a Constraint or an Effect, got 3"):
+        C.System(particles, [items[0], 3])
+    formula = C.System([C.Particle("r", "2*m", [0, 0, 0])], parameters={"m": 1.5})
+    assert formula.particles[0].mass == 3.0
+
+
+def test_short_rods_found_in_passes_are_those_found_one_by_one():
+    """``unresolved_rods`` reads floats in one pass and any other length (an int, a formula) as
+    before: the same rods found, with the same lengths."""
+    from constrained.model.regularity import unresolved_rods
+
+    s = C.System(name="short", parameters={"L": 1.0})
+    for i in range(6):
+        s.add_particle(f"p{i}", 1.0, [1e3 * i, 0, 0])
+    s.add(C.Distance("p0", "p1", length=1e-11), C.Distance("p1", "p2", length=2),
+          C.Distance("p2", "p3", length="L"), C.Distance("p3", point=[1e4, 0, 0], length=5e-10),
+          C.Distance("p4", "p5", length=1e-30))
+    found = [(i, length) for i, _, length, _ in unresolved_rods(s)]
+    assert found == [(0, 1e-11), (3, 5e-10), (4, 1e-30)]
+    s.constraints[1].length = 3e-300  # (an int among them before: now floats alone)
+    assert [(i, length) for i, _, length, _ in unresolved_rods(s)] == [(0, 1e-11), (1, 3e-300), (3, 5e-10),
+                                                                      (4, 1e-30)]

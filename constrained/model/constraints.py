@@ -436,11 +436,9 @@ def constraint_rows(constraints: list, s) -> tuple[list[tuple], list[Batch]]:
     more constraints of one class go through the class's ``batch_rows`` where it has one (the
     same expressions as ``rows``). And the Batches of rows built by one formula (``items``:
     indices into ``constraints``): a run's, and a constraint's own of BATCH_FROM rows or more."""
-    pieces, batches, k = [], [], 0
-    while k < len(constraints):
-        cls, j = type(constraints[k]), k + 1
-        while j < len(constraints) and type(constraints[j]) is cls:
-            j += 1
+    pieces, batches = [], []
+    for k, j in class_runs(constraints):
+        cls = type(constraints[k])
         built = cls.batch_rows(constraints[k:j], s) if j - k >= BATCH_FROM else None
         plain, column, labels, batch = built if built is not None else ([], None, [], None)
         if batch is not None:
@@ -458,8 +456,16 @@ def constraint_rows(constraints: list, s) -> tuple[list[tuple], list[Batch]]:
                 pieces.append((start, count, (column.part(np.arange(row, row + count)),
                                               labels[row:row + count])))
             done, row = stop, row + stop - start
-        k = j
     return pieces, batches
+
+
+def class_runs(items: list) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]``: the runs of consecutive items of one class, in order (found in
+    one pass over their classes)."""
+    kinds = list(map(type, items))
+    bounds = [0, *itertools.compress(range(1, len(kinds)), map(operator.is_not, kinds[1:], kinds[:-1])),
+              len(kinds)]
+    return list(zip(bounds[:-1], bounds[1:], strict=True)) if kinds else []
 
 
 def stacked_rows(constraints: list, s) -> tuple:

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..codegen.interval import where_negative
 from ..errors import InputError
-from . import expressions
+from . import constraints, expressions
 from .constraints import BATCH_FROM, Distance, Labelled, _as_list, _fmt, _three, pair_batch, pair_ends
 from .symbols import Batch, Formula, Stacked, pair_formula
 
@@ -429,13 +429,12 @@ def effect_terms(effects: list, s, skip=()) -> tuple[Stacked, list[Batch]]:
     runs of BATCH_FROM or more of one class through its ``batch_terms``, kept as SX columns (the
     same expressions). And the Batches of terms built by one formula (``items``: indices into
     ``effects``)."""
-    out, batches, k = Stacked(), [], 0
-    while k < len(effects):
-        cls, j = type(effects[k]), k + 1
-        while j < len(effects) and type(effects[j]) is cls:
-            j += 1
-        kept = [i for i in range(k, j) if i not in skip]
-        built = cls.batch_terms([effects[i] for i in kept], s) if len(kept) >= BATCH_FROM else None
+    out, batches = Stacked(), []
+    for k, j in constraints.class_runs(effects):
+        cls = type(effects[k])
+        kept = [i for i in range(k, j) if i not in skip] if skip else list(range(k, j))
+        built = cls.batch_terms(effects[k:j] if not skip else [effects[i] for i in kept], s) \
+            if len(kept) >= BATCH_FROM else None
         plain, column, batch = built if built is not None else ([], None, None)
         if batch is not None:
             batches.append(batch.shifted(kept))
@@ -453,7 +452,6 @@ def effect_terms(effects: list, s, skip=()) -> tuple[Stacked, list[Batch]]:
                 batches.append(own.shifted([i]))
             out.add(term, None if own is None else own.values[0])  # (its summands' formula's dependence)
             i += 1
-        k = j
     return out, batches
 
 

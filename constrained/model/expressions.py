@@ -13,14 +13,17 @@ MAX_MAGNITUDE in size.
 from __future__ import annotations
 
 import ast
+import contextlib
 import difflib
 import functools
 import math
+import re
 from collections.abc import Mapping
 
 import casadi as ca
+import numpy as np
 
-from ..errors import ExpressionError, listed
+from ..errors import ExpressionError, InconsistentStateError, InputError, listed
 
 FUNCTIONS = {
     "sin": ca.sin,
@@ -332,3 +335,42 @@ class _Walker:
             return value
         hint = _FORBIDDEN_HINTS.get(type(node))
         self.fail(hint or f"the construct {type(node).__name__} is not allowed")
+
+
+# --- labels of a lifted system: its Number tokens (constrained.model.lifting) filled in ------------
+
+_TOKEN = re.compile("⟦([0-9]+)⟧")
+
+
+def fill(text: str, values: np.ndarray) -> str:
+    """``text`` with each Number token replaced by its value (formatted ``:g``, as a label
+    formats a number)."""
+    if "⟦" not in text:
+        return text
+    return _TOKEN.sub(lambda m: f"{values[int(m.group(1))]:g}", text)
+
+
+def fill_all(texts: list[str], values: np.ndarray) -> list[str]:
+    """``[fill(text, values) for text in texts]`` in one pass over them all (a large model's
+    labels), each distinct value formatted once."""
+    joined = "\0".join(texts)
+    if joined.count("\0") != len(texts) - 1:  # (a text with the separator in it)
+        return [fill(text, values) for text in texts]
+    parts = _TOKEN.split(joined)  # (text, a token's index, text, …, text)
+    picked = list(map(np.asarray(values, float).tolist().__getitem__, map(int, parts[1::2])))
+    formatted = {v: f"{v:g}" for v in dict.fromkeys(picked)}  # (equal values: the first one's text)
+    parts[1::2] = map(formatted.__getitem__, picked)
+    return "".join(parts).split("\0") if texts else []
+
+
+@contextlib.contextmanager
+def shown(values: np.ndarray):
+    """Inside the block (the Structure's build, which reads a lifted system), an InputError's
+    place and reason show the numbers the scene wrote, not their tokens."""
+    try:
+        yield
+    except InputError as exc:
+        if type(exc) not in (InputError, ExpressionError, InconsistentStateError) or "⟦" not in str(exc):
+            raise
+        where = fill(exc.where, values) if exc.where else None
+        raise type(exc)(fill(exc.reason, values), where=where) from None

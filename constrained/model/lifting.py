@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import bisect
 import collections
-import contextlib
 import copy
 import copyreg
 import hashlib
@@ -32,18 +31,15 @@ import itertools
 import json
 import math
 import operator
-import re
 from collections.abc import Mapping
 
 import numpy as np
-
-from ..errors import ExpressionError, InconsistentStateError, InputError
 
 
 class Number:
     """A plain number of the scene in the Structure's build: the hidden parameter
     ``p[offset + index]`` (``offset`` the number of named parameters). Formats as a token
-    that ``fill`` replaces by the value, so labels read as the scene wrote them."""
+    that ``expressions.fill`` replaces by the value, so labels read as the scene wrote them."""
 
     __slots__ = ("index",)
 
@@ -337,7 +333,7 @@ def fingerprint_walk(system) -> tuple[str, list[float], tuple]:
     else:
         lifted_masses = [lifted_mass(p, values) for p in particles]
     if all(type(m) is Number for m in lifted_masses):  # (their indices: 0, 1, …, in order)
-        add("named masses", json.dumps([p.name for p in particles]))
+        add(*_column_text("named masses", [p.name for p in particles]))
     else:
         described = [[p.name, ["formula", p.formulas["mass"]] if "mass" in p.formulas else plain_data(m)]
                      for p, m in zip(particles, lifted_masses, strict=True)]
@@ -358,6 +354,7 @@ def fingerprint_walk(system) -> tuple[str, list[float], tuple]:
 
 #: Types of the values of a numeric field that a run's columns describe (the rest: item by item).
 _SCALARS = frozenset((float, int, str, type(None)))
+_FLOAT, _INT_FLOAT = frozenset((float,)), frozenset((float, int))
 
 
 def _runs(items: tuple, attributes: list) -> list[tuple[int, int]]:
@@ -392,9 +389,10 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
     stored = [_stored(type(run[0]), name, attributes[0]) for name in names]
     columns = [list(map(operator.itemgetter(name), attributes)) if held
                else [getattr(item, name) for item in run] for name, held in zip(names, stored, strict=True)]
+    kinds = [set(map(type, column)) for column in columns]
     scalar = np.ones(n, bool)
-    for column in columns:
-        if not _SCALARS.issuperset(map(type, column)):
+    for column, column_kinds in zip(columns, kinds, strict=True):
+        if not _SCALARS.issuperset(column_kinds):
             scalar &= np.fromiter((type(v) in _SCALARS for v in column), bool, n)
     bounds = [0, *(np.flatnonzero(np.diff(scalar)) + 1).tolist(), n]
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
@@ -407,9 +405,10 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
         numbers = np.zeros((b - a, len(names)))
         segment = [column[a:b] for column in columns]
         for f, column in enumerate(segment):
-            if set(map(type, column)) == {float}:
+            column_kinds = kinds[f] if b - a == n else set(map(type, column))
+            if column_kinds == _FLOAT:
                 numbers[:, f] = column
-            else:
+            elif not column_kinds.isdisjoint(_INT_FLOAT):  # (else no number, all 0: a spring's point None)
                 numbers[:, f] = [v if type(v) is float or type(v) is int else 0.0 for v in column]
             lifted_at[:, f] = (numbers[:, f] != 0) & np.isfinite(numbers[:, f])
         index = np.cumsum(lifted_at.ravel()).reshape(lifted_at.shape) - 1 + len(values)
@@ -418,7 +417,7 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
         for f, column in enumerate(segment):
             at = lifted_at[:, f]
             add("numbers at", at.tobytes())
-            add("numbers left", json.dumps(list(itertools.compress(column, ~at))))
+            add(*_column_text("numbers left", list(itertools.compress(column, ~at))))
             if at.all():
                 lifted_columns.append(list(map(Number, index[:, f].tolist())))
                 continue
@@ -432,9 +431,22 @@ def _described_run(run: tuple, attributes: list, names: tuple, other: tuple, val
             lifted_columns.append(lifted)
         item_fields.add_columns(names, lifted_columns, b - a, tuple(kept))
     for key in other:
-        column = list(map(operator.itemgetter(key), attributes))
-        atoms = _ATOMS.issuperset(map(type, column))
-        add("column", json.dumps(column if atoms else [plain_data(v) for v in column]))
+        add(*_column_text("column", list(map(operator.itemgetter(key), attributes))))
+
+
+def _column_text(tag: str, column: list) -> tuple[str, str | bytes]:
+    """``(tag, text)`` that describe ``column`` exactly (``plain_data`` of each value), the usual
+    columns in one pass (strings joined by NUL, one bool or None n times, floats' bytes), else as
+    JSON: the tag says which, and n (no two readings)."""
+    n, kinds = len(column), set(map(type, column))
+    kind = type(column[0]) if len(kinds) == 1 and n else None
+    if kind is str and (joined := "\0".join(column)).count("\0") == n - 1:  # (no NUL of their own)
+        return f"{tag} {n} strings", joined
+    if (kind is bool or kind is type(None)) and column.count(column[0]) == n:
+        return f"{tag} {n} times", json.dumps(column[0])
+    if kind is float:
+        return f"{tag} {n} floats", np.array(column, float).tobytes()
+    return tag, json.dumps(column if _ATOMS.issuperset(kinds) else [plain_data(v) for v in column])
 
 
 def _plain_value(value):
@@ -443,43 +455,6 @@ def _plain_value(value):
     if kind is str or kind is float or kind is int or kind is bool or value is None:
         return value
     return ["number", value.index] if kind is Number else plain_data(value)
-
-
-_TOKEN = re.compile("⟦([0-9]+)⟧")
-
-
-def fill(text: str, values: np.ndarray) -> str:
-    """``text`` with each Number token replaced by its value (formatted ``:g``, as a label
-    formats a number)."""
-    if "⟦" not in text:
-        return text
-    return _TOKEN.sub(lambda m: f"{values[int(m.group(1))]:g}", text)
-
-
-def fill_all(texts: list[str], values: np.ndarray) -> list[str]:
-    """``[fill(text, values) for text in texts]`` in one pass over them all (a large model's
-    labels), each distinct value formatted once."""
-    joined = "\0".join(texts)
-    if joined.count("\0") != len(texts) - 1:  # (a text with the separator in it)
-        return [fill(text, values) for text in texts]
-    parts = _TOKEN.split(joined)  # (text, a token's index, text, …, text)
-    picked = list(map(np.asarray(values, float).tolist().__getitem__, map(int, parts[1::2])))
-    formatted = {v: f"{v:g}" for v in dict.fromkeys(picked)}  # (equal values: the first one's text)
-    parts[1::2] = map(formatted.__getitem__, picked)
-    return "".join(parts).split("\0") if texts else []
-
-
-@contextlib.contextmanager
-def shown(values: np.ndarray):
-    """Inside the block (the Structure's build, which reads a lifted system), an InputError's
-    place and reason show the numbers the scene wrote, not their tokens."""
-    try:
-        yield
-    except InputError as exc:
-        if type(exc) not in (InputError, ExpressionError, InconsistentStateError) or "⟦" not in str(exc):
-            raise
-        where = fill(exc.where, values) if exc.where else None
-        raise type(exc)(fill(exc.reason, values), where=where) from None
 
 
 class NotPlain(Exception):

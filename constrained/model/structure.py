@@ -20,7 +20,7 @@ import numpy as np
 
 from ..bulk import collector_paused
 from ..errors import InputError
-from . import lifting, velocity
+from . import expressions, lifting, velocity
 from .constraints import stacked_rows
 from .effects import effect_terms, forces
 from .pairs.potentials import OUTPUTS as _PAIR_OUTPUTS
@@ -55,7 +55,7 @@ class Structure:
     def __init__(self, system, *, lift: bool = True, walked: tuple | None = None):
         # (walked: the fingerprint's walk of the system, constrained.lifting.lift)
         system, numbers = lifting.lift(system, walked) if lift else (system, np.zeros(0))
-        with lifting.shown(numbers):  # a refusal names the scene's numbers, never their tokens
+        with expressions.shown(numbers):  # a refusal names the scene's numbers, never their tokens
             self._assemble(system, numbers)
 
     def _assemble(self, system, numbers: np.ndarray) -> None:
@@ -74,7 +74,7 @@ class Structure:
         # rows of f (runs of rods, a plane's rows: SX columns kept whole), the velocity rows
         rows, velocity_rows, labels, owners, first_row, batches = stacked_rows(system.constraints, s)
         #: The rows' labels (position rows, then velocity rows), a plain number written as a
-        #: token (``lifting.fill`` puts a Model's values in).
+        #: token (``expressions.fill`` puts a Model's values in).
         self.constraint_labels: list[str] = labels
         self.constraint_owner = owners
         #: Rows of f (position level); the velocity rows (model/velocity.py) follow them.
@@ -350,7 +350,7 @@ class Model:
         key = self.numbers.tobytes()  # (Models of equal numbers fill them once: a scene's check, its run)
         filled = structure.filled_labels
         if filled is None or filled[0] != key:
-            labels = lifting.fill_all(structure.constraint_labels, self.numbers)
+            labels = expressions.fill_all(structure.constraint_labels, self.numbers)
             filled = structure.filled_labels = (key, labels)
         return list(filled[1])
 

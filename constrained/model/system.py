@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import copy
+import itertools
 import math
+import operator
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -191,8 +193,17 @@ class System:
             self.set_parameter(key, value)
         for key, formula in (definitions or {}).items():
             self.define(key, formula)
-        for p in particles:
-            self.add_particle(p)
+        particles = list(particles)
+        names = list(map(operator.attrgetter("name"), particles)) \
+            if all(map(isinstance, particles, itertools.repeat(Particle))) else None
+        if names is not None and len(set(names)) == len(names) \
+                and not any(map(operator.attrgetter("formulas"), particles)):
+            # (what add_particle does one by one, at once: distinct names, nothing to resolve)
+            self.particles = particles
+            self._names = (self.particles, len(particles), set(names))
+        else:
+            for p in particles:
+                self.add_particle(p)
         self.add(*constraints, *effects)
 
     # --- building -------------------------------------------------------------------------
@@ -227,6 +238,13 @@ class System:
         from .constraints import Constraint
         from .effects import Effect
 
+        kinds = {cls: issubclass(cls, Constraint) or (False if issubclass(cls, Effect) else None)
+                 for cls in set(map(type, items))}
+        if None not in kinds.values():  # (every class a constraint's or an effect's: in one pass each)
+            constraint = list(map(kinds.__getitem__, map(type, items)))
+            self.constraints += itertools.compress(items, constraint)
+            self.effects += itertools.compress(items, map(operator.not_, constraint))
+            return self
         for item in items:
             if isinstance(item, Constraint):
                 self.constraints.append(item)
@@ -414,15 +432,22 @@ def sketch(system) -> dict:
     moving points and formula-valued anchors are left out."""
     names = [p.name for p in system.particles]
     index = {n: k for k, n in enumerate(names)}
-    rods, anchors = [], []
-    for c in getattr(system, "constraints", ()):
-        kind = type(c).__name__
-        a, b, point = getattr(c, "a", None), getattr(c, "b", None), getattr(c, "point", None)
-        if kind not in ("Distance", "Pin") or a not in index:
-            continue
-        if b in index:
-            rods.append([index[a], index[b]])
-        elif point is not None and kind == "Distance":
+    constraints = list(getattr(system, "constraints", ()))
+    kinds = {cls: cls.__name__ for cls in set(map(type, constraints))}
+    drawn = [c for c, kind in zip(constraints, map(kinds.__getitem__, map(type, constraints)), strict=True)
+             if kind == "Distance" or kind == "Pin"]
+    try:  # (a cloth's 19,800 rods between particles: their ends looked up in passes)
+        ends = [list(map(index.get, map(getattr, drawn, itertools.repeat(end), itertools.repeat(None))))
+                for end in ("a", "b")]
+    except TypeError:  # (an unhashable end: each found as below)
+        ends = [[index[c.a] if getattr(c, "a", None) in index else None for c in drawn]]
+        ends.append([index[c.b] if k is not None and getattr(c, "b", None) in index else None
+                     for c, k in zip(drawn, ends[0], strict=True)])
+    rods = [[a, b] for a, b in zip(*ends, strict=True) if a is not None and b is not None]
+    anchors = []
+    for k in itertools.compress(range(len(drawn)), map(operator.is_, ends[1], itertools.repeat(None))):
+        c, a, point = drawn[k], ends[0][k], getattr(drawn[k], "point", None)
+        if a is not None and point is not None and type(c).__name__ == "Distance":
             try:
                 anchor = [float(v) for v in point]
             except (TypeError, ValueError):  # a moving anchor (formula of t): not drawn
@@ -435,7 +460,7 @@ def sketch(system) -> dict:
                     length = evaluate(length, getattr(system, "parameter_values", {}), "length")
                 except InputError:
                     length = None
-            anchors.append([index[a], anchor, float(length) if isinstance(length, int | float) else None])
+            anchors.append([a, anchor, float(length) if isinstance(length, int | float) else None])
     return {"rods": rods, "anchors": anchors}
 
 
