@@ -342,3 +342,25 @@ def test_the_command_runs_blas_on_one_thread_unless_its_environment_says(tmp_pat
     assert threads({}) == [1] or threads({}) == []  # (no BLAS found by threadpoolctl: nothing to limit)
     if (os.cpu_count() or 1) >= 2 and threads({}):
         assert threads({"OPENBLAS_NUM_THREADS": "2"}) == [2]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_the_command_keeps_freed_blocks_unless_the_environment_tunes_malloc(tmp_path):
+    """constrained.cli sets glibc's mmap and trim thresholds (large arrays reused, not mapped
+    afresh and faulted in again); a MALLOC_* or GLIBC_TUNABLES setting of the caller wins."""
+    code = "import constrained.cli as c; print(c.KEEPS_FREED_BLOCKS)"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+
+    def kept(extra: dict) -> str:
+        return subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True,
+                              text=True, check=True, cwd=tmp_path).stdout.strip()
+
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).mallopt  # noqa: B018 - glibc has it; musl does not
+    except AttributeError:
+        pytest.skip("no mallopt in this C library")
+    assert kept({}) == "True"
+    assert kept({"MALLOC_ARENA_MAX": "2"}) == "False"
+    assert kept({"GLIBC_TUNABLES": "glibc.malloc.arena_max=2"}) == "False"
