@@ -195,3 +195,24 @@ def test_check_lists_the_symmetries_a_scene_can_expect(capsys):
                     "P_y (translation along y); L_z (rotation about the z axis through (0, 0, 0))")
     assert main(["check", str(SCENARIOS / "double_pendulum.toml")]) == 0
     assert "symmetries (rigid motions): none" in capsys.readouterr().out
+
+
+def test_a_pendulum_hung_far_from_the_origin_has_the_three_rotations_about_its_pivot_only():
+    # Sampled at 0.3 of the size (|x| ≈ 7e5 m), the states could not be brought back onto 0.7 m
+    # rods: 2 states of 12 were left, and they allowed a translation and a screw that are not.
+    pivot = np.array([5e5, 5e5, 0.0])
+    s = C.System(name="double spherical pendulum, 700 km from the origin, no gravity")
+    s.add_particle("a", 0.3, pivot + [0.7, 0.0, 0.0], [0.0, 1.1, 0.4])
+    s.add_particle("b", 1.7, pivot + [0.7, 0.0, -1.3], [0.9, -0.2, 0.4])
+    s.add(C.Distance("a", point=list(pivot), length=0.7), C.Distance("a", "b", length=1.3))
+    model = C.assemble(s)
+    found = rigid_symmetries(model)
+    assert [f.name for f in found] == [f"L_{axis} about (500000, 500000, 0)" for axis in "xyz"]
+    for f in found:  # every one a rotation about an axis through the pivot: ε = −ω × pivot
+        assert np.allclose(f.translation, -np.cross(f.rotation, pivot), rtol=0, atol=1e-6)
+    traj = C.simulate(s, 2.0, model=model, t_eval=np.linspace(0, 2, 41), **TIGHT)
+    x, v, m = traj.x, traj.v, np.array([0.3, 1.7])
+    about_pivot = np.einsum("i,tij->tj", m, np.cross(x - pivot, v))  # closed form, all three conserved
+    assert np.max(np.abs(about_pivot - about_pivot[0])) < 1e-7 * np.max(np.abs(about_pivot))
+    for f, charge in zip(found, _charges_along(model, traj, found), strict=True):
+        assert np.allclose(charge, about_pivot @ f.rotation, rtol=0, atol=1e-6), f.name

@@ -42,14 +42,111 @@ def pretty(expr, digits: int = 6, *, simplify: bool = True, latex: bool = False)
     if simplify or latex:
         sympy = _sympy(required=latex)
         if sympy is not None:
-            converted = _to_sympy(expr, sympy, {})
-            simplified = sympy.trigsimp(sympy.expand(converted)) if simplify else converted
-            if simplified.atoms(sympy.Float):
-                simplified = simplified.evalf(digits)
-                simplified = simplified.xreplace({f: sympy.Integer(int(f)) for f in
-                                                  simplified.atoms(sympy.Float) if float(f).is_integer()})
-            return sympy.latex(simplified) if latex else str(simplified).replace("**", "^")
-    return _pp(expr, digits)[0]
+            converted = _converted(expr, sympy, {}, simplify=simplify)
+            if converted is None:
+                return _too_long(expr) if latex else _plain(expr, digits)
+            if converted.atoms(sympy.Float):
+                converted = converted.evalf(digits)
+                converted = converted.xreplace({f: sympy.Integer(int(f)) for f in
+                                                converted.atoms(sympy.Float) if float(f).is_integer()})
+            return sympy.latex(converted) if latex else str(converted).replace("**", "^")
+    return _plain(expr, digits)
+
+
+#: SymPy takes expressions up to this many CasADi operations, and simplifies their expansion
+#: (``trigsimp``) up to this many SymPy operations: its time grows steeply with the size (a
+#: 3-link chain's equation of 732 operations took 5 s, a 50-link chain's T did not finish in
+#: 10 minutes). Beyond, the expression is printed as CasADi builds it.
+SYMPY_OPERATIONS = 600
+TRIGSIMP_OPERATIONS = 250
+EXPANDED_TERMS = 2000
+#: Expressions whose printed form would exceed this many characters are summarized instead.
+PRINT_CHARS = 20_000
+
+
+def _operations(expr) -> int:
+    """The number of operations in the SX graph of a scalar ``expr`` (shared nodes once)."""
+    leaves = ca.symvar(expr)
+    if not leaves:
+        return 1
+    return int(ca.Function("size", [ca.vertcat(*leaves)], [expr]).n_instructions())
+
+
+def _converted(expr, sympy, names: dict, *, simplify: bool = True):
+    """``expr`` as an expanded SymPy expression, trigonometrically simplified when small enough;
+    None when it is too large for SymPy within a bounded time (``SYMPY_OPERATIONS``)."""
+    if _operations(expr) > SYMPY_OPERATIONS or _expanded_terms(expr, EXPANDED_TERMS) > EXPANDED_TERMS:
+        return None
+    try:
+        converted = _to_sympy(expr, sympy, names)
+        if not simplify:
+            return converted
+        expanded = sympy.expand(converted)
+        return sympy.trigsimp(expanded) if sympy.count_ops(expanded) <= TRIGSIMP_OPERATIONS else expanded
+    except RecursionError:
+        return None
+
+
+def _too_long(expr) -> str:
+    return f"(an expression of {_operations(expr)} operations, too long to print)"
+
+
+def _fold(expr, leaf, combine, limit: int) -> int:
+    """A count over the graph of ``expr`` bottom-up (``leaf(e)``, ``combine(e, counts of its
+    operands)``), each node once, without recursion, capped at ``limit + 1``."""
+    counts: dict[int, int] = {}
+    stack = [(expr, False)]
+    while stack:
+        e, ready = stack.pop()
+        key = e.element_hash()
+        if key in counts:
+            continue
+        deps = [] if e.is_symbolic() or e.is_constant() else [e.dep(k) for k in range(e.n_dep())]
+        if not deps:
+            counts[key] = min(limit + 1, leaf(e))
+        elif ready:
+            counts[key] = min(limit + 1, combine(e, [counts[d.element_hash()] for d in deps]))
+        else:
+            stack.append((e, True))
+            stack.extend((d, False) for d in deps if d.element_hash() not in counts)
+    return counts[expr.element_hash()]
+
+
+def _tree_size(expr, limit: int) -> int:
+    """The nodes of ``expr`` written out as a tree (a shared node once per use): a graph of a few
+    thousand shared nodes can print to millions of characters."""
+    return _fold(expr, lambda e: 1, lambda e, deps: 1 + sum(deps), limit)
+
+
+def _expanded_terms(expr, limit: int) -> int:
+    """An estimate of the number of terms of ``expr`` expanded (sums add, products multiply, an
+    integer power n raises to n, a function is one term): SymPy's ``expand`` cannot be stopped,
+    and (x² + x)² nested 60 times would not end."""
+
+    def combine(e, deps):
+        op = e.op()
+        if op in (ca.OP_ADD, ca.OP_SUB):
+            return deps[0] + deps[1]
+        if op == ca.OP_MUL:
+            return deps[0] * deps[1]
+        if op == ca.OP_SQ:
+            return deps[0] ** 2
+        if op == ca.OP_CONSTPOW and e.dep(1).is_constant() and float(e.dep(1)) > 0:
+            return deps[0] ** min(int(float(e.dep(1))) + 1, 64)
+        return deps[0] if op in (ca.OP_NEG, ca.OP_TWICE, ca.OP_DIV) else 1
+
+    return _fold(expr, lambda e: 1, combine, limit)
+
+
+def _plain(expr, digits: int) -> str:
+    """CasADi's graph as infix text, or a summary when it is too long (or too deep) to print."""
+    if _tree_size(expr, PRINT_CHARS) > PRINT_CHARS:
+        return _too_long(expr)
+    try:
+        text = _pp(expr, digits)[0]
+    except RecursionError:
+        return _too_long(expr)
+    return text if len(text) <= PRINT_CHARS else _too_long(expr)
 
 
 def _sympy(*, required: bool):
@@ -159,20 +256,17 @@ def describe(scene_or_model, *, parameters: dict | None = None, max_chars: int =
     if latex:
         return _describe_latex(rm)
     ex = rm.expressions
-    lines = [f"coordinates: {', '.join(rm.coordinates)}" + ("  (rheonomic map)" if rm.rheonomic else "")]
-    for name in ("T", "V", "U", "R", "L"):
-        e = ex[name]
-        if name in ("U", "R") and ca.SX(e).is_zero():
-            continue
-        lines.append(f"{name} = {pretty(e)}")
-    for j, c in enumerate(rm.coordinates):
-        lines.append(f"p_{c} = {pretty(ex['p'][j])}")
     E, rows = _equations(rm)
-    for j, c in enumerate(rm.coordinates):
-        lines.append(f"equation for {c}: {pretty(E[j])} = 0")
-    for k in range(rows.numel()):
-        lines.append(f"velocity constraint {k + 1} (multiplier mu{k + 1}): {pretty(rows[k])} = 0")
-    text = "\n".join(lines)
+    named = [(name, ex[name]) for name in ("T", "V", "U", "R", "L")
+             if name not in ("U", "R") or not ca.SX(ex[name]).is_zero()]
+    named += [(f"p_{c}", ex["p"][j]) for j, c in enumerate(rm.coordinates)]
+    named += [(f"equation for {c}:", E[j]) for j, c in enumerate(rm.coordinates)]
+    named += [(f"velocity constraint {k + 1} (multiplier mu{k + 1}):", rows[k]) for k in range(rows.numel())]
+    text = f"coordinates: {', '.join(rm.coordinates)}" + ("  (rheonomic map)" if rm.rheonomic else "")
+    for name, e in named:  # printed until max_chars: the lines past it are not simplified at all
+        if len(text) > max_chars:
+            break
+        text += f"\n{name} {pretty(e)} = 0" if name.endswith(":") else f"\n{name} = {pretty(e)}"
     if len(text) > max_chars:
         text = text[:max_chars] + "\n… (truncated)"
     return text
@@ -210,7 +304,9 @@ def latex_printer(rm: ReducedModel):
         names[f"{c}_ddot"] = sympy.Symbol(rf"\ddot{{{base}}}", real=True)
 
     def tex(e) -> str:
-        s = sympy.trigsimp(sympy.expand(_to_sympy(ca.SX(e), sympy, names)))
+        s = _converted(ca.SX(e), sympy, names)
+        if s is None:
+            return rf"\text{{{_too_long(ca.SX(e))}}}"
         s = s.xreplace({f: sympy.Integer(int(f)) for f in s.atoms(sympy.Float) if float(f).is_integer()})
         return sympy.latex(s)
 

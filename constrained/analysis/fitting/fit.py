@@ -37,6 +37,11 @@ __all__ = ["FitResult", "fit"]
 
 #: Singular values of the weighted Jacobian below this fraction of the largest: not identifiable.
 IDENTIFIABLE_RTOL = 1e-10
+#: A fit SciPy calls converged is not when a step along a free parameter would still remove more
+#: than this fraction of the residual's norm at first order (|J_jᵀ r| / (|J_j| |r|)): at a least-
+#: squares minimum r is orthogonal to every column (1e-7 on real fits); a chaotic double pendulum
+#: over 30 s stopped at its start with 0.15 (its trust region had shrunk to 1e-11).
+STALLED = 1e-3
 
 
 @dataclass(frozen=True)
@@ -304,6 +309,17 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
             + ", ".join(f"{k}: {g:.2g}" for k, g in grown.items()) + "): the standard errors and "
             "correlations, which are first-order, hold only for changes far below the inverse of that; "
             "fit over a shorter span"), stacklevel=2)
+    success, message = bool(sol.success), str(sol.message)
+    reducible = _first_order_reducible(sol, np.linalg.norm((weights * target)[measured]))
+    if success and reducible > STALLED:
+        success = False
+        message = (f"the steps stopped ({message}) with the residual still {reducible:.2g} of its size along "
+                   "the parameters at first order: the trust region shrank because the runs do not follow "
+                   "their linearization over any step the fit tried")
+        message += ("; the sensitivities grew by " + ", ".join(f"{k}: {g:.2g}" for k, g in grown.items())
+                    + " over the span (chaotic): fit over a shorter span, where they stay below 1e6, then "
+                    "extend it from that fit" if grown
+                    else "; start nearer the solution, or fit a shorter span")
     chi2 = float(residual @ residual)
     dof = m - n
     U, sv, Vt = np.linalg.svd(jac, full_matrices=False)
@@ -319,5 +335,19 @@ def fit(system, data: Measurements, parameters: Sequence[str], *, observables: M
     residuals = np.where(np.isfinite(data.values), data.values - fitted, np.nan)
     return FitResult(tuple(names), sol.x.copy(), se, theta0, cov, corr, data.t.copy(), data.names,
                      data.values.copy(), fitted, residuals,
-                     chi2, dof, sigma_given, bool(sol.success), str(sol.message), int(sol.nfev), njev[0],
+                     chi2, dof, sigma_given, success, message, int(sol.nfev), njev[0],
                      unidentified, tuple(formulas[k] for k in data.names))
+
+
+def _first_order_reducible(sol, data_size: float) -> float:
+    """The largest |J_jᵀ r| / (|J_j| |r|) over the parameters not at a bound (with the rows that
+    hold unseen directions), i.e. the fraction of the residual a step along one of them would remove
+    at first order; 0 when the residual is at round-off of the data (its direction is then noise)."""
+    r, J = np.asarray(sol.fun, float), np.asarray(sol.jac, float)
+    size = float(np.linalg.norm(r))
+    if size <= 1e-8 * data_size or not np.all(np.isfinite(J)):
+        return 0.0
+    columns = np.linalg.norm(J, axis=0)
+    free = (np.asarray(sol.active_mask) == 0) & (columns > 0)
+    return float(np.max(np.abs(J.T @ r)[free] / (columns[free] * size), initial=0.0))
+
