@@ -216,3 +216,33 @@ def test_a_pendulum_hung_far_from_the_origin_has_the_three_rotations_about_its_p
     assert np.max(np.abs(about_pivot - about_pivot[0])) < 1e-7 * np.max(np.abs(about_pivot))
     for f, charge in zip(found, _charges_along(model, traj, found), strict=True):
         assert np.allclose(charge, about_pivot @ f.rotation, rtol=0, atol=1e-6), f.name
+
+
+def test_a_charge_combining_cyclic_momenta_with_a_parameter_says_its_coefficients_are_numbers(tmp_path):
+    """A bead on a cylinder in (u = z + c φ, φ): L_z = c p_u + p_φ, printed at c = 0.5 as
+    0.5*p_u and said to be at the scene's values (not a formula in c)."""
+    scene = tmp_path / "cylinder.toml"
+    scene.write_text("""
+[parameters]
+c = 0.5
+R = 1.0
+[[particles]]
+name = "p"
+mass = 1.0
+position = [1.0, 0.0, 0.0]
+velocity = [0.0, 0.3, 0.2]
+[[constraints]]
+type = "surface"
+particles = ["p"]
+expr = "x**2 + y**2 - R**2"
+[reduced]
+coordinates = ["u", "ph"]
+initial = { u = 0.0, ph = 0.0 }
+rates = { u = 0.35, ph = 0.3 }
+map = { p = ["R*cos(ph)", "R*sin(ph)", "u - c*ph"] }
+""")
+    text = describe_conserved(C.load_scene(scene))
+    lines = {line.split(" = ")[0].strip(): line for line in text.splitlines() if " = " in line}
+    assert lines["P_z"].startswith("  P_z = p_u  (") and "parameter values" not in lines["P_z"]
+    assert lines["L_z"].startswith("  L_z = 0.5*p_u + p_ph  (")
+    assert lines["L_z"].endswith("(coefficients at the scene's parameter values))")

@@ -312,7 +312,10 @@ def _rigid_motion_lines(rm, rs, cons, formula, p_name, note) -> list[str]:
         if terms:
             combination = " + ".join(f"{p_name(name)}" if abs(c - 1) <= 1e-9 else f"{c:.6g}*{p_name(name)}"
                                      for c, name in terms).replace("+ -", "- ")
-            lines.append(f"{symmetry.name} = {combination}" + note(f"{why}: the same conserved quantity"))
+            numbers = any(abs(abs(c) - 1) > 1e-9 for c, _ in terms) and rm.system.parameters
+            at = " (coefficients at the scene's parameter values)" if numbers else ""
+            lines.append(f"{symmetry.name} = {combination}"
+                         + note(f"{why}: the same conserved quantity{at}"))
     return lines
 
 
