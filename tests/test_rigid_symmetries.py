@@ -246,3 +246,17 @@ map = { p = ["R*cos(ph)", "R*sin(ph)", "u - c*ph"] }
     assert lines["P_z"].startswith("  P_z = p_u  (") and "parameter values" not in lines["P_z"]
     assert lines["L_z"].startswith("  L_z = 0.5*p_u + p_ph  (")
     assert lines["L_z"].endswith("(coefficients at the scene's parameter values))")
+
+
+def test_too_few_states_on_the_constraints_is_a_refusal_not_a_list(monkeypatch):
+    """Two or three states cannot rule out a false motion (the far pendulum's false screw came
+    from 2 of 12): the search refuses, naming why, and `check` says it did not search."""
+    from constrained.analysis.conservation import rigid_motions
+
+    s = C.System(name="bead on a sphere")
+    s.add_particle("p", 1.0, [2.0, 2.0, 3.0], [0.0, 0.3, 0.1])
+    s.add(C.Distance("p", point=[1.0, 2.0, 3.0], length=1.0))
+    sampled = rigid_motions.manifold_samples
+    monkeypatch.setattr(rigid_motions, "manifold_samples", lambda m, n, seed: sampled(m, n, seed)[:3])
+    with pytest.raises(C.InputError, match="only 3 states on the constraints"):
+        rigid_symmetries(s)

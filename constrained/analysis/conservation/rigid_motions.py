@@ -22,11 +22,14 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ...errors import InputError
 from ...model.structure import Model, assemble
 from ..symmetry import SYMMETRY_RTOL, canonical_momentum, manifold_samples, variation_checks
 
 #: Components below this (relative to the vector's largest) are printed and kept as 0.
 CLEAN = 1e-9
+#: Fewer sampled states than this (or than asked for) and the search refuses (InputError).
+ENOUGH_STATES = 6
 _AXES = "xyz"
 
 
@@ -172,6 +175,9 @@ def rigid_symmetries(model, *, samples: int = 12, seed: int = 0,
     scale_of = ca.Function("rigid_scales", [x, v, t, generator], [scales])
     blocks = []
     states = manifold_samples(model, samples, seed)
+    if len(states) < min(samples, ENOUGH_STATES):  # (a few states cannot rule out a false motion)
+        raise InputError(f"only {len(states)} states on the constraints could be sampled near the start "
+                         f"(of {samples} asked for): too few to tell a symmetry from a coincidence")
     for xs, vs, ts in states:
         D = np.asarray(matrix_of(xs, vs, ts)) @ unit
         scale = sum(np.asarray(scale_of(xs, vs, ts, unit[:, j])).ravel() for j in range(6))
