@@ -55,8 +55,10 @@ def loads(text: str) -> dict:
         raise NumberTooLong(text, exc) from None
 
 
-#: A large scene is read by rtoml in pieces of about this many characters (``_in_pieces``).
-PIECE = 256 * 1024
+#: A large scene is read by rtoml in pieces of about this many characters (``_in_pieces``): rtoml's
+#: transient copy of a piece (30 times its text) then stays in the processor's cache (a 4 MB
+#: cloth read in pieces of 64 kB: 0.105-0.110 s of CPU, of 256 kB: 0.125-0.135 s).
+PIECE = 64 * 1024
 #: An array-of-tables header of one bare key, alone on its line: ``[[effects]]``.
 _ARRAY_HEADER = re.compile(r"^\[\[[ \t]*([A-Za-z0-9_-]+)[ \t]*\]\][ \t]*$", re.M)
 
