@@ -249,6 +249,56 @@ def test_a_large_scene_read_in_pieces_reads_as_tomli_reads_it(monkeypatch):
     assert _same(tomlparse._in_pieces(scene), tomli.loads(scene))
 
 
+@pytest.mark.skipif(tomlparse._fast is None, reason="rtoml is not installed")
+def test_pieces_walked_as_read_answer_as_the_whole_document(monkeypatch):
+    """loads_walked's answers, one per piece (or one for the document read whole), say what
+    the load's nesting and number walk says of the merged document: a huge number or a deep
+    nesting in a later piece, pieces refused and read whole, tomli's errors first; and on the
+    generated scene-like documents."""
+    from constrained.scene import load
+    monkeypatch.setattr(tomlparse, "PIECE", 8)
+
+    def answer(text):
+        raw, answers = tomlparse.loads_walked(text, load.nesting_and_numbers)
+        assert _same(raw, tomli.loads(text))
+        try:
+            return load._refused_or_moderate(answers, "f"), len(answers)
+        except load.SceneError as exc:
+            return str(exc), len(answers)
+
+    def whole(text):
+        try:
+            return load.refuse_deep_nesting(tomli.loads(text), "f")
+        except load.SceneError as exc:
+            return str(exc)
+
+    deep = "[" * 70 + "1" + "]" * 70
+    texts = [*(t for t in PIECES_DIFFER if t not in (PIECES_DIFFER[1], PIECES_DIFFER[3])),
+             "[[p]]\nx = 1\n[[p]]\nx = 2\n[[p]]\nx = 1e300\n[[p]]\nx = 3\n",
+             "[[p]]\nx = 1\n[[p]]\nx = 2\n[[p]]\nx = nan\n", "[[p]]\nx = -1e101\n[[p]]\nx = 2\n",
+             f"[[p]]\nx = 1\n[[p]]\nx = 2\n[[p]]\nx = {deep}\n[[p]]\nx = 1e300\n",
+             "[[p]]\nx = 1\n[[p]]\nx = [[2.5, 3], {y = 4}]\n"]
+    counts = set()
+    for text in texts:
+        said, n = answer(text)
+        assert said == whole(text), text
+        counts.add(n)
+    assert {1} < counts  # (some read in pieces, some whole)
+    assert answer(texts[-3])[0] is False and "nested too deeply" in answer(texts[-2])[0]
+    with pytest.raises(tomlparse.TOMLDecodeError):
+        tomlparse.loads_walked(f"[[p]]\nx = {deep}\n[[p]]\nx = \n", load.nesting_and_numbers)
+    rng = random.Random(20261129)
+    for _ in range(300):
+        text = _scene_like_document(rng)
+        try:
+            tomli.loads(text)
+        except tomli.TOMLDecodeError:
+            with pytest.raises(tomlparse.TOMLDecodeError):
+                tomlparse.loads_walked(text, load.nesting_and_numbers)
+            continue
+        assert answer(text)[0] == whole(text)
+
+
 def test_without_rtoml_tomli_reads_everything(monkeypatch):
     """rtoml not importable: tomlparse still loads, with tomli, and gives tomli's errors."""
     try:

@@ -288,12 +288,25 @@ def refuse_deep_nesting(raw: dict, file: str) -> bool:
     """SceneError when tables and arrays nest deeper than MAX_NESTING (counted without recursion:
     TOML's dotted table names, [a.a.a...], nest without limit). Returns whether every number in
     ``raw`` is finite and moderate (the scene's ``finite_everywhere``, answered by this walk)."""
+    return _refused_or_moderate([nesting_and_numbers(raw)], file)
+
+
+def nesting_and_numbers(raw: dict) -> tuple[bool, bool]:
+    """``(too_deep, moderate)``: whether tables and arrays in ``raw`` nest deeper than
+    MAX_NESTING, and (when not) whether every number in it is finite and moderate."""
     moderate = True
     for depth, (level, types) in enumerate(nesting_levels(raw), 1):
         if depth > MAX_NESTING and any(isinstance(v, dict | list) for v in level):
-            raise SceneError(f"{NESTED_TOO_DEEPLY} (more than {MAX_NESTING} levels)", file=file)
+            return True, False
         moderate = moderate and moderate_level(level, types)
-    return moderate
+    return False, moderate
+
+
+def _refused_or_moderate(answers: list, file: str) -> bool:
+    """``refuse_deep_nesting`` of a document from the ``nesting_and_numbers`` of its parts."""
+    if any(too_deep for too_deep, _ in answers):
+        raise SceneError(f"{NESTED_TOO_DEEPLY} (more than {MAX_NESTING} levels)", file=file)
+    return all(moderate for _, moderate in answers)
 
 
 #: Scenes validated in this process, by file content (its SHA-256) and overrides: reading one
@@ -317,14 +330,15 @@ def _parsed(data: bytes, digest: tuple, file: str) -> tuple[dict, bool, bool]:
     if raw is not None:
         return raw, True, moderate
     try:
-        raw = tomlparse.loads(data.decode("utf-8"))
+        # (each piece of a large scene walked as it is read: tomlparse.loads_walked)
+        raw, answers = tomlparse.loads_walked(data.decode("utf-8"), nesting_and_numbers)
     except UnicodeDecodeError as exc:
         raise SceneError(f"not UTF-8 text (byte {exc.start})", file=file) from None
     except tomlparse.TOMLDecodeError as exc:
         raise SceneError(f"not valid TOML: {exc}", file=file) from None
     except RecursionError:  # (Python's TOML reader recurses once per level)
         raise SceneError(f"not valid TOML: {NESTED_TOO_DEEPLY}", file=file) from None
-    moderate = refuse_deep_nesting(raw, file)
+    moderate = _refused_or_moderate(answers, file)
     particles = raw.get("particles")
     if isinstance(particles, list) and len(particles) > KEPT_PARTICLES:
         return raw, False, moderate
