@@ -394,3 +394,28 @@ def test_a_hit_marks_its_entry_used_and_a_new_entry_evicts_the_stale(tmp_path, m
     assert float(build("evict_b")(5)) == 10
     (second,) = (tmp_path / "cache").glob("evict_b_*.so")
     assert second.exists() and not first.exists() and not first.with_suffix(".json").exists()
+
+
+@needs_cc
+def test_cached_source_loads_each_function_when_first_used_and_finds_what_was_compiled(
+        monkeypatch, tmp_path):
+    """``cached_source`` gives ``Deferred`` Functions: each gives what the compiled one gives
+    (values, shapes, name), is loaded only when used, and a name the library lacks means None."""
+    import casadi as ca
+    import numpy as np
+    monkeypatch.setenv("CONSTRAINED_CACHE", str(tmp_path))
+    x, y = ca.SX.sym("x", 3), ca.SX.sym("y", 2)
+    functions = [ca.Function("deferred_a", [x], [ca.sin(x) + 2 * x]), ca.Function("deferred_b", [y], [y * y])]
+    key = b"deferred test source"
+    source = compiled._generated(functions)
+    eager = compiled.compile_source(source, functions, key=key)
+    assert compiled.last_error is None and eager is not None
+    lazy = compiled.cached_source(["deferred_a", "deferred_b"], key)
+    assert all(f._function is None for f in lazy)  # nothing loaded yet
+    got = np.asarray(lazy[1](np.array([3.0, -4.0]))).ravel()
+    assert lazy[0]._function is None and lazy[1]._function is not None
+    assert got.tolist() == np.asarray(eager[1](np.array([3.0, -4.0]))).ravel().tolist() == [9.0, 16.0]
+    assert lazy[0].name() == "deferred_a" and lazy[0].sparsity_in(0) == eager[0].sparsity_in(0)
+    point = np.array([0.1, 0.2, 0.3])
+    assert np.asarray(lazy[0](point)).tolist() == np.asarray(eager[0](point)).tolist()
+    assert compiled.cached_source(["deferred_a", "deferred_missing"], key) is None

@@ -142,21 +142,45 @@ def _source_key(key: bytes, cc: str, flags) -> str:
     return digest.hexdigest()[:20]
 
 
-def cached_source(names: list[str], key: bytes, *, flags=FLAGS) -> list[ca.Function] | None:
+def cached_source(names: list[str], key: bytes, *, flags=FLAGS) -> list | None:
     """The Functions ``names`` of the library that ``compile_source(source, like, key=key)``
     built (``like[0]`` named ``names[0]``) when the cache holds it whole and signed, else None
     (nothing is compiled): a lookup needing neither the source nor the Functions' shapes, for a
-    ``key`` that decides the source entirely (what the shapes are follows from it)."""
+    ``key`` that decides the source entirely (what the shapes are follows from it); each
+    ``Deferred``: loaded when first used."""
     global last_error
     target = cached_library(names[0], key, flags=flags)
     if target is None:
         return None
     try:
-        loaded = [ca.external(name, str(target)) for name in names]
+        importer = ca.Importer(str(target), "dll")
     except RuntimeError:
         return None
+    if not all(importer.has_function(name) for name in names):
+        return None
     last_error = None
-    return loaded
+    return [Deferred(importer, name) for name in names]
+
+
+class Deferred:
+    """A library's Function loaded (``ca.external``) when first called or asked about: loading
+    reads its shapes, and a run by Dopri never calls the KKT library's ``factor`` and
+    ``substitute``s (on the 100 x 100 cloth 11 ms of loading)."""
+
+    def __init__(self, importer: ca.Importer, name: str):
+        self._importer, self._name, self._function = importer, name, None
+
+    @property
+    def function(self) -> ca.Function:
+        if self._function is None:
+            self._function = ca.external(self._name, self._importer)
+        return self._function
+
+    def __call__(self, *args):
+        return self.function(*args)
+
+    def __getattr__(self, name: str):
+        return getattr(self.function, name)
 
 
 def cached_library(name: str, key: bytes, *, flags=FLAGS) -> Path | None:
