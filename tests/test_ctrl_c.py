@@ -316,6 +316,35 @@ def test_ctrl_c_in_the_last_step_is_a_stop_not_a_lost_request(monkeypatch):
     assert not interrupt.requested()
 
 
+@pytest.mark.parametrize("method", ["idas", "dopri", "rattle"])
+def test_ctrl_c_landing_in_python_code_inside_a_call_into_c_keeps_the_run(method):
+    """SIGINT inside ``interrupt.external()`` raises KeyboardInterrupt where Python runs (here a
+    progress callback; in a run, the glue around an IDAS call): the driver stops there and keeps
+    what was reached. It used to stop without marking the request seen, so the run's watch()
+    raised it again as a bare KeyboardInterrupt and the CLI kept nothing (a CI failure of
+    test_runtime's idas case under load)."""
+    import constrained as C
+    from constrained import interrupt
+
+    system = C.load_scene(SCENES / "double_pendulum.toml").system
+    pressed = []
+
+    def press_inside_a_call(t):
+        if not pressed:
+            pressed.append(t)
+            with interrupt.external():
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(0.05)  # (the handler raises here at the latest)
+
+    settings = {"dt": 1e-3} if method == "rattle" else {}
+    with pytest.raises(C.RunInterrupted) as info:
+        C.simulate(system, 1e4, method=method, progress=press_inside_a_call, **settings)
+    kept = info.value.trajectory
+    assert kept.info["status"] == "interrupted" and len(kept.t) >= 2
+    assert 0 < kept.info["t_end_reached"] <= pressed[0] + 1e-12
+    assert not interrupt.requested()
+
+
 def test_a_request_nobody_saw_is_raised_when_the_watch_ends():
     from constrained import interrupt
 

@@ -21,6 +21,7 @@ import bisect
 
 import numpy as np
 
+from .. import interrupt
 from ..manifold import diagnostics
 from . import stiffness
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
@@ -362,6 +363,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
             if stepper.progress is not None and k:
                 stepper.progress(float(run.last[0]))
     except KeyboardInterrupt:  # Ctrl-C inside a call into C, or from a progress callback
+        interrupt.requested()  # (handled here: seen, so the run's watch() does not raise it again)
         failure = _interrupted(run.last[0])
         run.keep_reached()
     if failure is None or failure.status is Status.COMPLETED:
