@@ -213,6 +213,31 @@ def test_labels_are_filled_in_one_pass_as_one_by_one():
         assert expressions.fill_all(some, values) == [expressions.fill(t, values) for t in some]
 
 
+def test_a_run_of_rods_is_labelled_as_each_rod_labels_itself(monkeypatch):
+    """The labels of rods built together (``Distance.batch_rows``, their tokens written without
+    Number.__format__) are each rod's own ``label`` in the lifted system: named rods, unequal
+    lengths, equal ones, rods to a point and a length given by a formula among them."""
+    from constrained.model import constraints
+
+    s = C.System(name="rods")
+    s.parameters["L"] = 0.4
+    for i in range(90):
+        s.add_particle(f"q{i}", 1.0 + i % 3, [0.1 * i, 0.02 * (i % 5), 0.0])
+    for i in range(89):
+        length = "L" if i == 40 else (0.25 if i % 7 == 0 else 0.1 + 0.001 * i)
+        s.add(C.Distance(f"q{i}", f"q{i + 1}", length=length, name="named" if i == 13 else None))
+    s.add(C.Distance("q0", point=[0.0, 0.0, 1.0], length=1.0))
+    for i in range(70):
+        s.add(C.Distance(f"q{i}", f"q{i + 2}", length=0.2 + 1e-4 * i))
+    structure = Structure(s)
+    lifted, _ = lifting.lift(s)
+    expected = [c.label for c in lifted.constraints]
+    assert structure.constraint_labels == expected
+    assert any("⟦" in label for label in expected)
+    monkeypatch.setattr(constraints, "BATCH_FROM", 10**9)  # each rod by itself
+    assert Structure(s).constraint_labels == expected
+
+
 def test_plain_data_of_flat_tables_and_lists_as_one_by_one():
     for value in ([1, 2.5, "a", None, True], ("a", 1), {"a": 1, "b": None, "c": False},
                   {"a": [1, 2], "b": lifting.Number(3)}, [[1, "x"], {"k": 0.5}]):

@@ -226,7 +226,8 @@ class Distance(Constraint):
             return plain, Formula.of(ca.SX(0, 1)), [], None
         rods = [items[k] for k in plain]
         lengths = [c.length for c in rods]
-        labels = [c.name or f"distance {c.a}–{c.b} = {c.length:g} m" for c in rods]  # (``label``)
+        # (``label``, the length's token written as Number.__format__ writes it, without a call)
+        labels = [c.name or f"distance {c.a}–{c.b} = ⟦{c.length.index}⟧ m" for c in rods]
         return plain, pair_formula(s, ends, [lengths], lambda d, length: (d - length).T), labels, \
             pair_batch(items, plain, s, [lengths], ends)
 
