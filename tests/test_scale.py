@@ -81,6 +81,28 @@ def test_buffer_calls_identical_to_ordinary_calls(small):
     assert np.array_equal(a1, kept)
 
 
+def test_released_buffers_are_made_again_with_the_same_results(small, monkeypatch):
+    """``release_large`` frees the buffers of the FastCalls with a work vector of LARGE_WORK
+    doubles or more (here the acceleration's, the threshold lowered below it), not the others'
+    (a Function with no work vector); a released FastCall's next call makes them again and gives
+    the same bits as before."""
+    from constrained.codegen import fast_call
+
+    model, x, v = small
+    function = acceleration_function(model)
+    inputs = function.mx_in()
+    dense = ca.Function("dense", inputs, [ca.densify(o) for o in function.call(inputs)])
+    monkeypatch.setattr(fast_call, "LARGE_WORK", dense.sz_w())
+    large = FastCall(dense)
+    small_call = FastCall(ca.Function("twice", [inputs[0]], [2 * inputs[0]]))
+    before, doubled = large(x, v, 0.3), small_call(x)
+    fast_call.release_large()
+    assert large._local.state is None and small_call._local.state is not None
+    after = large(x, v, 0.3)
+    assert all(np.array_equal(b, a) for b, a in zip(before, after, strict=True))
+    assert np.array_equal(small_call(x)[0], doubled[0]) and np.array_equal(doubled[0], 2 * x)
+
+
 def test_buffer_calls_without_constraints():
     s = C.System()
     s.add_particle("p", 2.0, [0, 0, 0])

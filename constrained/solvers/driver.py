@@ -22,6 +22,7 @@ import bisect
 import numpy as np
 
 from .. import interrupt
+from ..codegen.fast_call import release_large
 from ..manifold import diagnostics
 from . import stiffness
 from .base import Advance, Event, EventHit, Failure, Solution, Solver, Status
@@ -315,6 +316,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
     run = _Run(stepper, x0, v0, t0, t_end, t_eval, events)
     state = stepper.init(x0, v0, t0, t_end)
     run.last_a = stepper.start_acceleration(state)
+    release_large()  # (the start's accelerations: their memory serves the steps)
     failure = None
     steps = 0
     max_steps = stepper.max_steps or _default_step_limit(stepper, t0, t_end)
@@ -369,6 +371,7 @@ def integrate(stepper: Solver, x0, v0, t0: float, t_end: float, *, t_eval=None,
     if failure is None or failure.status is Status.COMPLETED:
         run.keep_last_step()
     stepper.finish()
+    release_large()  # (the steps': it serves what follows, the quantities along the run)
     stats = stepper.counted()
     run.stiffness_verdict(stats, failure)
     stats["events"] = len(run.hits)
