@@ -63,14 +63,16 @@ def _rope(n: int, *, moving_plane: bool = False) -> C.System:
     return s
 
 
-def _same_groups(a: list, b: list, t) -> None:
+def _same_groups(a: list, b: list, t, t_b=None) -> None:
+    """The groups ``a`` and ``b`` alike: index data, parts and kernels (``t_b``: b's time symbol,
+    when its groups were built on other symbols)."""
     assert len(a) == len(b)
     for g, h in zip(a, b, strict=True):
         for field in ("index", "sources", "constants", "place"):
             assert np.array_equal(getattr(g, field), getattr(h, field)), field
         assert g.parts == h.parts
         assert (ca.Function("k", [g.xl, g.c, t], [g.local]).serialize()
-                == ca.Function("k", [h.xl, h.c, t], [h.local]).serialize())
+                == ca.Function("k", [h.xl, h.c, t if t_b is None else t_b], [h.local]).serialize())
 
 
 def _builds(system: C.System) -> tuple[MappedBuild, MappedBuild, Structure]:

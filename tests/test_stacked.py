@@ -15,6 +15,7 @@ import dataclasses
 import casadi as ca
 import numpy as np
 import pytest
+from test_batched_groups import _same_groups
 
 import constrained as C
 from constrained.manifold.mapped import MappedBuild
@@ -136,16 +137,6 @@ def test_the_flags_follow_the_formulas_of_t_and_v():
     assert "time_dependent_forces" not in Structure(SYSTEMS["chain"]()).active_terms
     assert Structure(SYSTEMS["damping among springs"]()).forces_depend_on_velocity
     assert not Structure(SYSTEMS["springs both ways"]()).forces_depend_on_velocity
-
-
-def _same_groups(a: list, b: list, t, t_b=None) -> None:
-    assert len(a) == len(b)
-    for g, h in zip(a, b, strict=True):
-        for field in ("index", "sources", "constants", "place"):
-            assert np.array_equal(getattr(g, field), getattr(h, field)), field
-        assert g.parts == h.parts
-        assert (ca.Function("k", [g.xl, g.c, t], [g.local]).serialize()
-                == ca.Function("k", [h.xl, h.c, t if t_b is None else t_b], [h.local]).serialize())
 
 
 @pytest.mark.parametrize("name", SYSTEMS)

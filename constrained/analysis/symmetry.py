@@ -103,10 +103,15 @@ def _lagrangian_parts(model: Model):
 
 
 def canonical_momentum(model: Model) -> ca.SX:
-    """∂L/∂v = M v − ∂U/∂v (3N)."""
-    s = model.symbols
-    U = sum((e for slot, _, e in _lagrangian_parts(model) if slot == "generalized_potential"), ca.SX(0))
-    return ca.DM(model.masses) * s.v - ca.gradient(U, s.v)
+    """∂L/∂v = M v − ∂U/∂v (3N), on the model's symbols."""
+    return momentum_of(model.symbols, model.system.effects, ca.DM(model.masses))
+
+
+def momentum_of(s, effects, masses) -> ca.SX:
+    """``masses ∘ v − ∂U/∂v`` on the symbols ``s`` (U: the generalized potentials among
+    ``effects``; ``masses``: 3N, numbers or formulas)."""
+    U = sum((ca.SX(e.term(s)) for e in effects if e.slot == "generalized_potential"), ca.SX(0))
+    return masses * s.v - ca.gradient(U, s.v)
 
 
 def _columns(trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

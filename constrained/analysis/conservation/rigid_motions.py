@@ -24,7 +24,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...model.structure import Model, assemble
-from ..symmetry import SYMMETRY_RTOL, canonical_momentum, manifold_samples, variation_checks
+from ..symmetry import SYMMETRY_RTOL, canonical_momentum, manifold_samples, momentum_of, variation_checks
 
 #: Components below this (relative to the vector's largest) are printed and kept as 0.
 CLEAN = 1e-9
@@ -141,6 +141,12 @@ def _describe(rotation: np.ndarray, translation: np.ndarray, size: float,
     return name, text
 
 
+def _generator(rotation, translation, x):
+    """ξ = (ε + ω × x_i) for each particle, as one column (3N) of the positions ``x`` (3N)."""
+    n = x.numel() // 3
+    return ca.vec(ca.repmat(translation, 1, n) + ca.cross(ca.repmat(rotation, 1, n), ca.reshape(x, 3, n)))
+
+
 def _largest_move(rotation: np.ndarray, translation: np.ndarray, x: np.ndarray) -> float:
     """max_i |ε + ω × x_i| at the positions ``x`` (3N)."""
     positions = np.asarray(x, float).reshape(-1, 3)
@@ -160,9 +166,7 @@ def rigid_symmetries(model, *, samples: int = 12, seed: int = 0,
     s = model.symbols
     x, v, t = s.x, s.v, s.t
     generator = ca.SX.sym("s", 6)  # ω, ε
-    n = model.n_particles
-    positions = ca.reshape(x, 3, n)
-    xi = ca.vec(ca.repmat(generator[3:], 1, n) + ca.cross(ca.repmat(generator[:3], 1, n), positions))
+    xi = _generator(generator[:3], generator[3:], x)
     checks = variation_checks(model, xi)
     if not checks:
         return []
@@ -204,8 +208,7 @@ def rigid_symmetries(model, *, samples: int = 12, seed: int = 0,
     anchors = _anchors(model, [(w, e) for w, e in motions if np.any(w)])
     for rotation, translation in motions:
         name, description = _describe(rotation, translation, size, anchors)
-        xi_row = ca.vec(ca.repmat(ca.DM(translation), 1, n) + ca.cross(ca.repmat(ca.DM(rotation), 1, n),
-                                                                        positions))
+        xi_row = _generator(ca.DM(rotation), ca.DM(translation), x)
         found.append(RigidSymmetry(rotation, translation, name, description, ca.dot(momentum, xi_row)))
     return sorted(found, key=lambda symmetry: bool(np.any(symmetry.rotation)))  # translations first
 
@@ -215,13 +218,9 @@ def charge_in_coordinates(reduced, symmetry: RigidSymmetry) -> ca.SX:
     and ``ξ_i = ε + ω × x_i`` at ``x(q, t)``, ``ẋ(q, q̇, t)`` (the reduced model's masses and
     parameters: symbols when it was built with ``symbolic_parameters``)."""
     s = reduced.symbols
-    U = sum((ca.SX(e.term(s)) for e in reduced.system.effects if e.slot == "generalized_potential"),
-            ca.SX(0))
     masses = ca.vertcat(*[ca.SX(m) for m in s.masses for _ in range(3)])
-    momentum = masses * s.v - ca.gradient(U, s.v)
-    n = reduced.system.n_particles
-    xi = ca.vec(ca.repmat(ca.DM(symmetry.translation), 1, n)
-                + ca.cross(ca.repmat(ca.DM(symmetry.rotation), 1, n), ca.reshape(s.x, 3, n)))
+    momentum = momentum_of(s, reduced.system.effects, masses)
+    xi = _generator(ca.DM(symmetry.rotation), ca.DM(symmetry.translation), s.x)
     ex = reduced.expressions
     mapped = ca.densify(ca.vertcat(ex["x"], ex["x_dot"]))
     return ca.substitute(ca.dot(momentum, xi), ca.vertcat(s.x, s.v), mapped)
