@@ -52,13 +52,13 @@ def loads_walked(text: str, walk) -> tuple[dict, list]:
     in exactly one of them. ``walk`` None: no answers."""
     answers: list = []
     if _fast is not None and rtoml_reads_as_tomli(text):
+        read = None
         try:
-            read = _in_pieces(text, walk, answers) if len(text) > 2 * PIECE else None
-            if read is None:
-                answers.clear()
-                read = _fast.loads(text)
-            else:
-                return read, answers
+            pieces = _in_pieces(text, walk, answers) if len(text) > 2 * PIECE else None
+            if pieces is not None:
+                return pieces, answers
+            answers.clear()
+            read = _fast.loads(text)
         except Exception:  # noqa: BLE001 - any refusal (or a value Python refuses): tomli's word
             read = None
         if read is not None:
@@ -77,13 +77,15 @@ def loads_walked(text: str, walk) -> tuple[dict, list]:
 #: transient copy of a piece (30 times its text) then stays in the processor's cache (a 4 MB
 #: cloth read in pieces of 64 kB: 0.105-0.110 s of CPU, of 256 kB: 0.125-0.135 s).
 PIECE = 64 * 1024
-#: An array-of-tables header of one bare key, alone on its line: ``[[effects]]``.
-_ARRAY_HEADER = re.compile(r"^\[\[[ \t]*([A-Za-z0-9_-]+)[ \t]*\]\][ \t]*$", re.M)
+#: An array-of-tables header alone on its line, ``[[effects]]``, of the key pattern put in.
+_HEADER_OF = r"^\[\[[ \t]*{}[ \t]*\]\][ \t]*$"
+#: Such a header of one bare key.
+_ARRAY_HEADER = re.compile(_HEADER_OF.format(r"([A-Za-z0-9_-]+)"), re.M)
 
 
 def _declares(piece: str, key: str) -> bool:
     """Whether a ``[[key]]`` header stands in ``piece`` (a bare key: as ``_ARRAY_HEADER`` finds)."""
-    return re.search(rf"^\[\[[ \t]*{re.escape(key)}[ \t]*\]\][ \t]*$", piece, re.M) is not None
+    return re.search(_HEADER_OF.format(re.escape(key)), piece, re.M) is not None
 
 
 def _in_pieces(text: str, walk=None, answers: list | None = None) -> dict | None:
