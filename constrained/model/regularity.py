@@ -176,7 +176,7 @@ def unresolved_rods(system: System) -> list[tuple[int, Distance, float, float]]:
         i = rods[k]
         c = constraints[i]
         anchor = np.asarray(c.point, float) if c.b is None and not any(
-            isinstance(k, str) for k in c.point) else np.zeros(1)
+            isinstance(coordinate, str) for coordinate in c.point) else np.zeros(1)
         smallest = max(UNRESOLVED_FRACTION * max(size, float(np.max(np.abs(anchor)))), SMALLEST_LENGTH)
         if 0 < lengths[k] < smallest:
             found.append((i, c, float(lengths[k]), smallest))
